@@ -1,0 +1,1 @@
+"""Attack objectives, search algorithms (ask/tell), driver and run journal."""

@@ -1,0 +1,1 @@
+"""Autonomy stacks under test: detector, tracker, predictor, planner."""

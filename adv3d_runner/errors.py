@@ -1,0 +1,50 @@
+"""One exception family for everything adv3d raises on purpose.
+
+The CLI catches ``Adv3dError`` and prints its message without a traceback; anything else is a
+bug and keeps its traceback.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+
+class Adv3dError(Exception):
+    """Base class of every error adv3d raises deliberately."""
+
+
+class FileFormatError(Adv3dError):
+    """A file is unreadable or does not match its contract.
+
+    The message names the file, the field as a JSON path (``$.actors[3].track.x``) and what was
+    expected, so a user can fix the file without reading code.
+    """
+
+    def __init__(self, path: str | Path | None, field: str, expected: str, got: object = None):
+        self.path = None if path is None else str(path)
+        self.field = field
+        self.expected = expected
+        self.got = got
+        where = f"{self.path}: " if self.path else ""
+        got_txt = "" if got is None else f" (got {_short(got)})"
+        super().__init__(f"{where}{field}: expected {expected}{got_txt}")
+
+
+class MeshImportError(Adv3dError):
+    """A mesh file cannot be imported (missing, corrupt, not a mesh, empty)."""
+
+
+class InvalidQueryError(Adv3dError):
+    """An attack query cannot be evaluated; callers record it and penalise it, never crash."""
+
+
+class EmptySurfaceError(InvalidQueryError):
+    """A latent decodes to a field with no zero level set (no surface to extract)."""
+
+
+class ConfigError(Adv3dError):
+    """Bad command-line or configuration value."""
+
+
+def _short(value: object, limit: int = 60) -> str:
+    text = repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."

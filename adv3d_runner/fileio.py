@@ -1,0 +1,100 @@
+"""Safe file writing and versioned JSON loading shared by every data contract.
+
+Writes go to a temporary file in the same folder and are renamed over the target, so a failed
+or killed run never leaves a half-written file where the user's file was.
+"""
+from __future__ import annotations
+
+import gzip
+import json
+import os
+import tempfile
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any, Iterator
+
+from .errors import FileFormatError
+
+REPO_ROOT = Path(__file__).resolve().parent.parent
+
+
+@contextmanager
+def atomic_path(target: str | Path, suffix: str = "") -> Iterator[Path]:
+    """Yield a temporary path beside ``target``; rename it over ``target`` on success.
+
+    Args:
+        target: final file path.
+        suffix: extension for the temporary file (some writers pick the format from it).
+    """
+    target = Path(target)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=suffix or target.suffix, dir=target.parent)
+    os.close(fd)
+    tmp_path = Path(tmp)
+    try:
+        yield tmp_path
+        os.replace(tmp_path, target)
+    finally:
+        if tmp_path.exists():
+            tmp_path.unlink()
+
+
+def atomic_write_bytes(target: str | Path, data: bytes) -> None:
+    """Write ``data`` to ``target`` atomically."""
+    with atomic_path(target) as tmp:
+        tmp.write_bytes(data)
+
+
+def atomic_write_text(target: str | Path, text: str) -> None:
+    """Write UTF-8 ``text`` to ``target`` atomically (gzip-compressed if it ends in .gz)."""
+    data = text.encode("utf-8")
+    if str(target).endswith(".gz"):
+        data = gzip.compress(data, mtime=0)  # mtime=0: same content, same bytes
+    atomic_write_bytes(target, data)
+
+
+def dump_json(obj: Any, *, indent: int | None = 1) -> str:
+    """Serialise ``obj`` deterministically (sorted keys are NOT used: field order is part of
+    readability; callers build dicts in a fixed order)."""
+    return json.dumps(obj, indent=indent, ensure_ascii=False, allow_nan=False) + "\n"
+
+
+def write_json(target: str | Path, obj: Any, *, indent: int | None = 1) -> None:
+    """Write ``obj`` as JSON atomically (``.json.gz`` is compressed)."""
+    atomic_write_text(target, dump_json(obj, indent=indent))
+
+
+def read_json(path: str | Path) -> Any:
+    """Read a JSON (or ``.json.gz``) file, raising ``FileFormatError`` naming the file."""
+    path = Path(path)
+    try:
+        raw = path.read_bytes()
+    except FileNotFoundError:
+        raise FileFormatError(path, "$", "an existing file", "file not found") from None
+    except OSError as exc:
+        raise FileFormatError(path, "$", "a readable file", str(exc)) from None
+    if path.suffix == ".gz":
+        try:
+            raw = gzip.decompress(raw)
+        except (OSError, EOFError) as exc:
+            raise FileFormatError(path, "$", "gzip-compressed JSON", str(exc)) from None
+    try:
+        return json.loads(raw.decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise FileFormatError(path, "$", "valid UTF-8 JSON", str(exc)) from None
+
+
+def check_header(doc: Any, path: str | Path | None, fmt: str, supported_versions: tuple[int, ...]) -> int:
+    """Check the ``format`` / ``version`` header every contract file carries.
+
+    Returns:
+        the file's version.
+    """
+    if not isinstance(doc, dict):
+        raise FileFormatError(path, "$", "a JSON object", type(doc).__name__)
+    if doc.get("format") != fmt:
+        raise FileFormatError(path, "$.format", f'"{fmt}"', doc.get("format"))
+    version = doc.get("version")
+    if version not in supported_versions:
+        raise FileFormatError(path, "$.version", f"one of {list(supported_versions)}", version)
+    return int(version)

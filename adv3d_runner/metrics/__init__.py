@@ -1,0 +1,1 @@
+"""Detection, prediction, planning and realism metrics."""

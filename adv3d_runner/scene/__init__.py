@@ -1,0 +1,1 @@
+"""Scene file schema and validation, generators, importers and background geometry."""

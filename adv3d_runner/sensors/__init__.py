@@ -1,0 +1,1 @@
+"""LiDAR sensor models and the Embree ray caster."""

@@ -1,0 +1,1 @@
+"""Vehicle library, mesh cleaning, SDF volumes and the PCA shape space."""

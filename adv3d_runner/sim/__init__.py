@@ -1,0 +1,1 @@
+"""Kinematics, traffic model and the closed-/open-loop episode loop."""

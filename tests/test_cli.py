@@ -1,0 +1,42 @@
+import json
+
+import pytest
+
+from adv3d_runner.cli import main
+from adv3d_runner.errors import FileFormatError
+from adv3d_runner.fileio import check_header, read_json, write_json
+
+
+def test_help_lists_commands(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["--help"])
+    assert exc.value.code == 0
+    out = capsys.readouterr().out
+    assert "adv3d" in out
+
+
+def test_read_json_names_file_on_bad_json(tmp_path):
+    bad = tmp_path / "bad.json"
+    bad.write_text("{not json")
+    with pytest.raises(FileFormatError) as exc:
+        read_json(bad)
+    assert "bad.json" in str(exc.value)
+
+
+def test_write_json_is_atomic_and_round_trips(tmp_path):
+    target = tmp_path / "x.json.gz"
+    write_json(target, {"a": [1, 2.5]})
+    assert read_json(target) == {"a": [1, 2.5]}
+    # a failing write (NaN is not JSON) leaves the old file intact and no temporary behind
+    with pytest.raises(ValueError):
+        write_json(target, {"a": float("nan")})
+    assert read_json(target) == {"a": [1, 2.5]}
+    assert [p.name for p in tmp_path.iterdir()] == ["x.json.gz"]
+
+
+def test_check_header_rejects_wrong_format():
+    with pytest.raises(FileFormatError, match=r"\$\.format"):
+        check_header({"format": "other", "version": 1}, "f.json", "adv3d-scene", (1,))
+    with pytest.raises(FileFormatError, match=r"\$\.version"):
+        check_header({"format": "adv3d-scene", "version": 9}, "f.json", "adv3d-scene", (1,))
+    assert check_header(json.loads('{"format": "adv3d-scene", "version": 1}'), None, "adv3d-scene", (1,)) == 1
