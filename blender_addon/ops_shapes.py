@@ -1,0 +1,314 @@
+"""Shape-space panel operators and the live preview vehicle.
+
+The latent sliders are properties whose ``update`` callback calls ``schedule_preview_update``:
+while Blender runs interactively the update is coalesced with a ``bpy.app.timers`` callback
+(every slider event inside ``DEBOUNCE_S`` collapses into one decode), in background mode (tests,
+scripts) it runs at once. The preview mesh is written in place with ``foreach_set``.
+"""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import bpy
+import numpy as np
+from bpy.props import StringProperty
+from bpy_extras.io_utils import ExportHelper
+
+from . import meshdata, runner
+from .props import MAX_LATENT
+
+DEBOUNCE_S = 0.03
+PREVIEW_NAME = "Adv3D preview"
+PREVIEW_COLLECTION = "Adv3D Shape preview"
+
+_state = {"scene": None, "suspend": False, "error": ""}
+
+
+# --------------------------------------------------------------------------- preview updates
+
+def current_unit(shapes) -> np.ndarray:
+    """The unit input [z_1..z_K, width, length] the sliders describe."""
+    return runner.unit_vector(np.array(shapes.latent), shapes.k, shapes.width_scale, shapes.length_scale)
+
+
+def preview_object(scene: "bpy.types.Scene", create: bool = True) -> "bpy.types.Object | None":
+    """The scene's preview vehicle (created empty if missing and ``create``)."""
+    for obj in scene.objects:
+        if obj.adv3d.role == "PREVIEW" and obj.type == "MESH":
+            return obj
+    if not create:
+        return None
+    coll = bpy.data.collections.get(PREVIEW_COLLECTION)
+    if coll is None:
+        coll = bpy.data.collections.new(PREVIEW_COLLECTION)
+    if coll.name not in scene.collection.children:
+        scene.collection.children.link(coll)
+    obj = bpy.data.objects.new(PREVIEW_NAME, bpy.data.meshes.new(PREVIEW_NAME))
+    coll.objects.link(obj)
+    obj.adv3d.role = "PREVIEW"
+    return obj
+
+
+def update_preview(scene: "bpy.types.Scene") -> float:
+    """Decode the sliders' latent and write it into the preview mesh.
+
+    Returns:
+        wall time of decode + mesh update, in milliseconds.
+    """
+    shapes = scene.adv3d.shapes
+    space = runner.load_space(bpy.path.abspath(shapes.space_path))
+    if shapes.k != space.k:
+        shapes.k = space.k
+    t0 = time.perf_counter()
+    vertices, faces = space.decode_arrays(current_unit(shapes))
+    obj = preview_object(scene)
+    meshdata.set_mesh_arrays(obj.data, vertices, faces)
+    ms = (time.perf_counter() - t0) * 1000.0
+    shapes.last_update_ms = ms
+    return ms
+
+
+def _run_pending() -> None:
+    name, _state["scene"] = _state["scene"], None
+    scene = bpy.data.scenes.get(name) if name else None
+    if scene is None:
+        return None
+    try:
+        update_preview(scene)
+        _state["error"] = ""
+    except runner.Adv3dError as exc:  # a latent with no surface, a missing file: show, never raise
+        _state["error"] = str(exc)
+    return None  # one-shot timer
+
+
+def schedule_preview_update(context) -> None:
+    """Slider callback: regenerate the preview now (background) or coalesced (interactive)."""
+    scene = context.scene
+    shapes = scene.adv3d.shapes
+    if _state["suspend"] or not shapes.live or not shapes.space_path:
+        return
+    _state["scene"] = scene.name
+    if bpy.app.background:
+        _run_pending()
+        return
+    if not bpy.app.timers.is_registered(_run_pending):
+        bpy.app.timers.register(_run_pending, first_interval=DEBOUNCE_S)
+
+
+def cancel_timers() -> None:
+    if bpy.app.timers.is_registered(_run_pending):
+        bpy.app.timers.unregister(_run_pending)
+    _state["scene"] = None
+
+
+def last_error() -> str:
+    return _state["error"]
+
+
+def set_unit(shapes, u: np.ndarray) -> None:
+    """Assign a whole unit vector to the sliders with a single preview update afterwards."""
+    k = shapes.k
+    latent = np.full(MAX_LATENT, 0.5)
+    latent[:k] = u[:k]
+    _state["suspend"] = True
+    try:
+        shapes.latent = latent.tolist()  # whole-vector assignment, one RNA write
+        shapes.width_scale = float(u[k])
+        shapes.length_scale = float(u[k + 1])
+    finally:
+        _state["suspend"] = False
+
+
+def _explained_variance_text(space) -> str:
+    ev = getattr(space, "explained_variance_ratio", None)
+    if ev is None:
+        ev = getattr(space, "explained_variance", None)
+    if ev is None:
+        return ""
+    ev = np.asarray(ev, dtype=np.float64)
+    if ev.sum() > 1.0 + 1e-6:  # absolute variances: show shares
+        ev = ev / ev.sum()
+    return "  ".join(f"z{i + 1} {100 * v:.1f}%" for i, v in enumerate(ev[:MAX_LATENT]))
+
+
+# --------------------------------------------------------------------------- operators
+
+class ADV3D_OT_shapes_load(bpy.types.Operator):
+    """Load the shape space and show the preview vehicle at the current sliders"""
+
+    bl_idname = "adv3d.shapes_load"
+    bl_label = "Load shape space"
+    bl_options = {"REGISTER", "UNDO"}
+
+    filepath: StringProperty(subtype="FILE_PATH", options={"SKIP_SAVE"})
+
+    def execute(self, context):
+        shapes = context.scene.adv3d.shapes
+        if self.filepath:
+            shapes.space_path = self.filepath
+        try:
+            space = runner.load_space(bpy.path.abspath(shapes.space_path))
+            if space.k > MAX_LATENT:
+                raise runner.Adv3dError(f"shape space has K={space.k} > {MAX_LATENT} supported sliders")
+            shapes.k = space.k
+            shapes.variance_text = _explained_variance_text(space)
+            ms = update_preview(context.scene)
+        except runner.Adv3dError as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        self.report({"INFO"}, f"Shape space K={space.k}; preview in {ms:.1f} ms")
+        return {"FINISHED"}
+
+
+class ADV3D_OT_shapes_reset(bpy.types.Operator):
+    """Set every slider to the middle of its range"""
+
+    bl_idname = "adv3d.shapes_reset"
+    bl_label = "Reset sliders"
+    bl_options = {"REGISTER", "UNDO"}
+
+    def execute(self, context):
+        shapes = context.scene.adv3d.shapes
+        set_unit(shapes, np.full(shapes.k + 2, 0.5))
+        return _refresh(self, context)
+
+
+class ADV3D_OT_shapes_random(bpy.types.Operator):
+    """Draw a random shape (seeded: the same seed gives the same shape); the seed then advances"""
+
+    bl_idname = "adv3d.shapes_random"
+    bl_label = "Random sample"
+    bl_options = {"REGISTER", "UNDO"}
+
+    def execute(self, context):
+        shapes = context.scene.adv3d.shapes
+        try:
+            space = runner.load_space(bpy.path.abspath(shapes.space_path))
+            shapes.k = space.k
+            u = np.asarray(space.sample_unit(np.random.default_rng(shapes.seed)), dtype=np.float64)
+        except runner.Adv3dError as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        set_unit(shapes, u)
+        shapes.seed += 1
+        return _refresh(self, context)
+
+
+class ADV3D_OT_shapes_nearest(bpy.types.Operator):
+    """Find the library asset whose latent is nearest to the sliders' shape"""
+
+    bl_idname = "adv3d.shapes_nearest"
+    bl_label = "Nearest library asset"
+    bl_options = {"REGISTER"}
+
+    def execute(self, context):
+        shapes = context.scene.adv3d.shapes
+        try:
+            space = runner.load_space(bpy.path.abspath(shapes.space_path))
+            shapes.k = space.k
+            found = space.nearest_asset(current_unit(shapes))
+        except runner.Adv3dError as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        # nearest_asset may return the id alone or (id, distance).
+        if isinstance(found, (tuple, list)):
+            asset_id, dist = str(found[0]), float(found[1])
+            shapes.nearest_asset = f"{asset_id} (distance {dist:.3f})"
+        else:
+            shapes.nearest_asset = str(found)
+        self.report({"INFO"}, f"Nearest library asset: {shapes.nearest_asset}")
+        return {"FINISHED"}
+
+
+class ADV3D_OT_shapes_export(bpy.types.Operator, ExportHelper):
+    """Export the decoded preview vehicle as a mesh file (metres, +x front, origin on the ground)"""
+
+    bl_idname = "adv3d.shapes_export"
+    bl_label = "Export mesh"
+    bl_options = {"REGISTER"}
+
+    filename_ext = ".glb"
+    filter_glob: StringProperty(default="*.glb;*.obj;*.ply;*.stl", options={"HIDDEN"})
+
+    def execute(self, context):
+        shapes = context.scene.adv3d.shapes
+        path = Path(self.filepath)
+        if path.suffix.lower() not in {".glb", ".obj", ".ply", ".stl"}:
+            self.report({"ERROR"}, f"{path}: unsupported mesh format (use .glb, .obj, .ply or .stl)")
+            return {"CANCELLED"}
+        try:
+            import trimesh
+            from adv3d_runner.fileio import atomic_path
+
+            space = runner.load_space(bpy.path.abspath(shapes.space_path))
+            shapes.k = space.k
+            vertices, faces = space.decode_arrays(current_unit(shapes))
+            mesh = trimesh.Trimesh(vertices=vertices, faces=faces, process=False)
+            with atomic_path(path) as tmp:
+                mesh.export(tmp, file_type=path.suffix.lower()[1:])
+        except runner.Adv3dError as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        self.report({"INFO"}, f"Wrote {path} ({len(faces)} triangles)")
+        return {"FINISHED"}
+
+
+class ADV3D_OT_shapes_build(bpy.types.Operator):
+    """Build the shape space from the library's included assets and load it (takes a while)"""
+
+    bl_idname = "adv3d.shapes_build"
+    bl_label = "Build shape space"
+    bl_options = {"REGISTER"}
+
+    def execute(self, context):
+        settings = context.scene.adv3d
+        shapes = settings.shapes
+        lib_path = bpy.path.abspath(settings.library.path)
+        out = bpy.path.abspath(shapes.space_path)
+        if not lib_path or not out:
+            self.report({"ERROR"}, "Set the library file and the shape-space output path first")
+            return {"CANCELLED"}
+        wm = context.window_manager
+        try:
+            from .ops_library import library_from_props, save_library_props
+
+            if settings.library.dirty:  # build from what the panel shows
+                save_library_props(settings.library)
+            library = library_from_props(settings.library)
+            kwargs = {"k": shapes.build_k}
+            if shapes.build_resolution:
+                kwargs["resolution"] = shapes.build_resolution
+            wm.progress_begin(0, 1000)
+            try:
+                space = runner.build_space(library, kwargs,
+                                           lambda done, total: wm.progress_update(int(1000 * done / max(total, 1))))
+            finally:
+                wm.progress_end()
+            runner.save_space(space, out)
+        except runner.Adv3dError as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        return bpy.ops.adv3d.shapes_load()
+
+
+def _refresh(op, context):
+    shapes = context.scene.adv3d.shapes
+    if not shapes.space_path:
+        return {"FINISHED"}
+    try:
+        update_preview(context.scene)
+    except runner.Adv3dError as exc:
+        op.report({"ERROR"}, str(exc))
+        return {"CANCELLED"}
+    return {"FINISHED"}
+
+
+classes = (
+    ADV3D_OT_shapes_load,
+    ADV3D_OT_shapes_reset,
+    ADV3D_OT_shapes_random,
+    ADV3D_OT_shapes_nearest,
+    ADV3D_OT_shapes_export,
+    ADV3D_OT_shapes_build,
+)

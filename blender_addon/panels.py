@@ -1,0 +1,140 @@
+"""The "Adv3D" sidebar tab (View3D > N): Library, Shape space and Scenes panels.
+
+Panels only draw properties and operator buttons; all work is in the ``ops_*`` modules.
+"""
+from __future__ import annotations
+
+import bpy
+
+from . import ops_shapes
+from .ops_library import cleaning_lines
+
+
+class _Adv3dPanel:
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "Adv3D"
+
+
+class ADV3D_UL_assets(bpy.types.UIList):
+    def draw_item(self, context, layout, data, item, icon, active_data, active_propname, index=0):
+        row = layout.row(align=True)
+        row.prop(item, "in_shape_space", text="")
+        row.label(text=item.asset_id, icon="AUTO")
+        row.label(text=item.vehicle_class)
+
+
+class ADV3D_PT_library(_Adv3dPanel, bpy.types.Panel):
+    bl_idname = "ADV3D_PT_library"
+    bl_label = "Library"
+
+    def draw(self, context):
+        lib = context.scene.adv3d.library
+        layout = self.layout
+        row = layout.row(align=True)
+        row.prop(lib, "path", text="")
+        row.operator("adv3d.library_load", text="", icon="FILE_REFRESH")
+        layout.template_list("ADV3D_UL_assets", "", lib, "assets", lib, "active_index", rows=4)
+        row = layout.row(align=True)
+        row.operator("adv3d.library_save", icon="FILE_TICK")
+        row.operator("adv3d.library_show", icon="HIDE_OFF")
+        if lib.assets and 0 <= lib.active_index < len(lib.assets):
+            item = lib.assets[lib.active_index]
+            box = layout.box()
+            box.label(text=item.asset_id)
+            box.prop(item, "vehicle_class")
+            box.prop(item, "in_shape_space")
+            col = box.column(align=True)
+            col.label(text=f"Size {item.length:.2f} x {item.width:.2f} x {item.height:.2f} m")
+            col.label(text=f"{item.triangle_count} triangles, licence {item.licence}")
+            if item.source:
+                col.label(text=item.source)
+            row = box.row(align=True)
+            row.operator("adv3d.library_rescale", text="Set length").asset_id = item.asset_id
+            row.operator("adv3d.library_turn", text="Turn front").asset_id = item.asset_id
+            report = box.box()
+            report.label(text="Cleaning report", icon="INFO")
+            col = report.column(align=True)
+            col.scale_y = 0.8
+            for line in cleaning_lines(item.cleaning_report):
+                col.label(text=line)
+        box = layout.box()
+        box.label(text="Import vehicle file", icon="IMPORT")
+        box.prop(lib, "import_class")
+        box.prop(lib, "import_forward")
+        box.prop(lib, "import_length")
+        box.operator("adv3d.library_import", icon="FILEBROWSER")
+
+
+class ADV3D_PT_shapes(_Adv3dPanel, bpy.types.Panel):
+    bl_idname = "ADV3D_PT_shapes"
+    bl_label = "Shape space"
+
+    def draw(self, context):
+        settings = context.scene.adv3d
+        shapes = settings.shapes
+        layout = self.layout
+        row = layout.row(align=True)
+        row.prop(shapes, "space_path", text="")
+        row.operator("adv3d.shapes_load", text="", icon="FILE_REFRESH")
+        box = layout.box()
+        row = box.row(align=True)
+        row.prop(shapes, "build_k")
+        row.prop(shapes, "build_resolution")
+        box.operator("adv3d.shapes_build", icon="MOD_REMESH")
+        if shapes.variance_text:
+            box.label(text="Explained variance:")
+            box.label(text=shapes.variance_text)
+        if shapes.k == 0:
+            layout.label(text="Load a shape space to get sliders")
+            return
+        col = layout.column(align=True)
+        for i in range(shapes.k):
+            col.prop(shapes, "latent", index=i, text=f"z{i + 1}", slider=True)
+        col.prop(shapes, "width_scale", slider=True)
+        col.prop(shapes, "length_scale", slider=True)
+        row = layout.row(align=True)
+        row.prop(shapes, "live")
+        row.label(text=f"{shapes.last_update_ms:.1f} ms")
+        if ops_shapes.last_error():
+            layout.label(text=ops_shapes.last_error(), icon="ERROR")
+        row = layout.row(align=True)
+        row.operator("adv3d.shapes_random", icon="RNDCURVE")
+        row.prop(shapes, "seed")
+        row = layout.row(align=True)
+        row.operator("adv3d.shapes_reset", icon="LOOP_BACK")
+        row.operator("adv3d.shapes_nearest", icon="VIEWZOOM")
+        if shapes.nearest_asset:
+            layout.label(text=f"Nearest: {shapes.nearest_asset}")
+        layout.operator("adv3d.shapes_export", icon="EXPORT")
+
+
+class ADV3D_PT_scenes(_Adv3dPanel, bpy.types.Panel):
+    bl_idname = "ADV3D_PT_scenes"
+    bl_label = "Scenes"
+
+    def draw(self, context):
+        sc = context.scene.adv3d.scene
+        layout = self.layout
+        row = layout.row(align=True)
+        row.prop(sc, "path", text="")
+        row.operator("adv3d.scene_load", text="", icon="FILE_REFRESH")
+        if sc.scene_id:
+            layout.label(text=f"Scene {sc.scene_id}")
+            layout.operator("adv3d.scene_export", icon="EXPORT")
+        obj = context.active_object
+        if obj is not None and obj.adv3d.role in {"ACTOR", "EGO"}:
+            box = layout.box()
+            box.label(text=f"{obj.adv3d.role.title()} {obj.adv3d.key}", icon="AUTO")
+            if obj.adv3d.role == "ACTOR":
+                box.prop(obj.adv3d, "asset_id")
+                box.operator("adv3d.scene_apply_asset", icon="MESH_DATA")
+            box.label(text="Edit the pose keyframes, then Export")
+
+
+classes = (
+    ADV3D_UL_assets,
+    ADV3D_PT_library,
+    ADV3D_PT_shapes,
+    ADV3D_PT_scenes,
+)

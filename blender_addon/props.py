@@ -1,0 +1,153 @@
+"""Add-on state: PropertyGroups hung on ``Scene.adv3d`` and ``Object.adv3d``.
+
+Everything the panels show lives here (saved with the .blend, undoable); operators read and write
+these, never module globals, except for caches of loaded files (shape spaces) that can always be
+rebuilt from the paths stored here.
+"""
+from __future__ import annotations
+
+import bpy
+from bpy.props import (
+    BoolProperty,
+    CollectionProperty,
+    EnumProperty,
+    FloatProperty,
+    FloatVectorProperty,
+    IntProperty,
+    PointerProperty,
+    StringProperty,
+)
+
+# Room for the latent sliders: K shape dimensions (the paper uses K = 3); the width and length
+# scales have their own properties. A vector property has a fixed size at registration, so it is
+# sized for the largest K we support and the panel shows only the first K entries.
+MAX_LATENT = 16
+
+VEHICLE_CLASSES = ("sedan", "hatchback", "sports", "suv", "van", "pickup", "truck", "bus", "other")
+
+FORWARD_AXES = [
+    ("X", "+X", "The model's front points along +X (adv3d convention)"),
+    ("NEG_X", "-X", "The model's front points along -X"),
+    ("Y", "+Y", "The model's front points along +Y (common in glTF/Blender exports)"),
+    ("NEG_Y", "-Y", "The model's front points along -Y"),
+]
+
+
+def _class_items(self, context):
+    return [(c, c, "") for c in VEHICLE_CLASSES]
+
+
+class ADV3D_PG_asset(bpy.types.PropertyGroup):
+    """One library asset as shown in the Library panel (mirror of a ``VehicleAsset``)."""
+
+    asset_id: StringProperty(name="Id")
+    file: StringProperty(name="File", description="Mesh file, relative to the library folder")
+    vehicle_class: EnumProperty(name="Class", items=[(c, c, "") for c in VEHICLE_CLASSES], default="sedan")
+    length: FloatProperty(name="Length", min=0.0, soft_min=1.0, soft_max=20.0, unit="LENGTH", default=4.5)
+    width: FloatProperty(name="Width", min=0.0, soft_min=0.5, soft_max=4.0, unit="LENGTH", default=1.8)
+    height: FloatProperty(name="Height", min=0.0, soft_min=0.5, soft_max=5.0, unit="LENGTH", default=1.5)
+    source: StringProperty(name="Source")
+    licence: StringProperty(name="Licence")
+    triangle_count: IntProperty(name="Triangles", min=0)
+    in_shape_space: BoolProperty(name="In shape space", default=True,
+                                 description="Use this asset when building the shape space")
+    cleaning_report: StringProperty(name="Cleaning report", description="Cleaning report (one line per item)")
+    edited: BoolProperty(default=False, options={"HIDDEN"})
+
+
+def _mark_dirty(self, context):
+    self.dirty = True
+
+
+class ADV3D_PG_library(bpy.types.PropertyGroup):
+    path: StringProperty(name="Library", subtype="FILE_PATH",
+                         description="library.json of the vehicle library")
+    assets: CollectionProperty(type=ADV3D_PG_asset)
+    active_index: IntProperty(name="Active asset", default=0)
+    dirty: BoolProperty(default=False, options={"HIDDEN"})
+    # Import options (applied by the "Import vehicle" operator).
+    import_forward: EnumProperty(name="Front", items=FORWARD_AXES, default="X",
+                                 description="Which axis the imported model's front points along")
+    import_class: EnumProperty(name="Class", items=[(c, c, "") for c in VEHICLE_CLASSES], default="sedan")
+    import_length: FloatProperty(name="Real length", min=0.0, soft_max=20.0, unit="LENGTH", default=0.0,
+                                 description="Scale the model to this length (0: keep the file's size)")
+
+
+def _latent_update(self, context):
+    # Deferred import: the module imports bpy-heavy helpers and the shape space.
+    from . import ops_shapes
+
+    ops_shapes.schedule_preview_update(context)
+
+
+class ADV3D_PG_shapes(bpy.types.PropertyGroup):
+    space_path: StringProperty(name="Shape space", subtype="FILE_PATH",
+                               description="Shape-space .npz built by `adv3d shapes build` or this panel")
+    k: IntProperty(name="K", default=0, min=0, options={"HIDDEN"},
+                   description="Number of shape dimensions of the loaded space")
+    latent: FloatVectorProperty(name="Latent", size=MAX_LATENT, min=0.0, max=1.0, default=[0.5] * MAX_LATENT,
+                                update=_latent_update,
+                                description="Shape coordinates in [0, 1] (0 / 1 = library min / max)")
+    width_scale: FloatProperty(name="Width scale", min=0.0, max=1.0, default=0.5, update=_latent_update,
+                               description="Width scale in [0, 1] of the shape space's scale range")
+    length_scale: FloatProperty(name="Length scale", min=0.0, max=1.0, default=0.5, update=_latent_update,
+                                description="Length scale in [0, 1] of the shape space's scale range")
+    live: BoolProperty(name="Live", default=True, description="Regenerate the preview as the sliders move")
+    seed: IntProperty(name="Seed", default=0, min=0)
+    build_resolution: IntProperty(name="Resolution", default=0, min=0, soft_max=128,
+                                  description="SDF grid resolution for Build (0: the runner's default)")
+    build_k: IntProperty(name="Components", default=3, min=1, max=MAX_LATENT)
+    last_update_ms: FloatProperty(name="Last update", default=0.0, options={"HIDDEN"})
+    nearest_asset: StringProperty(name="Nearest asset", options={"HIDDEN"})
+    variance_text: StringProperty(options={"HIDDEN"})
+
+
+class ADV3D_PG_scene(bpy.types.PropertyGroup):
+    path: StringProperty(name="Scene file", subtype="FILE_PATH")
+    scene_id: StringProperty(name="Scene id", options={"HIDDEN"})
+    text_name: StringProperty(options={"HIDDEN"},
+                              description="Text datablock holding the scene file as loaded")
+
+
+class ADV3D_PG_settings(bpy.types.PropertyGroup):
+    library: PointerProperty(type=ADV3D_PG_library)
+    shapes: PointerProperty(type=ADV3D_PG_shapes)
+    scene: PointerProperty(type=ADV3D_PG_scene)
+
+
+OBJECT_ROLES = [
+    ("NONE", "None", ""),
+    ("EGO", "Ego", "The ego vehicle"),
+    ("ACTOR", "Actor", "A scene actor"),
+    ("SENSOR", "Sensor", "A sensor mount"),
+    ("ROAD", "Road", "Static background"),
+    ("LANE", "Lane", "A lane centre line"),
+    ("PREVIEW", "Preview", "The shape-space preview vehicle"),
+    ("ASSET", "Asset", "A library asset"),
+]
+
+
+class ADV3D_PG_object(bpy.types.PropertyGroup):
+    role: EnumProperty(name="Role", items=OBJECT_ROLES, default="NONE")
+    key: StringProperty(name="Key", description="Actor id, sensor name, lane id or asset id")
+    asset_id: StringProperty(name="Asset", description="Library asset id of an actor ('' = box)")
+
+
+classes = (
+    ADV3D_PG_asset,
+    ADV3D_PG_library,
+    ADV3D_PG_shapes,
+    ADV3D_PG_scene,
+    ADV3D_PG_settings,
+    ADV3D_PG_object,
+)
+
+
+def register_pointers() -> None:
+    bpy.types.Scene.adv3d = PointerProperty(type=ADV3D_PG_settings)
+    bpy.types.Object.adv3d = PointerProperty(type=ADV3D_PG_object)
+
+
+def unregister_pointers() -> None:
+    del bpy.types.Object.adv3d
+    del bpy.types.Scene.adv3d
