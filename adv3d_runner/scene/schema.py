@@ -6,7 +6,7 @@ Everything is in the scene's map frame (metres, radians, x/y on the ground plane
 +x), sampled at ``dt`` (0.1 s) for ``frames`` frames. See ``docs/formats.md`` ("Scene").
 
 Per-frame data are stored as column arrays rounded to fixed decimals (mm for positions, mrad
-for angles, mm/s for speeds) so files stay small *and* a load -> save -> load round trip gives
+for angles, cm/s for speeds) so files stay small *and* a load -> save -> load round trip gives
 bit-identical numbers: rounding is idempotent (``round(round(x)) == round(x)``), and the
 shortest ``repr`` of a value with 3 decimals parses back to the same double.
 
@@ -36,10 +36,10 @@ ACTOR_CLASSES = ("sedan", "hatchback", "sports", "suv", "van", "pickup", "truck"
 BARRIER_KINDS = ("concrete", "guardrail")
 SURFACE_KINDS_FOR_MESHES = ("asphalt", "concrete", "metal", "ground", "vegetation")
 
-# Decimals kept in files: 1 mm, 1 mrad, 1 mm/s.
+# Decimals kept in files: 1 mm, 1 mrad, 1 cm/s (speeds are secondary: poses are exact to 1 mm).
 POS_DECIMALS = 3
 ANGLE_DECIMALS = 3
-SPEED_DECIMALS = 3
+SPEED_DECIMALS = 2
 DIM_DECIMALS = 3
 
 NO_ACTOR = -1  # label used by consumers for "background" (never a valid actor id)
