@@ -1,0 +1,471 @@
+"""LiDAR sensor rigs and the per-frame simulation (array in, array out).
+
+Pipeline of :func:`simulate_frame` for each sensor of the rig:
+
+1. rays: the beam table in the sensor frame, rotated by the mount pose into the ego frame once
+   (:class:`MountedLidar`, sorted by ego-frame azimuth), rotated by the ego yaw per frame;
+2. background: one Embree cast against the static background BVH (float32, centred);
+3. actors: each actor that can be seen (range, azimuth and elevation windows, see
+   :meth:`MountedLidar.candidate_rays`) is hit by casting the rays of its windows, expressed in
+   its local frame, against its mesh's BVH, with the current nearest distance as limit (so only
+   closer hits come back, nothing is rebuilt);
+4. effects: min/max range, intensity = reflectivity x |cos incidence| x exp(-attenuation x
+   range), Gaussian range noise and ray drop from the caller's ``numpy.random.Generator``,
+   ego masking (rays hitting the ego's mesh, points inside the ego's box);
+5. output: points (x, y, z, intensity) in the EGO frame, ring, label (actor index into
+   ``actor_ids``, -1 = background) and sensor index; several sensors are concatenated.
+
+Culling only skips rays that cannot reach an actor, and every per-ray computation is
+elementwise, so culling returns exactly the points that no culling returns (tested).
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .beams import LidarModel, get_model
+
+__all__ = ["MountedLidar", "LidarRig", "LidarFrame", "simulate_frame", "rotation_rpy",
+           "BACKGROUND", "DEFAULT_ATTENUATION"]
+
+#: Label of background points.
+BACKGROUND = -1
+_EGO = -3
+#: Atmospheric attenuation of the returned intensity, 1/m (CARLA's default rate).
+DEFAULT_ATTENUATION = 0.004
+_TWO_PI = 2.0 * np.pi
+# Padding of the culling windows: float32 rounding of ray directions and vertices is ~1e-7.
+_ANGLE_PAD = 1e-5
+_RADIUS_PAD = 1e-3
+
+
+def rotation_rpy(roll: float, pitch: float, yaw: float) -> np.ndarray:
+    """(3, 3) rotation Rz(yaw) @ Ry(pitch) @ Rx(roll) (intrinsic z-y'-x'', REP-103)."""
+    cr, sr, cp, sp, cy, sy = np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch), np.cos(yaw), np.sin(yaw)
+    return np.array([
+        [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+        [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+        [-sp, cp * sr, cp * cr],
+    ])
+
+
+class MountedLidar:
+    """A LiDAR model at a mount pose in the ego frame, with its rays precomputed.
+
+    Args:
+        model: a :class:`~adv3d_runner.sensors.beams.LidarModel` or a model name.
+        mount: (x, y, z, roll, pitch, yaw) of the sensor in the ego frame, metres / radians.
+
+    The rays form a grid of B rows (one per laser, lowest elevation first) by C columns, each
+    row sorted by ego-frame azimuth, so an actor's azimuth window is one contiguous segment per
+    row and its elevation window a set of rows. Flat ray index = row * C + column.
+
+    Attributes:
+        position: (3,) float64 sensor origin in the ego frame.
+        dirs: (N, 3) float32 unit ray directions in the ego frame.
+        dx, dy, dz: (N,) float32 contiguous columns of ``dirs``.
+        ring: (N,) int16 ring index per ray.
+        azimuth_key: (N,) float64 ego-frame azimuth in [-pi, pi) plus 2 pi x row: ascending,
+            so one ``searchsorted`` finds a window in every row.
+        row_elevation: (B, 2) float64 min and max ego-frame elevation of each row.
+    """
+
+    def __init__(self, model: LidarModel | str, mount=(0.0, 0.0, 1.8, 0.0, 0.0, 0.0)):
+        self.model = get_model(model) if isinstance(model, str) else model
+        mount = np.asarray(mount, dtype=np.float64).reshape(6)
+        self.mount = mount
+        self.position = mount[:3].copy()
+        b, c = self.model.beams, self.model.columns
+        dirs_sensor, ring, _ = self.model.ray_table()
+        dirs = (dirs_sensor @ rotation_rpy(*mount[3:]).T).reshape(c, b, 3).transpose(1, 0, 2)  # (B, C, 3)
+        ring = ring.reshape(c, b).T
+        rows = np.argsort(ring[:, 0], kind="stable")  # lowest laser first
+        dirs, ring = dirs[rows], ring[rows]
+        az = np.arctan2(dirs[..., 1], dirs[..., 0])
+        az[az >= np.pi] = -np.pi  # canonical [-pi, pi): one place for the seam
+        order = np.argsort(az, axis=1, kind="stable")
+        az = np.take_along_axis(az, order, axis=1)
+        dirs = np.take_along_axis(dirs, order[..., None], axis=1)
+        elev = np.arcsin(np.clip(dirs[..., 2], -1.0, 1.0))
+        self.rows, self.columns = b, c
+        self.row_elevation = np.stack([elev.min(axis=1), elev.max(axis=1)], axis=1)
+        self.azimuth_key = (az + _TWO_PI * np.arange(b)[:, None]).reshape(-1)
+        self.dirs = np.ascontiguousarray(dirs.reshape(-1, 3), dtype=np.float32)
+        self.dx = np.ascontiguousarray(self.dirs[:, 0])
+        self.dy = np.ascontiguousarray(self.dirs[:, 1])
+        self.dz = np.ascontiguousarray(self.dirs[:, 2])
+        self.ring = np.ascontiguousarray(ring.reshape(-1), dtype=np.int16)
+        self._row_offsets = _TWO_PI * np.arange(b)
+
+    @property
+    def n_rays(self) -> int:
+        return len(self.dirs)
+
+    def window(self, rows: np.ndarray, lo: float, hi: float) -> tuple[np.ndarray, np.ndarray]:
+        """Start/end flat indices, in each of ``rows``, of the rays with lo <= azimuth <= hi
+        (-pi <= lo <= hi < pi)."""
+        off = self._row_offsets[rows]
+        return (np.searchsorted(self.azimuth_key, lo + off, "left"),
+                np.searchsorted(self.azimuth_key, hi + off, "right"))
+
+    def candidate_rays(self, rel_xy: np.ndarray, ego_yaw: float, xy_radius: float,
+                       z_range: tuple[float, float]) -> np.ndarray | None:
+        """Flat indices of the rays that can hit a mesh inside a vertical cylinder.
+
+        The cylinder has radius ``xy_radius`` around the actor origin, which lies at ``-rel_xy``
+        from the sensor (map frame), and spans ``z_range`` (relative to the ground the sensor
+        height is measured from). A ray at elevation e reaches height z_s + rho tan(e) at
+        horizontal distance rho, and azimuth never changes along a ray, so rays outside the
+        cylinder's azimuth or elevation interval can not hit it. Returns None for "all rays".
+        """
+        dist = float(np.hypot(rel_xy[0], rel_xy[1]))
+        radius = xy_radius * (1.0 + 1e-6) + _RADIUS_PAD
+        if dist <= radius:  # sensor inside the bounding circle: every ray may hit
+            return None
+        rho0, rho1 = dist - radius, dist + radius
+        z_lo = z_range[0] - self.position[2] - _RADIUS_PAD
+        z_hi = z_range[1] - self.position[2] + _RADIUS_PAD
+        e_lo = np.arctan(z_lo / (rho0 if z_lo < 0 else rho1)) - _ANGLE_PAD
+        e_hi = np.arctan(z_hi / (rho0 if z_hi > 0 else rho1)) + _ANGLE_PAD
+        rows = np.flatnonzero((self.row_elevation[:, 1] >= e_lo) & (self.row_elevation[:, 0] <= e_hi))
+        if rows.size == 0:
+            return np.zeros(0, np.intp)
+        half = float(np.arcsin(radius / dist)) + _ANGLE_PAD
+        center = float(np.arctan2(-rel_xy[1], -rel_xy[0])) - ego_yaw
+        starts, ends = [], []
+        for lo, hi in _azimuth_intervals(center, half):
+            s, e = self.window(rows, lo, hi)
+            starts.append(s)
+            ends.append(e)
+        starts = np.concatenate(starts) if len(starts) > 1 else starts[0]
+        ends = np.concatenate(ends) if len(ends) > 1 else ends[0]
+        return _segments_to_indices(starts, ends)
+
+
+def _segments_to_indices(starts: np.ndarray, ends: np.ndarray) -> np.ndarray:
+    """Concatenation of arange(s, e) for each segment, vectorised."""
+    lengths = np.maximum(ends - starts, 0)
+    total = int(lengths.sum())
+    if total == 0:
+        return np.zeros(0, np.intp)
+    keep = lengths > 0
+    starts, lengths = starts[keep], lengths[keep]
+    # Each segment's first element jumps from the previous segment's end to its own start.
+    steps = np.ones(total, np.intp)
+    first = np.concatenate(([0], np.cumsum(lengths)[:-1]))
+    steps[first] = starts - np.concatenate(([0], starts[:-1] + lengths[:-1] - 1))
+    steps[0] = starts[0]
+    return np.cumsum(steps)
+
+
+def _azimuth_intervals(center: float, half: float) -> list[tuple[float, float]]:
+    """center +- half as one or two intervals inside [-pi, pi) (split at the seam)."""
+    if half >= np.pi:
+        return [(-np.pi, np.pi)]
+    center = (center + np.pi) % _TWO_PI - np.pi
+    lo, hi = center - half, center + half
+    if lo < -np.pi:
+        return [(lo + _TWO_PI, np.pi), (-np.pi, hi)]
+    if hi >= np.pi:
+        return [(lo, np.pi), (-np.pi, hi - _TWO_PI)]
+    return [(lo, hi)]
+
+
+@dataclass
+class LidarRig:
+    """The ego's LiDARs plus what masks the ego out of their points.
+
+    Attributes:
+        sensors: mounted LiDARs (sensor index = position in this list).
+        ego_dimensions: (length, width, height) of the ego box (origin at its footprint centre
+            on the ground), or None for no box masking.
+        ego_margin: metres added around the ego box before masking.
+        attenuation: intensity attenuation rate, 1/m.
+    """
+
+    sensors: list[MountedLidar]
+    ego_dimensions: tuple[float, float, float] | None = None
+    ego_margin: float = 0.1
+    attenuation: float = DEFAULT_ATTENUATION
+
+    @classmethod
+    def single(cls, model: LidarModel | str = "hdl64", mount=(0.0, 0.0, 1.8, 0.0, 0.0, 0.0), **kw) -> "LidarRig":
+        """A rig with one sensor."""
+        return cls([MountedLidar(model, mount)], **kw)
+
+    @property
+    def n_rays(self) -> int:
+        return sum(s.n_rays for s in self.sensors)
+
+    def ego_interval(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """Per ray of sensor ``k``, the distances [t_in, t_out] it spends inside the ego box
+        grown by ``ego_margin`` (t_in > t_out where it never enters). Cached."""
+        cache = self.__dict__.setdefault("_ego_cache", {})
+        key = (k, tuple(self.ego_dimensions), float(self.ego_margin))
+        if key not in cache:
+            length, width, height = self.ego_dimensions
+            mg = self.ego_margin
+            lo = np.array([-0.5 * length - mg, -0.5 * width - mg, -mg])
+            hi = np.array([0.5 * length + mg, 0.5 * width + mg, height + mg])
+            cache[key] = _slab_interval(self.sensors[k].position, self.sensors[k].dirs.astype(np.float64), lo, hi)
+        return cache[key]
+
+
+def _slab_interval(origin: np.ndarray, dirs: np.ndarray, lo: np.ndarray, hi: np.ndarray):
+    """Ray / axis-aligned box entry and exit distances (slab method), float32 (N,) each."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / dirs
+        t1 = (lo - origin) * inv
+        t2 = (hi - origin) * inv
+    tmin = np.where(np.isnan(t1), -np.inf, np.minimum(t1, t2))
+    tmax = np.where(np.isnan(t1), np.inf, np.maximum(t1, t2))
+    # A direction component of 0 gives +-inf / nan: inside the slab iff the origin is.
+    for j in range(3):
+        zero = dirs[:, j] == 0
+        if zero.any():
+            ok = (lo[j] <= origin[j]) & (origin[j] <= hi[j])
+            tmin[zero, j] = -np.inf if ok else np.inf
+            tmax[zero, j] = np.inf if ok else -np.inf
+    t_in = np.maximum(tmin.max(axis=1), 0.0)
+    t_out = tmax.min(axis=1)
+    return t_in.astype(np.float32), t_out.astype(np.float32)
+
+
+@dataclass
+class LidarFrame:
+    """One frame of LiDAR returns (all sensors of a rig), in the ego frame.
+
+    Attributes:
+        points: (N, 4) float32 x, y, z (metres, ego frame) and intensity in [0, 1].
+        ring: (N,) int16 ring (laser) index, 0 = lowest elevation.
+        label: (N,) int32 index into ``actor_ids`` of the actor hit, -1 = background.
+        sensor: (N,) int8 index of the sensor in the rig.
+        distance: (N,) float32 measured range from the sensor origin, metres (with noise).
+        actor_ids: id of each actor label.
+    """
+
+    points: np.ndarray
+    ring: np.ndarray
+    label: np.ndarray
+    sensor: np.ndarray
+    distance: np.ndarray
+    actor_ids: tuple[str, ...] = field(default_factory=tuple)
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+    @property
+    def xyz(self) -> np.ndarray:
+        return self.points[:, :3]
+
+    @property
+    def intensity(self) -> np.ndarray:
+        return self.points[:, 3]
+
+    def label_names(self) -> np.ndarray:
+        """(N,) object array of actor ids, ``"background"`` for -1."""
+        table = np.array(list(self.actor_ids) + ["background"], dtype=object)
+        return table[np.where(self.label >= 0, self.label, len(self.actor_ids))]
+
+    def select(self, mask: np.ndarray) -> "LidarFrame":
+        """The frame restricted to ``mask`` (bool (N,) or indices)."""
+        return LidarFrame(self.points[mask], self.ring[mask], self.label[mask], self.sensor[mask],
+                          self.distance[mask], self.actor_ids)
+
+    @staticmethod
+    def empty(actor_ids: tuple[str, ...] = ()) -> "LidarFrame":
+        return LidarFrame(np.zeros((0, 4), np.float32), np.zeros(0, np.int16), np.zeros(0, np.int32),
+                          np.zeros(0, np.int8), np.zeros(0, np.float32), tuple(actor_ids))
+
+    @staticmethod
+    def concat(frames: list["LidarFrame"]) -> "LidarFrame":
+        if not frames:
+            return LidarFrame.empty()
+        if len(frames) == 1:
+            return frames[0]
+        return LidarFrame(*(np.concatenate([getattr(f, name) for f in frames])
+                            for name in ("points", "ring", "label", "sensor", "distance")),
+                          actor_ids=frames[0].actor_ids)
+
+
+def simulate_frame(world, rig: LidarRig, ego_pose, actor_poses=None, rng: np.random.Generator | None = None, *,
+                   cull: bool = True, noise: bool = True, drop: bool = True,
+                   stats: dict | None = None) -> LidarFrame:
+    """Simulate one frame of the rig's LiDARs in ``world``.
+
+    Args:
+        world: a :class:`~adv3d_runner.sensors.world.LidarWorld`.
+        rig: the ego's :class:`LidarRig`.
+        ego_pose: (3,) ego x, y (map frame, metres) and yaw (radians).
+        actor_poses: (A, 3) x, y, yaw per actor in ``world.actor_ids`` order; rows with a NaN
+            are absent this frame. None = no actor present.
+        rng: the only source of randomness (range noise, ray drop); None = ideal sensor
+            (no noise, no drop).
+        cull: skip actors out of range and rays out of each actor's azimuth window
+            (identical output, faster). False casts every ray against every actor.
+        noise, drop: switch range noise / ray drop off even with an rng.
+        stats: if a dict, ``embree_s`` (time inside Embree), ``rays_cast`` and
+            ``actor_rays`` are accumulated into it.
+
+    Returns:
+        :class:`LidarFrame` in the ego frame.
+    """
+    ego = np.asarray(ego_pose, dtype=np.float64).reshape(3)
+    n_actors = len(world.actor_ids)
+    if actor_poses is None:
+        poses = np.full((n_actors, 3), np.nan)
+    else:
+        poses = np.asarray(actor_poses, dtype=np.float64).reshape(-1, 3)
+        if len(poses) != n_actors:
+            raise ValueError(f"actor_poses has {len(poses)} rows for {n_actors} actors")
+    present = np.flatnonzero(np.isfinite(poses).all(axis=1))
+    actor_refl = world.actor_reflectivity()
+    frames = [
+        _simulate_sensor(world, rig, k, sensor, ego, poses, present, actor_refl, rng, cull, noise, drop, stats)
+        for k, sensor in enumerate(rig.sensors)
+    ]
+    out = LidarFrame.concat(frames)
+    out.actor_ids = tuple(world.actor_ids)
+    return out
+
+
+def _simulate_sensor(world, rig, k, sensor: MountedLidar, ego, poses, present, actor_refl, rng, cull, noise, drop,
+                     stats) -> LidarFrame:
+    model = sensor.model
+    n = sensor.n_rays
+    c, s = float(np.cos(ego[2])), float(np.sin(ego[2]))
+    px, py, pz = sensor.position
+    sensor_map = np.array([ego[0] + c * px - s * py, ego[1] + s * px + c * py, pz])
+    timer = time.perf_counter
+    embree_s = 0.0
+    actor_rays = 0
+
+    # Ray directions in the map frame (float32, elementwise: identical for any subset).
+    dirs = np.empty((n, 3), np.float32)
+    np.subtract(np.float32(c) * sensor.dx, np.float32(s) * sensor.dy, out=dirs[:, 0])
+    np.add(np.float32(s) * sensor.dx, np.float32(c) * sensor.dy, out=dirs[:, 1])
+    dirs[:, 2] = sensor.dz
+
+    # Background: one cast; tfar starts at max range and becomes the nearest distance.
+    t = np.full(n, model.max_range, np.float32)
+    origin_bg = (sensor_map - world.origin).astype(np.float32).reshape(1, 3)
+    t0 = timer()
+    prim_bg, normal = world.background.intersect(origin_bg, dirs, t)
+    embree_s += timer() - t0
+    label = np.full(n, BACKGROUND, np.int32)
+
+    # The ego's own body (ego frame, rays in the ego frame): blocks rays, returns nothing.
+    if world.ego is not None:
+        t0 = timer()
+        prim_e, _ = world.ego.intersect(sensor.position.astype(np.float32).reshape(1, 3), sensor.dirs, t)
+        embree_s += timer() - t0
+        label[prim_e >= 0] = _EGO
+
+    for i in present:
+        bvh = world.actor_bvh(i)
+        if bvh is None:
+            continue
+        ax, ay, ayaw = poses[i]
+        rel = sensor_map[:2] - (ax, ay)  # actor -> sensor, map frame
+        rays = None  # None = all rays (no culling, or the sensor is inside the actor's circle)
+        if cull:
+            if np.hypot(rel[0], rel[1]) - bvh.xy_radius - _RADIUS_PAD > model.max_range:
+                continue
+            rays = sensor.candidate_rays(rel, ego[2], bvh.xy_radius, bvh.z_range)
+            if rays is not None and rays.size == 0:
+                continue
+        ca, sa = np.cos(ayaw), np.sin(ayaw)
+        origin = np.array([[ca * rel[0] + sa * rel[1], -sa * rel[0] + ca * rel[1], pz]], np.float32)
+        phi = ego[2] - ayaw
+        cp, sp = np.float32(np.cos(phi)), np.float32(np.sin(phi))
+        # Rays in the actor's frame (elementwise, so any subset gives the same per-ray values).
+        if rays is None:
+            dx, dy, dz, t_sub = sensor.dx, sensor.dy, sensor.dz, t  # t updated in place
+        else:
+            dx, dy, dz, t_sub = sensor.dx[rays], sensor.dy[rays], sensor.dz[rays], t[rays]
+        m = len(dx)
+        local = np.empty((m, 3), np.float32)
+        np.subtract(cp * dx, sp * dy, out=local[:, 0])
+        np.add(sp * dx, cp * dy, out=local[:, 1])
+        local[:, 2] = dz
+        t0 = timer()
+        prim, ng = bvh.intersect(origin, local, t_sub)  # closer hits overwrite t_sub
+        embree_s += timer() - t0
+        actor_rays += m
+        hit = np.flatnonzero(prim >= 0)
+        if hit.size:
+            rows = hit if rays is None else rays[hit]
+            if rays is not None:
+                t[rows] = t_sub[hit]
+            label[rows] = i
+            # Local normal -> map frame (rotate by the actor yaw), for the incidence angle.
+            nl = ng[hit]
+            normal[rows, 0] = ca * nl[:, 0] - sa * nl[:, 1]
+            normal[rows, 1] = sa * nl[:, 0] + ca * nl[:, 1]
+            normal[rows, 2] = nl[:, 2]
+
+    if stats is not None:
+        stats["embree_s"] = stats.get("embree_s", 0.0) + embree_s
+        stats["rays_cast"] = stats.get("rays_cast", 0) + n + actor_rays
+        stats["actor_rays"] = stats.get("actor_rays", 0) + actor_rays
+
+    valid = t < np.float32(model.max_range)
+    valid &= t >= np.float32(model.min_range)
+    if world.ego is not None:
+        valid &= label != _EGO
+    idx = np.flatnonzero(valid)
+    if idx.size == 0:
+        return LidarFrame.empty()
+    dist = t[idx]
+
+    # Effects drawn from the caller's generator in a fixed order (noise, then drop), one draw
+    # per return, so the same returns and seed give the same frame.
+    if rng is not None and noise and model.range_noise > 0:
+        dist += rng.standard_normal(dist.size, dtype=np.float32) * np.float32(model.range_noise)
+        np.maximum(dist, 0.0, out=dist)
+    if rng is not None and drop and model.ray_drop > 0:
+        keep = rng.random(dist.size, dtype=np.float32) >= np.float32(model.ray_drop)
+        idx, dist = idx[keep], dist[keep]
+
+    if rig.ego_dimensions is not None:
+        t_in, t_out = rig.ego_interval(k)
+        inside = dist >= t_in[idx]
+        inside &= dist <= t_out[idx]
+        if inside.any():
+            out = ~inside
+            idx, dist = idx[out], dist[out]
+
+    # Columns are gathered one by one: 1-D gathers of contiguous arrays are the fast kind.
+    m = idx.size
+    points = np.empty((m, 4), np.float32)
+    px, py, pz = (np.float32(v) for v in sensor.position)
+    np.multiply(sensor.dx[idx], dist, out=points[:, 0])
+    points[:, 0] += px
+    np.multiply(sensor.dy[idx], dist, out=points[:, 1])
+    points[:, 1] += py
+    np.multiply(sensor.dz[idx], dist, out=points[:, 2])
+    points[:, 2] += pz
+
+    # Intensity = reflectivity x |cos incidence| x exp(-attenuation x true range).
+    lab = label[idx]
+    refl = world.background_reflectivity[prim_bg[idx]]  # prim -1 -> the trailing 0 slot
+    on_actor = lab >= 0
+    if on_actor.any():
+        refl[on_actor] = actor_refl[lab[on_actor]]
+    nx, ny, nz = (normal[:, j].take(idx) for j in range(3))
+    dot = nx * dirs[:, 0].take(idx)
+    dot += ny * dirs[:, 1].take(idx)
+    dot += nz * dirs[:, 2].take(idx)
+    norm = nx * nx
+    norm += ny * ny
+    norm += nz * nz
+    np.sqrt(norm, out=norm)  # |direction| = 1 up to float32 rounding
+    cos_inc = np.abs(dot, out=dot)
+    np.divide(cos_inc, norm, out=cos_inc, where=norm > 0)
+    np.minimum(cos_inc, 1.0, out=cos_inc)
+    cos_inc *= refl
+    cos_inc *= np.exp(np.float32(-rig.attenuation) * t[idx])
+    points[:, 3] = cos_inc
+    return LidarFrame(points, sensor.ring[idx], lab, np.full(m, k, np.int8), dist)
