@@ -194,16 +194,25 @@ def unsigned_distance(vertices: np.ndarray, faces: np.ndarray, points: np.ndarra
     return np.sqrt(np.maximum(sq, 0.0))
 
 
-def boundary_faces(vertices: np.ndarray, faces: np.ndarray, inside_fn, eps: float) -> np.ndarray:
-    """Faces whose two sides differ in inside/outside status (the solid's boundary).
+def boundary_faces(
+    vertices: np.ndarray, faces: np.ndarray, inside_fn, eps: float, max_edge: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Pieces of the surface whose two sides differ in inside/outside status (the solid's
+    boundary); hidden faces inside overlapping parts and interior parts are dropped.
 
     Args:
         vertices: (V, 3) float64, faces: (F, 3) int64.
         inside_fn: (P, 3) points -> (P,) bool.
         eps: offset from the face centroid along its normal, unit-cube units.
+        max_edge: triangles are split until no edge is longer than this first.
     Returns:
-        (B, 3) int64 subset of ``faces``.
+        vertices (V', 3) and faces (B, 3) of the boundary pieces.
     """
+    from trimesh.remesh import subdivide_to_size
+
+    # A large triangle can be partly hidden inside another part (low-poly CAD): split triangles
+    # to about one voxel so each piece is classified on its own.
+    vertices, faces = subdivide_to_size(vertices, faces, max_edge=max_edge, max_iter=12)
     tri = vertices[faces]
     centroid = tri.mean(axis=1)
     normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
@@ -211,7 +220,7 @@ def boundary_faces(vertices: np.ndarray, faces: np.ndarray, inside_fn, eps: floa
     probe = np.concatenate([centroid + eps * normal, centroid - eps * normal])
     side = inside_fn(probe)
     n = len(faces)
-    return faces[side[:n] != side[n:]]
+    return vertices, faces[side[:n] != side[n:]]
 
 
 _RAY_DIRS = None
@@ -291,16 +300,16 @@ def sdf_volume(vertices_m: np.ndarray, faces: np.ndarray, grid: GridSpec, method
             return winding_numbers(v, fo, p) > 0.5
 
         inside = inside_fn(pts)
-        fb = boundary_faces(v, fo, inside_fn, eps)
-        dist = unsigned_distance(v, fb if len(fb) else fo, pts)
+        vb, fb = boundary_faces(v, fo, inside_fn, eps, grid.voxel)
+        dist = unsigned_distance(vb, fb, pts) if len(fb) else unsigned_distance(v, fo, pts)
     elif method == "rayvote":
 
         def inside_fn(p: np.ndarray) -> np.ndarray:
             return ray_escape_inside(v, f, p)
 
         inside = inside_fn(pts)
-        fb = boundary_faces(v, f, inside_fn, eps)
-        dist = unsigned_distance(v, fb if len(fb) else f, pts)
+        vb, fb = boundary_faces(v, f, inside_fn, eps, grid.voxel)
+        dist = unsigned_distance(vb, fb, pts) if len(fb) else unsigned_distance(v, f, pts)
     else:  # floodfill
         from scipy import ndimage
 
