@@ -17,6 +17,7 @@ This module needs only numpy, so the Blender add-on can import it.
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -31,8 +32,10 @@ VERSION = 1
 SUPPORTED_VERSIONS = (1,)
 
 SOURCE_KINDS = ("generated", "commonroad", "blender")
-# Vehicle classes shared with the vehicle library; "other" for anything unknown.
+# Usual vehicle classes (shared with the vehicle library); any lower-case identifier is
+# accepted (``CLASS_RE``), e.g. the library's "ambulance"; "other" for anything unknown.
 ACTOR_CLASSES = ("sedan", "hatchback", "sports", "suv", "van", "pickup", "truck", "bus", "motorcycle", "other")
+CLASS_RE = re.compile(r"^[a-z][a-z0-9_]*$")
 BARRIER_KINDS = ("concrete", "guardrail")
 SURFACE_KINDS_FOR_MESHES = ("asphalt", "concrete", "metal", "ground", "vegetation")
 
@@ -577,6 +580,13 @@ def _load_dims(v: _V, value: Any, where: str) -> np.ndarray:
     return dims
 
 
+def _load_class(v: _V, value: Any, where: str) -> str:
+    name = v.string(value, where)
+    if not CLASS_RE.match(name):
+        v.fail(where, f"a lower-case class name such as {list(ACTOR_CLASSES[:4])}", name)
+    return name
+
+
 def _scene_from_dict(doc: Any, path: str | Path | None) -> Scene:
     v = _V(path)
     check_header(doc, path, FORMAT, SUPPORTED_VERSIONS)
@@ -712,7 +722,7 @@ def _scene_from_dict(doc: Any, path: str | Path | None) -> Scene:
         ids.add(actor_id)
         actors.append(Actor(
             id=actor_id,
-            cls=v.string(v.key(ad, "class", w), f"{w}.class", choices=ACTOR_CLASSES),
+            cls=_load_class(v, v.key(ad, "class", w), f"{w}.class"),
             dimensions=_load_dims(v, v.key(ad, "dimensions", w), f"{w}.dimensions"),
             asset=v.string(ad.get("asset"), f"{w}.asset", nullable=True),
             track=_load_track(v, v.key(ad, "track", w), f"{w}.track", frames, full=False),
