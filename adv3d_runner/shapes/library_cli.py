@@ -1,0 +1,290 @@
+"""``adv3d assets ...``: curate the vehicle library (import, exclude, list, check, preview).
+
+``assets/vehicles/build_library.sh`` is the exact sequence of these commands that made the
+shipped library; rerunning it gives the same library.json and the same mesh bytes.
+"""
+from __future__ import annotations
+
+import argparse
+import re
+import shutil
+from pathlib import Path
+
+from ..errors import ConfigError, MeshImportError
+
+#: Typical real-world (length, width, height) in metres per class: used to warn about
+#: implausible sizes on import and documented in docs/library.md. Figures are rounded class
+#: medians of current European/US models (e.g. sedan: VW Passat 4.78x1.83x1.48, Toyota Camry
+#: 4.88x1.84x1.44).
+TYPICAL_DIMENSIONS = {
+    "sedan": (4.7, 1.8, 1.45),
+    "hatchback": (4.2, 1.8, 1.45),
+    "sports": (4.5, 1.9, 1.3),
+    "suv": (4.8, 1.9, 1.75),
+    "van": (5.2, 2.0, 2.1),
+    "pickup": (5.5, 2.0, 1.85),
+    "truck": (7.5, 2.5, 3.2),
+    "bus": (12.0, 2.55, 3.2),
+    "ambulance": (6.0, 2.1, 2.7),
+    "fire_truck": (9.0, 2.5, 3.3),
+    "garbage_truck": (9.0, 2.5, 3.5),
+}
+
+_LICENCE_NAMES = ("License.txt", "LICENSE.txt", "LICENSE", "Licence.txt", "LICENCE", "license.txt")
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser("assets", help="curate the vehicle library (import, list, check)",
+                                   description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = parser.add_subparsers(dest="assets_command", metavar="ACTION")
+
+    imp = sub.add_parser("import", help="convert mesh files into the library and record them")
+    imp.add_argument("paths", nargs="+", metavar="PATH", help=".glb .gltf .obj .ply .stl .fbx .blend")
+    imp.add_argument("--class", dest="vehicle_class", required=True,
+                     help="vehicle class: sedan hatchback sports suv van pickup truck bus ...")
+    imp.add_argument("--dimensions", nargs=3, type=float, metavar=("L", "W", "H"),
+                     help="scale (anisotropically) to this real length, width, height in metres")
+    imp.add_argument("--id", dest="asset_id", help="asset id (one PATH only); default PACK.file-stem")
+    imp.add_argument("--up", help="file axis that is up (+x -x +y -y +z -z); default from the format")
+    imp.add_argument("--forward", help="file axis the vehicle's front points to; default: longest horizontal axis")
+    imp.add_argument("--unit", default="auto", choices=("auto", "m", "cm", "mm", "in"),
+                     help="file length unit (auto: guessed from the vehicle's length)")
+    imp.add_argument("--library", type=Path, default=None, help="library.json (default assets/vehicles/library.json)")
+    imp.add_argument("--exclude-from-shape-space", action="store_true",
+                     help="keep the asset out of the PCA shape space (buses, trucks, ...)")
+    imp.add_argument("--licence-file", type=Path, help="licence text to copy beside the meshes (default: found beside PATH)")
+    imp.add_argument("--licence", dest="licence_name", help='licence name, e.g. "CC0-1.0" (default: read from the licence file)')
+    imp.add_argument("--source-pack", help="pack folder name in the library (default: PATH's folder name)")
+    imp.add_argument("--author", default="", help="author credited in the source record")
+    imp.add_argument("--url", default="", help="where the pack comes from")
+    imp.add_argument("--note", default="", help="why the asset was curated this way (recorded in curation.note)")
+    imp.set_defaults(func=cmd_import)
+
+    exc = sub.add_parser("exclude", help="record a source file deliberately left out of the library")
+    exc.add_argument("paths", nargs="+", metavar="PATH")
+    exc.add_argument("--reason", required=True)
+    exc.add_argument("--source-pack", help="pack name (default: PATH's folder name)")
+    exc.add_argument("--library", type=Path, default=None)
+    exc.set_defaults(func=cmd_exclude)
+
+    lst = sub.add_parser("list", help="print the library as a table")
+    lst.add_argument("--library", type=Path, default=None)
+    lst.add_argument("--markdown", action="store_true", help="print a Markdown table")
+    lst.set_defaults(func=cmd_list)
+
+    chk = sub.add_parser("check", help="validate library.json and that every mesh loads and matches it")
+    chk.add_argument("--library", type=Path, default=None)
+    chk.set_defaults(func=cmd_check)
+
+    prv = sub.add_parser("preview", help="render top and side silhouettes of assets to PNG (check +x front, z=0)")
+    prv.add_argument("ids", nargs="*", help="asset ids (default: all)")
+    prv.add_argument("--library", type=Path, default=None)
+    prv.add_argument("-o", "--output", type=Path, required=True, help="PNG file to write")
+    prv.set_defaults(func=cmd_preview)
+
+    parser.set_defaults(func=lambda args: (parser.print_help(), 2)[1])
+
+
+def _library_path(arg: Path | None) -> Path:
+    from .library import DEFAULT_LIBRARY
+
+    return Path(arg) if arg is not None else DEFAULT_LIBRARY
+
+
+def _load_or_new(path: Path):
+    from .library import VehicleLibrary, load_library
+
+    return load_library(path) if path.exists() else VehicleLibrary(root=path.parent)
+
+
+def slug(text: str) -> str:
+    """File-name-safe lower-case id part: ``"SportsCar2"`` -> ``"sportscar2"``."""
+    s = re.sub(r"[^a-z0-9._-]+", "-", text.lower()).strip("-.")
+    if not s:
+        raise ConfigError(f"cannot make an id from {text!r}; pass --id")
+    return s
+
+
+def find_licence(folder: Path) -> Path | None:
+    for name in _LICENCE_NAMES:
+        if (folder / name).is_file():
+            return folder / name
+    return None
+
+
+def licence_name_from_text(text: str) -> str | None:
+    t = text.lower()
+    if "cc0" in t or "creative commons zero" in t or "publicdomain/zero" in t:
+        return "CC0-1.0"
+    if "creativecommons.org/licenses/by/4.0" in t:
+        return "CC-BY-4.0"
+    return None
+
+
+def plausibility_warning(vehicle_class: str, dims: tuple[float, float, float]) -> str | None:
+    """A warning when dimensions are more than 30 % off the class's typical size."""
+    typical = TYPICAL_DIMENSIONS.get(vehicle_class)
+    if typical is None:
+        return None
+    off = [d / t for d, t in zip(dims, typical)]
+    if any(r < 0.7 or r > 1.3 for r in off):
+        return (f"{vehicle_class} of {dims[0]:.2f} x {dims[1]:.2f} x {dims[2]:.2f} m is far from the typical "
+                f"{typical[0]} x {typical[1]} x {typical[2]} m; consider --dimensions")
+    return None
+
+
+def cmd_import(args) -> int:
+    from ..progress import progress, status
+    from .library import VehicleAsset, save_library
+    from .mesh_io import import_vehicle, mesh_dimensions, read_library_mesh, write_library_glb
+
+    lib_path = _library_path(args.library)
+    library = _load_or_new(lib_path)
+    paths = [Path(p) for p in args.paths]
+    if args.asset_id and len(paths) != 1:
+        raise ConfigError("--id needs exactly one PATH")
+    if not re.match(r"^[a-z][a-z0-9_]*$", args.vehicle_class):
+        raise ConfigError(f"--class must be a lower-case name such as sedan or suv (got {args.vehicle_class!r})")
+    for path in progress(paths, desc="import", unit="file"):
+        if not path.is_file():
+            raise MeshImportError(f"{path}: no such file")
+        pack = slug(args.source_pack or path.parent.name)
+        asset_id = args.asset_id or f"{pack}.{slug(path.stem)}"
+        licence_src = args.licence_file or find_licence(path.parent)
+        if licence_src is None or not Path(licence_src).is_file():
+            raise ConfigError(f"{path}: no licence file beside it; pass --licence-file (licences travel with meshes)")
+        licence_src = Path(licence_src)
+        licence_name = args.licence_name or licence_name_from_text(licence_src.read_text(errors="replace"))
+        if not licence_name:
+            raise ConfigError(f"{licence_src}: cannot tell the licence from its text; pass --licence NAME")
+
+        mesh, curation, report = import_vehicle(path, up=args.up, forward=args.forward, unit=args.unit,
+                                                dimensions=tuple(args.dimensions) if args.dimensions else None)
+        rel_file = f"{pack}/{asset_id.split('.', 1)[-1] if asset_id.startswith(pack + '.') else asset_id}.glb"
+        target = library.root / rel_file
+        write_library_glb(mesh, target)
+        stored = read_library_mesh(target)  # dimensions from what is on disk (float32 in glb)
+        dims = tuple(round(v, 4) for v in mesh_dimensions(stored))
+        lic_rel = f"{pack}/{licence_src.name}"
+        if (library.root / lic_rel).resolve() != licence_src.resolve():
+            (library.root / pack).mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(licence_src, library.root / lic_rel)
+        if args.dimensions:
+            curation["scaled_to_dimensions"] = [float(v) for v in args.dimensions]
+        if args.note:
+            curation["note"] = args.note
+        asset = VehicleAsset(
+            id=asset_id, file=rel_file, vehicle_class=args.vehicle_class, dimensions=dims,
+            source={"pack": pack, "file": path.name, "author": args.author, "url": args.url},
+            licence={"name": licence_name, "file": lic_rel},
+            triangle_count=int(len(stored.faces)), cleaning=report, curation=curation,
+            in_shape_space=not args.exclude_from_shape_space,
+        )
+        library.put(asset)
+        save_library(library, lib_path)  # after each file: a failure later keeps earlier work
+        warning = plausibility_warning(args.vehicle_class, dims)
+        status(f"{asset_id}: {dims[0]:.2f} x {dims[1]:.2f} x {dims[2]:.2f} m, {asset.triangle_count} triangles"
+               + (f"  WARNING: {warning}" if warning else ""))
+    return 0
+
+
+def cmd_exclude(args) -> int:
+    from ..progress import status
+    from .library import save_library
+
+    lib_path = _library_path(args.library)
+    library = _load_or_new(lib_path)
+    for p in args.paths:
+        path = Path(p)
+        entry = {"pack": slug(args.source_pack or path.parent.name), "file": path.name, "reason": args.reason}
+        library.excluded = [e for e in library.excluded
+                            if (e["pack"], e["file"]) != (entry["pack"], entry["file"])] + [entry]
+        status(f"excluded {entry['pack']}/{entry['file']}: {args.reason}")
+    save_library(library, lib_path)
+    return 0
+
+
+def format_table(library, markdown: bool = False) -> str:
+    """The library as a text (or Markdown) table: id, class, L/W/H, triangles, shape space."""
+    header = ("id", "class", "L m", "W m", "H m", "tris", "shape space")
+    rows = [(a.id, a.vehicle_class, f"{a.dimensions[0]:.2f}", f"{a.dimensions[1]:.2f}", f"{a.dimensions[2]:.2f}",
+             str(a.triangle_count), "yes" if a.in_shape_space else "no") for a in library.assets]
+    if markdown:
+        lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+        lines += ["| " + " | ".join(r) + " |" for r in rows]
+        return "\n".join(lines)
+    widths = [max(len(r[i]) for r in [header, *rows]) for i in range(len(header))]
+    fmt = "  ".join(f"{{:<{w}}}" for w in widths)
+    return "\n".join(fmt.format(*r) for r in [header, *rows])
+
+
+def cmd_list(args) -> int:
+    from .library import load_library
+
+    library = load_library(_library_path(args.library))
+    print(format_table(library, markdown=args.markdown))
+    n = len(library.shape_space_assets())
+    print(f"{len(library.assets)} assets, {n} in the shape space, {len(library.excluded)} source files excluded")
+    return 0
+
+
+def check_library(library, tolerance: float = 1e-3) -> list[str]:
+    """Every problem found in a loaded library (empty list: all good).
+
+    Checks each mesh file loads, its triangle count and bounding box match the JSON (within
+    ``tolerance`` metres), the origin convention (min z = 0, footprint centred) and that the
+    licence file exists.
+    """
+    import numpy as np
+
+    from .mesh_io import read_library_mesh
+
+    problems = []
+    for asset in library.assets:
+        try:
+            mesh = read_library_mesh(library.path_of(asset))
+        except MeshImportError as exc:
+            problems.append(f"{asset.id}: {exc}")
+            continue
+        lo, hi = mesh.bounds
+        size = hi - lo
+        if len(mesh.faces) != asset.triangle_count:
+            problems.append(f"{asset.id}: {len(mesh.faces)} triangles, library.json says {asset.triangle_count}")
+        if np.max(np.abs(size - np.asarray(asset.dimensions))) > tolerance:
+            problems.append(f"{asset.id}: mesh size {np.round(size, 4).tolist()} != dimensions {list(asset.dimensions)}")
+        if abs(lo[2]) > tolerance:
+            problems.append(f"{asset.id}: lowest point at z = {lo[2]:.4f} m, expected 0 (on the ground)")
+        centre = 0.5 * (lo[:2] + hi[:2])
+        if np.max(np.abs(centre)) > tolerance:
+            problems.append(f"{asset.id}: footprint centre at {np.round(centre, 4).tolist()}, expected the origin")
+        if not (library.root / asset.licence["file"]).is_file():
+            problems.append(f"{asset.id}: licence file {asset.licence['file']} is missing")
+    return problems
+
+
+def cmd_check(args) -> int:
+    from ..progress import status
+    from .library import load_library
+
+    path = _library_path(args.library)
+    library = load_library(path)
+    problems = check_library(library)
+    for p in problems:
+        print(f"PROBLEM {p}")
+    if problems:
+        print(f"{path}: {len(problems)} problem(s) in {len(library.assets)} assets")
+        return 1
+    status(f"{path}: OK, {len(library.assets)} assets load and match their records")
+    return 0
+
+
+def cmd_preview(args) -> int:
+    from ..progress import status
+    from .library import load_library
+    from .library_preview import render_silhouettes
+
+    library = load_library(_library_path(args.library))
+    ids = args.ids or library.ids()
+    render_silhouettes(library, ids, args.output)
+    status(f"wrote {args.output}")
+    return 0

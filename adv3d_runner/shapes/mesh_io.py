@@ -1,0 +1,383 @@
+"""Reading vehicle meshes from artist files and bringing them into the project convention.
+
+Convention (DESIGN.md): metres, right-handed, +x front, +y left, +z up, origin at the centre of
+the footprint (the x/y bounding box) on the ground (z = 0 is the lowest point, the tyres).
+
+- glb / gltf / obj / ply / stl are read with trimesh; scenes are flattened with their node
+  transforms.
+- fbx / blend are read by Blender in a child process (``adv3d_runner.shapes.bpy_export``) so
+  this process never imports bpy; the child writes a plain PLY in Blender's Z-up world frame
+  (metres, object scales such as FBX centimetres applied).
+
+Library meshes are stored as glTF binaries in the glTF frame (Y up, +Z towards the viewer):
+glTF (x, y, z) = convention (x, z, -y), so Blender's glTF importer shows them the right way up
+with the car's front along Blender +X. :func:`read_library_mesh` undoes that.
+"""
+from __future__ import annotations
+
+import io
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import ConfigError, MeshImportError
+
+TRIMESH_FORMATS = (".glb", ".gltf", ".obj", ".ply", ".stl")
+BLENDER_FORMATS = (".fbx", ".blend")
+SUPPORTED_FORMATS = TRIMESH_FORMATS + BLENDER_FORMATS
+
+#: Up axis each format declares (None: the format does not say; we assume +z, CAD style).
+NATIVE_UP = {".glb": "+y", ".gltf": "+y", ".fbx": "+z", ".blend": "+z",
+             ".obj": None, ".ply": None, ".stl": None}
+
+#: Rotation taking convention coordinates (z up) to glTF coordinates (y up): g = C2G @ c.
+CONVENTION_TO_GLTF = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
+GLTF_TO_CONVENTION = CONVENTION_TO_GLTF.T
+
+UNIT_SCALES = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254}
+DEFAULT_RGBA = (180, 180, 180, 255)
+BPY_TIMEOUT_S = 300
+
+
+# ----------------------------------------------------------------------------- reading
+
+def read_mesh(path: str | Path) -> tuple[Any, dict]:
+    """Read any supported file as one triangle mesh in its own file frame.
+
+    Args:
+        path: mesh file (.glb .gltf .obj .ply .stl through trimesh; .fbx .blend through bpy).
+
+    Returns:
+        (mesh, info): a ``trimesh.Trimesh`` (float64 vertices, face colours RGBA uint8) and
+        ``{"format": ".glb", "native_up": "+y" | "+z" | None, "reader": "trimesh" | "bpy"}``.
+
+    Raises:
+        MeshImportError: the file is missing, unreadable, not a mesh, or has no triangles;
+            the message names the file.
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in SUPPORTED_FORMATS:
+        raise MeshImportError(f"{path}: unsupported mesh format {suffix or '(none)'!r}; "
+                              f"expected one of {' '.join(SUPPORTED_FORMATS)}")
+    if not path.is_file():
+        raise MeshImportError(f"{path}: no such file")
+    if suffix in BLENDER_FORMATS:
+        mesh = _read_with_blender(path)
+        reader = "bpy"
+    else:
+        mesh = _read_with_trimesh(path, suffix)
+        reader = "trimesh"
+    if len(mesh.faces) == 0:
+        raise MeshImportError(f"{path}: the file holds no triangles")
+    if not np.all(np.isfinite(mesh.vertices)):
+        raise MeshImportError(f"{path}: vertex coordinates are not all finite (NaN or inf)")
+    return mesh, {"format": suffix, "native_up": NATIVE_UP[suffix], "reader": reader}
+
+
+def _read_with_trimesh(path: Path, suffix: str):
+    import trimesh
+
+    try:
+        loaded = trimesh.load(str(path), file_type=suffix[1:], force="scene", process=False)
+    except Exception as exc:  # noqa: BLE001 - trimesh raises many types for bad files
+        raise MeshImportError(f"{path}: cannot read as {suffix[1:]} ({type(exc).__name__}: {exc})") from None
+    mesh = flatten_scene(loaded)
+    if mesh is None:
+        raise MeshImportError(f"{path}: not a triangle mesh (no geometry with faces in the file)")
+    return mesh
+
+
+def flatten_scene(scene) -> Any:
+    """Concatenate every mesh instance of a ``trimesh.Scene`` with its node transform applied.
+
+    Each part keeps one colour per face (textures are sampled to colours), so material colours
+    survive concatenation. Returns None when the scene has no faces.
+    """
+    import trimesh
+
+    parts = []
+    for node in scene.graph.nodes_geometry:  # graph order is the file's order: deterministic
+        transform, geom_name = scene.graph[node]
+        geom = scene.geometry.get(geom_name)
+        if not isinstance(geom, trimesh.Trimesh) or len(geom.faces) == 0:
+            continue
+        colours = _face_colours(geom)
+        part = trimesh.Trimesh(np.asarray(geom.vertices, dtype=np.float64).copy(),
+                               np.asarray(geom.faces, dtype=np.int64).copy(), process=False)
+        part.apply_transform(np.asarray(transform, dtype=np.float64))  # flips winding if mirrored
+        part.visual = trimesh.visual.ColorVisuals(part, face_colors=colours)
+        parts.append(part)
+    if not parts:
+        return None
+    return concatenate(parts)
+
+
+def concatenate(parts: list) -> Any:
+    """Concatenate meshes keeping face colours (plain arrays, no visual merging surprises)."""
+    import trimesh
+
+    offsets = np.cumsum([0] + [len(p.vertices) for p in parts[:-1]])
+    vertices = np.vstack([p.vertices for p in parts])
+    faces = np.vstack([p.faces + o for p, o in zip(parts, offsets)])
+    colours = np.vstack([_face_colours(p) for p in parts])
+    return trimesh.Trimesh(vertices, faces, face_colors=colours, process=False)
+
+
+def _face_colours(mesh) -> np.ndarray:
+    """One RGBA uint8 colour per face, whatever the visual kind (texture, vertex, face, none)."""
+    n = len(mesh.faces)
+    visual = mesh.visual
+    try:
+        kind = visual.kind
+        if kind == "face":
+            return np.asarray(visual.face_colors, dtype=np.uint8)[:, :4].copy()
+        if kind == "texture":
+            visual = visual.to_color()
+            kind = visual.kind
+        if kind == "vertex":
+            vc = np.asarray(visual.vertex_colors, dtype=np.uint8)
+            if vc.ndim == 1:  # one colour for the whole mesh (material without texture)
+                return np.tile(vc[:4], (n, 1))
+            return vc[mesh.faces[:, 0]][:, :4].copy()
+        if kind == "face":
+            return np.asarray(visual.face_colors, dtype=np.uint8)[:, :4].copy()
+    except Exception:  # noqa: BLE001 - colour is cosmetic: never fail an import over it
+        pass
+    return np.tile(np.array(DEFAULT_RGBA, dtype=np.uint8), (n, 1))
+
+
+def _read_with_blender(path: Path):
+    """Run ``bpy_export`` in a child Python and read the PLY it writes."""
+    import trimesh
+
+    with tempfile.TemporaryDirectory(prefix="adv3d-bpy-") as tmp:
+        out = Path(tmp) / "mesh.ply"
+        cmd = [sys.executable, "-m", "adv3d_runner.shapes.bpy_export", str(path.resolve()), str(out)]
+        try:
+            proc = subprocess.run(cmd, capture_output=True, text=True, timeout=BPY_TIMEOUT_S,
+                                  cwd=str(Path(__file__).resolve().parents[2]))
+        except subprocess.TimeoutExpired:
+            raise MeshImportError(f"{path}: Blender did not finish reading it within {BPY_TIMEOUT_S} s") from None
+        if proc.returncode != 0 or not out.is_file():
+            tail = (proc.stderr or proc.stdout or "").strip().splitlines()[-3:]
+            raise MeshImportError(f"{path}: Blender could not convert it (exit {proc.returncode}): "
+                                  + " | ".join(tail))
+        try:
+            mesh = trimesh.load(str(out), file_type="ply", process=False)
+        except Exception as exc:  # noqa: BLE001
+            raise MeshImportError(f"{path}: Blender's export could not be read back ({exc})") from None
+    mesh.visual = trimesh.visual.ColorVisuals(mesh, face_colors=_face_colours(mesh))
+    return mesh
+
+
+# ----------------------------------------------------------------------------- axes and units
+
+_AXES = {"x": np.array([1.0, 0, 0]), "y": np.array([0, 1.0, 0]), "z": np.array([0, 0, 1.0])}
+
+
+def parse_axis(text: str) -> np.ndarray:
+    """``"+y"``, ``"-z"`` or ``"x"`` -> signed unit vector (3,)."""
+    t = str(text).strip().lower()
+    sign = -1.0 if t.startswith("-") else 1.0
+    name = t.lstrip("+-")
+    if name not in _AXES or len(t) - len(name) > 1:
+        raise ConfigError(f"axis must be one of +x -x +y -y +z -z (got {text!r})")
+    return sign * _AXES[name]
+
+
+def axis_name(vec: np.ndarray) -> str:
+    i = int(np.argmax(np.abs(vec)))
+    return ("+" if vec[i] > 0 else "-") + "xyz"[i]
+
+
+def axes_rotation(up: str, forward: str) -> np.ndarray:
+    """Rotation (3, 3) taking file coordinates to the convention, ``c = R @ v``.
+
+    Rows are the file's forward, left (= up x forward, right-handed) and up axes, so R is a
+    proper rotation (det +1) and never mirrors the mesh.
+    """
+    u, f = parse_axis(up), parse_axis(forward)
+    if abs(float(u @ f)) > 0.5:
+        raise ConfigError(f"up ({up}) and forward ({forward}) must be different axes")
+    left = np.cross(u, f)
+    return np.vstack([f, left, u])
+
+
+def guess_forward(vertices: np.ndarray, up: str) -> str:
+    """The longest horizontal extent is the vehicle's length axis; the sign is assumed '+'.
+
+    Front and back cannot be told apart from geometry reliably, so callers must check the
+    result on a rendered picture and pass ``forward`` explicitly where it is wrong.
+    """
+    u = parse_axis(up)
+    extent = np.ptp(vertices, axis=0)
+    extent[int(np.argmax(np.abs(u)))] = -1.0
+    return "+" + "xyz"[int(np.argmax(extent))]
+
+
+def guess_unit(length: float) -> str:
+    """Unit of a vehicle file from its length: real road vehicles are 1.5 m .. 25 m long."""
+    if length <= 60.0:
+        return "m"
+    if length <= 6000.0:
+        return "cm"
+    return "mm"
+
+
+def to_convention(mesh, up: str | None = None, forward: str | None = None, unit: str = "auto",
+                  native_up: str | None = None) -> tuple[Any, dict]:
+    """Rotate, scale and move a mesh into the convention frame.
+
+    Args:
+        mesh: ``trimesh.Trimesh`` in its file frame (not modified).
+        up, forward: file axes (``"+y"``...) that are up and the vehicle's front; None: ``up``
+            from the format (``native_up``, else +z) and ``forward`` from :func:`guess_forward`.
+        unit: ``m``, ``cm``, ``mm``, ``in`` or ``auto`` (from the length, :func:`guess_unit`).
+        native_up: the up axis the file format declares, if any.
+
+    Returns:
+        (converted mesh, record) where the record says which axes and unit were used and why.
+        Large coordinate offsets are removed in float64 before anything else, so a model at
+        1e5 cm from its origin keeps full precision.
+    """
+    record: dict = {}
+    if up is None:
+        up = native_up or "+z"
+        record["up"] = f"{axis_name(parse_axis(up))} ({'declared by the format' if native_up else 'assumed'})"
+    else:
+        record["up"] = f"{axis_name(parse_axis(up))} (given)"
+    vertices = np.asarray(mesh.vertices, dtype=np.float64)
+    if forward is None:
+        forward = guess_forward(vertices, up)
+        record["forward"] = f"{forward} (guessed: longest horizontal axis; sign unchecked)"
+    else:
+        record["forward"] = f"{axis_name(parse_axis(forward))} (given)"
+    rot = axes_rotation(up, forward)
+    # centre first: large offsets would otherwise cost precision in every later step
+    centre = 0.5 * (vertices.min(axis=0) + vertices.max(axis=0))
+    local = (vertices - centre) @ rot.T
+    length = float(np.ptp(local[:, 0])) if len(local) else 0.0
+    if unit == "auto":
+        unit = guess_unit(length)
+        record["unit"] = f"{unit} (guessed from a file length of {length:.6g})"
+    elif unit in UNIT_SCALES:
+        record["unit"] = f"{unit} (given)"
+    else:
+        raise ConfigError(f"unit must be one of auto {' '.join(UNIT_SCALES)} (got {unit!r})")
+    local = local * UNIT_SCALES[unit]
+    local = _ground_and_centre(local)
+    record["file_offset_removed"] = [float(v) for v in np.round(centre, 6)]
+    out = mesh.copy()
+    out.vertices = local
+    return out, record
+
+
+def _ground_and_centre(v: np.ndarray) -> np.ndarray:
+    """Move the x/y bounding-box centre to the origin and the lowest point to z = 0."""
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    shift = np.array([0.5 * (lo[0] + hi[0]), 0.5 * (lo[1] + hi[1]), lo[2]])
+    return v - shift
+
+
+def scale_to_dimensions(mesh, dimensions: tuple[float, float, float]) -> tuple[Any, dict]:
+    """Scale a convention-frame mesh (anisotropically) so its box is ``length x width x height``.
+
+    Returns:
+        (scaled mesh, record with original size and per-axis factors).
+    """
+    dims = np.asarray(dimensions, dtype=np.float64)
+    if dims.shape != (3,) or not np.all(np.isfinite(dims)) or np.any(dims <= 0):
+        raise ConfigError(f"--dimensions needs three positive numbers L W H in metres (got {dimensions})")
+    size = np.ptp(mesh.vertices, axis=0)
+    if np.any(size <= 0):
+        raise MeshImportError(f"cannot scale a flat mesh (size {size.tolist()}) to {dims.tolist()}")
+    factors = dims / size
+    out = mesh.copy()
+    out.vertices = _ground_and_centre(np.asarray(mesh.vertices) * factors)
+    return out, {"size_before_scaling": [round(float(s), 4) for s in size],
+                 "scale_factors": [round(float(f), 4) for f in factors]}
+
+
+def mesh_dimensions(mesh) -> tuple[float, float, float]:
+    """(length, width, height) of a convention-frame mesh's bounding box, metres."""
+    size = np.ptp(np.asarray(mesh.vertices, dtype=np.float64), axis=0)
+    return float(size[0]), float(size[1]), float(size[2])
+
+
+# ----------------------------------------------------------------------------- library files
+
+def export_library_glb(mesh) -> bytes:
+    """Bytes of a compact glb holding ``mesh`` (convention frame) in the glTF frame.
+
+    Faces are grouped by colour into one primitive per colour with a plain PBR base colour,
+    so Blender shows the original paint. Output bytes depend only on the mesh (deterministic).
+    """
+    import trimesh
+
+    colours = _face_colours(mesh)
+    keys = colours.astype(np.uint32) @ np.array([1 << 24, 1 << 16, 1 << 8, 1], dtype=np.uint32)
+    order = np.argsort(keys, kind="stable")
+    scene = trimesh.Scene()
+    vertices_gltf = np.asarray(mesh.vertices, dtype=np.float64) @ CONVENTION_TO_GLTF.T
+    for n, key in enumerate(np.unique(keys)):
+        sel = order[keys[order] == key]
+        faces = mesh.faces[sel]
+        used, inverse = np.unique(faces.reshape(-1), return_inverse=True)
+        rgba = colours[sel[0]]
+        material = trimesh.visual.material.PBRMaterial(
+            name=f"paint-{n:02d}", baseColorFactor=[int(c) for c in rgba], metallicFactor=0.0, roughnessFactor=0.6)
+        part = trimesh.Trimesh(vertices_gltf[used], inverse.reshape(-1, 3), process=False)
+        part.visual = trimesh.visual.TextureVisuals(material=material)
+        scene.add_geometry(part, geom_name=f"part-{n:02d}", node_name=f"part-{n:02d}")
+    return scene.export(file_type="glb", include_normals=False)
+
+
+def write_library_glb(mesh, path: str | Path) -> None:
+    """Write :func:`export_library_glb` atomically."""
+    from ..fileio import atomic_write_bytes
+
+    atomic_write_bytes(path, export_library_glb(mesh))
+
+
+def read_library_mesh(path: str | Path):
+    """Read a library glb back into the convention frame.
+
+    Colour groups are re-joined (coincident vertices merged), so the mesh has the topology it
+    was cleaned with. Returns a ``trimesh.Trimesh`` with float64 vertices and face colours.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise MeshImportError(f"{path}: library mesh file is missing")
+    mesh = _read_with_trimesh(path, path.suffix.lower() or ".glb")
+    if path.suffix.lower() in (".glb", ".gltf"):
+        mesh.vertices = np.asarray(mesh.vertices, dtype=np.float64) @ GLTF_TO_CONVENTION.T
+    mesh.merge_vertices(merge_tex=True, merge_norm=True)
+    return mesh
+
+
+def import_vehicle(path: str | Path, up: str | None = None, forward: str | None = None,
+                   unit: str = "auto", dimensions: tuple[float, float, float] | None = None,
+                   clean: bool = True) -> tuple[Any, dict, dict]:
+    """Read, convert, clean and (optionally) scale one vehicle file.
+
+    Returns:
+        (mesh in the convention frame, curation record, cleaning report).
+    """
+    from .cleaning import clean_mesh
+
+    mesh, info = read_mesh(path)
+    converted, record = to_convention(mesh, up=up, forward=forward, unit=unit, native_up=info["native_up"])
+    curation: dict = {"reader": info["reader"], "file_format": info["format"][1:], **record,
+                      "size_after_unit_conversion": [round(v, 4) for v in mesh_dimensions(converted)]}
+    report: dict = {}
+    if clean:
+        converted, report = clean_mesh(converted)
+    if dimensions is not None:
+        converted, scaled = scale_to_dimensions(converted, dimensions)
+        curation.update(scaled)
+    return converted, curation, report
