@@ -203,8 +203,268 @@ def show_asset(scene, lib_props, asset_id: str) -> "bpy.types.Object":
     return asset_mesh_object(library, asset_id, coll)
 
 
+# --------------------------------------------------------------------------- import through Blender
+
+_IMPORTERS = {
+    ".glb": lambda path: bpy.ops.import_scene.gltf(filepath=path),
+    ".gltf": lambda path: bpy.ops.import_scene.gltf(filepath=path),
+    ".obj": lambda path: bpy.ops.wm.obj_import(filepath=path, forward_axis="NEGATIVE_Z", up_axis="Y"),
+    ".fbx": lambda path: bpy.ops.import_scene.fbx(filepath=path),
+    ".ply": lambda path: bpy.ops.wm.ply_import(filepath=path),
+    ".stl": lambda path: bpy.ops.wm.stl_import(filepath=path),
+}
+IMPORT_SUFFIXES = tuple(_IMPORTERS) + (".blend",)
+_FORWARD = {"X": "+x", "NEG_X": "-x", "Y": "+y", "NEG_Y": "-y"}
+
+
+def _import_objects(path: Path) -> list:
+    """Import a file with Blender's own importer; returns the new objects (a .blend's objects
+    are appended)."""
+    before = set(bpy.data.objects)
+    suffix = path.suffix.lower()
+    try:
+        if suffix == ".blend":
+            with bpy.data.libraries.load(str(path), link=False) as (src, dst):
+                dst.objects = list(src.objects)
+            new = [o for o in dst.objects if o is not None]
+            for obj in new:
+                bpy.context.scene.collection.objects.link(obj)
+        else:
+            result = _IMPORTERS[suffix](str(path))
+            if "FINISHED" not in result:
+                raise runner.Adv3dError(f"{path}: Blender's importer did not finish ({result})")
+            new = [o for o in bpy.data.objects if o not in before]
+    except (RuntimeError, OSError) as exc:  # Blender importers raise RuntimeError on bad files
+        raise _mesh_error(f"{path}: cannot import ({str(exc).strip().splitlines()[-1] if str(exc).strip() else exc})")
+    return new
+
+
+def _mesh_error(message: str):
+    from adv3d_runner.errors import MeshImportError
+
+    return MeshImportError(message)
+
+
+def objects_arrays(objects) -> tuple[np.ndarray, np.ndarray]:
+    """World-space triangles of the mesh objects (modifiers applied), concatenated (Z up, m)."""
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    verts, faces, offset = [], [], 0
+    for obj in objects:
+        if obj.type != "MESH":
+            continue
+        evaluated = obj.evaluated_get(depsgraph)
+        mesh = evaluated.to_mesh()
+        try:
+            v, f = meshdata.mesh_arrays(mesh)
+        finally:
+            evaluated.to_mesh_clear()
+        if not len(f):
+            continue
+        m = np.array(obj.matrix_world, dtype=np.float64)
+        verts.append(v @ m[:3, :3].T + m[:3, 3])
+        faces.append(f + offset)
+        offset += len(v)
+    if not faces:
+        raise _mesh_error("the file holds no mesh with faces")
+    return np.concatenate(verts), np.concatenate(faces)
+
+
+def _remove_objects(objects) -> None:
+    for obj in objects:
+        data = obj.data
+        bpy.data.objects.remove(obj, do_unlink=True)
+        if isinstance(data, bpy.types.Mesh) and data.users == 0:
+            bpy.data.meshes.remove(data)
+
+
+def import_vehicle_file(lib_props, path: Path, vehicle_class: str, forward: str, length: float,
+                        licence_name: str = "", licence_file: str = "", asset_id: str = "", pack: str = ""):
+    """Import one vehicle file through Blender into the library (mesh written, library saved).
+
+    The mesh goes through the runner's own conversion and cleaning
+    (``mesh_io.to_convention``, ``cleaning.clean_mesh``), so an asset added here is stored
+    exactly like one added by ``adv3d assets import``.
+
+    Returns:
+        the new ``VehicleAsset``.
+    """
+    import shutil
+
+    import trimesh
+    from adv3d_runner.errors import ConfigError
+    from adv3d_runner.shapes.cleaning import clean_mesh
+    from adv3d_runner.shapes.library import VehicleAsset, VehicleLibrary, load_library, save_library
+    from adv3d_runner.shapes.library_cli import find_licence, licence_name_from_text, slug
+    from adv3d_runner.shapes.mesh_io import (
+        mesh_dimensions, read_library_mesh, scale_to_dimensions, to_convention, write_library_glb)
+
+    lib_path = Path(bpy.path.abspath(lib_props.path))
+    if not lib_props.path:
+        raise ConfigError("set the library file (library.json) first")
+    library = load_library(lib_path) if lib_path.exists() else VehicleLibrary(root=lib_path.parent)
+    if path.suffix.lower() not in IMPORT_SUFFIXES:
+        raise _mesh_error(f"{path}: unsupported file type (use {', '.join(IMPORT_SUFFIXES)})")
+    if not path.is_file():
+        raise _mesh_error(f"{path}: no such file")
+    lic_src = Path(licence_file) if licence_file else find_licence(path.parent)
+    if lic_src is None or not lic_src.is_file():
+        raise ConfigError(f"{path}: no licence file beside it; choose one (licences travel with meshes)")
+    lic_name = licence_name or licence_name_from_text(lic_src.read_text(errors="replace"))
+    if not lic_name:
+        raise ConfigError(f"{lic_src}: cannot tell the licence from its text; enter its name")
+
+    objects = _import_objects(path)
+    try:
+        vertices, faces = objects_arrays(objects)
+    finally:
+        _remove_objects(objects)
+    raw = trimesh.Trimesh(vertices=vertices, faces=faces, process=False)
+    # Blender's importers already brought the model to Z up and metres.
+    mesh, curation = to_convention(raw, up="+z", forward=_FORWARD[forward], unit="m")
+    curation = {"reader": "blender", "file_format": path.suffix.lower()[1:], **curation,
+                "size_after_unit_conversion": [round(v, 4) for v in mesh_dimensions(mesh)]}
+    mesh, report = clean_mesh(mesh)
+    if length > 0:
+        size = np.array(mesh_dimensions(mesh))
+        mesh, scaled = scale_to_dimensions(mesh, tuple(size * (length / size[0])))
+        curation.update(scaled)
+        curation["scaled_to_length"] = float(length)
+    pack = slug(pack or path.parent.name)
+    asset_id = asset_id or f"{pack}.{slug(path.stem)}"
+    rel_file = f"{pack}/{slug(path.stem)}.glb"
+    target = library.root / rel_file
+    write_library_glb(mesh, target)
+    stored = read_library_mesh(target)
+    lic_rel = f"{pack}/{lic_src.name}"
+    if (library.root / lic_rel).resolve() != lic_src.resolve():
+        (library.root / pack).mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(lic_src, library.root / lic_rel)
+    asset = VehicleAsset(
+        id=asset_id, file=rel_file, vehicle_class=vehicle_class,
+        dimensions=tuple(round(v, 4) for v in mesh_dimensions(stored)),
+        source={"pack": pack, "file": path.name}, licence={"name": lic_name, "file": lic_rel},
+        triangle_count=int(len(stored.faces)), cleaning=report, curation=curation, in_shape_space=True,
+    )
+    library.put(asset)
+    save_library(library, lib_path)
+    fill_props(lib_props, library)
+    lib_props.active_index = library.ids().index(asset_id)
+    return asset
+
+
+def _edit_asset_mesh(lib_props, asset_id: str, edit, note: dict):
+    """Apply ``edit(vertices) -> vertices`` to a stored asset mesh and update the library."""
+    from adv3d_runner.shapes.library import load_library, save_library
+    from adv3d_runner.shapes.mesh_io import mesh_dimensions, read_library_mesh, write_library_glb
+
+    lib_path = Path(bpy.path.abspath(lib_props.path))
+    library = library_from_props(lib_props)  # keep unsaved panel edits
+    asset = library.get(asset_id)
+    mesh = read_library_mesh(library.path_of(asset))
+    v = edit(np.asarray(mesh.vertices, dtype=np.float64))
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    mesh.vertices = v - np.array([0.5 * (lo[0] + hi[0]), 0.5 * (lo[1] + hi[1]), lo[2]])
+    write_library_glb(mesh, library.path_of(asset))
+    stored = read_library_mesh(library.path_of(asset))
+    curation = dict(asset.curation)
+    curation.setdefault("blender_edits", []).append(note)
+    library.put(replace(asset, dimensions=tuple(round(x, 4) for x in mesh_dimensions(stored)),
+                        triangle_count=int(len(stored.faces)), curation=curation))
+    save_library(library, lib_path)
+    stale = bpy.data.meshes.get(f"asset:{asset_id}")
+    if stale is not None and stale.users == 0:
+        bpy.data.meshes.remove(stale)
+    fill_props(lib_props, library)
+
+
+class ADV3D_OT_library_import(bpy.types.Operator, ImportHelper):
+    """Import a vehicle file (glb/gltf/obj/fbx/ply/stl/.blend) through Blender's importers into the library"""
+
+    bl_idname = "adv3d.library_import"
+    bl_label = "Import vehicle"
+    bl_options = {"REGISTER", "UNDO"}
+
+    filter_glob: StringProperty(default="*.glb;*.gltf;*.obj;*.fbx;*.ply;*.stl;*.blend", options={"HIDDEN"})
+    asset_id: StringProperty(name="Id", description="Asset id (default: <folder>.<file name>)")
+    licence_name: StringProperty(name="Licence", description="SPDX name such as CC0-1.0 (default: from the licence text)")
+    licence_file: StringProperty(name="Licence file", subtype="FILE_PATH",
+                                 description="Licence text (default: License.txt or similar beside the file)")
+
+    def execute(self, context):
+        lib_props = context.scene.adv3d.library
+        try:
+            asset = import_vehicle_file(lib_props, Path(self.filepath), lib_props.import_class,
+                                        lib_props.import_forward, lib_props.import_length,
+                                        self.licence_name, bpy.path.abspath(self.licence_file), self.asset_id)
+        except runner.Adv3dError as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        L, W, H = asset.dimensions
+        self.report({"INFO"}, f"{asset.id}: {L:.2f} x {W:.2f} x {H:.2f} m, {asset.triangle_count} triangles")
+        return {"FINISHED"}
+
+
+class ADV3D_OT_library_rescale(bpy.types.Operator):
+    """Scale the asset's stored mesh uniformly to a real-world length"""
+
+    bl_idname = "adv3d.library_rescale"
+    bl_label = "Set real length"
+    bl_options = {"REGISTER", "UNDO"}
+
+    asset_id: StringProperty(options={"SKIP_SAVE"})
+    length: FloatProperty(name="Length", min=0.5, max=30.0, default=4.5, unit="LENGTH")
+
+    def invoke(self, context, event):
+        lib_props = context.scene.adv3d.library
+        for item in lib_props.assets:
+            if item.asset_id == self.asset_id:
+                self.length = item.length
+        return context.window_manager.invoke_props_dialog(self)
+
+    def execute(self, context):
+        lib_props = context.scene.adv3d.library
+        try:
+            asset = library_from_props(lib_props).get(self.asset_id)
+            factor = self.length / asset.dimensions[0]
+            _edit_asset_mesh(lib_props, self.asset_id, lambda v: v * factor,
+                             {"scale": round(float(factor), 6), "length": float(self.length)})
+        except (runner.Adv3dError, KeyError) as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        return {"FINISHED"}
+
+
+class ADV3D_OT_library_turn(bpy.types.Operator):
+    """Turn the asset's stored mesh about the vertical axis (fix a model whose front is not +x)"""
+
+    bl_idname = "adv3d.library_turn"
+    bl_label = "Turn front"
+    bl_options = {"REGISTER", "UNDO"}
+
+    asset_id: StringProperty(options={"SKIP_SAVE"})
+    angle: EnumProperty(name="Turn", items=[("180", "180°", ""), ("90", "90° left", ""), ("-90", "90° right", "")],
+                        default="180")
+
+    def invoke(self, context, event):
+        return context.window_manager.invoke_props_dialog(self)
+
+    def execute(self, context):
+        a = np.radians(float(self.angle))
+        rot = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+        try:
+            _edit_asset_mesh(context.scene.adv3d.library, self.asset_id, lambda v: v @ rot.T,
+                             {"turn_deg": int(self.angle)})
+        except (runner.Adv3dError, KeyError) as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        return {"FINISHED"}
+
+
 classes = (
     ADV3D_OT_library_load,
     ADV3D_OT_library_save,
     ADV3D_OT_library_show,
+    ADV3D_OT_library_import,
+    ADV3D_OT_library_rescale,
+    ADV3D_OT_library_turn,
 )

@@ -23,7 +23,8 @@ from bpy.props import (
 # sized for the largest K we support and the panel shows only the first K entries.
 MAX_LATENT = 16
 
-VEHICLE_CLASSES = ("sedan", "hatchback", "sports", "suv", "van", "pickup", "truck", "bus", "other")
+VEHICLE_CLASSES = ("sedan", "hatchback", "sports", "suv", "van", "pickup", "truck", "bus", "ambulance",
+                   "fire_truck", "garbage_truck", "police", "taxi", "other")
 
 FORWARD_AXES = [
     ("X", "+X", "The model's front points along +X (adv3d convention)"),
@@ -31,10 +32,6 @@ FORWARD_AXES = [
     ("Y", "+Y", "The model's front points along +Y (common in glTF/Blender exports)"),
     ("NEG_Y", "-Y", "The model's front points along -Y"),
 ]
-
-
-def _class_items(self, context):
-    return [(c, c, "") for c in VEHICLE_CLASSES]
 
 
 class ADV3D_PG_asset(bpy.types.PropertyGroup):
@@ -53,10 +50,6 @@ class ADV3D_PG_asset(bpy.types.PropertyGroup):
                                  description="Use this asset when building the shape space")
     cleaning_report: StringProperty(name="Cleaning report", description="Cleaning report (one line per item)")
     edited: BoolProperty(default=False, options={"HIDDEN"})
-
-
-def _mark_dirty(self, context):
-    self.dirty = True
 
 
 class ADV3D_PG_library(bpy.types.PropertyGroup):
