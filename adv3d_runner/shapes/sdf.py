@@ -283,8 +283,8 @@ def sdf_volume(vertices_m: np.ndarray, faces: np.ndarray, grid: GridSpec, method
     f = clean_faces(v, faces)
     if len(f) == 0:
         raise Adv3dError("mesh has no non-degenerate faces")
-    margin = 0.5 - grid.voxel  # keep a node layer outside the shape on every side
-    if np.abs(v[np.unique(f)]).max() > margin:
+    # The border nodes must stay outside (decoding pads with "outside" anyway).
+    if np.abs(v[np.unique(f)]).max() >= 0.5:
         raise Adv3dError(
             f"mesh does not fit the SDF grid (cube edge {grid.extent_m:.3f} m, ground at {grid.ground_z:+.3f}); "
             "is it larger than the shape-space assets the grid was sized for?"

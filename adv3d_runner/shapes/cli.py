@@ -1,0 +1,119 @@
+"""``adv3d shapes build | decode | info``: build, sample and inspect the PCA shape space."""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+MESH_SUFFIXES = (".glb", ".gltf", ".obj", ".ply", ".stl")
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("shapes", help="build, decode and inspect the PCA vehicle shape space")
+    sub = p.add_subparsers(dest="shapes_command", metavar="SUBCOMMAND")
+
+    b = sub.add_parser("build", help="SDF volumes of the library's shape-space assets -> PCA shape space (.npz)")
+    b.add_argument("--library", type=Path, default=None, help="library.json (default: the bundled library)")
+    b.add_argument("--resolution", type=int, default=None, help="SDF grid resolution N (default 64)")
+    b.add_argument("--k", type=int, default=None, help="number of principal components K (default 3)")
+    b.add_argument("--method", default=None, help="SDF inside/outside method: winding (default), floodfill, rayvote")
+    b.add_argument("--truncation", type=float, default=None, help="SDF truncation in unit-cube units (default 0.1)")
+    b.add_argument("--out", type=Path, default=None,
+                   help="output .npz (default assets/shape_space/vehicles_<N>.npz)")
+    b.set_defaults(func=_build)
+
+    d = sub.add_parser("decode", help="decode a unit vector in [0,1]^(K+2) to a metric vehicle mesh")
+    d.add_argument("--u", required=True,
+                   help="comma-separated unit vector: K latents then width and length scale, e.g. 0.5,0.5,0.5,0.5,0.5")
+    d.add_argument("-o", "--out", type=Path, required=True, help="mesh file (.glb, .obj, .ply or .stl)")
+    d.add_argument("--space", type=Path, default=None, help="shape space .npz (default: the bundled one)")
+    d.set_defaults(func=_decode)
+
+    i = sub.add_parser("info", help="print a shape space's grid, components, latent bounds and assets")
+    i.add_argument("--space", type=Path, default=None, help="shape space .npz (default: the bundled one)")
+    i.set_defaults(func=_info)
+
+    p.set_defaults(func=lambda args: (p.print_help(), 2)[1])
+
+
+def _load_space(path: Path | None):
+    from .shape_space import DEFAULT_SHAPE_SPACE, ShapeSpace
+
+    return ShapeSpace.load(path or DEFAULT_SHAPE_SPACE)
+
+
+def _build(args: argparse.Namespace) -> int:
+    import time
+
+    from ..errors import ConfigError
+    from ..fileio import REPO_ROOT
+    from ..progress import is_quiet, status
+    from .library import DEFAULT_LIBRARY, load_library
+    from .sdf import DEFAULT_METHOD, DEFAULT_TRUNCATION, METHODS
+    from .shape_space import DEFAULT_K, DEFAULT_RESOLUTION, build_shape_space
+
+    res = args.resolution or DEFAULT_RESOLUTION
+    k = args.k or DEFAULT_K
+    method = args.method or DEFAULT_METHOD
+    if method not in METHODS:
+        raise ConfigError(f"--method must be one of {', '.join(METHODS)}, got {method!r}")
+    if not 8 <= res <= 512:
+        raise ConfigError(f"--resolution must be in [8, 512], got {res}")
+    if k < 1:
+        raise ConfigError(f"--k must be >= 1, got {k}")
+    out = args.out or (REPO_ROOT / "assets" / "shape_space" / f"vehicles_{res}.npz")
+    library = load_library(args.library or DEFAULT_LIBRARY)
+    t0 = time.perf_counter()
+    space = build_shape_space(library, resolution=res, k=k, method=method,
+                              truncation=args.truncation or DEFAULT_TRUNCATION, progress=not is_quiet())
+    space.save(out)
+    status(f"built shape space over {len(space.asset_ids)} assets at {res}^3 ({method}), K={space.k} "
+           f"(rank {space.rank}) in {time.perf_counter() - t0:.1f} s -> {out}")
+    status("explained variance ratio: " + ", ".join(f"{x:.3f}" for x in space.explained_variance_ratio))
+    return 0
+
+
+def _decode(args: argparse.Namespace) -> int:
+    from ..errors import ConfigError
+    from ..fileio import atomic_path
+    from ..progress import status
+
+    suffix = args.out.suffix.lower()
+    if suffix not in MESH_SUFFIXES:
+        raise ConfigError(f"-o must end in one of {', '.join(MESH_SUFFIXES)}, got {args.out.name!r}")
+    try:
+        u = [float(x) for x in args.u.split(",") if x.strip() != ""]
+    except ValueError:
+        raise ConfigError(f"--u must be comma-separated numbers, got {args.u!r}") from None
+    space = _load_space(args.space)
+    mesh = space.decode(u)
+    with atomic_path(args.out, suffix=suffix) as tmp:
+        mesh.export(tmp, file_type=suffix.lstrip("."))
+    z, scales = space.unit_to_latent(u)
+    ext = mesh.extents
+    status(f"decoded z={[round(float(x), 4) for x in z]} width/length scale={[round(float(x), 3) for x in scales]}: "
+           f"{len(mesh.vertices)} vertices, {len(mesh.faces)} faces, {ext[0]:.2f} x {ext[1]:.2f} x {ext[2]:.2f} m "
+           f"(nearest library asset {space.nearest_asset(u)}) -> {args.out}")
+    return 0
+
+
+def _info(args: argparse.Namespace) -> int:
+    space = _load_space(args.space)
+    g = space.grid
+    lines = [
+        f"shape space  {space.source}",
+        f"grid         {g.resolution}^3, cube edge {g.extent_m:.3f} m (voxel {g.extent_m * g.voxel * 100:.1f} cm), "
+        f"ground at z={g.ground_z:+.4f} (unit cube), truncation {g.truncation} ({g.truncation * g.extent_m:.3f} m)",
+        f"method       {space.method}",
+        f"K            {space.k} (rank {space.rank}); unit vector has {space.dim} entries "
+        f"(K latents, width scale, length scale in {list(space.scale_range)})",
+        "components   " + "  ".join(
+            f"#{i}: var {v:.4g} ({r * 100:.1f}%) z in [{lo:+.4f}, {hi:+.4f}]"
+            for i, (v, r, lo, hi) in enumerate(zip(space.explained_variance, space.explained_variance_ratio,
+                                                    space.latent_min, space.latent_max))),
+        f"assets ({len(space.asset_ids)}):",
+    ]
+    for aid, z in zip(space.asset_ids, space.latents):
+        lines.append(f"  {aid:32s} z=" + " ".join(f"{x:+.4f}" for x in z))
+    lines.append(f"content hash {space.content_hash}")
+    print("\n".join(lines))
+    return 0
