@@ -199,9 +199,10 @@ class LidarRig:
     def n_rays(self) -> int:
         return sum(s.n_rays for s in self.sensors)
 
-    def ego_interval(self, k: int) -> tuple[np.ndarray, np.ndarray]:
-        """Per ray of sensor ``k``, the distances [t_in, t_out] it spends inside the ego box
-        grown by ``ego_margin`` (t_in > t_out where it never enters). Cached."""
+    def ego_interval(self, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The rays of sensor ``k`` that cross the ego box grown by ``ego_margin``, and the
+        distances [t_in, t_out] they spend inside it: (M,) indices, (M,) and (M,) float32.
+        Cached."""
         cache = self.__dict__.setdefault("_ego_cache", {})
         key = (k, tuple(self.ego_dimensions), float(self.ego_margin))
         if key not in cache:
@@ -209,7 +210,9 @@ class LidarRig:
             mg = self.ego_margin
             lo = np.array([-0.5 * length - mg, -0.5 * width - mg, -mg])
             hi = np.array([0.5 * length + mg, 0.5 * width + mg, height + mg])
-            cache[key] = _slab_interval(self.sensors[k].position, self.sensors[k].dirs.astype(np.float64), lo, hi)
+            t_in, t_out = _slab_interval(self.sensors[k].position, self.sensors[k].dirs.astype(np.float64), lo, hi)
+            rays = np.flatnonzero(t_in <= t_out)
+            cache[key] = (rays, t_in[rays], t_out[rays])
         return cache[key]
 
 
@@ -243,7 +246,7 @@ class LidarFrame:
         label: (N,) int32 index into ``actor_ids`` of the actor hit, -1 = background.
         sensor: (N,) int8 index of the sensor in the rig.
         distance: (N,) float32 measured range from the sensor origin, metres (with noise).
-        actor_ids: id of each actor label.
+        actor_ids: id of each actor label (the world's actor ids, e.g. scene ints).
     """
 
     points: np.ndarray
@@ -251,7 +254,7 @@ class LidarFrame:
     label: np.ndarray
     sensor: np.ndarray
     distance: np.ndarray
-    actor_ids: tuple[str, ...] = field(default_factory=tuple)
+    actor_ids: tuple = field(default_factory=tuple)
 
     def __len__(self) -> int:
         return len(self.points)
@@ -266,7 +269,7 @@ class LidarFrame:
 
     def label_names(self) -> np.ndarray:
         """(N,) object array of actor ids, ``"background"`` for -1."""
-        table = np.array(list(self.actor_ids) + ["background"], dtype=object)
+        table = np.array([str(a) for a in self.actor_ids] + ["background"], dtype=object)
         return table[np.where(self.label >= 0, self.label, len(self.actor_ids))]
 
     def select(self, mask: np.ndarray) -> "LidarFrame":
@@ -415,6 +418,11 @@ def _simulate_sensor(world, rig, k, sensor: MountedLidar, ego, poses, present, a
     valid &= t >= np.float32(model.min_range)
     if world.ego is not None:
         valid &= label != _EGO
+    if rig.ego_dimensions is not None:
+        # Ego box masking on the true range, only over the few rays that cross the box.
+        rays_e, t_in, t_out = rig.ego_interval(k)
+        te = t[rays_e]
+        valid[rays_e[(te >= t_in) & (te <= t_out)]] = False
     idx = np.flatnonzero(valid)
     if idx.size == 0:
         return LidarFrame.empty()
@@ -428,14 +436,6 @@ def _simulate_sensor(world, rig, k, sensor: MountedLidar, ego, poses, present, a
     if rng is not None and drop and model.ray_drop > 0:
         keep = rng.random(dist.size, dtype=np.float32) >= np.float32(model.ray_drop)
         idx, dist = idx[keep], dist[keep]
-
-    if rig.ego_dimensions is not None:
-        t_in, t_out = rig.ego_interval(k)
-        inside = dist >= t_in[idx]
-        inside &= dist <= t_out[idx]
-        if inside.any():
-            out = ~inside
-            idx, dist = idx[out], dist[out]
 
     # Columns are gathered one by one: 1-D gathers of contiguous arrays are the fast kind.
     m = idx.size

@@ -26,7 +26,7 @@ DEFAULT_ACTOR_REFLECTIVITY = 0.35
 class ActorSlot:
     """One actor of the world: its id, its mesh's BVH key and its reflectivity."""
 
-    actor_id: str
+    actor_id: object
     key: str | None
     reflectivity: float
 
@@ -67,12 +67,13 @@ class LidarWorld:
 
     # -- actors ------------------------------------------------------------------------------
     @property
-    def actor_ids(self) -> tuple[str, ...]:
+    def actor_ids(self) -> tuple:
         """Actor ids in the order of :func:`simulate_frame`'s ``actor_poses`` rows and labels."""
         return tuple(a.actor_id for a in self._actors)
 
-    def actor_index(self, actor_id: str) -> int:
-        return self._index[str(actor_id)]
+    def actor_index(self, actor_id) -> int:
+        """Label (row index) of an actor id."""
+        return self._index[actor_id]
 
     def _bvh_for(self, vertices: np.ndarray | None, faces: np.ndarray | None) -> str | None:
         if vertices is None or faces is None or len(faces) == 0:
@@ -82,13 +83,12 @@ class LidarWorld:
             self._bvh[key] = MeshBVH(vertices, faces)
         return key
 
-    def add_actor(self, actor_id: str, vertices: np.ndarray | None, faces: np.ndarray | None,
+    def add_actor(self, actor_id, vertices: np.ndarray | None, faces: np.ndarray | None,
                   reflectivity: float = DEFAULT_ACTOR_REFLECTIVITY) -> int:
         """Add an actor with its mesh in its local frame; returns its index (its label).
 
         A ``None`` or empty mesh gives an actor that is never hit (e.g. no asset yet).
         """
-        actor_id = str(actor_id)
         if actor_id in self._index:
             raise ValueError(f"actor {actor_id!r} already in the world")
         self._index[actor_id] = len(self._actors)
@@ -96,14 +96,14 @@ class LidarWorld:
         self._prune()
         return self._index[actor_id]
 
-    def set_actor_mesh(self, actor_id: str, vertices: np.ndarray | None, faces: np.ndarray | None,
+    def set_actor_mesh(self, actor_id, vertices: np.ndarray | None, faces: np.ndarray | None,
                        reflectivity: float | None = None) -> None:
         """Replace one actor's mesh (e.g. by a decoded adversarial shape), local frame.
 
         Only the new mesh's BVH is built (none if an identical mesh is cached); the background
         and every other actor are untouched.
         """
-        slot = self._actors[self._index[str(actor_id)]]
+        slot = self._actors[self._index[actor_id]]
         slot.key = self._bvh_for(vertices, faces)
         if reflectivity is not None:
             slot.reflectivity = float(reflectivity)
