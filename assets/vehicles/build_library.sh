@@ -59,7 +59,7 @@ adv3d assets import "$K/taxi.glb"             --class sedan     --dimensions 4.8
 adv3d assets import "$K/suv.glb"              --class suv       --dimensions 4.70 1.90 1.85 "${KK[@]}" --note "$TOY (off-road SUV, e.g. Jeep Wrangler 4.3-4.9 x 1.9 x 1.85)"
 adv3d assets import "$K/suv-luxury.glb"       --class suv       --dimensions 5.00 2.00 1.80 "${KK[@]}" --note "$TOY (full-size luxury SUV)"
 adv3d assets import "$K/van.glb"              --class van       --dimensions 5.20 2.00 2.10 "${KK[@]}" --note "$TOY (passenger van, e.g. VW Transporter 5.3 x 1.9 x 2.0)"
-adv3d assets import "$K/delivery.glb"         --class van       --dimensions 5.90 2.05 2.50 "${KK[@]}" --note "$TOY (delivery van, e.g. Ford Transit L3H2 5.98 x 2.06 x 2.53)"
+adv3d assets import "$K/delivery.glb"         --class truck     --dimensions 6.60 2.30 3.10 "${KK[@]}" --note "$TOY (cab with a separate cargo box: a 3.5 t box truck, e.g. Ford Transit Luton 6.6 x 2.3 x 3.1)" --exclude-from-shape-space
 adv3d assets import "$K/truck.glb"            --class pickup    --dimensions 5.50 2.00 1.85 "${KK[@]}" --note "$TOY (pickup, e.g. Toyota Hilux double cab 5.3 x 1.86 x 1.8)"
 adv3d assets import "$K/truck-flat.glb"       --class pickup    --dimensions 5.50 2.00 1.85 "${KK[@]}" --note "$TOY (flatbed pickup)"
 adv3d assets import "$K/delivery-flat.glb"    --class truck     --dimensions 7.00 2.30 2.60 "${KK[@]}" --note "$TOY (light flatbed truck, 7.5 t class)" --exclude-from-shape-space
