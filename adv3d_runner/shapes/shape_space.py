@@ -483,25 +483,18 @@ def shape_space_from_sdfs(
     return space
 
 
-def build_shape_space(
+def library_sdfs(
     library,
     resolution: int = DEFAULT_RESOLUTION,
-    k: int = DEFAULT_K,
     method: str = DEFAULT_METHOD,
     truncation: float = DEFAULT_TRUNCATION,
     progress: bool = True,
     mesh_loader: Callable | None = None,
-) -> ShapeSpace:
-    """Build the shape space over ``library.shape_space_assets()``.
+) -> tuple[GridSpec, list, np.ndarray]:
+    """SDF volumes of every shape-space asset on the common grid.
 
-    Args:
-        library: a ``VehicleLibrary``.
-        resolution: N of the N^3 SDF grid.
-        k: number of principal components.
-        method: SDF method (``sdf.METHODS``).
-        truncation: SDF clamp, unit-cube units.
-        progress: show a progress bar per asset.
-        mesh_loader: ``(library, asset_id) -> trimesh.Trimesh``; default ``load_asset_mesh``.
+    Returns:
+        grid, the assets (``library.shape_space_assets()`` order), sdfs (M, N, N, N) float32.
     """
     from .sdf import grid_for_dimensions, sdf_volume
 
@@ -530,5 +523,29 @@ def build_shape_space(
             sdfs[i] = sdf_volume(mesh.vertices, mesh.faces, grid, method)
         except Adv3dError as exc:
             raise Adv3dError(f"asset {a.id}: {exc}") from None
+    return grid, assets, sdfs
+
+
+def build_shape_space(
+    library,
+    resolution: int = DEFAULT_RESOLUTION,
+    k: int = DEFAULT_K,
+    method: str = DEFAULT_METHOD,
+    truncation: float = DEFAULT_TRUNCATION,
+    progress: bool = True,
+    mesh_loader: Callable | None = None,
+) -> ShapeSpace:
+    """Build the shape space over ``library.shape_space_assets()``.
+
+    Args:
+        library: a ``VehicleLibrary``.
+        resolution: N of the N^3 SDF grid.
+        k: number of principal components.
+        method: SDF method (``sdf.METHODS``).
+        truncation: SDF clamp, unit-cube units.
+        progress: show a progress bar per asset.
+        mesh_loader: ``(library, asset_id) -> trimesh.Trimesh``; default ``load_asset_mesh``.
+    """
+    grid, assets, sdfs = library_sdfs(library, resolution, method, truncation, progress, mesh_loader)
     build = {"assets": len(assets), "classes": sorted({a.vehicle_class for a in assets})}
     return shape_space_from_sdfs(sdfs, [a.id for a in assets], grid, k, method, build)
