@@ -1,0 +1,186 @@
+"""Named cost terms of the sampling planner. Each term maps plain arrays over B candidates to a
+(B,) array of non-negative, *unweighted* costs; :mod:`.scorer` weights and sums them. Units are
+stated per term so weights read as "cost per unit".
+
+Shared geometry helpers (ego/actor boxes over time, ego-actor clearance, Frenet road geometry)
+are here too, so each term can be tested on hand-made arrays.
+
+Time axes: candidate arrays are (B, T + 1) (index 0 = now); actor forecasts (N, K, T + 1, 3)
+on the same grid; mode probabilities (N, K).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ...metrics.boxes import box_distance
+from .corridor import CorridorSet
+
+
+# ------------------------------------------------------------------ geometry helpers
+
+def poses_to_boxes(poses: np.ndarray, length: float | np.ndarray, width: float | np.ndarray) -> np.ndarray:
+    """Footprint boxes (..., 5) from poses (..., 3) and dimensions (broadcasting)."""
+    p = np.asarray(poses, dtype=np.float64)
+    L = np.broadcast_to(np.asarray(length, dtype=np.float64), p.shape[:-1])
+    W = np.broadcast_to(np.asarray(width, dtype=np.float64), p.shape[:-1])
+    return np.stack([p[..., 0], p[..., 1], L, W, p[..., 2]], axis=-1)
+
+
+def clearance(ego_poses: np.ndarray, ego_dims: tuple[float, float], actor_poses: np.ndarray,
+              actor_dims: np.ndarray, max_distance: float = 5.0) -> np.ndarray:
+    """Footprint distance between each candidate and each actor mode at each time.
+
+    Args:
+        ego_poses: (B, T, 3). ego_dims: (length, width). actor_poses: (N, K, T, 3).
+        actor_dims: (N, 2). max_distance: pairs whose bounding circles are further apart than
+            this are not computed exactly (reported as +inf).
+    Returns:
+        (B, N, K, T) m; 0 where the footprints overlap or touch.
+    """
+    B, T = ego_poses.shape[:2]
+    N, K = actor_poses.shape[:2]
+    out = np.full((B, N, K, T), np.inf)
+    if N == 0 or B == 0:
+        return out
+    Ta = min(T, actor_poses.shape[2])
+    ap = actor_poses[:, :, :Ta]
+    if Ta < T:  # hold the last predicted pose
+        ap = np.concatenate([ap, np.repeat(ap[:, :, -1:], T - Ta, axis=2)], axis=2)
+    r_e = 0.5 * np.hypot(*ego_dims)
+    r_a = 0.5 * np.hypot(actor_dims[:, 0], actor_dims[:, 1])  # (N,)
+    cd = np.hypot(ego_poses[:, None, None, :, 0] - ap[None, ..., 0], ego_poses[:, None, None, :, 1] - ap[None, ..., 1])
+    near = cd <= r_e + r_a[None, :, None, None] + max_distance
+    b, n, k, t = np.nonzero(near)
+    if len(b):
+        eb = poses_to_boxes(ego_poses[b, t], ego_dims[0], ego_dims[1])
+        ab = poses_to_boxes(ap[n, k, t], actor_dims[n, 0], actor_dims[n, 1])
+        out[b, n, k, t] = box_distance(eb, ab)
+    return out
+
+
+def road_geometry(poses: np.ndarray, travelled: np.ndarray, corridors: CorridorSet, s_start: np.ndarray,
+                  ego_dims: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
+    """Lane-centre deviation and off-road excess of candidate poses against every corridor.
+
+    Args:
+        poses: (B, T, 3). travelled: (B, T) distance driven since now (m), used to seed the
+            local projections. s_start: (C,) the ego's arc length on each corridor now.
+    Returns:
+        centre_dev (B, T): |d| to the nearest lane centre (m);
+        excess (B, T): the largest distance of any footprint corner outside the union of the
+        corridors' lane strips (m, 0 when fully on the road).
+    """
+    B, T = poses.shape[:2]
+    L, W = ego_dims
+    c, s = np.cos(poses[..., 2]), np.sin(poses[..., 2])
+    lx = np.array([0.0, L / 2, L / 2, -L / 2, -L / 2])
+    ly = np.array([0.0, -W / 2, W / 2, W / 2, -W / 2])
+    px = poses[..., 0, None] + c[..., None] * lx - s[..., None] * ly  # (B, T, 5)
+    py = poses[..., 1, None] + s[..., None] * lx + c[..., None] * ly
+    pts = np.stack([px, py], axis=-1)
+    C = len(corridors)
+    dev = np.full((C, B, T), np.inf)
+    exc = np.full((C, B, T, 5), np.inf)
+    for ci in range(C):
+        guess = s_start[ci] + travelled[..., None] + lx  # (B, T, 5)
+        sc, dc = corridors.project_local(np.full(guess.shape, ci), pts, guess)
+        dev[ci] = np.abs(dc[..., 0])
+        exc[ci] = corridors.road_excess(np.full(guess.shape, ci), sc, dc)
+    return dev.min(axis=0), exc.min(axis=0).max(axis=-1)
+
+
+# ------------------------------------------------------------------ cost terms
+
+def collision_cost(dist: np.ndarray, probs: np.ndarray) -> np.ndarray:
+    """Expected collisions: sum over actor modes of probability x [footprints overlap at some
+    time], discounted from 1 (now) to 0.5 (horizon end) so later collisions are preferred when
+    none can be avoided. dist: (B, N, K, T) from :func:`clearance`; probs (N, K). Unit: collisions."""
+    if dist.shape[1] == 0:
+        return np.zeros(dist.shape[0])
+    T = dist.shape[-1]
+    hit = dist <= 1e-9
+    any_hit = hit.any(axis=-1)
+    first = np.argmax(hit, axis=-1)
+    w = np.where(any_hit, 1.0 - 0.5 * first / max(T - 1, 1), 0.0)
+    return np.einsum("bnk,nk->b", w, probs)
+
+
+def buffer_cost(dist: np.ndarray, probs: np.ndarray, buffer: float = 1.0) -> np.ndarray:
+    """Clearance below ``buffer`` m, as a fraction of the buffer, averaged over time and summed
+    over actor modes weighted by probability. Unit: (buffer fraction) x (fraction of horizon)."""
+    if dist.shape[1] == 0:
+        return np.zeros(dist.shape[0])
+    short = np.clip((buffer - dist) / buffer, 0.0, 1.0)
+    return np.einsum("bnk,nk->b", short.mean(axis=-1), probs)
+
+
+def headway_cost(ego_poses: np.ndarray, ego_speeds: np.ndarray, ego_dims: tuple[float, float],
+                 actor_poses: np.ndarray, actor_dims: np.ndarray, probs: np.ndarray,
+                 time_headway: float = 1.0, min_gap: float = 2.0, lateral_margin: float = 0.3) -> np.ndarray:
+    """Following too closely: for an actor ahead in the ego's path (in the ego's frame at each
+    time, ahead and laterally overlapping the ego's width plus margin), the shortfall of the
+    bumper gap below ``min_gap + time_headway x speed``, as a fraction of that distance.
+    Per time the worst actor counts (its modes weighted by probability); averaged over time.
+    ego_poses (B, T, 3), ego_speeds (B, T), actor_poses (N, K, T, 3). Unit: fraction."""
+    B, T = ego_poses.shape[:2]
+    if actor_poses.shape[0] == 0:
+        return np.zeros(B)
+    ap = actor_poses[:, :, :T]
+    if ap.shape[2] < T:
+        ap = np.concatenate([ap, np.repeat(ap[:, :, -1:], T - ap.shape[2], axis=2)], axis=2)
+    dx = ap[None, ..., 0] - ego_poses[:, None, None, :, 0]  # (B, N, K, T)
+    dy = ap[None, ..., 1] - ego_poses[:, None, None, :, 1]
+    c = np.cos(ego_poses[:, None, None, :, 2])
+    s = np.sin(ego_poses[:, None, None, :, 2])
+    lon = c * dx + s * dy
+    lat = -s * dx + c * dy
+    half_w = 0.5 * (ego_dims[1] + actor_dims[:, 1])[None, :, None, None]
+    half_l = 0.5 * (ego_dims[0] + actor_dims[:, 0])[None, :, None, None]
+    in_path = (lon > 0) & (np.abs(lat) < half_w + lateral_margin)
+    gap = lon - half_l
+    desired = min_gap + time_headway * np.maximum(ego_speeds, 0.0)[:, None, None, :]
+    short = np.where(in_path, np.clip((desired - gap) / desired, 0.0, 1.0), 0.0)
+    per_actor = np.einsum("bnkt,nk->bnt", short, probs)
+    return per_actor.max(axis=1).mean(axis=-1)
+
+
+def lane_center_cost(centre_dev: np.ndarray) -> np.ndarray:
+    """Mean distance (m) of the ego centre from the nearest lane centre line. centre_dev (B, T)."""
+    return np.mean(centre_dev, axis=-1)
+
+
+def drivable_area_cost(excess: np.ndarray) -> np.ndarray:
+    """Mean over time of how far (m) the footprint reaches outside the lanes. excess (B, T)."""
+    return np.mean(excess, axis=-1)
+
+
+def speed_limit_cost(speeds: np.ndarray, limits: np.ndarray) -> np.ndarray:
+    """Mean over time of the speed above the limit (m/s). speeds, limits (B, T)."""
+    return np.mean(np.maximum(speeds - limits, 0.0), axis=-1)
+
+
+def progress_cost(distance: np.ndarray, reference: float) -> np.ndarray:
+    """Missing progress: ``1 - distance / reference`` clipped to [0, 1], with ``reference`` the
+    distance driving at the speed limit for the whole horizon (m). distance (B,) m. Unit: fraction."""
+    return np.clip(1.0 - np.asarray(distance, dtype=np.float64) / max(reference, 1e-6), 0.0, 1.0)
+
+
+def jerk_cost(accel: np.ndarray, accel_now: float, dt: float) -> np.ndarray:
+    """Mean |longitudinal jerk| (m/s^3), including the step from the current acceleration.
+    accel (B, T) m/s^2 per step."""
+    a = np.concatenate([np.full((accel.shape[0], 1), float(accel_now)), accel], axis=1)
+    return np.mean(np.abs(np.diff(a, axis=1)), axis=1) / dt
+
+
+def lateral_accel_cost(speeds: np.ndarray, curvature: np.ndarray) -> np.ndarray:
+    """Mean |lateral acceleration| v^2 kappa (m/s^2). speeds (B, T) at the start of each step,
+    curvature (B, T)."""
+    return np.mean(np.abs(speeds * speeds * curvature), axis=1)
+
+
+def lane_change_cost(target_lane: np.ndarray, current_lane: int, committed_lane: int | None = None) -> np.ndarray:
+    """1 for candidates heading to a lane other than the current one (or the lane a lane change
+    already in progress is heading to), else 0: a hysteresis that stops dithering between lanes."""
+    t = np.asarray(target_lane)
+    free = (t == current_lane) | ((committed_lane is not None) & (t == committed_lane))
+    return np.where(free, 0.0, 1.0)

@@ -1,0 +1,209 @@
+"""The sampling planner: corridors -> candidates -> named costs -> the cheapest plan.
+
+``SamplingPlanner.plan(ego_state, lanes, predictions, tracks)`` returns a
+:class:`~adv3d_runner.autonomy.interface.Plan` whose ``cost_terms`` hold the weighted breakdown
+of the chosen candidate; :meth:`SamplingPlanner.plan_with_scores` also returns every
+candidate and its :class:`~.scorer.ScoreTable` (for debugging, tests and the replay file).
+
+With no lane under the ego (empty map, or the ego far from every lane) the planner brakes to a
+stop along its heading: there is no road to plan on.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Sequence
+
+import numpy as np
+
+from ...sim.kinematics import BicycleParams, rollout
+from ..interface import EgoState, Plan, Predictions, Tracks
+from . import costs
+from .corridor import DEFAULT_SPEED_LIMIT, CorridorSet, build_corridor, lanes_by_id, locate
+from .proposals import ActorForecast, Candidates, ProposalConfig, make_specs, rollout_candidates
+from .scorer import CostWeights, ScoreTable, score
+
+DEFAULT_ACTOR_DIMS = (4.6, 1.9)  # m, used when a prediction has no matching track
+
+
+@dataclass(frozen=True)
+class PlannerConfig:
+    """Planner parameters.
+
+    Attributes:
+        proposals: candidate generation (:class:`.proposals.ProposalConfig`).
+        weights: cost weights (:class:`.scorer.CostWeights`).
+        buffer: clearance buffer of the buffer term, m.
+        time_headway, min_gap: the headway term's desired gap = min_gap + time_headway x speed.
+        actor_range: actors further than this from the ego now are ignored, m.
+        corridor_behind: corridor length kept behind the ego, m.
+        default_speed_limit: m/s for lanes without one.
+        off_lane_distance: if the ego is further than this from every lane strip, it has no
+            lane (brakes to a stop), m.
+    """
+
+    proposals: ProposalConfig = field(default_factory=ProposalConfig)
+    weights: CostWeights = field(default_factory=CostWeights)
+    buffer: float = 1.0
+    time_headway: float = 1.0
+    min_gap: float = 2.0
+    actor_range: float = 120.0
+    corridor_behind: float = 20.0
+    default_speed_limit: float = DEFAULT_SPEED_LIMIT
+    off_lane_distance: float = 10.0
+
+
+def forecast_from(predictions: Predictions | None, tracks: Tracks | None, steps: int, dt: float,
+                  ego_xy: np.ndarray | None = None, max_range: float = np.inf) -> ActorForecast:
+    """Join predictions with their tracks and resample onto the planner's grid.
+
+    Returns poses (N, K, steps + 1, 3): index 0 = the track's current pose (or, without a track,
+    the first predicted point extrapolated one step back); later steps = predicted positions
+    (held at the last prediction past its horizon), yaw from the direction of motion (the
+    previous yaw while an actor moves less than 5 cm per step)."""
+    if predictions is None or len(predictions) == 0:
+        return ActorForecast.empty(steps)
+    traj = np.asarray(predictions.trajectories, dtype=np.float64)
+    if abs(predictions.dt - dt) > 1e-9:
+        raise ValueError(f"prediction dt {predictions.dt} != planner dt {dt}")
+    N, K, H = traj.shape[:3]
+    by_id = {} if tracks is None else {int(i): r for r, i in enumerate(tracks.ids)}
+    now = np.empty((N, 3))
+    dims = np.empty((N, 2))
+    for n, tid in enumerate(predictions.track_ids):
+        r = by_id.get(int(tid))
+        if r is not None:
+            now[n] = tracks.boxes[r, [0, 1, 4]]
+            dims[n] = tracks.boxes[r, 2:4]
+        else:
+            p0, p1 = traj[n, 0, 0], traj[n, 0, min(1, H - 1)]
+            now[n, :2] = 2 * p0 - p1
+            now[n, 2] = np.arctan2(*(p1 - p0)[::-1]) if np.linalg.norm(p1 - p0) > 1e-6 else 0.0
+            dims[n] = DEFAULT_ACTOR_DIMS
+    xy = np.empty((N, K, steps + 1, 2))
+    xy[:, :, 0] = now[:, None, :2]
+    take = min(steps, H)
+    xy[:, :, 1:take + 1] = traj[:, :, :take]
+    if take < steps:
+        xy[:, :, take + 1:] = traj[:, :, -1:]
+    probs = np.asarray(predictions.probabilities, dtype=np.float64)
+    probs = probs / np.maximum(probs.sum(axis=1, keepdims=True), 1e-12)
+    ok = np.all(np.isfinite(xy), axis=(1, 2, 3)) & np.all(np.isfinite(now), axis=1)
+    if ego_xy is not None:
+        ok &= np.hypot(*(now[:, :2] - np.asarray(ego_xy)[None]).T) <= max_range
+    xy, now, dims, probs = xy[ok], now[ok], dims[ok], probs[ok]
+    ids = np.asarray(predictions.track_ids)[ok]
+    yaw = _yaw_from_motion(xy, now[:, 2])
+    poses = np.concatenate([xy, yaw[..., None]], axis=-1)
+    return ActorForecast(poses, np.maximum(dims, 0.0), probs, ids)
+
+
+def _yaw_from_motion(xy: np.ndarray, yaw0: np.ndarray, min_step: float = 0.05) -> np.ndarray:
+    """Heading along (N, K, T, 2) positions: direction of each step, carried forward over steps
+    shorter than ``min_step``; index 0 and leading short steps use ``yaw0`` (N,)."""
+    N, K, T = xy.shape[:3]
+    d = np.diff(xy, axis=2)
+    moving = np.linalg.norm(d, axis=-1) > min_step  # (N, K, T-1)
+    step_yaw = np.arctan2(d[..., 1], d[..., 0])
+    cand = np.concatenate([np.broadcast_to(yaw0[:, None, None], (N, K, 1)), step_yaw], axis=2)
+    valid = np.concatenate([np.ones((N, K, 1), bool), moving], axis=2)
+    idx = np.where(valid, np.arange(T)[None, None, :], 0)
+    idx = np.maximum.accumulate(idx, axis=2)
+    return np.take_along_axis(cand, idx, axis=2)
+
+
+class SamplingPlanner:
+    """Lane-relative sampling planner (see package docstring)."""
+
+    def __init__(self, config: PlannerConfig = PlannerConfig(), params: BicycleParams | None = None):
+        self.config = config
+        self.params = params
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the lane a lane change was heading to."""
+        self._committed_lane: int | None = None
+
+    def plan(self, ego: EgoState, lanes: Sequence[Any], predictions: Predictions | None = None,
+             tracks: Tracks | None = None) -> Plan:
+        """The cheapest candidate as a :class:`Plan` (``cost_terms`` = its weighted breakdown)."""
+        return self.plan_with_scores(ego, lanes, predictions, tracks)[0]
+
+    def plan_with_scores(self, ego: EgoState, lanes: Sequence[Any], predictions: Predictions | None = None,
+                         tracks: Tracks | None = None) -> tuple[Plan, Candidates | None, ScoreTable | None]:
+        cfg = self.config
+        pc = cfg.proposals
+        params = self.params or BicycleParams(wheelbase=ego.wheelbase)
+        T, dt = pc.steps, pc.dt
+        forecast = forecast_from(predictions, tracks, T, dt, ego.pose[:2], cfg.actor_range)
+
+        lane_id, _, d_lane = locate(lanes, ego.pose) if len(lanes) else (None, 0.0, 0.0)
+        by_id = lanes_by_id(lanes)
+        if lane_id is not None:
+            half = 0.5 * float(np.max(np.asarray(by_id[lane_id].width, dtype=np.float64)))
+            if abs(d_lane) - half > cfg.off_lane_distance:
+                lane_id = None
+        if lane_id is None:
+            return self._stop_plan(ego, params), None, None
+
+        current = by_id[lane_id]
+        ahead = max(60.0, ego.speed * pc.horizon + 80.0)
+        chain_ids = [lane_id]
+        names = [f"lane{lane_id}"]
+        for side in ("left", "right"):
+            nid = getattr(current, side, None)
+            if nid is not None and int(nid) in by_id:
+                chain_ids.append(int(nid))
+                names.append(f"{side}{int(nid)}")
+        corridors = CorridorSet([build_corridor(by_id, lid, ego.pose[:2], cfg.corridor_behind, ahead,
+                                                default_speed_limit=cfg.default_speed_limit) for lid in chain_ids])
+        limit_now = float(corridors.limit_at(np.array(0), np.array(cfg.corridor_behind)))
+        spec = make_specs(corridors, names, limit_now, pc, current_index=0)
+        cands = rollout_candidates(ego.pose, ego.speed, ego.acceleration, spec, corridors, forecast,
+                                   ego.length, ego.width, pc, params)
+        table = self.score_candidates(cands, corridors, forecast, ego, chain_ids, lane_id, limit_now)
+        i = table.best
+        target_lane = chain_ids[int(spec.corridor[i])]
+        self._committed_lane = target_lane if target_lane != lane_id else None
+        plan = Plan(trajectory=cands.poses[i].copy(), speed=cands.speeds[i].copy(), acceleration=cands.accel[i].copy(),
+                    curvature=cands.curvature[i].copy(), dt=dt, cost=float(table.total[i]),
+                    cost_terms=table.breakdown(i), label=spec.labels[i])
+        return plan, cands, table
+
+    def score_candidates(self, cands: Candidates, corridors: CorridorSet, forecast: ActorForecast, ego: EgoState,
+                         chain_ids: list[int], lane_id: int, limit_now: float) -> ScoreTable:
+        """All named cost terms of every candidate, weighted (see :mod:`.scorer`)."""
+        cfg = self.config
+        dims = (ego.length, ego.width)
+        poses, speeds = cands.poses, cands.speeds
+        dist = costs.clearance(poses, dims, forecast.poses, forecast.dims, max_distance=cfg.buffer + 0.5)
+        travelled = np.concatenate([np.zeros((len(cands), 1)),
+                                    np.cumsum(0.5 * (speeds[:, 1:] + speeds[:, :-1]) * cands.dt, axis=1)], axis=1)
+        s_start = np.array([float(corridors.project(ci, ego.pose[:2])[0]) for ci in range(len(corridors))])
+        dev, excess = costs.road_geometry(poses, travelled, corridors, s_start, dims)
+        limits = corridors.limit_at(cands.spec.corridor[:, None], cands.s)
+        horizon = cands.dt * (poses.shape[1] - 1)
+        target_lanes = np.array([chain_ids[int(c)] for c in cands.spec.corridor])
+        raw = {
+            "collision": costs.collision_cost(dist, forecast.probs),
+            "drivable_area": costs.drivable_area_cost(excess),
+            "buffer": costs.buffer_cost(dist, forecast.probs, cfg.buffer),
+            "headway": costs.headway_cost(poses, speeds, dims, forecast.poses, forecast.dims, forecast.probs,
+                                          cfg.time_headway, cfg.min_gap),
+            "speed_limit": costs.speed_limit_cost(speeds, limits),
+            "progress": costs.progress_cost(travelled[:, -1], limit_now * horizon),
+            "lane_center": costs.lane_center_cost(dev),
+            "lane_change": costs.lane_change_cost(target_lanes, lane_id, self._committed_lane),
+            "jerk": costs.jerk_cost(cands.accel, ego.acceleration, cands.dt),
+            "lat_accel": costs.lateral_accel_cost(speeds[:, :-1], cands.curvature),
+        }
+        return score(raw, cfg.weights)
+
+    def _stop_plan(self, ego: EgoState, params: BicycleParams) -> Plan:
+        pc = self.config.proposals
+        T = pc.steps
+        state0 = np.array([ego.pose[0], ego.pose[1], ego.pose[2], ego.speed])
+        acc = np.full((1, T), -pc.idm_decel)
+        states = rollout(state0, acc, curvature=np.zeros((1, T)), dt=pc.dt, params=params)[0]
+        a = np.diff(states[:, 3]) / pc.dt
+        return Plan(trajectory=states[:, :3], speed=states[:, 3], acceleration=a, curvature=np.zeros(T), dt=pc.dt,
+                    label="no-lane/stop")

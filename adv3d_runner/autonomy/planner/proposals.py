@@ -1,0 +1,300 @@
+"""Candidate trajectories (PDM-Closed style): lane-relative paths x speed profiles, each turned
+into a trajectory of the kinematic bicycle by a closed-loop rollout.
+
+A candidate is (corridor, lateral offset, target speed):
+
+* corridor: the ego's current lane, its left and its right neighbour (when they exist), each
+  chained through successors (:mod:`.corridor`);
+* lateral offset: metres left of that lane's centre (nudges within the current lane; the
+  neighbours are driven on their centre);
+* target speed: a fraction of the speed limit; 0 means "come to a stop comfortably".
+  One extra *emergency stop* candidate brakes at the maximum deceleration on the current lane.
+
+The reference path moves from the ego's present lateral position to the target offset with a
+smoothstep over ``max(min_transition, speed x transition_time)`` metres. Every candidate is
+then simulated for ``horizon`` s at ``dt`` with all candidates in one vectorised loop:
+
+* steering: pure pursuit on the reference path (look-ahead ``max(min_lookahead, speed x
+  lookahead_time)``), curvature clipped by the steering limit and the lateral acceleration
+  limit ``max_lat_accel / v^2``;
+* speed: the Intelligent Driver Model (IDM) towards the target speed, following the nearest
+  predicted actor ahead in the candidate's corridor (modes with probability >= ``min_mode_prob``
+  count), with a jerk limit (not for the emergency stop);
+* motion: :func:`adv3d_runner.sim.kinematics.step` (exact arcs, speed >= 0).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ...sim.kinematics import BicycleParams, step
+from .corridor import CorridorSet
+
+
+@dataclass(frozen=True)
+class ProposalConfig:
+    """Candidate generation parameters (m, s, m/s, m/s^2, m/s^3).
+
+    Attributes:
+        horizon: plan length, s; dt: step, s.
+        lateral_offsets: offsets (m, left +) tried on the current lane.
+        neighbour_offsets: offsets tried on the left/right lanes.
+        speed_fractions: target speeds as fractions of the speed limit (0 = stop).
+        emergency_stop: add the max-braking candidate.
+        transition_time, min_transition: lateral transition length = max(min, v x time).
+        lookahead_time, min_lookahead: pure-pursuit look-ahead distance.
+        max_lat_accel: curvature limit at speed.
+        idm_accel, idm_decel: IDM maximum acceleration / comfortable deceleration.
+        idm_gap, idm_headway: IDM jam distance (m) and time headway (s).
+        max_decel: hardest braking of any candidate (and of the emergency stop).
+        max_jerk: |da/dt| limit of the IDM candidates.
+        min_mode_prob: predicted modes below this probability are ignored as leaders.
+        lane_margin: extra lateral margin when deciding that an actor is in a corridor, m.
+    """
+
+    horizon: float = 5.0
+    dt: float = 0.1
+    lateral_offsets: tuple[float, ...] = (-0.5, 0.0, 0.5)
+    neighbour_offsets: tuple[float, ...] = (0.0,)
+    speed_fractions: tuple[float, ...] = (0.0, 0.4, 0.7, 0.85, 1.0)
+    emergency_stop: bool = True
+    transition_time: float = 4.0
+    min_transition: float = 15.0
+    lookahead_time: float = 1.0
+    min_lookahead: float = 6.0
+    max_lat_accel: float = 3.0
+    idm_accel: float = 1.5
+    idm_decel: float = 2.0
+    idm_gap: float = 3.0
+    idm_headway: float = 1.5
+    max_decel: float = 7.0
+    max_jerk: float = 4.0
+    min_mode_prob: float = 0.1
+    lane_margin: float = 0.3
+
+    @property
+    def steps(self) -> int:
+        return int(round(self.horizon / self.dt))
+
+
+@dataclass
+class CandidateSpec:
+    """What each candidate aims for: (B,) arrays."""
+
+    corridor: np.ndarray  # int, index into the CorridorSet
+    offset: np.ndarray  # m
+    target_speed: np.ndarray  # m/s (0 = stop)
+    emergency: np.ndarray  # bool
+    labels: list[str] = field(default_factory=list)
+
+    def __len__(self) -> int:
+        return len(self.corridor)
+
+
+@dataclass
+class Candidates:
+    """Rolled-out candidates.
+
+    Attributes:
+        spec: what each candidate aimed for.
+        states: (B, T + 1, 4) x, y, yaw, v; index 0 = the ego now.
+        accel: (B, T) m/s^2; curvature: (B, T) 1/m (controls of each step).
+        s: (B, T + 1) arc length along the candidate's own corridor; d: (B, T + 1) offset.
+        leader_gap: (B, T + 1) bumper gap to the IDM leader (m, +inf without leader).
+        dt: s.
+    """
+
+    spec: CandidateSpec
+    states: np.ndarray
+    accel: np.ndarray
+    curvature: np.ndarray
+    s: np.ndarray
+    d: np.ndarray
+    leader_gap: np.ndarray
+    dt: float
+
+    def __len__(self) -> int:
+        return len(self.states)
+
+    @property
+    def poses(self) -> np.ndarray:
+        return self.states[..., :3]
+
+    @property
+    def speeds(self) -> np.ndarray:
+        return self.states[..., 3]
+
+
+@dataclass
+class ActorForecast:
+    """Predicted actors in the planner's time grid (map frame).
+
+    Attributes:
+        poses: (N, K, T + 1, 3) x, y, yaw; index 0 = now.
+        dims: (N, 2) length, width, m.
+        probs: (N, K) mode probabilities.
+        ids: (N,) track ids.
+    """
+
+    poses: np.ndarray
+    dims: np.ndarray
+    probs: np.ndarray
+    ids: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.poses)
+
+    @classmethod
+    def empty(cls, steps: int, modes: int = 1) -> "ActorForecast":
+        return cls(np.zeros((0, modes, steps + 1, 3)), np.zeros((0, 2)), np.zeros((0, modes)), np.zeros(0, np.int64))
+
+
+def make_specs(corridors: CorridorSet, lane_names: list[str], speed_limit: float, config: ProposalConfig,
+               current_index: int = 0) -> CandidateSpec:
+    """Cartesian product of corridors x offsets x target speeds (+ the emergency stop)."""
+    cor, off, tgt, emg, labels = [], [], [], [], []
+    for ci in range(len(corridors)):
+        offsets = config.lateral_offsets if ci == current_index else config.neighbour_offsets
+        for o in offsets:
+            for f in config.speed_fractions:
+                cor.append(ci)
+                off.append(o)
+                tgt.append(f * speed_limit)
+                emg.append(False)
+                labels.append(f"{lane_names[ci]}/d{o:+.1f}/v{f * speed_limit:.1f}")
+    if config.emergency_stop:
+        cor.append(current_index)
+        off.append(np.nan)  # keep the present lateral position
+        tgt.append(0.0)
+        emg.append(True)
+        labels.append(f"{lane_names[current_index]}/emergency-stop")
+    return CandidateSpec(np.array(cor, np.int64), np.array(off, float), np.array(tgt, float), np.array(emg, bool), labels)
+
+
+def _smoothstep(x: np.ndarray) -> np.ndarray:
+    x = np.clip(x, 0.0, 1.0)
+    return x * x * (3.0 - 2.0 * x)
+
+
+def rollout_candidates(ego_pose: np.ndarray, ego_speed: float, ego_accel: float, spec: CandidateSpec,
+                       corridors: CorridorSet, actors: ActorForecast, ego_length: float, ego_width: float,
+                       config: ProposalConfig = ProposalConfig(),
+                       params: BicycleParams = BicycleParams()) -> Candidates:
+    """Simulate every candidate (see module docstring)."""
+    B, T, dt = len(spec), config.steps, config.dt
+    c = spec.corridor
+    pose = np.asarray(ego_pose, dtype=np.float64).reshape(3)
+    v0 = max(float(ego_speed), 0.0)
+
+    # ego's Frenet start on each corridor (global projection once)
+    s_start = np.zeros(len(corridors))
+    d_start = np.zeros(len(corridors))
+    for ci in range(len(corridors)):
+        s_ci, d_ci = corridors.project(ci, pose[:2])
+        s_start[ci], d_start[ci] = float(s_ci), float(d_ci)
+    s0, d0 = s_start[c], d_start[c]
+    target_d = np.where(np.isnan(spec.offset), d0, spec.offset)
+    trans_len = max(config.min_transition, v0 * config.transition_time)
+
+    # actors' Frenet coordinates on each corridor, for the IDM leader
+    leader_s, leader_ok, leader_len = _actor_frenet(actors, corridors, spec, target_d, ego_width, config, T)
+
+    states = np.empty((B, T + 1, 4))
+    states[:, 0] = [pose[0], pose[1], pose[2], v0]
+    acc = np.zeros((B, T))
+    kap = np.zeros((B, T))
+    s_hist = np.empty((B, T + 1))
+    d_hist = np.empty((B, T + 1))
+    gap_hist = np.full((B, T + 1), np.inf)
+    s_cur = s0.copy()
+    a_prev = np.full(B, float(ego_accel))
+    half_len = 0.5 * ego_length
+    sqrt_ab = 2.0 * np.sqrt(config.idm_accel * config.idm_decel)
+    kappa_max = params.max_curvature
+    for k in range(T + 1):
+        st = states[:, k]
+        s_cur, d_cur = corridors.project_local(c, st[:, :2], s_cur)
+        s_hist[:, k], d_hist[:, k] = s_cur, d_cur
+        v = st[:, 3]
+        # leader: nearest predicted actor ahead in the candidate's corridor at this time
+        if leader_s.shape[1]:
+            ahead = leader_ok[:, :, k] & (leader_s[:, :, k] > s_cur[:, None])
+            gaps = np.where(ahead, leader_s[:, :, k] - s_cur[:, None] - half_len - leader_len[None, :], np.inf)
+            j = np.argmin(gaps, axis=1)
+            gap = gaps[np.arange(B), j]
+            kn = min(k + 1, T)
+            v_lead = np.maximum((leader_s[np.arange(B), j, kn] - leader_s[np.arange(B), j, k]) / dt, 0.0) if kn > k else v
+        else:
+            gap = np.full(B, np.inf)
+            v_lead = v
+        gap_hist[:, k] = gap
+        if k == T:
+            break
+        # ---- longitudinal: IDM towards the target speed
+        v_des = np.maximum(spec.target_speed, 0.0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            free = np.where(v_des > 0.1, config.idm_accel * (1.0 - (v / np.maximum(v_des, 0.1)) ** 4),
+                            -config.idm_decel * np.minimum(1.0, v))  # stop target: brake comfortably
+        free = np.maximum(free, -config.idm_decel)  # above the target: slow down comfortably
+        s_star = config.idm_gap + np.maximum(0.0, v * config.idm_headway + v * (v - v_lead) / sqrt_ab)
+        finite = np.isfinite(gap)
+        interact = np.where(finite, -config.idm_accel * (s_star / np.maximum(gap, 0.1)) ** 2, 0.0)
+        interact = np.where(finite & (gap <= 0.0), -config.max_decel, interact)
+        a = np.clip(free + interact, -config.max_decel, config.idm_accel)
+        a = np.clip(a, a_prev - config.max_jerk * dt, a_prev + config.max_jerk * dt)
+        a = np.where(spec.emergency, -config.max_decel, a)
+        a = np.where((v <= 1e-6) & (a < 0), 0.0, a)  # standing still: no braking "stored up"
+        # ---- lateral: pure pursuit on the reference path
+        ld = np.maximum(config.min_lookahead, v * config.lookahead_time)
+        s_la = s_cur + ld
+        prog = (s_la - s0) / trans_len
+        d_ref = target_d + (d0 - target_d) * (1.0 - _smoothstep(prog))
+        tgt = corridors.pose_at(c, s_la, d_ref)
+        dx, dy = tgt[:, 0] - st[:, 0], tgt[:, 1] - st[:, 1]
+        cy, sy = np.cos(st[:, 2]), np.sin(st[:, 2])
+        ly = -sy * dx + cy * dy
+        l2 = np.maximum(dx * dx + dy * dy, 1e-6)
+        kappa = 2.0 * ly / l2
+        k_lim = np.minimum(kappa_max, config.max_lat_accel / np.maximum(v * v, 1e-6))
+        kappa = np.clip(kappa, -k_lim, k_lim)
+        states[:, k + 1] = step(st, a, curvature=kappa, dt=dt, params=params)
+        # the acceleration actually applied (speed clamped at 0 when braking to a stop)
+        a_applied = (states[:, k + 1, 3] - v) / dt
+        acc[:, k] = a_applied
+        kap[:, k] = kappa
+        a_prev = a_applied
+        s_cur = s_cur + 0.5 * (v + states[:, k + 1, 3]) * dt  # guess for the next projection
+    return Candidates(spec, states, acc, kap, s_hist, d_hist, gap_hist, dt)
+
+
+def _actor_frenet(actors: ActorForecast, corridors: CorridorSet, spec: CandidateSpec, target_d: np.ndarray,
+                  ego_width: float, config: ProposalConfig, T: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per candidate, the (N*K) actor-mode arc lengths on its corridor over time and whether the
+    actor-mode is inside the candidate's lane strip (around its target offset).
+
+    Returns:
+        s (B, M, T + 1), ok (B, M, T + 1) bool, half_length (M,) with M = N * K.
+    """
+    B = len(spec)
+    N = len(actors)
+    if N == 0:
+        return np.zeros((B, 0, T + 1)), np.zeros((B, 0, T + 1), bool), np.zeros(0)
+    K = actors.poses.shape[1]
+    xy = actors.poses[:, :, :T + 1, :2]
+    M = N * K
+    s_all = np.empty((len(corridors), M, T + 1))
+    d_all = np.empty((len(corridors), M, T + 1))
+    for ci in range(len(corridors)):
+        s_ci, d_ci = corridors.project(ci, xy)
+        s_all[ci] = s_ci.reshape(M, T + 1)
+        d_all[ci] = d_ci.reshape(M, T + 1)
+    half_w = np.repeat(0.5 * actors.dims[:, 1], K)
+    half_l = np.repeat(0.5 * actors.dims[:, 0], K)
+    prob_ok = (actors.probs.reshape(M) >= config.min_mode_prob)
+    s = s_all[spec.corridor]  # (B, M, T+1)
+    d = d_all[spec.corridor]
+    # an actor is in the candidate's lane when its footprint overlaps the ego's lateral band
+    lat = np.abs(d - target_d[:, None, None])
+    ok = (lat < (0.5 * ego_width + half_w[None, :, None] + config.lane_margin)) & prob_ok[None, :, None]
+    return s, ok, half_l

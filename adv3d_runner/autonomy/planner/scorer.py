@@ -1,0 +1,84 @@
+"""Scorer: weighted sum of the named cost terms, with a per-term breakdown.
+
+Default weights (cost per unit of each term, see :mod:`.costs` for the units):
+
+============== ======== ==========================================================
+term           weight   meaning of one unit
+============== ======== ==========================================================
+collision      1000     one expected collision within the horizon
+drivable_area   200     1 m outside the lanes, averaged over the horizon
+buffer           30     clearance fully eaten (0 m of a 1 m buffer) over the horizon
+headway          15     gap fully below 2 m + 1.0 s x speed over the horizon
+speed_limit       5     1 m/s over the limit on average
+progress         20     no progress at all (vs. driving at the limit for the horizon)
+lane_center       2     1 m from the nearest lane centre on average
+lane_change       2     starting a lane change
+jerk            0.3     1 m/s^3 mean |jerk|
+lat_accel       1.0     1 m/s^2 mean |lateral acceleration|
+============== ======== ==========================================================
+
+Safety terms dominate by orders of magnitude so that comfort and progress only choose among
+safe candidates; progress (20 for a full horizon) outweighs a lane change (2) plus the lateral
+cost of changing, so a blocked lane is left for a free one, while an unnecessary lane change is
+not worth its cost.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+TERMS = ("collision", "drivable_area", "buffer", "headway", "speed_limit", "progress", "lane_center",
+         "lane_change", "jerk", "lat_accel")
+
+
+@dataclass(frozen=True)
+class CostWeights:
+    collision: float = 1000.0
+    drivable_area: float = 200.0
+    buffer: float = 30.0
+    headway: float = 15.0
+    speed_limit: float = 5.0
+    progress: float = 20.0
+    lane_center: float = 2.0
+    lane_change: float = 2.0
+    jerk: float = 0.3
+    lat_accel: float = 1.0
+
+    def as_dict(self) -> dict[str, float]:
+        return asdict(self)
+
+
+@dataclass
+class ScoreTable:
+    """Scores of all candidates.
+
+    Attributes:
+        raw: term -> (B,) unweighted cost.
+        weighted: term -> (B,) weight x raw.
+        total: (B,) sum of the weighted terms.
+        best: index of the lowest total (ties: the lowest index, i.e. the earlier candidate).
+    """
+
+    raw: dict[str, np.ndarray]
+    weighted: dict[str, np.ndarray]
+    total: np.ndarray
+    best: int
+    weights: dict[str, float] = field(default_factory=dict)
+
+    def breakdown(self, i: int | None = None) -> dict[str, float]:
+        """Weighted per-term costs of candidate ``i`` (default: the best)."""
+        i = self.best if i is None else i
+        return {k: float(v[i]) for k, v in self.weighted.items()}
+
+
+def score(raw_terms: dict[str, np.ndarray], weights: CostWeights = CostWeights()) -> ScoreTable:
+    """Weight and sum the terms (every term of :data:`TERMS` that is present; unknown terms raise)."""
+    w = weights.as_dict()
+    unknown = set(raw_terms) - set(w)
+    if unknown:
+        raise KeyError(f"unknown cost terms {sorted(unknown)}")
+    raw = {k: np.nan_to_num(np.asarray(v, dtype=np.float64), nan=1e6, posinf=1e6) for k, v in raw_terms.items()}
+    weighted = {k: w[k] * v for k, v in raw.items()}
+    total = np.sum(np.stack(list(weighted.values())), axis=0)
+    return ScoreTable(raw, weighted, total, int(np.argmin(total)), w)
