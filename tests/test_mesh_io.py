@@ -1,0 +1,237 @@
+"""Mesh import and conversion to the convention (metres, +x front, z up, origin on the ground)."""
+from __future__ import annotations
+
+import importlib.util
+import itertools
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+import trimesh
+
+from adv3d_runner.errors import ConfigError, MeshImportError
+from adv3d_runner.shapes import mesh_io
+
+
+def car_like(length=4.5, width=1.8, height=1.5) -> trimesh.Trimesh:
+    """A box body with a small 'nose' block in front (+x) and a 'mirror' on the left (+y)."""
+    body = trimesh.creation.box(extents=(length, width, height))
+    body.apply_translation((0, 0, height / 2))
+    nose = trimesh.creation.box(extents=(0.2, 0.4, 0.2))
+    nose.apply_translation((length / 2 + 0.1, 0, 0.5))
+    mirror = trimesh.creation.box(extents=(0.1, 0.2, 0.1))
+    mirror.apply_translation((0.5, width / 2 + 0.1, 1.0))
+    return trimesh.util.concatenate([body, nose, mirror])
+
+
+def _mirror_on_left(mesh) -> bool:
+    """The vertices furthest left (+y) are the mirror's (z near 1 m), not the body's."""
+    v = np.asarray(mesh.vertices)
+    left = v[np.isclose(v[:, 1], v[:, 1].max(), atol=1e-6)]
+    right = v[np.isclose(v[:, 1], v[:, 1].min(), atol=1e-6)]
+    return bool(np.all(np.abs(left[:, 2] - 1.0) < 0.1) and np.ptp(right[:, 2]) > 1.0)
+
+
+def _check_convention(mesh, dims, tol=1e-6):
+    lo, hi = mesh.bounds
+    assert hi - lo == pytest.approx(np.asarray(dims), abs=tol)
+    assert lo[2] == pytest.approx(0.0, abs=tol)
+    assert 0.5 * (lo[:2] + hi[:2]) == pytest.approx([0.0, 0.0], abs=tol)
+
+
+def test_centimetres_and_large_offset_become_metres_on_the_ground(tmp_path):
+    m = car_like()
+    m.apply_scale(100.0)                          # centimetres
+    m.apply_translation((1e5, -2e5, 3e5))         # far from the file's origin
+    path = tmp_path / "car_cm.ply"
+    m.export(path)                                # binary PLY keeps float64? not required
+    out, cur, rep = mesh_io.import_vehicle(path, up="+z", forward="+x")
+    assert cur["unit"].startswith("cm")
+    _check_convention(out, (4.5 + 0.2, 1.8 + 0.2, 1.5), tol=1e-3)
+    # the nose is in front (+x), the mirror on the left (+y)
+    assert out.vertices[:, 0].max() == pytest.approx(out.bounds[1, 0])
+    nose_x = out.vertices[np.argmax(out.vertices[:, 0]), 0]
+    assert nose_x > 2.3
+    assert _mirror_on_left(out)
+
+
+def test_explicit_unit_overrides_guess(tmp_path):
+    m = car_like()
+    path = tmp_path / "car.obj"
+    m.export(path)
+    out, cur, _ = mesh_io.import_vehicle(path, up="+z", forward="+x", unit="mm")
+    assert cur["unit"].startswith("mm")
+    assert out.extents[0] == pytest.approx(4.7e-3, rel=1e-6)
+
+
+def test_gltf_y_up_front_z_converts_with_left_kept(tmp_path):
+    # a car authored in glTF's frame: up +y, front +z; left = up x front = +x
+    m = car_like()
+    to_gltf = np.eye(4)
+    to_gltf[:3, :3] = np.array([[0, 1, 0], [0, 0, 1], [1, 0, 0]])  # conv x->gltf z, y->x, z->y
+    m.apply_transform(to_gltf)
+    path = tmp_path / "car.glb"
+    trimesh.Scene(m).export(path)
+    out, cur, _ = mesh_io.import_vehicle(path, forward="+z")
+    assert cur["up"].startswith("+y")  # declared by glTF
+    _check_convention(out, (4.7, 2.0, 1.5), tol=1e-5)
+    assert out.vertices[:, 0].max() > 2.3                  # nose front
+    assert _mirror_on_left(out)  # not mirrored
+
+
+def test_scene_nodes_are_flattened_with_transforms(tmp_path):
+    a = trimesh.creation.box(extents=(1, 1, 1))
+    scene = trimesh.Scene()
+    t1, t2 = np.eye(4), np.eye(4)
+    t1[:3, 3] = (0, 0, 0)
+    t2[:3, 3] = (5, 0, 0)
+    scene.add_geometry(a, node_name="a", geom_name="box", transform=t1)
+    scene.add_geometry(a, node_name="b", geom_name="box", transform=t2)  # instanced geometry
+    path = tmp_path / "two.glb"
+    scene.export(path)
+    mesh, info = mesh_io.read_mesh(path)
+    assert len(mesh.faces) == 24
+    assert mesh.bounds[:, 0] == pytest.approx([-0.5, 5.5])
+
+
+def test_guess_forward_is_longest_horizontal_axis():
+    v = np.array([[0, 0, 0], [1.0, 5.0, 9.0]])  # z is longest but up
+    assert mesh_io.guess_forward(v, "+z") == "+y"
+    assert mesh_io.guess_forward(v, "+y") == "+z"
+
+
+@pytest.mark.parametrize("up,forward", [(u, f) for u, f in itertools.product(
+    ["+x", "-x", "+y", "-y", "+z", "-z"], repeat=2) if u[1] != f[1]])
+def test_axes_rotation_is_proper_and_maps_axes(up, forward):
+    r = mesh_io.axes_rotation(up, forward)
+    assert np.linalg.det(r) == pytest.approx(1.0)
+    assert r @ mesh_io.parse_axis(forward) == pytest.approx([1, 0, 0])
+    assert r @ mesh_io.parse_axis(up) == pytest.approx([0, 0, 1])
+
+
+def test_bad_axes_rejected():
+    with pytest.raises(ConfigError):
+        mesh_io.axes_rotation("+z", "-z")
+    with pytest.raises(ConfigError):
+        mesh_io.parse_axis("up")
+
+
+def test_scale_to_dimensions_is_anisotropic_and_recorded():
+    m, _ = mesh_io.to_convention(car_like(2.0, 1.5, 1.2), up="+z", forward="+x", unit="m")
+    out, rec = mesh_io.scale_to_dimensions(m, (4.7, 1.8, 1.45))
+    _check_convention(out, (4.7, 1.8, 1.45))
+    assert rec["size_before_scaling"] == pytest.approx([2.2, 1.7, 1.2], abs=1e-4)
+    assert rec["scale_factors"] == pytest.approx([4.7 / 2.2, 1.8 / 1.7, 1.45 / 1.2], abs=1e-4)
+
+
+# ----------------------------------------------------------------------------- bad files
+
+def test_text_file_named_glb_is_a_clear_error(tmp_path):
+    path = tmp_path / "not_a_mesh.glb"
+    path.write_text("hello, I am not a glTF binary\n")
+    with pytest.raises(MeshImportError, match="not_a_mesh.glb"):
+        mesh_io.read_mesh(path)
+
+
+def test_truncated_glb_is_a_clear_error(tmp_path):
+    good = tmp_path / "good.glb"
+    trimesh.Scene(car_like()).export(good)
+    data = good.read_bytes()
+    bad = tmp_path / "truncated.glb"
+    bad.write_bytes(data[: len(data) // 2])
+    with pytest.raises(MeshImportError, match="truncated.glb"):
+        mesh_io.read_mesh(bad)
+
+
+def test_missing_unsupported_and_empty_files(tmp_path):
+    with pytest.raises(MeshImportError, match="nope.obj"):
+        mesh_io.read_mesh(tmp_path / "nope.obj")
+    odd = tmp_path / "car.xyz"
+    odd.write_text("1 2 3\n")
+    with pytest.raises(MeshImportError, match="unsupported"):
+        mesh_io.read_mesh(odd)
+    empty = tmp_path / "empty.obj"
+    empty.write_text("# nothing here\n")
+    with pytest.raises(MeshImportError, match="empty.obj"):
+        mesh_io.read_mesh(empty)
+    points = tmp_path / "points.ply"
+    trimesh.PointCloud(np.random.default_rng(0).random((10, 3))).export(points)
+    with pytest.raises(MeshImportError, match="points.ply"):
+        mesh_io.read_mesh(points)
+
+
+def test_nan_vertices_rejected(tmp_path):
+    path = tmp_path / "nan.obj"
+    path.write_text("v 0 0 0\nv 1 0 0\nv nan 1 0\nf 1 2 3\n")
+    with pytest.raises(MeshImportError, match="nan.obj"):
+        mesh_io.read_mesh(path)
+
+
+# ----------------------------------------------------------------------------- library glb
+
+def test_library_glb_round_trip_is_exact_to_float32_and_deterministic(tmp_path):
+    m, _ = mesh_io.to_convention(car_like(), up="+z", forward="+x", unit="m")
+    colours = np.tile([50, 60, 70, 255], (len(m.faces), 1)).astype(np.uint8)
+    colours[:12] = [255, 0, 0, 255]
+    m.visual = trimesh.visual.ColorVisuals(m, face_colors=colours)
+    data = mesh_io.export_library_glb(m)
+    assert data == mesh_io.export_library_glb(m)
+    path = tmp_path / "car.glb"
+    path.write_bytes(data)
+    back = mesh_io.read_library_mesh(path)
+    assert len(back.faces) == len(m.faces)
+    assert back.bounds == pytest.approx(m.bounds, abs=1e-6)
+    # stored in the glTF frame (Y up): read raw, the height lies along the file's y axis
+    raw, _ = mesh_io.read_mesh(path)
+    assert raw.extents[1] == pytest.approx(1.5, abs=1e-6)
+    red = np.all(np.asarray(back.visual.face_colors) == [255, 0, 0, 255], axis=1)
+    assert red.sum() == 12
+
+
+# ----------------------------------------------------------------------------- bpy path
+
+_BPY = importlib.util.find_spec("bpy") is not None
+
+_MAKE_FBX = textwrap.dedent("""
+    import sys, bpy
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    bpy.ops.mesh.primitive_cube_add(size=2.0, location=(0, 0, 0))
+    car = bpy.context.active_object
+    car.scale = (2.25, 0.9, 0.75)      # 4.5 x 1.8 x 1.5 m box
+    car.location = (100.0, 200.0, 5.0)
+    bpy.ops.mesh.primitive_cube_add(size=0.2, location=(102.35, 200.0, 5.0))  # nose at +x
+    bpy.ops.object.camera_add(location=(0, -10, 2))   # non-mesh objects are skipped
+    bpy.ops.object.empty_add(location=(0, 0, -50))     # (lights break the FBX importer of bpy 5.0.1)
+    out = sys.argv[-1]
+    if out.endswith(".fbx"):
+        bpy.ops.export_scene.fbx(filepath=out, global_scale=1.0)
+    else:
+        bpy.ops.wm.save_as_mainfile(filepath=out)
+""")
+
+
+@pytest.mark.blender
+@pytest.mark.skipif(not _BPY, reason="bpy not installed")
+@pytest.mark.parametrize("ext", [".fbx", ".blend"])
+def test_fbx_and_blend_import_through_bpy_subprocess(tmp_path, ext):
+    src = tmp_path / f"box{ext}"
+    subprocess.run([sys.executable, "-c", _MAKE_FBX, str(src)], check=True, capture_output=True, timeout=120)
+    assert "bpy" not in sys.modules  # the runner process itself never imports bpy
+    out, cur, rep = mesh_io.import_vehicle(src, forward="+x")
+    assert "bpy" not in sys.modules
+    assert cur["reader"] == "bpy" and cur["up"].startswith("+z")
+    _check_convention(out, (4.7, 1.8, 1.5), tol=1e-4)  # body 4.5 + nose sticking out 0.2
+    assert rep["components"] == 2
+    front = out.vertices[np.isclose(out.vertices[:, 0], out.bounds[1, 0], atol=1e-5)]
+    assert np.ptp(front[:, 2]) == pytest.approx(0.2, abs=1e-4)  # the nose is at +x
+
+
+@pytest.mark.blender
+@pytest.mark.skipif(not _BPY, reason="bpy not installed")
+def test_corrupt_blend_names_the_file(tmp_path):
+    bad = tmp_path / "broken.blend"
+    bad.write_bytes(b"BLENDER-v300" + b"\x00garbage" * 10)
+    with pytest.raises(MeshImportError, match="broken.blend"):
+        mesh_io.read_mesh(bad)
