@@ -16,7 +16,7 @@ import numpy as np
 
 from .raycast import MeshBVH, mesh_key
 
-__all__ = ["LidarWorld", "ActorSlot", "DEFAULT_ACTOR_REFLECTIVITY", "world_from_scene"]
+__all__ = ["LidarWorld", "ActorSlot", "DEFAULT_ACTOR_REFLECTIVITY", "world_from_scene", "rig_from_scene"]
 
 #: Diffuse reflectivity of a vehicle body (painted metal and glass averaged), in [0, 1].
 DEFAULT_ACTOR_REFLECTIVITY = 0.35
@@ -133,49 +133,55 @@ class LidarWorld:
             del self._bvh[key]
 
 
-def world_from_scene(scene, library=None) -> LidarWorld:
-    """Build the :class:`LidarWorld` of a scene: background mesh + one library mesh per actor.
+def world_from_scene(scene, library=None, scene_dir=None) -> LidarWorld:
+    """Build the :class:`LidarWorld` of a scene: background mesh + one mesh per actor.
 
-    Uses the scene package (``background_mesh``, ``assign_assets``, ``actor_mesh``); imported
-    here so the LiDAR core never depends on it.
+    Actors get the library mesh chosen by ``assign_assets`` (class and closest dimensions,
+    scaled to their box) when a vehicle ``library`` is given, else (or for an empty library)
+    their box. Uses the scene package, imported here so the LiDAR core never depends on it.
+
+    Args:
+        scene: a loaded ``adv3d_runner.scene.schema.Scene``.
+        library: a ``VehicleLibrary`` or None.
+        scene_dir: folder of the scene file (for extra static meshes it references).
     """
     from ..scene import background as bg_mod
 
-    vertices, faces, kind = bg_mod.background_mesh(scene)
-    refl_table = _reflectivity_table(bg_mod)
+    vertices, faces, kind = bg_mod.background_mesh(scene, scene_dir=scene_dir)
+    refl_table = np.asarray(bg_mod.REFLECTIVITY, dtype=np.float32)
     kind = np.asarray(kind, dtype=np.int64)
-    reflectivity = refl_table[np.clip(kind, 0, len(refl_table) - 1)] if len(kind) else np.zeros(0)
+    reflectivity = refl_table[np.clip(kind, 0, len(refl_table) - 1)] if len(kind) else np.zeros(0, np.float32)
     world = LidarWorld(vertices, faces, reflectivity)
-    from ..scene import actors as actors_mod
-
-    assets = {}
     if library is not None:
-        assets = actors_mod.assign_assets(scene, library) or {}
+        from ..scene import actors as actors_mod
+
+        scene = actors_mod.assign_assets(scene, library)
     for actor in scene.actors:
-        asset_id = assets.get(actor.id) if isinstance(assets, dict) else None
         mesh = None
-        if library is not None and asset_id is not None:
-            mesh = actors_mod.actor_mesh(library, asset_id, actor.dimensions)
+        if library is not None and actor.asset is not None:
+            mesh = actors_mod.actor_mesh(library, actor.asset, actor.dimensions)
         if mesh is None:
             mesh = _box_mesh(actor.dimensions)
         world.add_actor(actor.id, np.asarray(mesh.vertices), np.asarray(mesh.faces))
     return world
 
 
-def _reflectivity_table(bg_mod) -> np.ndarray:
-    """Reflectivity per surface kind from the background module (array, dict or callable)."""
-    table = getattr(bg_mod, "SURFACE_REFLECTIVITY", None)
-    if table is None:
-        table = getattr(bg_mod, "REFLECTIVITY", None)
-    if isinstance(table, dict):
-        n = max(int(k) for k in table) + 1
-        out = np.full(n, 0.2, np.float32)
-        for k, v in table.items():
-            out[int(k)] = float(v)
-        return out
-    if table is None:
-        return np.array([0.2], np.float32)
-    return np.asarray(table, dtype=np.float32).reshape(-1)
+def rig_from_scene(scene, model: str | None = None, **model_overrides):
+    """The ego's :class:`~adv3d_runner.sensors.lidar.LidarRig` from the scene's sensor list.
+
+    Args:
+        scene: a loaded scene (``scene.ego.sensors``: model names and mount poses).
+        model: replace every sensor's model by this one (e.g. ``"vlp32c"``), keeping mounts.
+        model_overrides: fields changed on every model (e.g. ``ray_drop=0``).
+    """
+    from .beams import get_model
+    from .lidar import LidarRig, MountedLidar
+
+    mounts = [(s.model, np.asarray(s.mount, dtype=np.float64)) for s in scene.ego.sensors]
+    if not mounts:
+        mounts = [("hdl64", np.array([0.0, 0.0, 1.73, 0.0, 0.0, 0.0]))]
+    rig = [MountedLidar(get_model(model or name, **model_overrides), mount) for name, mount in mounts]
+    return LidarRig(rig, ego_dimensions=tuple(float(d) for d in scene.ego.dimensions))
 
 
 def _box_mesh(dimensions) -> "object":
