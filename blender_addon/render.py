@@ -1,0 +1,269 @@
+"""Headless preview renders with bpy (Workbench or Eevee), run in a child process.
+
+    python -m blender_addon.render --what library --out docs/images/library.png
+    python -m blender_addon.render --what sweep --dim 0 --steps 5 --out sweep.png
+
+``adv3d blender render`` starts this module so the runner process never imports bpy. Exit
+status 2 with a one-line message on stderr for user errors (bad file, unknown dimension).
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+
+# Colours (linear RGB) for vehicles without paint and for the sweep's shapes.
+BODY = (0.55, 0.58, 0.62, 1.0)
+SWEEP = (0.85, 0.35, 0.15, 1.0)
+
+
+def _reset(width: int, height: int, engine: str):
+    import bpy
+
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    scene = bpy.context.scene
+    scene.render.resolution_x = width
+    scene.render.resolution_y = height
+    scene.render.resolution_percentage = 100
+    scene.render.image_settings.file_format = "PNG"
+    scene.render.image_settings.color_mode = "RGB"
+    scene.render.image_settings.compression = 90
+    if engine == "eevee":
+        scene.render.engine = "BLENDER_EEVEE_NEXT" if "BLENDER_EEVEE_NEXT" in _engines() else "BLENDER_EEVEE"
+    else:
+        scene.render.engine = "BLENDER_WORKBENCH"
+        shading = scene.display.shading
+        shading.light = "STUDIO"
+        shading.color_type = "VERTEX"  # the active colour attribute
+        shading.show_shadows = False
+        shading.show_cavity = True
+        shading.cavity_type = "WORLD"
+        scene.display.shadow_focus = 0.2
+    world = bpy.data.worlds.new("white")
+    world.color = (0.92, 0.93, 0.95)
+    scene.world = world
+    scene.view_settings.view_transform = "Standard"
+    return scene
+
+
+def _engines() -> list[str]:
+    import bpy
+
+    return [item.identifier for item in bpy.types.RenderSettings.bl_rna.properties["engine"].enum_items]
+
+
+def _mesh_object(name: str, vertices: np.ndarray, faces: np.ndarray, rgba, face_rgba=None):
+    """Mesh object with a per-corner colour attribute (Workbench ATTRIBUTE colouring)."""
+    import bpy
+
+    from blender_addon import meshdata
+
+    obj = meshdata.new_mesh_object(name, vertices, faces)
+    mesh = obj.data
+    attr = mesh.color_attributes.new("Col", "FLOAT_COLOR", "CORNER")
+    if face_rgba is None:
+        colours = np.tile(np.asarray(rgba, dtype=np.float32), (len(faces) * 3, 1))
+    else:
+        colours = np.repeat(np.asarray(face_rgba, dtype=np.float32), 3, axis=0)
+    attr.data.foreach_set("color", colours.ravel())
+    mesh.color_attributes.active_color = attr
+    for poly in mesh.polygons:  # flat shading reads better for low-poly and marching-cubes meshes
+        poly.use_smooth = False
+    # A material carrying the same colour, for Eevee (Workbench reads the attribute).
+    mat = bpy.data.materials.new(name)
+    mat.diffuse_color = rgba
+    mesh.materials.append(mat)
+    return obj
+
+
+def _srgb_to_linear(c: np.ndarray) -> np.ndarray:
+    c = np.asarray(c, dtype=np.float64)
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+
+
+def _label(text: str, x: float, y: float, size: float = 0.45):
+    import bpy
+
+    curve = bpy.data.curves.new(text, "FONT")
+    curve.body = text
+    curve.size = size
+    curve.align_x = "CENTER"
+    obj = bpy.data.objects.new(text, curve)
+    bpy.context.scene.collection.objects.link(obj)
+    obj.location = (x, y, 0.0)
+    mat = bpy.data.materials.new("label")
+    mat.diffuse_color = (0.05, 0.05, 0.05, 1.0)
+    curve.materials.append(mat)
+    return obj
+
+
+def _ground(bounds_lo: np.ndarray, bounds_hi: np.ndarray) -> None:
+    margin = 3.0
+    x0, y0 = bounds_lo[:2] - margin
+    x1, y1 = bounds_hi[:2] + margin
+    v = np.array([[x0, y0, -0.01], [x1, y0, -0.01], [x1, y1, -0.01], [x0, y1, -0.01]])
+    f = np.array([[0, 1, 2], [0, 2, 3]])
+    _mesh_object("ground", v, f, (0.80, 0.81, 0.83, 1.0))
+
+
+def _camera_fit(lo: np.ndarray, hi: np.ndarray, elevation_deg: float = 35.0, azimuth_deg: float = -60.0):
+    """Orthographic camera looking down at the box [lo, hi] from the front-left, fitted to it."""
+    import bpy
+    from mathutils import Euler, Matrix, Vector
+
+    scene = bpy.context.scene
+    cam_data = bpy.data.cameras.new("camera")
+    cam_data.type = "ORTHO"
+    cam = bpy.data.objects.new("camera", cam_data)
+    scene.collection.objects.link(cam)
+    scene.camera = cam
+    rot = Euler((math.radians(90.0 - elevation_deg), 0.0, math.radians(azimuth_deg + 90.0)), "XYZ")
+    centre = Vector(((lo + hi) / 2).tolist())
+    rmat = rot.to_matrix()
+    view_dir = rmat @ Vector((0.0, 0.0, -1.0))
+    cam.rotation_euler = rot
+    cam.location = centre - view_dir * 100.0
+    # Fit: project the box corners onto the camera's x / y axes.
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    axes = np.array(rmat.transposed())[:2]  # camera x and y in world
+    proj = (corners - np.array(centre)) @ axes.T
+    w = np.ptp(proj[:, 0])
+    h = np.ptp(proj[:, 1])
+    aspect = scene.render.resolution_x / scene.render.resolution_y
+    cam_data.ortho_scale = 1.08 * max(w, h * aspect)
+    cam_data.clip_end = 1000.0
+    _ = Matrix
+
+
+def _render(out: Path) -> None:
+    import bpy
+
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(f".{out.stem}.tmp.png")  # rename when complete: no half-written image
+    bpy.context.scene.render.filepath = str(tmp)
+    bpy.ops.render.render(write_still=True)
+    try:  # an adaptive 256-colour palette: a third of the size, indistinguishable here
+        from PIL import Image
+
+        Image.open(tmp).convert("RGB").quantize(colors=256, method=Image.Quantize.MEDIANCUT).save(tmp, optimize=True)
+    except ImportError:
+        pass
+    tmp.replace(out)
+
+
+# --------------------------------------------------------------------------- what to render
+
+def render_library(library_path: Path | None, out: Path, width: int, height: int, engine: str) -> None:
+    """All library assets on a grid (rows by class order in the file), labelled with their ids."""
+    from adv3d_runner.shapes.library import DEFAULT_LIBRARY, load_asset_mesh, load_library
+
+    library = load_library(library_path or DEFAULT_LIBRARY)
+    if not library.assets:
+        raise SystemExit(_fail(f"{library_path}: the library has no assets"))
+    _reset(width, height, engine)
+    n = len(library.assets)
+    cols = max(1, int(math.ceil(math.sqrt(n * 1.3))))
+    rows = [library.assets[i:i + cols] for i in range(0, n, cols)]
+    pitch_y = max(a.dimensions[1] for a in library.assets) + 3.2
+    gap = 1.5
+    lo = np.array([np.inf] * 3)
+    hi = -lo
+    for r, row in enumerate(rows):
+        row_len = sum(a.dimensions[0] for a in row) + gap * (len(row) - 1)
+        x = -row_len / 2
+        for asset in row:
+            mesh = load_asset_mesh(library, asset.id)
+            v = np.asarray(mesh.vertices, dtype=np.float64)
+            # Rows left to right, each vehicle's front to the right (+x).
+            offset = np.array([x + asset.dimensions[0] / 2, -r * pitch_y, 0.0])
+            x += asset.dimensions[0] + gap
+            v = v + offset
+            face_rgba = None
+            fc = getattr(getattr(mesh, "visual", None), "face_colors", None)
+            if fc is not None and len(fc) == len(mesh.faces):
+                rgb = _srgb_to_linear(np.asarray(fc[:, :3], dtype=np.float64) / 255.0)
+                face_rgba = np.concatenate([rgb, np.ones((len(rgb), 1))], axis=1)
+            _mesh_object(asset.id, v, np.asarray(mesh.faces), BODY, face_rgba)
+            _label(asset.id.split(".", 1)[-1], offset[0], offset[1] - asset.dimensions[1] / 2 - 1.0, 0.6)
+            lo = np.minimum(lo, v.min(axis=0) - [0, pitch_y / 2, 0])
+            hi = np.maximum(hi, v.max(axis=0))
+    _ground(lo, hi)
+    _camera_fit(lo, hi, elevation_deg=65.0, azimuth_deg=-90.0)
+    _render(out)
+
+
+def render_sweep(space_path: Path | None, out: Path, dim: int, steps: int, width: int, height: int,
+                 engine: str) -> None:
+    """Shapes along one unit-vector dimension (others at 0.5), side by side, labelled."""
+    from adv3d_runner.errors import Adv3dError
+    from adv3d_runner.shapes.shape_space import DEFAULT_SHAPE_SPACE, ShapeSpace
+
+    space = ShapeSpace.load(space_path or DEFAULT_SHAPE_SPACE)
+    if not 0 <= dim < space.dim:
+        raise SystemExit(_fail(f"--dim must be in [0, {space.dim - 1}] (K={space.k} latents, then width, length)"))
+    if steps < 2:
+        raise SystemExit(_fail("--steps must be at least 2"))
+    _reset(width, height, engine)
+    names = [f"z{i + 1}" for i in range(space.k)] + ["width", "length"]
+    x = 0.0
+    lo = np.array([np.inf] * 3)
+    hi = -lo
+    for i, t in enumerate(np.linspace(0.0, 1.0, steps)):
+        u = np.full(space.dim, 0.5)
+        u[dim] = t
+        try:
+            v, f = space.decode_arrays(u)
+        except Adv3dError as exc:
+            print(f"skipping {names[dim]}={t:.2f}: {exc}", file=sys.stderr)
+            continue
+        # Place along +y (left), each car pointing +x, spaced by its width.
+        width_m = np.ptp(v[:, 1])
+        if i:
+            x += width_m / 2 + 1.2
+        v = v + np.array([0.0, x, 0.0])
+        _mesh_object(f"{names[dim]}={t:.2f}", v, f, SWEEP)
+        _label(f"{names[dim]} = {t:.2f}", 0.0 - np.ptp(v[:, 0]) / 2 - 1.6, x, 0.45).rotation_euler = (0, 0, math.pi / 2)
+        lo = np.minimum(lo, v.min(axis=0) - [3.0, 0, 0])
+        hi = np.maximum(hi, v.max(axis=0))
+        x += width_m / 2
+    if not np.isfinite(lo).all():
+        raise SystemExit(_fail("no shape along the sweep has a surface"))
+    _ground(lo, hi)
+    _camera_fit(lo, hi, elevation_deg=35.0, azimuth_deg=-25.0)
+    _render(out)
+
+
+def _fail(message: str) -> int:
+    print(f"adv3d render: {message}", file=sys.stderr)
+    return 2
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m blender_addon.render")
+    parser.add_argument("--what", choices=("library", "sweep"), required=True)
+    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--library", type=Path, default=None)
+    parser.add_argument("--space", type=Path, default=None)
+    parser.add_argument("--dim", type=int, default=0)
+    parser.add_argument("--steps", type=int, default=5)
+    parser.add_argument("--size", default="1280x720")
+    parser.add_argument("--engine", choices=("workbench", "eevee"), default="workbench")
+    args = parser.parse_args(argv)
+    width, height = (int(v) for v in args.size.lower().split("x"))
+    from adv3d_runner.errors import Adv3dError
+
+    try:
+        if args.what == "library":
+            render_library(args.library, args.out, width, height, args.engine)
+        else:
+            render_sweep(args.space, args.out, args.dim, args.steps, width, height, args.engine)
+    except Adv3dError as exc:
+        return _fail(str(exc))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
