@@ -5,17 +5,19 @@ averaged over the plans of an episode; *driving comfort* on the trajectory the e
 executed. Both report the mean absolute lateral acceleration (m/s^2) and the mean absolute
 longitudinal jerk (m/s^3).
 
-Definitions, for a trajectory sampled at ``dt``:
+Definitions, for a trajectory of T samples every ``dt`` (plain finite differences, no
+smoothing, so every value is exact for polynomial motion and none is an edge artefact):
 
-* velocity by central finite differences of the positions (``np.gradient``);
-* with yaw given ((T, 3) input): signed speed ``v`` = velocity projected on the heading,
-  yaw rate from the unwrapped yaw, lateral acceleration ``a_lat = v * yaw_rate``;
-* positions only ((T, 2) input): ``a_lat = (v x a) / |v|`` (0 where |v| < 1e-3 m/s, where the
-  heading is undefined);
-* longitudinal acceleration ``a_lon = dv/dt`` and jerk ``j = d a_lon / dt``.
+* speed at the T - 1 half steps: ``|p[k+1] - p[k]| / dt`` (with yaw given, (T, 3) input: the
+  displacement projected on the mean heading of the step, i.e. signed);
+* longitudinal acceleration at the T - 2 inner samples: the difference of those speeds / dt;
+  jerk at the T - 3 inner half steps: the difference of accelerations / dt;
+* lateral acceleration at the T - 2 inner samples: ``v * yaw_rate`` with central differences
+  when yaw is given; from positions only ``(v x a) / |v|`` with central velocity and the
+  second difference as acceleration (0 where |v| < 1e-3 m/s and the heading is undefined).
 
-On a circle of curvature kappa driven at constant speed v: ``a_lat = v^2 kappa`` and ``j = 0``.
-Trajectories with fewer than 3 samples have zero jerk (and fewer than 2 zero acceleration).
+On a circle of curvature kappa driven at constant speed v: ``a_lat = v^2 kappa`` and jerk 0.
+Too short trajectories (T < 3 for accelerations, T < 4 for jerk) contribute zeros.
 """
 from __future__ import annotations
 
@@ -43,41 +45,38 @@ class Comfort:
         return {"lat": self.lat, "jerk": self.jerk, "max_lat": self.max_lat, "max_jerk": self.max_jerk}
 
 
-def _grad(x: np.ndarray, dt: float) -> np.ndarray:
-    """Finite-difference derivative along axis -1 (central inside, one-sided at the ends)."""
-    if x.shape[-1] < 2:
-        return np.zeros_like(x)
-    return np.gradient(x, dt, axis=-1)
-
-
 def kinematic_profiles(traj: np.ndarray, dt: float = DT) -> dict[str, np.ndarray]:
     """Speed, longitudinal acceleration, jerk and lateral acceleration along trajectories.
 
     Args:
         traj: (..., T, 3) x, y (m), yaw (rad), or (..., T, 2) positions; sampled every ``dt`` s.
     Returns:
-        dict of (..., T) arrays: ``speed`` (m/s, signed along the heading when yaw is given),
-        ``accel`` (m/s^2), ``jerk`` (m/s^3), ``lat_accel`` (m/s^2, left +).
+        dict of arrays (see module docstring for where each is sampled): ``speed`` (..., T-1)
+        m/s, ``accel`` (..., T-2) m/s^2, ``jerk`` (..., T-3) m/s^3, ``lat_accel`` (..., T-2)
+        m/s^2 (left +); lengths are clipped at 0.
     """
     t = np.asarray(traj, dtype=np.float64)
     if t.ndim < 2 or t.shape[-1] not in (2, 3):
         raise ValueError(f"trajectory must be (..., T, 2) or (..., T, 3), got {t.shape}")
-    x, y = t[..., 0], t[..., 1]
-    # centre coordinates: finite differences of large map coordinates lose precision
-    x = x - x[..., :1]
-    y = y - y[..., :1]
-    vx, vy = _grad(x, dt), _grad(y, dt)
+    # centre coordinates: differences of large map coordinates lose precision
+    x = t[..., 0] - t[..., :1, 0]
+    y = t[..., 1] - t[..., :1, 1]
+    vx, vy = np.diff(x, axis=-1) / dt, np.diff(y, axis=-1) / dt  # (..., T-1) half steps
     if t.shape[-1] == 3:
         yaw = np.unwrap(t[..., 2], axis=-1)
-        speed = vx * np.cos(yaw) + vy * np.sin(yaw)
-        lat = speed * _grad(yaw, dt)
+        mid = 0.5 * (yaw[..., 1:] + yaw[..., :-1])
+        speed = vx * np.cos(mid) + vy * np.sin(mid)
+        v_c = 0.5 * (speed[..., 1:] + speed[..., :-1])
+        lat = v_c * (yaw[..., 2:] - yaw[..., :-2]) / (2 * dt)
     else:
         speed = np.hypot(vx, vy)
-        ax, ay = _grad(vx, dt), _grad(vy, dt)
-        moving = speed > _MIN_SPEED
-        lat = np.where(moving, (vx * ay - vy * ax) / np.where(moving, speed, 1.0), 0.0)
-    accel = _grad(speed, dt)
-    jerk = _grad(accel, dt) if t.shape[-2] >= 3 else np.zeros_like(accel)
+        vxc, vyc = 0.5 * (vx[..., 1:] + vx[..., :-1]), 0.5 * (vy[..., 1:] + vy[..., :-1])
+        ax, ay = np.diff(vx, axis=-1) / dt, np.diff(vy, axis=-1) / dt
+        sc = np.hypot(vxc, vyc)
+        moving = sc > _MIN_SPEED
+        lat = np.where(moving, (vxc * ay - vyc * ax) / np.where(moving, sc, 1.0), 0.0)
+    accel = np.diff(speed, axis=-1) / dt
+    jerk = np.diff(accel, axis=-1) / dt
     return {"speed": speed, "accel": accel, "jerk": jerk, "lat_accel": lat}
 
 
@@ -85,9 +84,9 @@ def trajectory_comfort(traj: np.ndarray, dt: float = DT) -> Comfort:
     """Comfort of one trajectory (T, 3) or (T, 2) (see module docstring)."""
     prof = kinematic_profiles(traj, dt)
     lat, jerk = np.abs(prof["lat_accel"]), np.abs(prof["jerk"])
-    if lat.size == 0:
-        return Comfort(0.0, 0.0, 0.0, 0.0)
-    return Comfort(float(lat.mean()), float(jerk.mean()), float(lat.max()), float(jerk.max()))
+    ml, xl = (float(lat.mean()), float(lat.max())) if lat.size else (0.0, 0.0)
+    mj, xj = (float(jerk.mean()), float(jerk.max())) if jerk.size else (0.0, 0.0)
+    return Comfort(ml, mj, xl, xj)
 
 
 def plan_comfort_cost(plan: np.ndarray, dt: float = DT) -> float:

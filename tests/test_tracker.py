@@ -1,0 +1,117 @@
+"""Tracker: births, missed detections, deaths, empty frames, crossing objects; interface containers."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from adv3d_runner.autonomy.interface import Detections, EgoState, Plan, Predictions, Tracks
+from adv3d_runner.autonomy.tracker import MultiObjectTracker, TrackerConfig
+
+DT = 0.1
+
+
+def dets(*centres, yaw=0.0, score=0.9):
+    if not centres:
+        return Detections()
+    c = np.asarray(centres, float).reshape(-1, 2)
+    return Detections(np.c_[c, np.full(len(c), 4.5), np.full(len(c), 1.9), np.full(len(c), yaw)], np.full(len(c), score))
+
+
+def test_birth_needs_min_hits_and_ids_are_stable():
+    tr = MultiObjectTracker(TrackerConfig(min_hits=3))
+    assert len(tr.update(dets([0, 0]))) == 0
+    assert len(tr.update(dets([2, 0]))) == 0
+    out = tr.update(dets([4, 0]))
+    assert len(out) == 1
+    tid = int(out.ids[0])
+    for k in range(3, 20):
+        out = tr.update(dets([2.0 * k, 0]))
+        assert out.ids.tolist() == [tid]
+    assert out.velocities[0] == pytest.approx([20.0, 0.0], abs=0.5)  # 2 m per 0.1 s
+
+
+def test_missed_detections_keep_the_track_then_it_dies():
+    cfg = TrackerConfig(min_hits=2, max_misses=3)
+    tr = MultiObjectTracker(cfg)
+    for k in range(10):
+        out = tr.update(dets([25.0 * k * DT, 3.0]))
+    tid = int(out.ids[0])
+    # three missed frames: the track coasts at its velocity
+    for m in range(1, 4):
+        out = tr.update(dets())
+        assert out.ids.tolist() == [tid] and out.misses[0] == m
+        assert out.boxes[0, 0] == pytest.approx(25.0 * (9 + m) * DT, abs=0.5)
+    # detection comes back where the object really is: same identity
+    out = tr.update(dets([25.0 * 13 * DT, 3.0]))
+    assert out.ids.tolist() == [tid] and out.misses[0] == 0
+    # now four misses in a row: dead
+    for _ in range(4):
+        out = tr.update(dets())
+    assert len(out) == 0
+
+
+def test_empty_frames_and_garbage_detections():
+    tr = MultiObjectTracker()
+    for _ in range(5):
+        out = tr.update(Detections())
+        assert len(out) == 0 and out.boxes.shape == (0, 5) and out.history.shape[0] == 0
+    bad = Detections(np.array([[np.nan, 0, 4, 2, 0], [0, 0, 4, 2, 0]]), np.array([0.9, np.nan]))
+    assert len(tr.update(bad)) == 0  # both rows dropped, nothing born
+    assert tr.frame == 6
+
+
+def test_two_crossing_objects_keep_identities():
+    tr = MultiObjectTracker()
+    ids_a, ids_b = set(), set()
+    for k in range(40):
+        t = k * DT
+        # A drives +x, B drives diagonally across A's path; they pass 1 m apart at k = 20
+        a = [20.0 * t, 0.0]
+        b = [20.0 * t + 1.0, -10.0 + 5.0 * t]
+        order = [a, b] if k % 2 == 0 else [b, a]  # detection order must not matter
+        out = tr.update(dets(*order))
+        if len(out) == 2:
+            for tid, box in zip(out.ids, out.boxes):
+                near_a = np.hypot(*(box[:2] - a)) < np.hypot(*(box[:2] - b))
+                (ids_a if near_a else ids_b).add(int(tid))
+    assert len(ids_a) == 1 and len(ids_b) == 1 and ids_a != ids_b
+
+
+def test_history_for_the_predictor():
+    cfg = TrackerConfig(history=5, min_hits=1)
+    tr = MultiObjectTracker(cfg)
+    out = None
+    for k in range(3):
+        out = tr.update(dets([float(k), 0.0]))
+    assert out.history.shape == (1, 5, 3)
+    assert out.history_valid[0].tolist() == [False, False, True, True, True]
+    assert np.all(np.isfinite(out.history))
+    assert out.history[0, -1, 0] == pytest.approx(out.boxes[0, 0])
+    for k in range(3, 10):
+        out = tr.update(dets([float(k), 0.0]))
+    assert out.history_valid.all()
+    assert np.all(np.diff(out.history[0, :, 0]) > 0)  # oldest first
+
+
+def test_reset_restarts_ids():
+    tr = MultiObjectTracker(TrackerConfig(min_hits=1))
+    first = tr.update(dets([0, 0])).ids.tolist()
+    tr.reset()
+    assert tr.update(dets([50, 50])).ids.tolist() == first
+
+
+def test_interface_containers_validate_shapes():
+    with pytest.raises(ValueError):
+        Detections(np.zeros((2, 4)), np.zeros(2))
+    with pytest.raises(ValueError):
+        Detections(np.zeros((2, 5)), np.zeros(3))
+    d = dets([1, 2], [3, 4])
+    assert len(d) == 2 and d[1].score == pytest.approx(0.9) and len(Detections.from_list(list(d))) == 2
+    with pytest.raises(ValueError):
+        Predictions(np.array([1]), np.zeros((2, 3, 60, 2)), np.ones((2, 3)) / 3)
+    p = Predictions(np.array([4, 5]), np.zeros((2, 3, 60, 2)), np.ones((2, 3)) / 3)
+    assert p.num_modes == 3 and p.horizon == 60
+    with pytest.raises(ValueError):
+        Plan(np.zeros((5, 3)), np.zeros(4))
+    assert EgoState([0, 0, 0], -1.0).speed == 0.0
+    assert len(Tracks()) == 0
