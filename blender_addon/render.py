@@ -219,20 +219,20 @@ def render_sweep(space_path: Path | None, out: Path, dim: int, steps: int, width
         except Adv3dError as exc:
             print(f"skipping {names[dim]}={t:.2f}: {exc}", file=sys.stderr)
             continue
-        # Place along +y (left), each car pointing +x, spaced by its width.
-        width_m = np.ptp(v[:, 1])
+        # End to end along +x (each car's front to the right), seen from its right side.
+        length_m = np.ptp(v[:, 0])
         if i:
-            x += width_m / 2 + 1.2
-        v = v + np.array([0.0, x, 0.0])
+            x += length_m / 2 + 1.5
+        v = v + np.array([x, 0.0, 0.0])
         _mesh_object(f"{names[dim]}={t:.2f}", v, f, SWEEP)
-        _label(f"{names[dim]} = {t:.2f}", 0.0 - np.ptp(v[:, 0]) / 2 - 1.6, x, 0.45).rotation_euler = (0, 0, math.pi / 2)
-        lo = np.minimum(lo, v.min(axis=0) - [3.0, 0, 0])
+        _label(f"{names[dim]} = {t:.2f}", x, -np.ptp(v[:, 1]) / 2 - 1.2, 0.5)
+        lo = np.minimum(lo, v.min(axis=0) - [0, 2.0, 0])
         hi = np.maximum(hi, v.max(axis=0))
-        x += width_m / 2
+        x += length_m / 2
     if not np.isfinite(lo).all():
         raise SystemExit(_fail("no shape along the sweep has a surface"))
     _ground(lo, hi)
-    _camera_fit(lo, hi, elevation_deg=35.0, azimuth_deg=-25.0)
+    _camera_fit(lo, hi, elevation_deg=30.0, azimuth_deg=-70.0)
     _render(out)
 
 
