@@ -1,0 +1,317 @@
+"""LiDAR benchmark: per-frame time of the Embree pipeline against a raw Embree cast, culling, beams.
+
+    .venv/bin/python bench/lidar.py [--quick]
+
+The process is pinned to ONE core (``sched_setaffinity``): Embree's TBB pool (BVH builds) and
+numpy then share that core; embreex's ``run`` casts rays one by one (``rtcIntersect1``) on the
+calling thread anyway.
+
+World: the first bundled highway scene's background (road, shoulders, markings, barriers,
+ground) with N actors placed along its lanes around the ego (library meshes scaled to typical
+car/truck boxes when the vehicle library is present, boxes otherwise).
+
+(a) pipeline vs raw Embree, HDL-64E, 30 actors: the full :func:`simulate_frame` (rays, culling,
+    actor ray transforms, effects, ego frame output) against ONE Embree call of the same rays on
+    a single static BVH holding background + all actors already placed (the ideal for a static
+    frame; it needs a BVH rebuild per frame, timed too). "error" = largest range difference
+    between the two over rays hit by both, and the share of rays whose hit/miss agrees.
+(b) per-frame time against the number of actors (0, 5, 10, 20, 30), with and without culling
+    (identical points either way, checked).
+(c) points per frame against beam count: VLP-32C, HDL-64E, OS1-128 and generic 32/64/128-beam
+    sensors with 2048 columns.
+
+Prints the tables and writes ``bench/results/lidar.json`` (``lidar.quick.json`` with --quick)
+with machine info and the command.
+"""
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+if hasattr(os, "sched_setaffinity"):
+    os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})  # one core, before Embree starts TBB
+
+import argparse
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from adv3d_runner.fileio import write_json  # noqa: E402
+from adv3d_runner.sensors.beams import generic_model, get_model  # noqa: E402
+from adv3d_runner.sensors.lidar import LidarRig, simulate_frame  # noqa: E402
+from adv3d_runner.sensors.raycast import MeshBVH  # noqa: E402
+from adv3d_runner.sensors.world import LidarWorld, _box_mesh  # noqa: E402
+
+ACTOR_COUNTS = (0, 5, 10, 20, 30)
+DIMS = {"car": (4.6, 1.85, 1.5), "suv": (4.9, 1.95, 1.8), "truck": (9.0, 2.5, 3.4)}
+
+
+def machine_info() -> dict:
+    cpu = platform.processor()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    from importlib.metadata import version
+
+    return {
+        "cpu": cpu, "cores_used": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
+        "python": platform.python_version(), "numpy": np.__version__, "embreex": version("embreex"),
+        "platform": platform.platform(),
+        "threads": "embreex run(): rtcIntersect1 per ray on the calling thread; BVH builds: TBB, pinned to 1 core",
+    }
+
+
+def build_scene_world(n_actors: int, seed: int = 0):
+    """Background of the first bundled highway scene, N actors along its lanes near the ego.
+
+    Returns (world, ego_pose (3,), actor_poses (N, 3), description, actor triangle counts)."""
+    from adv3d_runner.scene.background import REFLECTIVITY, background_mesh
+    from adv3d_runner.scene.schema import load_scene
+
+    scenes = sorted((ROOT / "scenes" / "highway").glob("*.json*"))
+    rng = np.random.default_rng(seed)
+    if scenes:
+        scene = load_scene(scenes[0])
+        v, f, kind = background_mesh(scene, scene_dir=scenes[0].parent)
+        world = LidarWorld(v, f, REFLECTIVITY[kind])
+        ego = scene.ego_poses()[0]
+        lanes = [lane.centerline for lane in scene.lanes]
+        what = f"{scenes[0].name} background ({len(f)} triangles)"
+    else:  # synthetic highway: ground plane and 4 lanes along x
+        ground = np.array([[-300, -50, 0], [300, -50, 0], [300, 50, 0], [-300, 50, 0]], float)
+        world = LidarWorld(ground, np.array([[0, 1, 2], [0, 2, 3]]), 0.15)
+        ego = np.array([0.0, 0.0, 0.0])
+        lanes = [np.array([[-300, y], [300, y]]) for y in (-5.25, -1.75, 1.75, 5.25)]
+        what = "synthetic flat highway"
+    # Candidate slots every 9 m along each lane within 90 m of the ego, ego's own spot excluded.
+    slots = []
+    for line in lanes:
+        seg = np.diff(line, axis=0)
+        lengths = np.hypot(seg[:, 0], seg[:, 1])
+        s = np.concatenate([[0], np.cumsum(lengths)])
+        for q in np.arange(0, s[-1], 9.0):
+            k = min(np.searchsorted(s, q, "right") - 1, len(seg) - 1)
+            if lengths[k] <= 0:
+                continue
+            u = (q - s[k]) / lengths[k]
+            p = line[k] + u * seg[k]
+            d = np.hypot(*(p - ego[:2]))
+            if 7.0 < d < 90.0:
+                slots.append((p[0], p[1], np.arctan2(seg[k, 1], seg[k, 0])))
+    slots = np.array(slots)
+    pick = rng.permutation(len(slots))[:n_actors]
+    poses = slots[pick] if n_actors else np.zeros((0, 3))
+    meshes = actor_meshes()
+    tris = []
+    for i in range(len(poses)):
+        kind, v, f = meshes[i % len(meshes)]
+        world.add_actor(i, v, f)
+        tris.append(len(f))
+    return world, np.asarray(ego, float), poses, what, tris
+
+
+_MESHES = None
+
+
+def actor_meshes():
+    """A few vehicle meshes in the local frame: library assets scaled to car/suv/truck boxes."""
+    global _MESHES
+    if _MESHES is not None:
+        return _MESHES
+    out = []
+    try:
+        from adv3d_runner.scene.actors import actor_mesh, choose_asset
+        from adv3d_runner.shapes.library import load_library
+
+        library = load_library(ROOT / "assets" / "vehicles" / "library.json")
+        for cls, dims in (("sedan", DIMS["car"]), ("suv", DIMS["suv"]), ("truck", DIMS["truck"])):
+            asset = choose_asset(library, cls, np.array(dims))
+            if asset is not None:
+                mesh = actor_mesh(library, asset, np.array(dims))
+                out.append((f"{cls}:{asset}", np.asarray(mesh.vertices), np.asarray(mesh.faces)))
+    except Exception as exc:  # the library is optional for this benchmark
+        print(f"(vehicle library unavailable, boxes used: {exc})")
+    if not out:
+        for cls, dims in DIMS.items():
+            box = _box_mesh(dims)
+            out.append((f"box:{cls}", np.asarray(box.vertices), np.asarray(box.faces)))
+    _MESHES = out
+    return out
+
+
+def timed(fn, repeats: int):
+    times = []
+    result = None
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        result = fn()
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times)), result
+
+
+def merged_static_bvh(world: LidarWorld, poses: np.ndarray):
+    """One BVH with background + every actor placed at its pose (map frame minus world origin)."""
+    verts = [world._bg_vertices]
+    faces = [world._bg_faces]
+    n = len(world._bg_vertices)
+    for i, (x, y, yaw) in enumerate(poses):
+        mesh = world._mesh_arrays[world._actors[i].key]
+        v, f = mesh
+        c, s = np.cos(yaw), np.sin(yaw)
+        placed = np.c_[c * v[:, 0] - s * v[:, 1] + x - world.origin[0], s * v[:, 0] + c * v[:, 1] + y - world.origin[1],
+                       v[:, 2] - world.origin[2]]
+        verts.append(placed)
+        faces.append(f + n)
+        n += len(v)
+    return MeshBVH(np.concatenate(verts), np.concatenate(faces))
+
+
+def section_a(repeats: int) -> dict:
+    world, ego, poses, what, tris = build_scene_world(30)
+    rig = LidarRig.single(get_model("hdl64"), mount=(0, 0, 1.73, 0, 0, 0), ego_dimensions=(4.6, 1.9, 1.5))
+    rng = np.random.default_rng(0)
+    stats = {}
+    simulate_frame(world, rig, ego, poses, rng)  # warm-up (ego-box cache)
+    t_pipe, _ = timed(lambda: simulate_frame(world, rig, ego, poses, np.random.default_rng(0), stats=stats), repeats)
+    embree_in_pipe = stats["embree_s"] / repeats
+    # Raw: one cast of the same rays on a merged static BVH.
+    sensor = rig.sensors[0]
+    c, s = np.cos(ego[2]), np.sin(ego[2])
+    dirs = np.empty((sensor.n_rays, 3), np.float32)
+    dirs[:, 0] = np.float32(c) * sensor.dx - np.float32(s) * sensor.dy
+    dirs[:, 1] = np.float32(s) * sensor.dx + np.float32(c) * sensor.dy
+    dirs[:, 2] = sensor.dz
+    origin = (np.array([ego[0], ego[1], 1.73]) - world.origin).astype(np.float32).reshape(1, 3)
+    t_build, merged = timed(lambda: merged_static_bvh(world, poses), max(2, repeats // 3))
+
+    def raw():
+        t = np.full(sensor.n_rays, sensor.model.max_range, np.float32)
+        prim, _ = merged.intersect(origin, dirs, t)
+        return t, prim
+
+    t_raw, (t_ref, prim_ref) = timed(raw, repeats)
+    # Error: pipeline without effects vs the merged cast, per ray (ray order is the same).
+    ideal = simulate_frame(world, LidarRig.single(sensor.model.with_overrides(min_range=0.0), mount=(0, 0, 1.73, 0, 0, 0)),
+                           ego, poses, None)
+    hit_ref = (prim_ref >= 0) & (t_ref < sensor.model.max_range)
+    # Same ray order in both (the sensor's ray table), so compare ray by ray where both hit.
+    agree = ideal.distance.size == int(hit_ref.sum())
+    max_err = float(np.abs(ideal.distance - t_ref[hit_ref]).max()) if agree else float("nan")
+    row = {
+        "world": what, "actors": 30, "actor_triangles": int(sum(tris)), "rays": sensor.n_rays,
+        "pipeline_ms": 1e3 * t_pipe, "pipeline_embree_ms": 1e3 * embree_in_pipe,
+        "raw_merged_cast_ms": 1e3 * t_raw, "merged_bvh_build_ms": 1e3 * t_build,
+        "overhead_vs_raw_cast": t_pipe / t_raw - 1.0,
+        "overhead_vs_own_embree": t_pipe / embree_in_pipe - 1.0,
+        "hits_pipeline": int(ideal.distance.size), "hits_raw": int(hit_ref.sum()),
+        "max_range_diff_m": max_err,
+    }
+    print("\n(a) HDL-64E frame, 30 actors: full pipeline vs raw Embree on the same rays (median ms)")
+    print(f"  world: {what}; actor triangles {sum(tris)}; rays {sensor.n_rays}")
+    print(f"  {'full pipeline':34s} {row['pipeline_ms']:8.2f}   (of which inside Embree {row['pipeline_embree_ms']:.2f})")
+    print(f"  {'raw cast, one merged static BVH':34s} {row['raw_merged_cast_ms']:8.2f}   "
+          f"(+ BVH rebuild per frame {row['merged_bvh_build_ms']:.2f})")
+    print(f"  overhead vs raw cast {100 * row['overhead_vs_raw_cast']:+.1f}%   vs its own Embree calls "
+          f"{100 * row['overhead_vs_own_embree']:+.1f}%")
+    print(f"  hits {row['hits_pipeline']} vs {row['hits_raw']}, largest per-ray range difference "
+          f"{row['max_range_diff_m']:.2e} m")
+    return row
+
+
+def section_b(repeats: int) -> list[dict]:
+    rows = []
+    print("\n(b) HDL-64E per-frame time against actors (median ms; identical points with/without culling)")
+    print(f"  {'actors':>6s} {'cull ms':>9s} {'no-cull ms':>11s} {'speed-up':>9s} {'actor rays cull':>16s} "
+          f"{'no cull':>10s} {'points':>8s} {'same':>5s}")
+    rig = LidarRig.single(get_model("hdl64"), mount=(0, 0, 1.73, 0, 0, 0), ego_dimensions=(4.6, 1.9, 1.5))
+    for n in ACTOR_COUNTS:
+        world, ego, poses, _, _ = build_scene_world(n)
+        simulate_frame(world, rig, ego, poses, None)
+        st_c, st_n = {}, {}
+        t_c, f_c = timed(lambda: simulate_frame(world, rig, ego, poses, np.random.default_rng(1), stats=st_c), repeats)
+        t_n, f_n = timed(lambda: simulate_frame(world, rig, ego, poses, np.random.default_rng(1), cull=False,
+                                                stats=st_n), max(1, repeats // 3))
+        same = all(np.array_equal(getattr(f_c, k), getattr(f_n, k)) for k in ("points", "ring", "label", "distance"))
+        row = {"actors": n, "cull_ms": 1e3 * t_c, "no_cull_ms": 1e3 * t_n,
+               "actor_rays_cull": st_c.get("actor_rays", 0) // repeats,
+               "actor_rays_no_cull": st_n.get("actor_rays", 0) // max(1, repeats // 3),
+               "points": len(f_c), "actor_points": int((f_c.label >= 0).sum()), "identical": bool(same)}
+        rows.append(row)
+        print(f"  {n:6d} {row['cull_ms']:9.2f} {row['no_cull_ms']:11.2f} {t_n / t_c:9.2f} "
+              f"{row['actor_rays_cull']:16d} {row['actor_rays_no_cull']:10d} {row['points']:8d} {str(same):>5s}")
+    return rows
+
+
+def section_c(repeats: int) -> list[dict]:
+    rows = []
+    world, ego, poses, _, _ = build_scene_world(30)
+    models = [get_model("vlp32c"), get_model("hdl64"), get_model("os1-128")]
+    models += [generic_model(b, 10.0, -25.0, 2048, 120.0, name=f"generic-{b}x2048") for b in (32, 64, 128)]
+    print("\n(c) points per frame against beam count (30 actors, median ms)")
+    print(f"  {'model':18s} {'beams':>5s} {'rays':>8s} {'points':>8s} {'on actors':>9s} {'ms':>8s} {'us/ray':>7s}")
+    for model in models:
+        rig = LidarRig.single(model, mount=(0, 0, 1.73, 0, 0, 0), ego_dimensions=(4.6, 1.9, 1.5))
+        simulate_frame(world, rig, ego, poses, None)
+        t, frame = timed(lambda: simulate_frame(world, rig, ego, poses, np.random.default_rng(2)), repeats)
+        row = {"model": model.name, "beams": model.beams, "rays": model.rays, "points": len(frame),
+               "actor_points": int((frame.label >= 0).sum()), "ms": 1e3 * t}
+        rows.append(row)
+        print(f"  {model.name:18s} {model.beams:5d} {model.rays:8d} {len(frame):8d} {row['actor_points']:9d} "
+              f"{row['ms']:8.2f} {1e6 * t / model.rays:7.3f}")
+    return rows
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="fewer repeats")
+    args = parser.parse_args()
+    repeats = 5 if args.quick else 21
+    # The merged-BVH reference needs the raw arrays: record them as actors are added.
+    _patch_world_recording()
+    info = machine_info()
+    print(f"LiDAR benchmark ({'quick' if args.quick else 'full'}), {info['cpu']}, cores used: {info['cores_used']}")
+    result = {
+        "benchmark": "lidar", "command": " ".join([Path(sys.executable).name] + sys.argv), "quick": args.quick,
+        "repeats": repeats, "machine": info,
+        "a_pipeline_vs_raw": section_a(repeats),
+        "b_actors_culling": section_b(repeats),
+        "c_beams": section_c(repeats),
+    }
+    out = ROOT / "bench" / "results" / ("lidar.quick.json" if args.quick else "lidar.json")
+    write_json(out, result)
+    print(f"\nwrote {out.relative_to(ROOT)}")
+    return 0
+
+
+def _patch_world_recording() -> None:
+    """Record the background and actor mesh arrays on LidarWorld (the core does not keep them)."""
+    init, bvh_for = LidarWorld.__init__, LidarWorld._bvh_for
+
+    def init_rec(self, vertices, faces, *a, **kw):
+        init(self, vertices, faces, *a, **kw)
+        self._bg_vertices = np.asarray(vertices, np.float64).reshape(-1, 3) - self.origin
+        self._bg_faces = np.asarray(faces, np.int64).reshape(-1, 3)
+        self._mesh_arrays = {}
+
+    def bvh_rec(self, vertices, faces):
+        key = bvh_for(self, vertices, faces)
+        if key is not None:
+            self._mesh_arrays[key] = (np.asarray(vertices, np.float64), np.asarray(faces, np.int64))
+        return key
+
+    LidarWorld.__init__ = init_rec
+    LidarWorld._bvh_for = bvh_rec
+
+
+if __name__ == "__main__":
+    sys.exit(main())
