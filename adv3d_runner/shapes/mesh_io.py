@@ -271,7 +271,7 @@ def to_convention(mesh, up: str | None = None, forward: str | None = None, unit:
         raise ConfigError(f"unit must be one of auto {' '.join(UNIT_SCALES)} (got {unit!r})")
     local = local * UNIT_SCALES[unit]
     local = _ground_and_centre(local)
-    record["file_offset_removed"] = [float(v) for v in np.round(centre, 6)]
+    record["file_offset_removed"] = [float(v) + 0.0 for v in np.round(centre, 6)]  # + 0.0: no "-0.0"
     out = mesh.copy()
     out.vertices = local
     return out, record

@@ -24,7 +24,8 @@ rm -rf assets/vehicles/quaternius-cars assets/vehicles/quaternius-transport asse
 # --- Quaternius "Realistic Car Pack" (CC0): .blend files, Blender Z up, front towards -Y ----
 # Already metric and within 30 % of their class's typical size on every axis: kept as modelled.
 Q="$PACKS/quaternius-realistic-car-pack"
-QC=(--source-pack quaternius-cars --author Quaternius --url https://quaternius.com --forward=-y)
+QC=(--source-pack quaternius-cars --author Quaternius --url https://quaternius.com --forward=-y
+    --note "kept as modelled: metric, and within 30 % of the class's typical size on every axis")
 adv3d assets import "$Q/NormalCar1.blend" --class sedan     "${QC[@]}"
 adv3d assets import "$Q/NormalCar2.blend" --class hatchback     "${QC[@]}"
 adv3d assets import "$Q/Cop.blend"        --class sedan     "${QC[@]}"
@@ -39,7 +40,8 @@ T="$PACKS/quaternius-public-transport-pack"
 # The pack's scale is toy-like for the large vehicles (a 4.1 m city bus): those are curated to
 # real class dimensions; the taxi is already a plausible metric size and is kept as modelled.
 QT=(--source-pack quaternius-transport --author Quaternius --url https://quaternius.com)
-adv3d assets import "$T/Taxi.blend"       --class sedan     "${QT[@]}" --forward=-y
+adv3d assets import "$T/Taxi.blend"       --class sedan     "${QT[@]}" --forward=-y \
+    --note "kept as modelled: metric, and within 30 % of the class's typical size on every axis"
 adv3d assets import "$T/Ambulance.blend"  --class ambulance "${QT[@]}" --forward=-y --dimensions 6.00 2.30 2.80 \
     --note "modelled 5.72 x 2.84 x 2.91 m (too wide for a road vehicle): scaled to a box ambulance on a van chassis" --exclude-from-shape-space
 adv3d assets import "$T/Bus.blend"        --class bus       "${QT[@]}" --forward=-x --dimensions 12.00 2.55 3.20 \

@@ -1,0 +1,246 @@
+"""The vehicle library contract, the shipped library, and ``adv3d assets``."""
+from __future__ import annotations
+
+import copy
+import json
+
+import numpy as np
+import pytest
+import trimesh
+
+from adv3d_runner.cli import main
+from adv3d_runner.errors import FileFormatError
+from adv3d_runner.shapes.library import (DEFAULT_LIBRARY, VehicleAsset, VehicleLibrary, load_asset_mesh,
+                                         load_library, save_library)
+from adv3d_runner.shapes.library_cli import TYPICAL_DIMENSIONS, check_library
+
+# Every road vehicle of the three source packs (race cars are recorded as excluded).
+EXPECTED_SOURCES = {
+    ("quaternius-cars", f) for f in ("Cop.blend", "NormalCar1.blend", "NormalCar2.blend", "SUV.blend",
+                                     "SportsCar.blend", "SportsCar2.blend", "Taxi.blend")
+} | {
+    ("quaternius-transport", f) for f in ("Ambulance.blend", "Bus.blend", "SchoolBus.blend", "Taxi.blend")
+} | {
+    ("kenney-car-kit", f + ".glb") for f in ("ambulance", "delivery", "delivery-flat", "firetruck", "garbage-truck",
+                                             "hatchback-sports", "police", "sedan", "sedan-sports", "suv",
+                                             "suv-luxury", "taxi", "truck", "truck-flat", "van")
+}
+PAPER_CLASSES = {"sedan", "hatchback", "sports", "suv", "van", "pickup"}
+
+
+@pytest.fixture(scope="module")
+def shipped() -> VehicleLibrary:
+    return load_library(DEFAULT_LIBRARY)
+
+
+# ----------------------------------------------------------------------------- shipped library
+
+def test_shipped_library_has_every_road_vehicle(shipped):
+    sources = {(a.source["pack"], a.source["file"]) for a in shipped.assets}
+    assert sources == EXPECTED_SOURCES
+    excluded = {(e["pack"], e["file"]) for e in shipped.excluded}
+    assert excluded == {("kenney-car-kit", "race.glb"), ("kenney-car-kit", "race-future.glb")}
+
+
+def test_shipped_meshes_load_and_match_their_records(shipped):
+    # dimensions within 1 mm, triangle counts, lowest point z = 0, footprint centred, licences
+    assert check_library(shipped, tolerance=1e-3) == []
+
+
+def test_shipped_library_round_trips_byte_exact(shipped, tmp_path):
+    out = tmp_path / "library.json"
+    save_library(shipped, out)
+    assert out.read_bytes() == DEFAULT_LIBRARY.read_bytes()
+    again = load_library(out)
+    assert again.assets == shipped.assets and again.excluded == shipped.excluded
+
+
+def test_shape_space_selection(shipped):
+    space = shipped.shape_space_assets()
+    assert len(space) >= 10
+    assert {a.vehicle_class for a in space} <= PAPER_CLASSES
+    assert {a.vehicle_class for a in space} >= {"sedan", "sports", "suv", "van", "pickup"}
+    for a in shipped.assets:
+        if a.vehicle_class in ("bus", "fire_truck", "garbage_truck", "truck", "ambulance"):
+            assert not a.in_shape_space, a.id
+    assert [a.id for a in shipped.by_class("bus")] == ["quaternius-transport.bus", "quaternius-transport.schoolbus"]
+
+
+def test_shipped_dimensions_are_plausible_for_their_class(shipped):
+    for a in shipped.assets:
+        typical = TYPICAL_DIMENSIONS[a.vehicle_class]
+        ratios = np.asarray(a.dimensions) / np.asarray(typical)
+        assert np.all((ratios > 0.7) & (ratios < 1.3)), (a.id, a.dimensions, typical)
+
+
+def test_curated_kenney_assets_record_what_was_done(shipped):
+    for a in shipped.assets:
+        if a.source["pack"] == "kenney-car-kit":
+            assert "scale_factors" in a.curation and "size_before_scaling" in a.curation
+            assert a.curation["scaled_to_dimensions"] == pytest.approx(list(a.dimensions), abs=1e-3)
+            assert a.curation.get("note")
+        assert a.licence["name"] == "CC0-1.0"
+        assert (shipped.root / a.licence["file"]).is_file()
+
+
+def test_load_asset_mesh_front_is_plus_x(shipped):
+    # Quaternius cars have a long bonnet: the roof's highest point lies behind the middle
+    for aid in ("quaternius-cars.normalcar1", "quaternius-cars.sportscar"):
+        m = load_asset_mesh(shipped, aid)
+        v = np.asarray(m.vertices)
+        assert v[np.argmax(v[:, 2]), 0] < 0.0, aid
+    with pytest.raises(KeyError, match="no-such-car"):
+        load_asset_mesh(shipped, "no-such-car")
+
+
+# ----------------------------------------------------------------------------- contract errors
+
+def _doc() -> dict:
+    return json.loads(DEFAULT_LIBRARY.read_text())
+
+
+def _mutations():
+    def set_(path, value):
+        def f(doc):
+            obj = doc
+            for key in path[:-1]:
+                obj = obj[key]
+            obj[path[-1]] = value
+        return f
+
+    def delete(path):
+        def f(doc):
+            obj = doc
+            for key in path[:-1]:
+                obj = obj[key]
+            del obj[path[-1]]
+        return f
+
+    return [
+        (set_(["format"], "something-else"), "$.format"),
+        (set_(["version"], 2), "$.version"),
+        (set_(["assets"], {}), "$.assets"),
+        (set_(["assets", 0, "dimensions"], [4.5, -1.8, 1.4]), "$.assets[0].dimensions[1]"),
+        (set_(["assets", 1, "dimensions"], [4.5, 1.8]), "$.assets[1].dimensions"),
+        (set_(["assets", 2, "dimensions"], [4.5, "wide", 1.4]), "$.assets[2].dimensions[1]"),
+        (delete(["assets", 3, "id"]), "$.assets[3].id"),
+        (set_(["assets", 3, "id"], "Has Spaces"), "$.assets[3].id"),
+        (set_(["assets", 4, "id"], None), "$.assets[4].id"),
+        (set_(["assets", 5, "in_shape_space"], "yes"), "$.assets[5].in_shape_space"),
+        (set_(["assets", 5, "triangle_count"], True), "$.assets[5].triangle_count"),
+        (set_(["assets", 6, "file"], "../../etc/passwd"), "$.assets[6].file"),
+        (set_(["assets", 6, "file"], "/abs/car.glb"), "$.assets[6].file"),
+        (set_(["assets", 7, "licence", "file"], None), "$.assets[7].licence.file"),
+        (delete(["assets", 7, "source", "pack"]), "$.assets[7].source.pack"),
+        (set_(["assets", 8, "cleaning"], []), "$.assets[8].cleaning"),
+        (set_(["assets", 8, "colour"], "red"), "$.assets[8].colour"),
+        (set_(["assets", 9, "class"], "Sedan!"), "$.assets[9].class"),
+        (set_(["excluded", 0, "reason"], ""), "$.excluded[0].reason"),
+        (lambda doc: doc["assets"].append(copy.deepcopy(doc["assets"][0])), f"$.assets[{len(_doc()['assets'])}].id"),
+    ]
+
+
+@pytest.mark.parametrize("mutate,field", _mutations())
+def test_malformed_fields_name_file_and_json_path(tmp_path, mutate, field):
+    doc = _doc()
+    mutate(doc)
+    path = tmp_path / "library.json"
+    path.write_text(json.dumps(doc))
+    with pytest.raises(FileFormatError) as info:
+        load_library(path)
+    assert info.value.field == field
+    assert str(path) in str(info.value)
+
+
+def test_not_json_and_missing_file(tmp_path):
+    bad = tmp_path / "library.json"
+    bad.write_text("{ not json")
+    with pytest.raises(FileFormatError, match="library.json"):
+        load_library(bad)
+    with pytest.raises(FileFormatError, match="nothing.json"):
+        load_library(tmp_path / "nothing.json")
+
+
+def test_save_refuses_an_invalid_library_and_keeps_the_old_file(tmp_path):
+    path = tmp_path / "library.json"
+    good = VehicleLibrary(root=tmp_path, assets=[VehicleAsset(
+        id="a", file="p/a.glb", vehicle_class="sedan", dimensions=(4.5, 1.8, 1.4),
+        source={"pack": "p", "file": "a.obj"}, licence={"name": "CC0-1.0", "file": "p/LICENSE"},
+        triangle_count=12)])
+    save_library(good, path)
+    before = path.read_bytes()
+    bad = VehicleLibrary(root=tmp_path, assets=[*good.assets, good.assets[0]])  # duplicate id
+    with pytest.raises(FileFormatError, match=r"\$\.assets\[1\]\.id"):
+        save_library(bad, path)
+    assert path.read_bytes() == before
+    assert load_library(path).assets == good.assets
+
+
+# ----------------------------------------------------------------------------- the CLI
+
+def _write_car_cm(path):
+    body = trimesh.creation.box(extents=(300.0, 150.0, 120.0))  # toy car in centimetres
+    body.apply_translation((1e5, 5e4, 60.0 + 1e4))
+    nose = trimesh.creation.box(extents=(20.0, 40.0, 20.0))
+    nose.apply_translation((1e5 + 160.0, 5e4, 50.0 + 1e4))
+    trimesh.util.concatenate([body, nose]).export(path)
+
+
+def test_cli_import_check_list_and_replace(tmp_path, capsys):
+    src = tmp_path / "src"
+    src.mkdir()
+    _write_car_cm(src / "ToyCar.obj")
+    (src / "LICENSE.txt").write_text("CC0 1.0 Universal, public domain dedication\n")
+    lib = tmp_path / "lib" / "library.json"
+    argv = ["-q", "assets", "import", str(src / "ToyCar.obj"), "--class", "sedan", "--library", str(lib),
+            "--source-pack", "toys", "--up=+z", "--forward=+x"]
+    assert main(argv) == 0
+    library = load_library(lib)
+    (asset,) = library.assets
+    assert asset.id == "toys.toycar" and asset.file == "toys/toycar.glb"
+    assert asset.dimensions == pytest.approx((3.2, 1.5, 1.2), abs=1e-4)
+    assert asset.licence == {"name": "CC0-1.0", "file": "toys/LICENSE.txt"}
+    assert (lib.parent / "toys" / "LICENSE.txt").is_file()
+    assert asset.curation["unit"].startswith("cm")
+    assert asset.in_shape_space
+    assert main(["-q", "assets", "check", "--library", str(lib)]) == 0
+
+    # re-import with real dimensions: the entry is replaced, scaling recorded
+    assert main(argv + ["--dimensions", "4.7", "1.8", "1.45", "--note", "toy to sedan",
+                        "--exclude-from-shape-space"]) == 0
+    library = load_library(lib)
+    (asset,) = library.assets
+    assert asset.dimensions == pytest.approx((4.7, 1.8, 1.45), abs=1e-4)
+    assert asset.curation["size_before_scaling"] == pytest.approx([3.2, 1.5, 1.2], abs=1e-4)
+    assert asset.curation["scale_factors"][0] == pytest.approx(4.7 / 3.2, abs=1e-4)
+    assert asset.curation["note"] == "toy to sedan"
+    assert not asset.in_shape_space
+    mesh = load_asset_mesh(library, asset.id)
+    assert mesh.extents == pytest.approx([4.7, 1.8, 1.45], abs=1e-4)
+    assert len(mesh.faces) == asset.triangle_count == 24
+    capsys.readouterr()
+    assert main(["assets", "list", "--library", str(lib)]) == 0
+    assert "toys.toycar" in capsys.readouterr().out
+
+    # a broken mesh file is found by check
+    (lib.parent / "toys" / "toycar.glb").write_bytes(b"garbage")
+    assert main(["-q", "assets", "check", "--library", str(lib)]) == 1
+    assert "toycar.glb" in capsys.readouterr().out
+
+
+def test_cli_import_of_a_non_mesh_is_a_clear_error(tmp_path, capsys):
+    bad = tmp_path / "fake.glb"
+    bad.write_text("not a mesh")
+    (tmp_path / "LICENSE.txt").write_text("CC0\n")
+    lib = tmp_path / "library.json"
+    assert main(["assets", "import", str(bad), "--class", "sedan", "--library", str(lib)]) == 1
+    err = capsys.readouterr().err
+    assert "fake.glb" in err and "Traceback" not in err
+    assert not lib.exists()  # nothing written for a failed import
+
+
+def test_cli_import_needs_a_licence(tmp_path, capsys):
+    _write_car_cm(tmp_path / "car.obj")
+    assert main(["assets", "import", str(tmp_path / "car.obj"), "--class", "sedan",
+                 "--library", str(tmp_path / "library.json")]) == 1
+    assert "licence" in capsys.readouterr().err
