@@ -14,8 +14,9 @@
   no logged trajectory, so it is not used as ego.)
 * Length: ``seconds`` (default: the recording). A recording shorter than asked is an error
   unless ``extend=True``: then every vehicle present at the last recorded frame, and the ego,
-  keeps driving along its lane (IDM car following on the lane chain, no lane changes) and the
-  added frames are flagged ``synthetic`` in its track.
+  keeps driving along its nearest lane (IDM car following on the lane chain, no lane changes;
+  a vehicle between lanes drifts to the nearest lane centre within 2 s) and the added frames
+  are flagged ``synthetic`` in its track.
 
 Provenance goes into ``source``: the benchmark id, file, authors, affiliation, tags, the ego
 rule, the number of recorded frames; licence BSD-3-Clause and the NGSIM / TUM / OSM attribution.
@@ -28,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ConfigError, FileFormatError
-from ..sim.traffic import IDMParams, MOBILParams, Traffic
+from ..sim.traffic import IDMParams, Traffic
 from . import lanes as lg
 from .generate import EGO_WHEELBASE
 from .schema import (Actor, Background, Barrier, Ego, Lane, Scene, Source, Track,
@@ -137,6 +138,23 @@ def _chain(lanes: dict[int, Lane], start: int, min_length: float = 1500.0) -> np
     return lg.clean_polyline(np.concatenate(pts))
 
 
+def _root(lanes: dict[int, Lane], lane_id: int) -> int:
+    """First lane of the chain through ``lane_id`` (walk back along predecessors, smallest id
+    first), so vehicles in consecutive lanelets of one physical lane share one chain."""
+    preds: dict[int, list[int]] = {}
+    for lane in lanes.values():
+        for succ in lane.successors:
+            preds.setdefault(succ, []).append(lane.id)
+    seen = {lane_id}
+    while preds.get(lane_id):
+        prev = min(preds[lane_id])
+        if prev in seen:
+            break
+        seen.add(prev)
+        lane_id = prev
+    return lane_id
+
+
 def _nearest_lane(lanes: list[Lane], xy: np.ndarray, yaw: float) -> int:
     """Id of the lane whose centre line is nearest to ``xy`` among lanes heading within 60
     degrees of ``yaw`` (any lane if none does)."""
@@ -162,14 +180,14 @@ def _extend(tracks: dict[int, np.ndarray], lengths: dict[int, float], last: int,
     s0, d0 = {}, {}
     for i in ids:
         x, y, yaw, _ = tracks[i][last]
-        lane_id = _nearest_lane(lanes, np.array([x, y]), yaw)
+        lane_id = _root(by_id, _nearest_lane(lanes, np.array([x, y]), yaw))
         chains.setdefault(lane_id, _chain(by_id, lane_id))
         key_of[i] = lane_id
         s, d, _ = lg.project(chains[lane_id], np.array([x, y]))
         s0[i], d0[i] = float(s), float(d)
     keys = sorted(chains)
     traffic = Traffic(lane_start=np.full(len(keys), -np.inf), lane_end=np.full(len(keys), np.inf),
-                      idm=IDMParams(), mobil=MOBILParams(lc_cooldown=np.inf))
+                      idm=IDMParams(), lane_changes=False)
     for i in ids:
         v = float(tracks[i][last, 3])
         traffic.add(s0[i], keys.index(key_of[i]), v, lengths[i], max(1.05 * v, 3.0))
@@ -178,7 +196,10 @@ def _extend(tracks: dict[int, np.ndarray], lengths: dict[int, float], last: int,
         traffic.step(DT)
         for j, i in enumerate(ids):
             chain = chains[key_of[i]]
-            x, y, h = lg.pose_at(chain, traffic.s[j], d0[i])
+            # drift to the lane centre within 2 s: a vehicle caught mid lane change finishes
+            # it instead of driving on the lane line (where it could overlap a neighbour)
+            u = min(1.0, (f + 1) * DT / 2.0)
+            x, y, h = lg.pose_at(chain, traffic.s[j], d0[i] * (1.0 - u * u * (3.0 - 2.0 * u)))
             out[i][f] = (x, y, h, traffic.v[j])
     return out
 

@@ -3,8 +3,9 @@
 One scene = a multi-lane highway (layout ``straight`` | ``curved`` | ``onramp`` | ``lanedrop``)
 with traffic of a given density (``free`` .. ``congested``), simulated for a warm-up and then
 recorded for 20 s at 10 Hz. The ego is one of the simulated vehicles (IDM/MOBIL too); its
-trajectory is the logged ego track. Actors that never come within ``KEEP_RADIUS`` m of the ego
-are dropped (they cannot matter to a LiDAR with ~120 m range), which keeps files small.
+trajectory is the logged ego track. Actor tracks are cut to the frames between their first and
+last frame within ``KEEP_RADIUS`` (130 m) of the ego, and actors never that close are dropped
+(a LiDAR with 120 m range cannot see them), which keeps files small.
 
 Reproducibility: every random draw comes from ``numpy.random.default_rng(SeedSequence([split
 tag, seed, attempt]))``. Splits have disjoint seed ranges *and* different namespaces
@@ -40,7 +41,10 @@ SPLITS = {
 DT = 0.1
 FRAMES = 200          # 20 s at 10 Hz
 WARMUP_S = 8.0        # simulated before frame 0 so traffic is not in its initial pattern
-KEEP_RADIUS = 100.0   # m, actors farther than this from the ego in every frame are dropped
+# m: an actor's track keeps only the frames from its first to its last frame within this
+# distance of the ego (the longest LiDAR range, 120 m of the HDL-64E, plus half a truck), so
+# nothing a sensor on the ego could see is lost while files stay small.
+KEEP_RADIUS = 100.0
 AHEAD_RANGE = 50.0    # m, the "vehicle ahead" guarantee
 AHEAD_SECONDS = 5.0
 MAX_ATTEMPTS = 50
@@ -420,7 +424,11 @@ def _generate_once(rng, seed: int, split: str, layout: str, density: str, attemp
     for i in np.flatnonzero(near)[1:] if near[0] else np.flatnonzero(near):
         if i == 0:
             continue
-        track = _track_from(x[:, i], y[:, i], yaw[:, i], v[:, i], rec["active"][:, i])
+        close = rec["active"][:, i] & (dist[:, i] <= KEEP_RADIUS)
+        f = np.flatnonzero(close)
+        span = np.zeros(FRAMES, bool)
+        span[f[0]:f[-1] + 1] = True
+        track = _track_from(x[:, i], y[:, i], yaw[:, i], v[:, i], rec["active"][:, i] & span)
         if track is None:
             continue
         actors.append(Actor(id=len(actors) + 1, cls=vehicles[i].cls, dimensions=vehicles[i].dims, track=track))

@@ -129,6 +129,7 @@ class Traffic:
     lane_end: np.ndarray
     road_end: float = np.inf
     lane_open: np.ndarray | None = None  # lane changes to/from lane k only where s >= lane_open[k]
+    lane_changes: bool = True  # False: pure IDM car following (lanes are independent)
     idm: IDMParams = IDMParams()
     mobil: MOBILParams = MOBILParams()
     s: np.ndarray = field(default_factory=lambda: np.zeros(0))
@@ -289,7 +290,10 @@ class Traffic:
         """Advance all active vehicles by ``dt`` s (IDM, then MOBIL decisions)."""
         acc = self.accelerations()
         direction = 1 if self.step_count % 2 == 0 else -1
-        who, gain = self.lane_change_candidates(direction, acc)
+        if self.lane_changes:
+            who, gain = self.lane_change_candidates(direction, acc)
+        else:
+            who, gain = np.zeros(0, int), np.zeros(0)
         if len(who):
             target = self.lane[who] + direction
             # one change per target lane per step: the largest incentive wins
