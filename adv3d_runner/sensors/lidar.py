@@ -20,6 +20,7 @@ elementwise, so culling returns exactly the points that no culling returns (test
 """
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 
@@ -120,20 +121,20 @@ class MountedLidar:
         horizontal distance rho, and azimuth never changes along a ray, so rays outside the
         cylinder's azimuth or elevation interval can not hit it. Returns None for "all rays".
         """
-        dist = float(np.hypot(rel_xy[0], rel_xy[1]))
+        dist = math.hypot(rel_xy[0], rel_xy[1])
         radius = xy_radius * (1.0 + 1e-6) + _RADIUS_PAD
         if dist <= radius:  # sensor inside the bounding circle: every ray may hit
             return None
         rho0, rho1 = dist - radius, dist + radius
         z_lo = z_range[0] - self.position[2] - _RADIUS_PAD
         z_hi = z_range[1] - self.position[2] + _RADIUS_PAD
-        e_lo = np.arctan(z_lo / (rho0 if z_lo < 0 else rho1)) - _ANGLE_PAD
-        e_hi = np.arctan(z_hi / (rho0 if z_hi > 0 else rho1)) + _ANGLE_PAD
+        e_lo = math.atan(z_lo / (rho0 if z_lo < 0 else rho1)) - _ANGLE_PAD
+        e_hi = math.atan(z_hi / (rho0 if z_hi > 0 else rho1)) + _ANGLE_PAD
         rows = np.flatnonzero((self.row_elevation[:, 1] >= e_lo) & (self.row_elevation[:, 0] <= e_hi))
         if rows.size == 0:
             return np.zeros(0, np.intp)
-        half = float(np.arcsin(radius / dist)) + _ANGLE_PAD
-        center = float(np.arctan2(-rel_xy[1], -rel_xy[0])) - ego_yaw
+        half = math.asin(radius / dist) + _ANGLE_PAD
+        center = math.atan2(-rel_xy[1], -rel_xy[0]) - ego_yaw
         starts, ends = [], []
         for lo, hi in _azimuth_intervals(center, half):
             s, e = self.window(rows, lo, hi)
@@ -145,19 +146,15 @@ class MountedLidar:
 
 
 def _segments_to_indices(starts: np.ndarray, ends: np.ndarray) -> np.ndarray:
-    """Concatenation of arange(s, e) for each segment, vectorised."""
-    lengths = np.maximum(ends - starts, 0)
-    total = int(lengths.sum())
-    if total == 0:
+    """Concatenation of arange(s, e) for each segment, vectorised (segments in order)."""
+    lengths = ends - starts
+    width = int(lengths.max()) if lengths.size else 0
+    if width <= 0:
         return np.zeros(0, np.intp)
-    keep = lengths > 0
-    starts, lengths = starts[keep], lengths[keep]
-    # Each segment's first element jumps from the previous segment's end to its own start.
-    steps = np.ones(total, np.intp)
-    first = np.concatenate(([0], np.cumsum(lengths)[:-1]))
-    steps[first] = starts - np.concatenate(([0], starts[:-1] + lengths[:-1] - 1))
-    steps[0] = starts[0]
-    return np.cumsum(steps)
+    grid = starts[:, None] + np.arange(width)
+    if int(lengths.min()) == width:  # every row's window has the same width: a plain grid
+        return grid.reshape(-1)
+    return grid[np.arange(width) < lengths[:, None]]
 
 
 def _azimuth_intervals(center: float, half: float) -> list[tuple[float, float]]:
@@ -454,13 +451,10 @@ def _simulate_sensor(world, rig, k, sensor: MountedLidar, ego, poses, present, a
     on_actor = lab >= 0
     if on_actor.any():
         refl[on_actor] = actor_refl[lab[on_actor]]
-    nx, ny, nz = (normal[:, j].take(idx) for j in range(3))
-    dot = nx * dirs[:, 0].take(idx)
-    dot += ny * dirs[:, 1].take(idx)
-    dot += nz * dirs[:, 2].take(idx)
-    norm = nx * nx
-    norm += ny * ny
-    norm += nz * nz
+    # Row-wise dot products over all rays, then one 1-D gather each: cheaper than gathering
+    # the strided (N, 3) columns of the normals and directions.
+    dot = np.einsum("ij,ij->i", normal, dirs).take(idx)
+    norm = np.einsum("ij,ij->i", normal, normal).take(idx)
     np.sqrt(norm, out=norm)  # |direction| = 1 up to float32 rounding
     cos_inc = np.abs(dot, out=dot)
     np.divide(cos_inc, norm, out=cos_inc, where=norm > 0)
