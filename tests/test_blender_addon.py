@@ -1,0 +1,513 @@
+"""The Blender add-on on the PyPI ``bpy`` module: registration, every operator on fixture data
+(written under tmp_path), live sliders, the scene round trip, error reporting, the built zip.
+
+One bpy session for the whole module (importing bpy costs seconds); each test starts from
+``read_factory_settings(use_empty=True)`` with the add-on registered.
+"""
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+bpy = pytest.importorskip("bpy")
+
+pytestmark = pytest.mark.blender
+
+CC0 = "Creative Commons Zero v1.0 Universal (CC0) https://creativecommons.org/publicdomain/zero/1.0/\n"
+
+
+# --------------------------------------------------------------------------- fixtures (data)
+
+def _vehicle_mesh(length: float, width: float, height: float, cabin: float):
+    """A box body with a cabin box on top (a crude car), convention frame, trimesh."""
+    import trimesh
+
+    body = trimesh.creation.box(extents=(length, width, height * 0.55))
+    body.apply_translation((0, 0, height * 0.275))
+    top = trimesh.creation.box(extents=(length * cabin, width * 0.85, height * 0.45))
+    top.apply_translation((-length * 0.1, 0, height * 0.55 + height * 0.225))
+    return trimesh.util.concatenate([body, top])
+
+
+FIXTURE_CARS = {  # id: (L, W, H, cabin fraction, class)
+    "fx.sedan": (4.6, 1.8, 1.45, 0.5, "sedan"),
+    "fx.van": (5.2, 2.0, 2.1, 0.8, "van"),
+    "fx.suv": (4.7, 1.95, 1.8, 0.6, "suv"),
+    "fx.sports": (4.3, 1.85, 1.2, 0.4, "sports"),
+}
+
+
+def make_library(root: Path) -> Path:
+    """library.json + glb meshes + licence under ``root`` (through the runner's own API)."""
+    from adv3d_runner.shapes.cleaning import clean_mesh
+    from adv3d_runner.shapes.library import VehicleAsset, VehicleLibrary, save_library
+    from adv3d_runner.shapes.mesh_io import mesh_dimensions, read_library_mesh, write_library_glb
+
+    library = VehicleLibrary(root=root)
+    (root / "fx").mkdir(parents=True, exist_ok=True)
+    (root / "fx" / "License.txt").write_text(CC0)
+    for asset_id, (L, W, H, cab, cls) in FIXTURE_CARS.items():
+        mesh, report = clean_mesh(_vehicle_mesh(L, W, H, cab))
+        rel = f"fx/{asset_id.split('.')[1]}.glb"
+        write_library_glb(mesh, root / rel)
+        stored = read_library_mesh(root / rel)
+        library.put(VehicleAsset(
+            id=asset_id, file=rel, vehicle_class=cls, dimensions=tuple(round(v, 4) for v in mesh_dimensions(stored)),
+            source={"pack": "fx", "file": f"{asset_id}.glb"}, licence={"name": "CC0-1.0", "file": "fx/License.txt"},
+            triangle_count=len(stored.faces), cleaning=report, curation={"note": "test fixture"}))
+    return save_library(library, root / "library.json")
+
+
+def make_space(path: Path, resolution: int = 32) -> Path:
+    """A shape space over analytic box SDFs of the fixture cars (no mesh SDF needed: fast)."""
+    from adv3d_runner.shapes.sdf import grid_for_dimensions
+    from adv3d_runner.shapes.shape_space import shape_space_from_sdfs
+
+    dims = [v[:3] for v in FIXTURE_CARS.values()]
+    grid = grid_for_dimensions(dims, resolution)
+    p = grid.points()
+    sdfs = []
+    for L, W, H, cab, _ in FIXTURE_CARS.values():
+        def box(centre, half):
+            q = np.abs(p - centre) - half
+            return np.linalg.norm(np.maximum(q, 0), axis=1) + np.minimum(q.max(axis=1), 0)
+        e = grid.extent_m
+        g = grid.ground_z
+        body = box(np.array([0, 0, g + 0.275 * H / e]), np.array([L, W, 0.55 * H]) / (2 * e))
+        top = box(np.array([-0.1 * L / e, 0, g + 0.775 * H / e]), np.array([L * cab, 0.85 * W, 0.45 * H]) / (2 * e))
+        sdf = np.clip(np.minimum(body, top), -grid.truncation, grid.truncation)
+        sdfs.append(sdf.reshape(resolution, resolution, resolution))
+    space = shape_space_from_sdfs(np.stack(sdfs), list(FIXTURE_CARS), grid, k=3)
+    return space.save(path)
+
+
+def make_scene(path: Path, frames: int = 40) -> Path:
+    """A two-lane scene in a large (UTM-like) map frame, an actor with a gap, one with speeds."""
+    from adv3d_runner.scene.schema import (
+        Actor, Background, Ego, Lane, Scene, Source, Track, default_sensors, save_scene)
+
+    t = np.arange(frames) * 0.1
+    ego = Ego(dimensions=[4.6, 1.9, 1.6], wheelbase=2.8,
+              track=Track(x=351234.5 + 10 * t, y=5612345.25 + 0 * t, yaw=0 * t, speed=10 + 0 * t),
+              sensors=default_sensors())
+    lanes = [Lane(0, np.array([[351200, 5612345.25], [351600, 5612345.25]]), 3.5, left=1),
+             Lane(1, np.array([[351200, 5612348.75], [351600, 5612348.75]]), 3.5, right=0)]
+    n = frames - 10
+    valid = np.ones(n, bool)
+    valid[5:8] = False
+    actors = [
+        Actor(3, "sedan", [4.5, 1.8, 1.5], Track(x=351250 + 8 * t[:n], y=5612348.75 + 0.01 * np.sin(t[:n]),
+                                                  yaw=3.1415 + 0.001 * t[:n], start=10, valid=valid)),
+        Actor(7, "truck", [8, 2.5, 3.2], Track(x=351270 - 5 * t, y=5612345.25 + 0 * t, yaw=-3.14159 + 0 * t,
+                                               speed=5 + 0 * t)),
+    ]
+    scene = Scene("fixture-scene", Source("generated", {"seed": 1}), 0.1, frames, lanes, Background(), ego, actors)
+    save_scene(scene, path)
+    return path
+
+
+@pytest.fixture(scope="module")
+def addon():
+    import blender_addon
+
+    blender_addon.register()
+    yield blender_addon
+    blender_addon.unregister()
+
+
+@pytest.fixture
+def ctx(addon):
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    return bpy.context
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory, addon):
+    root = tmp_path_factory.mktemp("adv3d_blender")
+    lib = make_library(root / "library")
+    space = make_space(root / "space.npz")
+    scene = make_scene(root / "scene.json")
+    return {"root": root, "library": lib, "space": space, "scene": scene}
+
+
+@pytest.fixture
+def lib_copy(data, tmp_path) -> Path:
+    shutil.copytree(data["library"].parent, tmp_path / "library")
+    return tmp_path / "library" / "library.json"
+
+
+# --------------------------------------------------------------------------- registration
+
+def test_register_unregister_twice(addon):
+    addon.unregister()
+    assert not hasattr(bpy.types.Scene, "adv3d")
+    assert not hasattr(bpy.types, "ADV3D_PT_library")
+    for _ in range(2):
+        addon.register()
+        assert hasattr(bpy.types.Scene, "adv3d") and hasattr(bpy.types.Object, "adv3d")
+        for panel in ("ADV3D_PT_library", "ADV3D_PT_shapes", "ADV3D_PT_scenes"):
+            cls = getattr(bpy.types, panel)
+            assert cls.bl_category == "Adv3D" and cls.bl_region_type == "UI"
+        addon.unregister()
+        assert not hasattr(bpy.types.Scene, "adv3d")
+        assert not hasattr(bpy.types, "ADV3D_OT_scene_load")
+    addon.register()  # leave it registered for the module's other tests
+
+
+def test_addon_sources_never_import_torch(repo_root):
+    import re
+
+    for path in (repo_root / "blender_addon").glob("*.py"):
+        assert not re.search(r"(?m)^\s*(import torch|from torch\b)", path.read_text()), path
+
+
+def test_set_mesh_arrays_in_place_and_rebuild(ctx):
+    from blender_addon import meshdata
+
+    v, f = meshdata.box_arrays(4.0, 2.0, 1.5)
+    obj = meshdata.new_mesh_object("m", v, f)
+    assert meshdata.set_mesh_arrays(obj.data, v * 2.0, f) is False  # same topology: positions only
+    got_v, got_f = meshdata.mesh_arrays(obj.data)
+    np.testing.assert_allclose(got_v, v * 2.0, atol=1e-6)
+    np.testing.assert_array_equal(got_f, f)
+    assert meshdata.set_mesh_arrays(obj.data, v[:4], f[:2]) is True  # fewer faces: rebuilt
+    assert (len(obj.data.vertices), len(obj.data.polygons), len(obj.data.loops)) == (4, 2, 6)
+    assert not obj.data.validate()  # nothing to fix
+    with pytest.raises(ValueError):
+        meshdata.set_mesh_arrays(obj.data, v[:3], f)
+
+
+# --------------------------------------------------------------------------- library
+
+def test_library_load_edit_save_keeps_other_fields(ctx, lib_copy):
+    from adv3d_runner.shapes.library import load_library
+
+    before = load_library(lib_copy)
+    assert bpy.ops.adv3d.library_load(filepath=str(lib_copy)) == {"FINISHED"}
+    lib = ctx.scene.adv3d.library
+    assert [a.asset_id for a in lib.assets] == before.ids()
+    assert "triangles" in lib.assets[0].cleaning_report
+    lib.assets[1].vehicle_class = "truck"
+    lib.assets[2].in_shape_space = False
+    assert bpy.ops.adv3d.library_save() == {"FINISHED"}
+    after = load_library(lib_copy)
+    assert after.assets[1].vehicle_class == "truck"
+    assert after.assets[2].in_shape_space is False
+    for a, b in zip(before.assets, after.assets):  # everything else unchanged
+        ja, jb = a.to_json(), b.to_json()
+        ja.pop("class"), jb.pop("class"), ja.pop("in_shape_space"), jb.pop("in_shape_space")
+        assert ja == jb
+
+
+def test_library_import_through_blender(ctx, lib_copy, tmp_path):
+    import trimesh
+
+    from adv3d_runner.shapes.library import load_library
+
+    src = tmp_path / "src" / "mypack"
+    src.mkdir(parents=True)
+    (src / "LICENSE.txt").write_text(CC0)
+    mesh = _vehicle_mesh(3.0, 1.4, 1.2, 0.5)
+    mesh.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, (0, 0, 1)))  # front along +y
+    # OBJ files are Y up (Blender's OBJ importer maps file (x, y, z) to Blender (x, -z, y)).
+    mesh.vertices = np.asarray(mesh.vertices) @ np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]]).T
+    mesh.export(src / "Little Car.obj")
+    bpy.ops.adv3d.library_load(filepath=str(lib_copy))
+    lib = ctx.scene.adv3d.library
+    lib.import_class = "hatchback"
+    lib.import_forward = "Y"
+    lib.import_length = 3.9
+    assert bpy.ops.adv3d.library_import(filepath=str(src / "Little Car.obj")) == {"FINISHED"}
+    library = load_library(lib_copy)
+    asset = library.get("mypack.little-car")
+    L, W, H = asset.dimensions
+    assert L == pytest.approx(3.9, abs=2e-3)  # scaled to the real length, front turned to +x
+    assert W == pytest.approx(1.4 * 3.9 / 3.0, abs=5e-3) and H == pytest.approx(1.2 * 3.9 / 3.0, abs=5e-3)
+    assert asset.vehicle_class == "hatchback" and asset.licence["name"] == "CC0-1.0"
+    assert (lib_copy.parent / asset.file).is_file() and asset.cleaning["triangles"] == asset.triangle_count
+    assert lib.assets[lib.active_index].asset_id == asset.id
+
+
+def test_library_rescale_and_turn(ctx, lib_copy):
+    from adv3d_runner.shapes.library import load_library
+
+    bpy.ops.adv3d.library_load(filepath=str(lib_copy))
+    L0, W0, H0 = load_library(lib_copy).get("fx.sedan").dimensions
+    assert bpy.ops.adv3d.library_rescale("EXEC_DEFAULT", asset_id="fx.sedan", length=5.0) == {"FINISHED"}
+    L1, W1, H1 = load_library(lib_copy).get("fx.sedan").dimensions
+    assert L1 == pytest.approx(5.0, abs=2e-3) and W1 == pytest.approx(W0 * 5.0 / L0, abs=2e-3)
+    assert bpy.ops.adv3d.library_turn("EXEC_DEFAULT", asset_id="fx.sedan", angle="90") == {"FINISHED"}
+    L2, W2, _ = load_library(lib_copy).get("fx.sedan").dimensions
+    assert (L2, W2) == pytest.approx((W1, L1), abs=2e-3)
+
+
+def test_library_show_creates_object(ctx, lib_copy):
+    bpy.ops.adv3d.library_load(filepath=str(lib_copy))
+    assert bpy.ops.adv3d.library_show(asset_id="fx.van") == {"FINISHED"}
+    obj = ctx.view_layer.objects.active
+    assert obj.adv3d.role == "ASSET" and obj.adv3d.key == "fx.van"
+    size = np.ptp(np.array([v.co for v in obj.data.vertices]), axis=0)
+    assert size == pytest.approx(FIXTURE_CARS["fx.van"][:3], abs=1e-3)
+
+
+def test_malformed_library_is_reported_not_raised_as_traceback(ctx, tmp_path):
+    bad = tmp_path / "library.json"
+    bad.write_text(json.dumps({"format": "adv3d-vehicle-library", "version": 1, "assets": [{"id": "x"}]}))
+    # bpy.ops turns an operator's ERROR report into RuntimeError carrying the message.
+    with pytest.raises(RuntimeError, match=r"\$\.assets\[0\]"):
+        bpy.ops.adv3d.library_load(filepath=str(bad))
+    assert len(ctx.scene.adv3d.library.assets) == 0
+    (tmp_path / "junk.json").write_text("{not json")
+    with pytest.raises(RuntimeError, match="JSON"):
+        bpy.ops.adv3d.library_load(filepath=str(tmp_path / "junk.json"))
+
+
+def test_import_of_corrupt_file_is_reported(ctx, lib_copy, tmp_path):
+    src = tmp_path / "bad"
+    src.mkdir()
+    (src / "License.txt").write_text(CC0)
+    (src / "broken.glb").write_bytes(b"glTF\x02\x00\x00\x00garbage")
+    bpy.ops.adv3d.library_load(filepath=str(lib_copy))
+    with pytest.raises(RuntimeError, match="broken.glb"):
+        bpy.ops.adv3d.library_import(filepath=str(src / "broken.glb"))
+
+
+# --------------------------------------------------------------------------- shape space
+
+def _preview_arrays(scene):
+    from blender_addon import meshdata, ops_shapes
+
+    return meshdata.mesh_arrays(ops_shapes.preview_object(scene, create=False).data)
+
+
+def test_sliders_regenerate_preview(ctx, data):
+    assert bpy.ops.adv3d.shapes_load(filepath=str(data["space"])) == {"FINISHED"}
+    shapes = ctx.scene.adv3d.shapes
+    assert shapes.k == 3 and "z1" in shapes.variance_text
+    v0, f0 = _preview_arrays(ctx.scene)
+    assert len(v0) > 100 and f0.max() == len(v0) - 1
+    shapes.latent[0] = 1.0  # the update callback runs at once in background mode
+    v1, f1 = _preview_arrays(ctx.scene)
+    assert f1.max() < len(v1)
+    assert len(v1) != len(v0) or not np.allclose(v1, v0)
+    assert shapes.last_update_ms > 0
+    # The width scale widens the car and keeps it on the ground.
+    shapes.width_scale = 0.0
+    narrow = np.ptp(_preview_arrays(ctx.scene)[0][:, 1])
+    shapes.width_scale = 1.0
+    wide_v = _preview_arrays(ctx.scene)[0]
+    assert np.ptp(wide_v[:, 1]) > narrow * 1.4
+    assert wide_v[:, 2].min() == pytest.approx(0.0, abs=1e-4)
+    # Decode agrees with the runner for the same unit vector.
+    from adv3d_runner.shapes.shape_space import ShapeSpace
+
+    ref_v, ref_f = ShapeSpace.load(data["space"]).decode_arrays(
+        [shapes.latent[0], shapes.latent[1], shapes.latent[2], shapes.width_scale, shapes.length_scale])
+    assert len(ref_v) == len(wide_v)
+    np.testing.assert_allclose(wide_v, ref_v, atol=1e-5)
+
+
+def test_whole_vector_assignment_updates_once(ctx, data, monkeypatch):
+    from blender_addon import ops_shapes
+
+    bpy.ops.adv3d.shapes_load(filepath=str(data["space"]))
+    calls = []
+    original = ops_shapes.update_preview
+    monkeypatch.setattr(ops_shapes, "update_preview", lambda scene: calls.append(1) or original(scene))
+    ctx.scene.adv3d.shapes.latent = [0.2] * len(ctx.scene.adv3d.shapes.latent)
+    assert len(calls) == 1
+    ops_shapes.set_unit(ctx.scene.adv3d.shapes, np.array([0.1, 0.2, 0.3, 0.4, 0.5]))
+    assert len(calls) == 1  # bulk set is silent; the operator refreshes once afterwards
+
+
+def test_random_sample_is_seeded(ctx, data):
+    bpy.ops.adv3d.shapes_load(filepath=str(data["space"]))
+    shapes = ctx.scene.adv3d.shapes
+    shapes.seed = 7
+    bpy.ops.adv3d.shapes_random()
+    first = list(shapes.latent[:3]) + [shapes.width_scale, shapes.length_scale]
+    v_first = _preview_arrays(ctx.scene)[0]
+    assert shapes.seed == 8
+    expected = np.random.default_rng(7).random(5)
+    np.testing.assert_allclose(first, expected, atol=1e-6)
+    bpy.ops.adv3d.shapes_random()
+    assert not np.allclose(list(shapes.latent[:3]), first[:3])
+    shapes.seed = 7
+    bpy.ops.adv3d.shapes_random()
+    np.testing.assert_allclose(_preview_arrays(ctx.scene)[0], v_first)
+
+
+def test_nearest_asset_and_export(ctx, data, tmp_path):
+    import trimesh
+
+    from adv3d_runner.shapes.shape_space import ShapeSpace
+
+    bpy.ops.adv3d.shapes_load(filepath=str(data["space"]))
+    space = ShapeSpace.load(data["space"])
+    from blender_addon import ops_shapes
+
+    ops_shapes.set_unit(ctx.scene.adv3d.shapes, space.asset_unit("fx.van"))
+    assert bpy.ops.adv3d.shapes_nearest() == {"FINISHED"}
+    assert ctx.scene.adv3d.shapes.nearest_asset == "fx.van"
+    out = tmp_path / "shape.ply"
+    assert bpy.ops.adv3d.shapes_export(filepath=str(out)) == {"FINISHED"}
+    mesh = trimesh.load(out, process=False)
+    v, f = space.decode_arrays(space.asset_unit("fx.van"))
+    assert len(mesh.faces) == len(f) and mesh.is_watertight
+    with pytest.raises(RuntimeError, match="unsupported"):
+        bpy.ops.adv3d.shapes_export(filepath=str(tmp_path / "shape.xyz"))
+
+
+def test_missing_or_corrupt_shape_space_is_reported(ctx, tmp_path):
+    with pytest.raises(RuntimeError, match="not found|existing"):
+        bpy.ops.adv3d.shapes_load(filepath=str(tmp_path / "none.npz"))
+    (tmp_path / "bad.npz").write_bytes(b"PK\x03\x04 not a zip")
+    with pytest.raises(RuntimeError, match="bad.npz"):
+        bpy.ops.adv3d.shapes_load(filepath=str(tmp_path / "bad.npz"))
+
+
+def test_build_shape_space_operator(ctx, lib_copy, tmp_path):
+    from adv3d_runner.shapes.shape_space import ShapeSpace
+
+    bpy.ops.adv3d.library_load(filepath=str(lib_copy))
+    shapes = ctx.scene.adv3d.shapes
+    shapes.space_path = str(tmp_path / "built.npz")
+    shapes.build_resolution = 16
+    shapes.build_k = 2
+    assert bpy.ops.adv3d.shapes_build() == {"FINISHED"}
+    space = ShapeSpace.load(tmp_path / "built.npz")
+    assert space.k == 2 and sorted(space.asset_ids) == sorted(FIXTURE_CARS)
+    assert shapes.k == 2 and len(_preview_arrays(ctx.scene)[0]) > 0
+
+
+# --------------------------------------------------------------------------- scenes
+
+def test_scene_load_creates_objects_and_keyframes(ctx, data):
+    from adv3d_runner.scene.schema import load_scene
+
+    assert bpy.ops.adv3d.scene_load(filepath=str(data["scene"])) == {"FINISHED"}
+    scene = load_scene(data["scene"])
+    objs = {o.name: o for o in bpy.data.objects}
+    assert {"ego", "actor 3", "actor 7", "lane 0", "lane 1", "sensor top", "road"} <= set(objs)
+    assert ctx.scene.frame_start == 0 and ctx.scene.frame_end == scene.frames - 1
+    assert objs["sensor top"].parent == objs["ego"]
+    assert objs["sensor top"].location.z == pytest.approx(1.73, abs=1e-6)
+    origin = np.asarray(bpy.data.collections["Adv3D Scene"]["adv3d_origin"])
+    actor = objs["actor 3"]
+    for frame in (12, 20, 29):  # valid frames: pose matches the track
+        ctx.scene.frame_set(frame)
+        i = frame - 10
+        t = scene.actor(3).track
+        assert actor.location.x + origin[0] == pytest.approx(t.x[i], abs=2e-3)
+        assert actor.location.y + origin[1] == pytest.approx(t.y[i], abs=2e-3)
+        assert not actor.hide_render
+    for frame in (5, 15, 17):  # before its start, in its gap (track frames 15-17)
+        ctx.scene.frame_set(frame)
+        assert actor.hide_render and actor.hide_viewport
+
+
+def test_scene_round_trip_is_identical(ctx, data, tmp_path):
+    bpy.ops.adv3d.scene_load(filepath=str(data["scene"]))
+    out = tmp_path / "exported.json"
+    assert bpy.ops.adv3d.scene_export(filepath=str(out)) == {"FINISHED"}
+    assert out.read_bytes() == Path(data["scene"]).read_bytes()
+
+
+def test_scene_edits_are_exported_and_nothing_else(ctx, data, tmp_path):
+    from adv3d_runner.scene.schema import load_scene
+    from blender_addon import ops_scene
+
+    bpy.ops.adv3d.scene_load(filepath=str(data["scene"]))
+    original = load_scene(data["scene"])
+    actor = bpy.data.objects["actor 7"]
+    frames = np.arange(original.frames)
+    xs = ops_scene.eval_curve(actor, "location", 0, frames)
+    xs[20:] += 1.5  # the truck is 1.5 m further ahead from frame 20 on
+    ops_scene.set_keys(actor, "location", 0, frames, xs)
+    actor.adv3d.asset_id = "fx.van"
+    ego = bpy.data.objects["ego"]
+    ys = ops_scene.eval_curve(ego, "location", 1, frames)
+    ys[30:] += 0.5  # the logged ego drifts left at the end
+    ops_scene.set_keys(ego, "location", 1, frames, ys)
+    out = tmp_path / "edited.json"
+    assert bpy.ops.adv3d.scene_export(filepath=str(out)) == {"FINISHED"}
+    edited = load_scene(out)
+    a0, a1 = original.actor(7), edited.actor(7)
+    np.testing.assert_array_equal(a1.track.x[:20], a0.track.x[:20])
+    np.testing.assert_allclose(a1.track.x[20:], a0.track.x[20:] + 1.5, atol=1.5e-3)
+    np.testing.assert_array_equal(a1.track.y, a0.track.y)
+    assert a1.asset == "fx.van" and a0.asset is None
+    assert edited.to_dict()["actors"][0] == original.to_dict()["actors"][0]  # untouched actor
+    np.testing.assert_allclose(edited.ego.track.y[30:], original.ego.track.y[30:] + 0.5, atol=1.5e-3)
+    np.testing.assert_array_equal(edited.ego.track.y[:30], original.ego.track.y[:30])
+    # Speeds re-derived only around the edit.
+    np.testing.assert_array_equal(edited.ego.track.speed[:28], original.ego.track.speed[:28])
+    assert edited.ego.track.speed[30] > original.ego.track.speed[30]
+
+
+def test_scene_apply_asset_swaps_mesh(ctx, data, lib_copy):
+    bpy.ops.adv3d.library_load(filepath=str(lib_copy))
+    bpy.ops.adv3d.scene_load(filepath=str(data["scene"]))
+    actor = bpy.data.objects["actor 3"]
+    ctx.view_layer.objects.active = actor
+    actor.adv3d.asset_id = "fx.suv"
+    assert bpy.ops.adv3d.scene_apply_asset() == {"FINISHED"}
+    assert actor.data.name == "asset:fx.suv" and len(actor.data.vertices) > 8
+    actor.adv3d.asset_id = "no.such"
+    with pytest.raises(RuntimeError, match="no.such"):
+        bpy.ops.adv3d.scene_apply_asset()
+
+
+def test_malformed_scene_is_reported(ctx, data, tmp_path):
+    doc = json.loads(Path(data["scene"]).read_text())
+    doc["actors"][1]["track"]["yaw"] = doc["actors"][1]["track"]["yaw"][:-1]
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps(doc))
+    with pytest.raises(RuntimeError, match=r"\$\.actors\[1\]\.track\.yaw"):
+        bpy.ops.adv3d.scene_load(filepath=str(bad))
+    assert "Adv3D Scene" not in bpy.data.collections
+    with pytest.raises(RuntimeError, match="no scene loaded"):
+        bpy.ops.adv3d.scene_export(filepath=str(tmp_path / "out.json"))
+
+
+# --------------------------------------------------------------------------- packaging
+
+def test_manifest_checks_catch_problems():
+    from adv3d_runner.blender_cli import check_manifest
+
+    good = {"schema_version": "1.0.0", "id": "adv3d", "version": "0.1.0", "name": "Adv3D", "tagline": "t",
+            "maintainer": "m", "type": "add-on", "blender_version_min": "4.2.0", "license": ["SPDX:MIT"],
+            "wheels": ["./wheels/adv3d-0.1.0-py3-none-any.whl"]}
+    names = {"__init__.py", "blender_manifest.toml", "wheels/adv3d-0.1.0-py3-none-any.whl"}
+    assert check_manifest(good, names, "z") == []
+    assert any("not in the archive" in p for p in check_manifest(good, names - {"wheels/adv3d-0.1.0-py3-none-any.whl"}, "z"))
+    bad = dict(good, wheels=good["wheels"] + ["./wheels/numpy-1.26.4-cp311-cp311-linux_x86_64.whl"])
+    assert any("must not be shipped" in p for p in check_manifest(bad, names | {bad["wheels"][1][2:]}, "z"))
+    assert any("schema_version" in p for p in check_manifest(dict(good, schema_version="0.9"), names, "z"))
+
+
+def test_built_zip_validates(tmp_path):
+    """Build the real extension (dependency wheels from the user cache, downloaded once) and
+    validate it: Blender's validator, our manifest checks, install + register in a bpy child."""
+    import zipfile
+
+    from adv3d_runner.blender_cli import build_extension, default_wheel_cache
+    from adv3d_runner.errors import ConfigError
+
+    try:
+        zips = build_extension(tmp_path, wheel_cache=default_wheel_cache())
+    except ConfigError as exc:
+        if "pip download" in str(exc):
+            pytest.skip(f"dependency wheels unavailable offline: {exc}")
+        raise
+    assert len(zips) == 1
+    with zipfile.ZipFile(zips[0]) as zf:
+        names = set(zf.namelist())
+    assert "blender_manifest.toml" in names and "__init__.py" in names
+    assert any(n.startswith("wheels/adv3d-") for n in names)
+    assert any(n.startswith("wheels/scikit_image-") for n in names)
+    assert not any("numpy" in n or "torch" in n for n in names)
