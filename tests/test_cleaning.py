@@ -139,3 +139,15 @@ def test_clean_does_not_modify_input():
     before = m.faces.copy()
     clean_mesh(m)
     assert np.array_equal(m.faces, before)
+
+
+def test_minority_of_mis_wound_faces_is_flipped_even_if_it_comes_first():
+    # open box (no closed-body volume rule applies); face 0 is the odd one out
+    m = box()
+    top = np.flatnonzero(m.face_normals[:, 2] > 0.5)
+    faces = np.delete(m.faces, top, axis=0)
+    faces[0] = faces[0][::-1]
+    fixed, flipped = orient_faces(m.vertices, faces)
+    assert flipped == 1
+    assert np.array_equal(fixed[0], faces[0][::-1]) and np.array_equal(fixed[1:], faces[1:])
+    assert edge_topology(fixed)["inconsistent_edges"] == 0

@@ -92,8 +92,8 @@ def face_components(faces: np.ndarray) -> np.ndarray:
 def orient_faces(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, int]:
     """Make windings consistent across manifold edges, then point each part outwards.
 
-    A breadth-first walk from the lowest face of each edge-connected patch flips faces whose
-    shared edge runs the same way as their neighbour's. A *closed* patch (no boundary edge,
+    A breadth-first walk over each edge-connected patch flips faces whose shared edge runs the
+    same way as their neighbour's, keeping the orientation most of the patch already has. A *closed* patch (no boundary edge,
     >= 4 faces) whose signed volume is negative is then flipped as a whole. Open patches keep
     the orientation of their first face: for them the volume sign is not evidence (a wheel's
     recessed hub is a concave, correctly outward dish with negative volume about its centroid).
@@ -126,7 +126,20 @@ def orient_faces(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, i
                     flip[g] = flip[f] ^ s  # same direction on a shared edge: opposite winding
                     queue.append(g)
         n_patches += 1
+    # keep the majority orientation of each patch: change as few faces as possible, so a
+    # small mis-wound piece never turns a whole body inside out because its index came first
+    patch_size = np.bincount(patch, minlength=n_patches)
+    patch_flips = np.bincount(patch, weights=flip, minlength=n_patches)
+    flip ^= (2 * patch_flips > patch_size)[patch]
+    original = faces.copy()
     faces[flip] = faces[flip][:, ::-1]
+    # a patch that cannot be oriented (joined through a twisted strip) may get worse: keep
+    # any patch whose own count of inconsistent edges did not go down
+    for p in np.unique(patch[flip]):
+        idx = np.flatnonzero(patch == p)
+        if edge_topology(faces[idx])["inconsistent_edges"] >= edge_topology(original[idx])["inconsistent_edges"]:
+            faces[idx] = original[idx]
+            flip[idx] = False
     # outwards: signed volume of each patch about its own centroid
     tri = np.asarray(vertices, dtype=np.float64)[faces]
     for p in range(n_patches):
