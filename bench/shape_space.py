@@ -230,6 +230,7 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="2 assets, resolutions 32-64, reference 128, library at 32^3")
     ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument("--library", type=Path, default=None, help="library.json (default: the bundled library)")
     args = ap.parse_args()
     quick = args.quick
     rng = np.random.default_rng(0)
@@ -238,7 +239,7 @@ def main() -> int:
     lib_res = 32 if quick else DEFAULT_RESOLUTION
     result: dict = {"command": " ".join([Path(sys.executable).name] + sys.argv), "quick": quick, "machine": machine_info()}
 
-    library = load_library()
+    library = load_library(args.library) if args.library else load_library()
     assets = library.shape_space_assets()
     print(f"library: {len(assets)} shape-space assets", flush=True)
 
