@@ -1,0 +1,114 @@
+"""Background geometry and actor asset assignment."""
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from adv3d_runner.scene import background as bgm
+from adv3d_runner.scene.actors import actor_mesh, assign_assets, choose_asset
+from adv3d_runner.scene.generate import generate_scene
+from adv3d_runner.scene.schema import Background, Lane, load_scene
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return generate_scene(2, layout="onramp", density="light")
+
+
+def test_background_mesh_is_valid_and_has_every_surface(scene):
+    v, f, k = bgm.background_mesh(scene)
+    assert v.dtype == np.float64 and v.shape[1] == 3
+    assert f.dtype == np.int32 and f.shape[1] == 3 and k.dtype == np.int8
+    assert len(f) == len(k) and f.min() >= 0 and f.max() < len(v)
+    assert np.isfinite(v).all()
+    kinds = set(np.unique(k).tolist())
+    assert {bgm.ASPHALT, bgm.LANE_PAINT, bgm.CONCRETE, bgm.GROUND} <= kinds
+    area = 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
+    assert np.all(area > 0)
+    assert len(f) < 50_000  # modest: one Embree scene per scene
+    # road at z=0, paint a few mm above, ground below, barriers up to their height
+    assert np.allclose(v[f[k == bgm.ASPHALT]][..., 2], 0.0)
+    assert np.allclose(v[f[k == bgm.LANE_PAINT]][..., 2], bgm.MARKING_Z)
+    assert np.all(v[f[k == bgm.GROUND]][..., 2] < 0)
+    assert v[f[k == bgm.CONCRETE]][..., 2].max() == pytest.approx(0.81)
+    refl = bgm.reflectivity(k)
+    assert refl.shape == k.shape and np.all((refl > 0) & (refl <= 1))
+    assert bgm.REFLECTIVITY[bgm.LANE_PAINT] > bgm.REFLECTIVITY[bgm.ASPHALT]
+
+
+def test_road_covers_the_ego_path(scene):
+    """Every ego position lies on asphalt (point-in-triangle on the road faces)."""
+    v, f, k = bgm.background_mesh(scene)
+    tri = v[f[k == bgm.ASPHALT]][..., :2]
+    pts = scene.ego_poses()[::20, :2]
+    for p in pts:
+        a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
+        def cross(o, u, w):
+            return (u[:, 0] - o[:, 0]) * (w[1] - o[:, 1]) - (u[:, 1] - o[:, 1]) * (w[0] - o[:, 0])
+        d1, d2, d3 = cross(a, b, p), cross(b, c, p), cross(c, a, p)
+        inside = ((d1 >= 0) & (d2 >= 0) & (d3 >= 0)) | ((d1 <= 0) & (d2 <= 0) & (d3 <= 0))
+        assert inside.any()
+
+
+def test_degenerate_lanes_do_not_break_background(scene):
+    scene = copy.deepcopy(scene)
+    scene.lanes.append(Lane(999, [[0, 0], [0, 0]], 3.5))  # collapses to a point
+    scene.lanes.append(Lane(998, [[0, 50], [0, 50], [10, 50], [10, 50]], 3.5))
+    scene.background = Background(0.0, 0.0, 0.0, False)
+    v, f, k = bgm.background_mesh(scene)
+    assert np.isfinite(v).all() and len(f) > 0
+
+
+def test_real_scene_background():
+    scene = load_scene(REPO / "scenes" / "real" / "USA_US101-4_1_T-1.json.gz")
+    v, f, k = bgm.background_mesh(scene)
+    assert np.isfinite(v).all() and (k == bgm.ASPHALT).sum() > 100
+
+
+class _Asset:
+    def __init__(self, id, cls, dims):
+        self.id, self.vehicle_class, self.dimensions = id, cls, tuple(dims)
+
+
+class _Library:
+    def __init__(self, assets):
+        self.assets = assets
+
+    def by_class(self, cls):
+        return [a for a in self.assets if a.vehicle_class == cls]
+
+
+def test_assignment_by_class_and_closest_dimensions(scene):
+    lib = _Library([_Asset("z-small", "sedan", (4.2, 1.7, 1.4)), _Asset("a-big", "sedan", (5.2, 1.9, 1.5)),
+                    _Asset("suv1", "suv", (4.8, 1.95, 1.75)), _Asset("tr", "truck", (14, 2.5, 3.9))])
+    assert choose_asset(lib, "sedan", np.array([4.3, 1.7, 1.4])) == "z-small"
+    assert choose_asset(lib, "sedan", np.array([5.0, 1.9, 1.5])) == "a-big"
+    assert choose_asset(lib, "pickup", np.array([5.5, 2.0, 1.9])) == "suv1"  # fallback class
+    assert choose_asset(lib, "bus", np.array([12, 2.5, 3.2])) == "tr"
+    assert choose_asset(_Library([]), "sedan", np.ones(3)) is None
+    # order of the library does not matter
+    rev = _Library(lib.assets[::-1])
+    out1, out2 = assign_assets(scene, lib), assign_assets(scene, rev)
+    assert [a.asset for a in out1.actors] == [a.asset for a in out2.actors]
+    assert all(a.asset is not None for a in out1.actors)
+    assert all(a.asset is None for a in scene.actors)  # input untouched
+
+
+def test_actor_mesh_fits_box(tmp_path):
+    trimesh = pytest.importorskip("trimesh")
+    from adv3d_runner.shapes import library as L
+    try:
+        lib = L.load_library()
+    except Exception:
+        pytest.skip("vehicle library not available")
+    if not lib.assets:
+        pytest.skip("empty vehicle library")
+    asset = sorted(lib.assets, key=lambda a: a.id)[0]
+    mesh = actor_mesh(lib, asset.id, np.array([4.5, 1.8, 1.5]))
+    assert isinstance(mesh, trimesh.Trimesh)
+    np.testing.assert_allclose(mesh.bounds, [[-2.25, -0.9, 0.0], [2.25, 0.9, 1.5]], atol=1e-9)
