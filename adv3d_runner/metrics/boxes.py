@@ -192,6 +192,35 @@ def iou_paired(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return out
 
 
+def box_separation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Signed separating-axis gap (m) between rotated boxes, broadcasting (..., 5).
+
+    The largest gap between the boxes' projections over the four candidate axes: > 0 when they
+    are apart (a lower bound of :func:`box_distance`, equal to it when the closest features are
+    parallel edges, e.g. two cars side by side or nose to tail), 0 when they touch, < 0 (minus
+    the smallest overlap) when they overlap. About 4x cheaper than the exact distance.
+    Non-finite boxes give +inf.
+    """
+    with np.errstate(invalid="ignore"):
+        gap = -_axis_overlaps(as_boxes(a), as_boxes(b)).min(axis=-1)
+    return np.where(np.isfinite(gap), gap, np.inf)
+
+
+def _axis_overlaps(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Projection overlap (m) of two boxes on each of the 4 candidate axes: (..., 4)."""
+    ca, cb = box_corners(a), box_corners(b)
+    ca, cb = np.broadcast_arrays(ca, cb)
+    ya, yb = np.broadcast_arrays(a[..., 4], b[..., 4])
+    # the four candidate separating axes of two rectangles are their local x and y axes; they
+    # are unit vectors even for degenerate boxes
+    axes = np.stack([np.stack([np.cos(ya), np.sin(ya)], -1), np.stack([-np.sin(ya), np.cos(ya)], -1),
+                     np.stack([np.cos(yb), np.sin(yb)], -1), np.stack([-np.sin(yb), np.cos(yb)], -1)], axis=-2)
+    centre = 0.5 * (ca.mean(axis=-2) + cb.mean(axis=-2))  # project relative to a nearby point
+    pa = np.einsum("...vk,...ak->...av", ca - centre[..., None, :], axes)  # (..., 4 axes, 4 verts)
+    pb = np.einsum("...vk,...ak->...av", cb - centre[..., None, :], axes)
+    return np.minimum(pa.max(-1), pb.max(-1)) - np.maximum(pa.min(-1), pb.min(-1))
+
+
 def boxes_overlap(a: np.ndarray, b: np.ndarray, tol: float = 1e-9) -> np.ndarray:
     """Whether the interiors of rotated boxes overlap (separating-axis test), broadcasting.
 
@@ -202,19 +231,7 @@ def boxes_overlap(a: np.ndarray, b: np.ndarray, tol: float = 1e-9) -> np.ndarray
     Returns:
         (...) bool.
     """
-    a = as_boxes(a)
-    b = as_boxes(b)
-    ca, cb = box_corners(a), box_corners(b)
-    ca, cb = np.broadcast_arrays(ca, cb)
-    ya, yb = np.broadcast_arrays(a[..., 4], b[..., 4])
-    # The four candidate separating axes of two rectangles are their local x and y axes; they
-    # are unit vectors even for degenerate boxes.
-    axes = np.stack([np.stack([np.cos(ya), np.sin(ya)], -1), np.stack([-np.sin(ya), np.cos(ya)], -1),
-                     np.stack([np.cos(yb), np.sin(yb)], -1), np.stack([-np.sin(yb), np.cos(yb)], -1)], axis=-2)
-    centre = 0.5 * (ca.mean(axis=-2) + cb.mean(axis=-2))  # project relative to a nearby point
-    pa = np.einsum("...vk,...ak->...av", ca - centre[..., None, :], axes)  # (..., 4 axes, 4 verts)
-    pb = np.einsum("...vk,...ak->...av", cb - centre[..., None, :], axes)
-    overlap = np.minimum(pa.max(-1), pb.max(-1)) - np.maximum(pa.min(-1), pb.min(-1))
+    overlap = _axis_overlaps(as_boxes(a), as_boxes(b))
     with np.errstate(invalid="ignore"):
         return np.all(overlap > tol, axis=-1) & np.isfinite(overlap).all(axis=-1)
 

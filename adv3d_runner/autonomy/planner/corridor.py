@@ -216,40 +216,55 @@ class CorridorSet:
         i = self._seg_index(c, s)
         return np.minimum(self.limit[c, i], self.limit[c, i + 1])
 
-    def project_local(self, c: np.ndarray, xy: np.ndarray, s_guess: np.ndarray, window: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    def project_local(self, c: np.ndarray, xy: np.ndarray, s_guess: np.ndarray, window: int = 3) -> tuple[np.ndarray, np.ndarray]:
         """Project points near a known arc length: searches ``window`` segments either side of
-        ``s_guess``. c (...), xy (..., 2), s_guess (...) -> s, d (...)."""
-        c = np.asarray(c)
+        ``s_guess`` (the first / last segment extend to infinity). c (...), xy (..., 2),
+        s_guess (...) -> s, d (...)."""
         xy = np.asarray(xy, dtype=np.float64)
-        c, s_guess = np.broadcast_arrays(c, np.asarray(s_guess, dtype=np.float64))
-        i0 = self._seg_index(c, s_guess)
-        offs = np.arange(-window, window + 1)
-        idx = np.clip(i0[..., None] + offs, 0, self.n_points[c][..., None] - 2)  # (..., W)
-        cc = c[..., None]
-        p0 = self.points[cc, idx]  # (..., W, 2)
+        c, s_guess = np.broadcast_arrays(np.asarray(c), np.asarray(s_guess, dtype=np.float64))
+        shape = s_guess.shape
+        c, s_guess, q = c.reshape(-1), s_guess.reshape(-1), xy.reshape(-1, 2)
+        n = len(c)
+        last = self.n_points[c] - 2  # last segment index per query
+        idx = np.clip(self._seg_index(c, s_guess)[:, None] + np.arange(-window, window + 1), 0, last[:, None])
+        cc = c[:, None]
+        p0 = self.points[cc, idx]  # (n, W, 2)
         u = self.unit[cc, idx]
-        rel = xy[..., None, :] - p0
-        t = np.sum(rel * u, axis=-1)
-        last = self.n_points[c][..., None] - 2
+        rx, ry = q[:, None, 0] - p0[..., 0], q[:, None, 1] - p0[..., 1]
+        t = rx * u[..., 0] + ry * u[..., 1]
         lo = np.where(idx == 0, -np.inf, 0.0)
-        hi = np.where(idx == last, np.inf, self.spacing[c][..., None])
-        tc = np.clip(t, lo, hi)
-        foot = p0 + tc[..., None] * u
-        dist2 = np.sum((xy[..., None, :] - foot) ** 2, axis=-1)
-        best = np.argmin(dist2, axis=-1)[..., None]
-        ib = np.take_along_axis(idx, best, -1)[..., 0]
-        tb = np.take_along_axis(tc, best, -1)[..., 0]
-        ub = np.take_along_axis(u, best[..., None], -2)[..., 0, :]
-        rb = np.take_along_axis(rel, best[..., None], -2)[..., 0, :]
-        s = ib * self.spacing[c] + tb
-        d = ub[..., 0] * rb[..., 1] - ub[..., 1] * rb[..., 0]
-        return s, d
+        hi = np.where(idx == last[:, None], np.inf, self.spacing[c][:, None])
+        tc = np.minimum(np.maximum(t, lo), hi)
+        ex, ey = rx - tc * u[..., 0], ry - tc * u[..., 1]
+        best = np.argmin(ex * ex + ey * ey, axis=1)
+        rows = np.arange(n)
+        ib, ub = idx[rows, best], u[rows, best]
+        s = ib * self.spacing[c] + tc[rows, best]
+        d = ub[:, 0] * ry[rows, best] - ub[:, 1] * rx[rows, best]
+        return s.reshape(shape), d.reshape(shape)
 
-    def project(self, c: int, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Global projection onto corridor ``c`` (one corridor, any number of points (..., 2))."""
+    def project(self, c: int, xy: np.ndarray, chunk: int = 2048) -> tuple[np.ndarray, np.ndarray]:
+        """Global projection onto corridor ``c`` of points (..., 2) -> s, d (...)."""
         xy = np.asarray(xy, dtype=np.float64)
-        s, d, _ = self.corridors[c].project(xy.reshape(-1, 2))
-        return s.reshape(xy.shape[:-1]), d.reshape(xy.shape[:-1])
+        q = xy.reshape(-1, 2)
+        k = int(self.n_points[c])
+        p0, u = self.points[c, :k - 1], self.unit[c, :k - 1]
+        seg = np.full(k - 1, self.spacing[c])
+        lo = np.zeros(k - 1)
+        hi = seg.copy()
+        lo[0], hi[-1] = -np.inf, np.inf
+        s_out, d_out = np.empty(len(q)), np.empty(len(q))
+        for a in range(0, len(q), chunk):
+            qq = q[a:a + chunk]
+            rx = qq[:, None, 0] - p0[None, :, 0]
+            ry = qq[:, None, 1] - p0[None, :, 1]
+            t = np.clip(rx * u[:, 0] + ry * u[:, 1], lo, hi)
+            ex, ey = rx - t * u[:, 0], ry - t * u[:, 1]
+            best = np.argmin(ex * ex + ey * ey, axis=1)
+            rows = np.arange(len(qq))
+            s_out[a:a + chunk] = best * self.spacing[c] + t[rows, best]
+            d_out[a:a + chunk] = u[best, 0] * ry[rows, best] - u[best, 1] * rx[rows, best]
+        return s_out.reshape(xy.shape[:-1]), d_out.reshape(xy.shape[:-1])
 
     def road_excess(self, c: np.ndarray, s: np.ndarray, d: np.ndarray) -> np.ndarray:
         """How far (m) a point with Frenet coordinates (s, d) on corridor ``c`` lies outside that

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ...metrics.boxes import box_distance
+from ...metrics.boxes import box_separation
 from .corridor import CorridorSet
 
 
@@ -28,7 +28,11 @@ def poses_to_boxes(poses: np.ndarray, length: float | np.ndarray, width: float |
 
 def clearance(ego_poses: np.ndarray, ego_dims: tuple[float, float], actor_poses: np.ndarray,
               actor_dims: np.ndarray, max_distance: float = 5.0) -> np.ndarray:
-    """Footprint distance between each candidate and each actor mode at each time.
+    """Footprint clearance between each candidate and each actor mode at each time.
+
+    The clearance is the separating-axis gap (:func:`adv3d_runner.metrics.boxes.box_separation`):
+    exact for side-by-side and nose-to-tail boxes, a slight underestimate (conservative) when the
+    closest features are two corners; 0 exactly when the footprints overlap or touch.
 
     Args:
         ego_poses: (B, T, 3). ego_dims: (length, width). actor_poses: (N, K, T, 3).
@@ -54,13 +58,17 @@ def clearance(ego_poses: np.ndarray, ego_dims: tuple[float, float], actor_poses:
     if len(b):
         eb = poses_to_boxes(ego_poses[b, t], ego_dims[0], ego_dims[1])
         ab = poses_to_boxes(ap[n, k, t], actor_dims[n, 0], actor_dims[n, 1])
-        out[b, n, k, t] = box_distance(eb, ab)
+        out[b, n, k, t] = np.maximum(box_separation(eb, ab), 0.0)
     return out
 
 
 def road_geometry(poses: np.ndarray, travelled: np.ndarray, corridors: CorridorSet, s_start: np.ndarray,
                   ego_dims: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
     """Lane-centre deviation and off-road excess of candidate poses against every corridor.
+
+    The footprint centre is projected onto each corridor; the corners follow from the heading
+    relative to the lane (a locally straight lane: exact up to ~L^2 kappa / 8, about 1 cm for a
+    5 m car on a 300 m curve).
 
     Args:
         poses: (B, T, 3). travelled: (B, T) distance driven since now (m), used to seed the
@@ -70,22 +78,21 @@ def road_geometry(poses: np.ndarray, travelled: np.ndarray, corridors: CorridorS
         excess (B, T): the largest distance of any footprint corner outside the union of the
         corridors' lane strips (m, 0 when fully on the road).
     """
-    B, T = poses.shape[:2]
     L, W = ego_dims
-    c, s = np.cos(poses[..., 2]), np.sin(poses[..., 2])
-    lx = np.array([0.0, L / 2, L / 2, -L / 2, -L / 2])
-    ly = np.array([0.0, -W / 2, W / 2, W / 2, -W / 2])
-    px = poses[..., 0, None] + c[..., None] * lx - s[..., None] * ly  # (B, T, 5)
-    py = poses[..., 1, None] + s[..., None] * lx + c[..., None] * ly
-    pts = np.stack([px, py], axis=-1)
+    lx = np.array([L / 2, L / 2, -L / 2, -L / 2])
+    ly = np.array([-W / 2, W / 2, W / 2, -W / 2])
     C = len(corridors)
-    dev = np.full((C, B, T), np.inf)
-    exc = np.full((C, B, T, 5), np.inf)
+    dev = np.full((C,) + poses.shape[:2], np.inf)
+    exc = np.full((C,) + poses.shape[:2] + (4,), np.inf)
     for ci in range(C):
-        guess = s_start[ci] + travelled[..., None] + lx  # (B, T, 5)
-        sc, dc = corridors.project_local(np.full(guess.shape, ci), pts, guess)
-        dev[ci] = np.abs(dc[..., 0])
-        exc[ci] = corridors.road_excess(np.full(guess.shape, ci), sc, dc)
+        cc = np.full(poses.shape[:2], ci)
+        sc, dc = corridors.project_local(cc, poses[..., :2], s_start[ci] + travelled)
+        dev[ci] = np.abs(dc)
+        rel = poses[..., 2] - corridors.pose_at(cc, sc)[..., 2]
+        cr, sr = np.cos(rel)[..., None], np.sin(rel)[..., None]
+        s_k = sc[..., None] + lx * cr - ly * sr
+        d_k = dc[..., None] + lx * sr + ly * cr
+        exc[ci] = corridors.road_excess(np.full(s_k.shape, ci), s_k, d_k)
     return dev.min(axis=0), exc.min(axis=0).max(axis=-1)
 
 

@@ -10,8 +10,9 @@ A candidate is (corridor, lateral offset, target speed):
 * target speed: a fraction of the speed limit; 0 means "come to a stop comfortably".
   One extra *emergency stop* candidate brakes at the maximum deceleration on the current lane.
 
-The reference path moves from the ego's present lateral position to the target offset with a
-smoothstep over ``max(min_transition, speed x transition_time)`` metres. Every candidate is
+The reference path moves from the ego's present lateral position and slope to the target
+offset with a cubic (Hermite) transition over ``max(min_transition, speed x transition_time x |offset change| / lane width)``
+metres (so a lane change re-planned half-way keeps its lateral speed). Every candidate is
 then simulated for ``horizon`` s at ``dt`` with all candidates in one vectorised loop:
 
 * steering: pure pursuit on the reference path (look-ahead ``max(min_lookahead, speed x
@@ -172,9 +173,10 @@ def make_specs(corridors: CorridorSet, lane_names: list[str], speed_limit: float
     return CandidateSpec(np.array(cor, np.int64), np.array(off, float), np.array(tgt, float), np.array(emg, bool), labels)
 
 
-def _smoothstep(x: np.ndarray) -> np.ndarray:
-    x = np.clip(x, 0.0, 1.0)
-    return x * x * (3.0 - 2.0 * x)
+def _hermite(u: np.ndarray, d0: np.ndarray, slope0: np.ndarray, d1: np.ndarray) -> np.ndarray:
+    """Cubic from (u=0: d0, slope0) to (u=1: d1, slope 0); u in [0, 1]."""
+    u2, u3 = u * u, u * u * u
+    return (2 * u3 - 3 * u2 + 1) * d0 + (u3 - 2 * u2 + u) * slope0 + (3 * u2 - 2 * u3) * d1
 
 
 def rollout_candidates(ego_pose: np.ndarray, ego_speed: float, ego_accel: float, spec: CandidateSpec,
@@ -195,7 +197,18 @@ def rollout_candidates(ego_pose: np.ndarray, ego_speed: float, ego_accel: float,
         s_start[ci], d_start[ci] = float(s_ci), float(d_ci)
     s0, d0 = s_start[c], d_start[c]
     target_d = np.where(np.isnan(spec.offset), d0, spec.offset)
-    trans_len = max(config.min_transition, v0 * config.transition_time)
+    # transition length proportional to the lateral distance still to go, so re-planning in the
+    # middle of a lane change keeps its lateral speed instead of restarting a full-length S-curve
+    lane_w = corridors.width_at(c, s0)
+    frac = np.minimum(1.0, np.abs(target_d - d0) / np.maximum(lane_w, 1e-6))
+    trans_len = np.maximum(config.min_transition, v0 * config.transition_time * frac)
+    # start the transition with the ego's present lateral slope (heading relative to the lane):
+    # a cubic Hermite from (d0, slope0) to (target, 0), so re-planning does not restart the
+    # S-curve with zero slope (which would make every lane change crawl)
+    herr = (pose[2] - corridors.pose_at(c, s0)[:, 2] + np.pi) % (2 * np.pi) - np.pi
+    slope0 = np.tan(np.clip(herr, -0.5, 0.5)) * trans_len  # dd/du for u = (s - s0) / trans_len
+    span = target_d - d0
+    slope0 = np.where(np.abs(span) > 1e-6, np.clip(slope0 / np.where(span == 0, 1, span), -1.0, 3.0) * span, 0.0)
 
     # actors' Frenet coordinates on each corridor, for the IDM leader
     leader_s, leader_ok, leader_len = _actor_frenet(actors, corridors, spec, target_d, ego_width, config, T)
@@ -214,7 +227,7 @@ def rollout_candidates(ego_pose: np.ndarray, ego_speed: float, ego_accel: float,
     kappa_max = params.max_curvature
     for k in range(T + 1):
         st = states[:, k]
-        s_cur, d_cur = corridors.project_local(c, st[:, :2], s_cur)
+        s_cur, d_cur = corridors.project_local(c, st[:, :2], s_cur, window=2)
         s_hist[:, k], d_hist[:, k] = s_cur, d_cur
         v = st[:, 3]
         # leader: nearest predicted actor ahead in the candidate's corridor at this time
@@ -248,8 +261,7 @@ def rollout_candidates(ego_pose: np.ndarray, ego_speed: float, ego_accel: float,
         # ---- lateral: pure pursuit on the reference path
         ld = np.maximum(config.min_lookahead, v * config.lookahead_time)
         s_la = s_cur + ld
-        prog = (s_la - s0) / trans_len
-        d_ref = target_d + (d0 - target_d) * (1.0 - _smoothstep(prog))
+        d_ref = _hermite(np.clip((s_la - s0) / trans_len, 0.0, 1.0), d0, slope0, target_d)
         tgt = corridors.pose_at(c, s_la, d_ref)
         dx, dy = tgt[:, 0] - st[:, 0], tgt[:, 1] - st[:, 1]
         cy, sy = np.cos(st[:, 2]), np.sin(st[:, 2])
@@ -285,8 +297,15 @@ def _actor_frenet(actors: ActorForecast, corridors: CorridorSet, spec: Candidate
     M = N * K
     s_all = np.empty((len(corridors), M, T + 1))
     d_all = np.empty((len(corridors), M, T + 1))
+    # global projection every 5th step, local projection of every step around the interpolation
+    coarse = np.unique(np.r_[np.arange(0, T + 1, 5), T])
+    right = np.clip(np.searchsorted(coarse, np.arange(T + 1)), 1, len(coarse) - 1)
+    left = right - 1
+    w = (np.arange(T + 1) - coarse[left]) / np.maximum(coarse[right] - coarse[left], 1)
     for ci in range(len(corridors)):
-        s_ci, d_ci = corridors.project(ci, xy)
+        s_c, _ = corridors.project(ci, xy[:, :, coarse])
+        guess = s_c[..., left] * (1 - w) + s_c[..., right] * w
+        s_ci, d_ci = corridors.project_local(np.full(guess.shape, ci), xy, guess)
         s_all[ci] = s_ci.reshape(M, T + 1)
         d_all[ci] = d_ci.reshape(M, T + 1)
     half_w = np.repeat(0.5 * actors.dims[:, 1], K)

@@ -1,0 +1,248 @@
+"""Sampling planner: each cost term on its own, corridors, and closed-loop hand-made situations
+(perfect control: the ego moves to the plan's next pose every 0.1 s)."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from adv3d_runner.autonomy.interface import EgoState, Predictions, Tracks
+from adv3d_runner.autonomy.planner import SamplingPlanner, forecast_from
+from adv3d_runner.autonomy.planner import costs
+from adv3d_runner.autonomy.planner.corridor import CorridorSet, build_corridor, locate
+from adv3d_runner.autonomy.planner.scorer import CostWeights, score
+from adv3d_runner.metrics.comfort import collisions
+from adv3d_runner.scene.schema import Lane
+
+DT = 0.1
+LANE_W = 3.7
+
+
+def straight_lanes(n_lanes=2, x0=-100.0, x1=600.0, limit=25.0):
+    xs = np.linspace(x0, x1, 71)
+    lanes = []
+    for i in range(n_lanes):
+        lanes.append(Lane(i, np.c_[xs, np.full_like(xs, i * LANE_W)], LANE_W,
+                          left=i + 1 if i + 1 < n_lanes else None, right=i - 1 if i > 0 else None, speed_limit=limit))
+    return lanes
+
+
+def actor_inputs(boxes_now, future_xy):
+    """Tracks and single-mode predictions from ground truth. boxes_now (N, 5), future_xy (N, 60, 2)."""
+    N = len(boxes_now)
+    ids = np.arange(N) + 100
+    tracks = Tracks(ids, boxes_now, np.zeros((N, 2)), np.ones(N), np.zeros(N, np.int64), np.zeros((N, 1, 3)),
+                    np.ones((N, 1), bool))
+    return tracks, Predictions(ids, future_xy[:, None], np.ones((N, 1)))
+
+
+def closed_loop(lanes, ego, actor_fn, seconds, planner=None):
+    """Re-plan every step; actor_fn(t) -> (N, 5) boxes. Returns ego boxes (T, 5), actor boxes
+    (T, N, 5), speeds (T,), plans."""
+    planner = planner or SamplingPlanner()
+    ego_boxes, act_boxes, speeds, plans = [], [], [], []
+    for k in range(int(round(seconds / DT))):
+        t = k * DT
+        now = actor_fn(t)
+        fut = np.stack([actor_fn(t + (h + 1) * DT)[:, :2] for h in range(60)], axis=1) if len(now) else np.zeros((0, 60, 2))
+        tracks, preds = actor_inputs(now, fut)
+        plan = planner.plan(ego, lanes, preds, tracks)
+        ego_boxes.append(ego.box)
+        act_boxes.append(now)
+        speeds.append(ego.speed)
+        plans.append(plan)
+        ego = EgoState(plan.trajectory[1], plan.speed[1], acceleration=float(plan.acceleration[0]),
+                       length=ego.length, width=ego.width, wheelbase=ego.wheelbase, time=t + DT)
+    return np.array(ego_boxes), np.array(act_boxes).reshape(len(ego_boxes), -1, 5), np.array(speeds), plans
+
+
+def stopped_at(*xy):
+    boxes = np.array([[x, y, 4.6, 1.9, 0.0] for x, y in xy]).reshape(-1, 5)
+    return lambda t: boxes.copy()
+
+
+# ------------------------------------------------------------------ situations
+
+def test_free_road_makes_progress_towards_the_speed_limit():
+    lanes = straight_lanes(1, limit=25.0)
+    ego = EgoState([0.0, 0.0, 0.0], 15.0)
+    plan = SamplingPlanner().plan(ego, lanes)
+    assert plan.speed[-1] > 17.0 and np.all(np.diff(plan.speed) >= -1e-9)
+    assert plan.cost_terms["collision"] == 0.0
+    ego_boxes, _, speeds, _ = closed_loop(lanes, ego, stopped_at(), 12.0)
+    assert speeds[-1] > 23.0 and speeds.max() <= 25.0 + 0.05
+    assert np.abs(ego_boxes[:, 1]).max() < 0.05  # stays on the lane centre
+
+
+def test_stopped_car_ahead_brakes_and_does_not_collide():
+    lanes = straight_lanes(1)
+    ego = EgoState([0.0, 0.0, 0.0], 15.0)
+    actor = stopped_at((70.0, 0.0))
+    plan = SamplingPlanner().plan(ego, lanes, *reversed(actor_inputs(actor(0.0), np.repeat(actor(0.0)[:, None, :2], 60, 1))))
+    assert plan.speed[-1] < 15.0  # already slowing down in the first plan
+    ego_boxes, act_boxes, speeds, _ = closed_loop(lanes, ego, actor, 14.0)
+    rep = collisions(ego_boxes, act_boxes)
+    assert not rep.collided
+    assert speeds[-1] < 0.3  # came to a stop ...
+    assert 0.5 < rep.min_distance < 12.0  # ... behind the car, not far away
+
+
+def test_blocked_lane_with_free_neighbour_changes_lane():
+    lanes = straight_lanes(2)
+    ego = EgoState([0.0, 0.0, 0.0], 15.0)
+    actor = stopped_at((60.0, 0.0))
+    ego_boxes, act_boxes, speeds, plans = closed_loop(lanes, ego, actor, 9.0)
+    assert plans[0].label.startswith("left1")
+    assert not collisions(ego_boxes, act_boxes).collided
+    assert ego_boxes[-1, 0] > 80.0  # drove past the stopped car
+    assert abs(ego_boxes[-1, 1] - LANE_W) < 0.3  # now on the left lane's centre
+    assert speeds.min() > 10.0  # without braking hard
+
+
+def test_both_lanes_blocked_brakes_in_lane():
+    lanes = straight_lanes(2)
+    ego = EgoState([0.0, 0.0, 0.0], 15.0)
+    actor = stopped_at((60.0, 0.0), (60.0, LANE_W))
+    ego_boxes, act_boxes, speeds, _ = closed_loop(lanes, ego, actor, 12.0)
+    assert not collisions(ego_boxes, act_boxes).collided
+    assert speeds[-1] < 0.5
+
+
+def test_follows_a_slower_lead_car_at_a_safe_gap():
+    lanes = straight_lanes(1, limit=30.0)
+    ego = EgoState([0.0, 0.0, 0.0], 25.0)
+
+    def lead(t):
+        return np.array([[40.0 + 15.0 * t, 0.0, 4.6, 1.9, 0.0]])
+
+    ego_boxes, act_boxes, speeds, _ = closed_loop(lanes, ego, lead, 12.0)
+    rep = collisions(ego_boxes, act_boxes)
+    assert not rep.collided and rep.min_distance > 8.0
+    assert speeds[-1] == pytest.approx(15.0, abs=1.5)
+
+
+def test_curved_road_is_followed_on_the_lane():
+    R = 150.0
+    th = np.linspace(-0.2, 2.5, 200)
+    centre = np.c_[R * np.sin(th), R * (1 - np.cos(th))]
+    lanes = [Lane(0, centre, LANE_W, speed_limit=20.0)]
+    ego = EgoState([0.0, 0.0, 0.0], 18.0)
+    ego_boxes, _, speeds, plans = closed_loop(lanes, ego, stopped_at(), 8.0)
+    radial = np.hypot(ego_boxes[:, 0], ego_boxes[:, 1] - R)
+    assert np.abs(radial - R).max() < 0.3
+    assert all(p.cost_terms["drivable_area"] == 0.0 for p in plans)
+
+
+def test_no_lane_means_stop():
+    plan = SamplingPlanner().plan(EgoState([0.0, 0.0, 0.0], 10.0), [])
+    assert plan.label == "no-lane/stop" and plan.speed[-1] < 10.0 and np.all(np.isfinite(plan.trajectory))
+    far = SamplingPlanner().plan(EgoState([0.0, 500.0, 0.0], 10.0), straight_lanes(1))
+    assert far.label == "no-lane/stop"
+
+
+def test_standing_ego_with_obstacle_stays_put():
+    lanes = straight_lanes(1)
+    ego = EgoState([0.0, 0.0, 0.0], 0.0)
+    ego_boxes, act_boxes, speeds, _ = closed_loop(lanes, ego, stopped_at((8.0, 0.0)), 3.0)
+    assert not collisions(ego_boxes, act_boxes).collided
+    assert speeds.max() < 1.0 and np.all(np.isfinite(ego_boxes))
+
+
+# ------------------------------------------------------------------ cost terms one by one
+
+def test_collision_cost_weights_modes_and_time():
+    dist = np.full((2, 1, 2, 5), 3.0)
+    dist[0, 0, 0, 0] = 0.0   # candidate 0 hits mode 0 now
+    dist[1, 0, 1, 4] = 0.0   # candidate 1 hits mode 1 at the horizon end
+    probs = np.array([[0.7, 0.3]])
+    assert costs.collision_cost(dist, probs).tolist() == pytest.approx([0.7, 0.5 * 0.3])
+    assert costs.collision_cost(np.zeros((3, 0, 1, 5)), np.zeros((0, 1))).tolist() == [0, 0, 0]
+
+
+def test_buffer_cost():
+    dist = np.full((1, 1, 2, 4), 0.5)
+    dist[..., 2:] = 5.0
+    assert costs.buffer_cost(dist, np.array([[0.25, 0.75]]), buffer=1.0)[0] == pytest.approx(0.5 * 0.5)
+
+
+def test_clearance_matches_box_geometry():
+    ego = np.array([[[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]]])  # (B=1, T=2, 3)
+    act = np.array([[[[10.0, 0.0, 0.0], [5.5, 0.0, 0.0]]]])  # (N=1, K=1, T=2, 3)
+    d = costs.clearance(ego, (4.0, 2.0), act, np.array([[4.0, 2.0]]), max_distance=5.0)
+    assert d[0, 0, 0, 0] == np.inf  # too far to compute exactly (circles 10 m apart > 4.47 + 5)
+    assert d[0, 0, 0, 1] == pytest.approx(5.5 - 1.0 - 4.0)
+
+
+def test_headway_cost():
+    ego = np.zeros((1, 1, 3))
+    v = np.array([[10.0]])  # desired gap 2 + 1.0 * 10 = 12 m
+    dims = np.array([[4.0, 2.0]])
+    ahead = np.array([[[[4.0 + 6.0, 0.0, 0.0]]]])  # bumper gap 6 m -> shortfall 6 / 12
+    assert costs.headway_cost(ego, v, (4.0, 2.0), ahead, dims, np.ones((1, 1)))[0] == pytest.approx(0.5)
+    beside = np.array([[[[8.0, LANE_W, 0.0]]]])
+    behind = np.array([[[[-8.0, 0.0, 0.0]]]])
+    for other in (beside, behind):
+        assert costs.headway_cost(ego, v, (4.0, 2.0), other, dims, np.ones((1, 1)))[0] == 0.0
+
+
+def test_simple_terms():
+    assert costs.lane_center_cost(np.array([[0.0, 1.0, 2.0]]))[0] == pytest.approx(1.0)
+    assert costs.drivable_area_cost(np.array([[0.0, 0.0, 0.6]]))[0] == pytest.approx(0.2)
+    assert costs.speed_limit_cost(np.array([[20.0, 26.0]]), np.array([[25.0, 25.0]]))[0] == pytest.approx(0.5)
+    assert costs.progress_cost(np.array([50.0, 150.0, 0.0]), 100.0).tolist() == [0.5, 0.0, 1.0]
+    assert costs.jerk_cost(np.array([[1.0, 1.0, 1.0]]), 0.0, 0.1)[0] == pytest.approx(10.0 / 3)
+    assert costs.lateral_accel_cost(np.array([[10.0, 10.0]]), np.array([[0.01, -0.01]]))[0] == pytest.approx(1.0)
+    assert costs.lane_change_cost(np.array([0, 1, 2]), 0, committed_lane=2).tolist() == [0.0, 1.0, 0.0]
+
+
+def test_road_geometry_on_a_straight_lane():
+    lanes = straight_lanes(1)
+    cs = CorridorSet([build_corridor(lanes, 0, np.array([0.0, 0.0]))])
+    poses = np.array([[[0.0, 0.0, 0.0], [10.0, 1.5, 0.0]]])
+    s_start = np.array([float(cs.project(0, np.array([0.0, 0.0]))[0])])
+    dev, exc = costs.road_geometry(poses, np.array([[0.0, 10.0]]), cs, s_start, (4.0, 2.0))
+    assert dev[0].tolist() == pytest.approx([0.0, 1.5])
+    assert exc[0].tolist() == pytest.approx([0.0, 1.5 + 1.0 - LANE_W / 2])
+
+
+def test_scorer_weights_and_breakdown():
+    raw = {"collision": np.array([0.0, 1.0]), "progress": np.array([0.5, 0.0]), "jerk": np.array([np.nan, 0.0])}
+    w = CostWeights(collision=100.0, progress=10.0, jerk=1.0)
+    table = score(raw, w)
+    assert table.best == 1  # NaN counts as a huge cost, not as "best"
+    assert table.breakdown(1) == {"collision": 100.0, "progress": 0.0, "jerk": 0.0}
+    assert table.total[1] == pytest.approx(100.0)
+    with pytest.raises(KeyError):
+        score({"nonsense": np.zeros(2)})
+
+
+# ------------------------------------------------------------------ corridors and inputs
+
+def test_corridor_chains_successors_and_local_projection_matches_global(rng):
+    a = Lane(0, np.array([[0.0, 0.0], [50.0, 0.0], [50.0, 0.0]]), 3.5, successors=[1], speed_limit=20.0)  # repeated point
+    th = np.linspace(0, 1.0, 40)
+    b = Lane(1, np.c_[50 + 100 * np.sin(th), 100 * (1 - np.cos(th))], 4.0, speed_limit=15.0)
+    cor = build_corridor([a, b], 0, np.array([10.0, 0.0]), behind=5.0, ahead=120.0)
+    assert cor.lane_ids == (0, 1) and not cor.ends
+    cs = CorridorSet([cor])
+    assert cs.limit_at(np.array(0), np.array(5.0)) == 20.0 and cs.limit_at(np.array(0), np.array(100.0)) == 15.0
+    xy = cs.pose_at(np.zeros(50, int), np.linspace(0, 110, 50), rng.uniform(-2, 2, 50))[:, :2]
+    s_g, d_g = cs.project(0, xy)
+    s_l, d_l = cs.project_local(np.zeros(50, int), xy, s_g + rng.uniform(-3, 3, 50))
+    assert np.allclose(s_l, s_g, atol=1e-6) and np.allclose(d_l, d_g, atol=1e-6)
+    assert locate([a, b], np.array([60.0, 2.0, 0.2]))[0] == 1
+
+
+def test_forecast_joins_tracks_and_derives_yaw():
+    traj = np.zeros((2, 2, 60, 2))
+    traj[0, :, :, 1] = np.arange(1, 61)[None] * 1.0  # moving +y
+    traj[1] = 7.0  # standing still
+    preds = Predictions(np.array([5, 9]), traj, np.array([[2.0, 2.0], [1.0, 0.0]]))
+    tracks = Tracks(np.array([9]), np.array([[7.0, 7.0, 10.0, 2.5, 1.0]]), np.zeros((1, 2)), np.ones(1),
+                    np.zeros(1, np.int64), np.zeros((1, 1, 3)), np.ones((1, 1), bool))
+    f = forecast_from(preds, tracks, steps=50, dt=0.1)
+    assert f.poses.shape == (2, 2, 51, 3)
+    assert f.probs[0].tolist() == [0.5, 0.5]
+    assert np.allclose(f.poses[0, 0, 1:, 2], math.pi / 2) and np.allclose(f.poses[0, 0, 0, :2], [0.0, 0.0])
+    assert f.dims[1].tolist() == [10.0, 2.5] and np.allclose(f.poses[1, :, :, 2], 1.0)  # track yaw held
