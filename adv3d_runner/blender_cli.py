@@ -91,13 +91,15 @@ def register(subparsers) -> None:
                    help="skip installing the zip into a bpy child process and registering it")
     b.set_defaults(func=cmd_build)
 
-    r = sub.add_parser("render", help="render the library grid, a latent sweep or a review frame to PNG")
-    r.add_argument("--what", choices=("library", "sweep", "review"), required=True)
+    r = sub.add_parser("render", help="render the library grid, a latent sweep, a scene or a review frame to PNG")
+    r.add_argument("--what", choices=("library", "sweep", "scene", "review"), required=True)
     r.add_argument("--out", type=Path, required=True, help="PNG file to write")
     r.add_argument("--library", type=Path, default=None, help="library.json (default: the shipped library)")
     r.add_argument("--space", type=Path, default=None, help="shape-space .npz (default: the shipped one)")
     r.add_argument("--dim", type=int, default=0, help="sweep: latent dimension (0-based; K, K+1 = width, length)")
     r.add_argument("--steps", type=int, default=5, help="sweep: number of shapes")
+    r.add_argument("--scene", type=Path, default=None, help="scene: scene file")
+    r.add_argument("--frame", type=int, default=0, help="scene: frame to show")
     r.add_argument("--run", type=Path, default=None, help="review: run bundle folder")
     r.add_argument("--size", default="1280x720", help="image size WxH in pixels")
     r.add_argument("--engine", choices=("workbench", "eevee"), default="workbench")
@@ -130,6 +132,10 @@ def cmd_render(args) -> int:
         cmd += ["--library", str(args.library)]
     if args.space:
         cmd += ["--space", str(args.space)]
+    if args.what == "scene":
+        if args.scene is None:
+            raise ConfigError("--what scene needs --scene FILE")
+        cmd += ["--scene", str(args.scene), "--frame", str(args.frame)]
     _run_child(cmd, "render")
     from .progress import status
 

@@ -90,21 +90,41 @@ def _origin_of(scene) -> np.ndarray:
     return np.round(np.array([scene.ego.track.x[0], scene.ego.track.y[0]]))
 
 
-def _road_object(scene, origin, coll):
+def _road_object(scene, origin, coll, scene_dir: Path):
     try:
         from adv3d_runner.scene.background import background_mesh
     except ImportError:  # background geometry not available in this runner version
         return None
-    mesh = background_mesh(scene)
+    mesh = background_mesh(scene, scene_dir)
+    kinds = None
     if isinstance(mesh, tuple):
         vertices, faces = mesh[0], mesh[1]
+        kinds = mesh[2] if len(mesh) > 2 else None
     else:
         vertices, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
     vertices = np.array(vertices, dtype=np.float64)
     vertices[:, :2] -= origin
     obj = meshdata.new_mesh_object("road", vertices, faces, coll)
     obj.adv3d.role = "ROAD"
+    if kinds is not None:  # colour by surface kind (Workbench "Attribute" colouring shows it)
+        palette = np.array([SURFACE_COLOURS.get(k, (0.5, 0.5, 0.5, 1.0)) for k in _surface_kinds()], np.float32)
+        attr = obj.data.color_attributes.new("surface", "FLOAT_COLOR", "CORNER")
+        attr.data.foreach_set("color", np.repeat(palette[np.asarray(kinds, dtype=np.int64)], 3, axis=0).ravel())
+        obj.data.color_attributes.active_color = attr
     return obj
+
+
+# Linear RGBA per background surface kind (adv3d_runner.scene.background.SURFACE_KINDS).
+SURFACE_COLOURS = {
+    "asphalt": (0.06, 0.06, 0.065, 1.0), "lane_paint": (0.9, 0.9, 0.85, 1.0), "concrete": (0.45, 0.45, 0.43, 1.0),
+    "metal": (0.55, 0.57, 0.6, 1.0), "ground": (0.18, 0.22, 0.08, 1.0), "vegetation": (0.05, 0.2, 0.04, 1.0),
+}
+
+
+def _surface_kinds() -> tuple[str, ...]:
+    from adv3d_runner.scene.background import SURFACE_KINDS
+
+    return SURFACE_KINDS
 
 
 def _lane_object(lane, origin, coll):
@@ -213,7 +233,7 @@ def load_scene_objects(bscene, path: str, library=None) -> dict:
     bscene.render.fps_base = bscene.render.fps / fps
 
     counts = {"road": 0, "lanes": 0, "actors": 0, "sensors": 0}
-    if _road_object(scene, origin, root) is not None:
+    if _road_object(scene, origin, root, Path(path).parent) is not None:
         counts["road"] = 1
     lanes = meshdata.get_collection(f"{ROOT_COLLECTION} lanes", root)
     for lane in scene.lanes:

@@ -109,8 +109,12 @@ def _ground(bounds_lo: np.ndarray, bounds_hi: np.ndarray) -> None:
     _mesh_object("ground", v, f, (0.80, 0.81, 0.83, 1.0))
 
 
-def _camera_fit(lo: np.ndarray, hi: np.ndarray, elevation_deg: float = 35.0, azimuth_deg: float = -60.0):
-    """Orthographic camera looking down at the box [lo, hi] from the front-left, fitted to it."""
+def _camera_fit(lo: np.ndarray, hi: np.ndarray, elevation_deg: float = 35.0, azimuth_deg: float = -60.0,
+                points: np.ndarray | None = None):
+    """Orthographic camera looking down at the box [lo, hi] (or at ``points`` (N, 3)), fitted to it.
+
+    ``azimuth_deg`` is where the camera stands seen from the target (-90: on the -y side,
+    looking towards +y)."""
     import bpy
     from mathutils import Euler, Matrix, Vector
 
@@ -121,13 +125,16 @@ def _camera_fit(lo: np.ndarray, hi: np.ndarray, elevation_deg: float = 35.0, azi
     scene.collection.objects.link(cam)
     scene.camera = cam
     rot = Euler((math.radians(90.0 - elevation_deg), 0.0, math.radians(azimuth_deg + 90.0)), "XYZ")
+    if points is not None:
+        lo, hi = points.min(axis=0), points.max(axis=0)
     centre = Vector(((lo + hi) / 2).tolist())
     rmat = rot.to_matrix()
     view_dir = rmat @ Vector((0.0, 0.0, -1.0))
     cam.rotation_euler = rot
     cam.location = centre - view_dir * 100.0
     # Fit: project the box corners onto the camera's x / y axes.
-    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    corners = points if points is not None else np.array(
+        [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
     axes = np.array(rmat.transposed())[:2]  # camera x and y in world
     proj = (corners - np.array(centre)) @ axes.T
     w = np.ptp(proj[:, 0])
@@ -236,6 +243,57 @@ def render_sweep(space_path: Path | None, out: Path, dim: int, steps: int, width
     _render(out)
 
 
+def render_scene(scene_path: Path, library_path: Path | None, out: Path, frame: int, width: int, height: int,
+                 engine: str) -> None:
+    """A scene loaded through the add-on's Scenes panel code, at one frame, around the ego."""
+    import bpy
+
+    import blender_addon
+    from adv3d_runner.shapes.library import DEFAULT_LIBRARY, load_library
+    from blender_addon import ops_scene
+
+    scene = _reset(width, height, engine)
+    blender_addon.register()
+    lib_path = library_path or DEFAULT_LIBRARY
+    library = load_library(lib_path) if Path(lib_path).exists() else None
+    ops_scene.load_scene_objects(scene, str(scene_path), library)
+    if not scene.frame_start <= frame <= scene.frame_end:
+        raise SystemExit(_fail(f"--frame must be in [{scene.frame_start}, {scene.frame_end}]"))
+    scene.frame_set(frame)
+    colours = {"EGO": (0.1, 0.35, 0.9, 1.0), "ACTOR": (0.85, 0.55, 0.15, 1.0)}
+    for obj in scene.objects:
+        role = obj.adv3d.role
+        if role in colours and obj.type == "MESH":
+            # One colour attribute per mesh datablock (library meshes are shared between actors).
+            mesh = obj.data
+            if mesh.color_attributes.get("Col") is None:
+                attr = mesh.color_attributes.new("Col", "FLOAT_COLOR", "CORNER")
+                rgba = np.tile(np.asarray(colours[role], np.float32), (len(mesh.loops), 1))
+                attr.data.foreach_set("color", rgba.ravel())
+                mesh.color_attributes.active_color = attr
+        elif role == "LANE":
+            obj.data.bevel_depth = 0.06
+            obj.data.materials.append(bpy.data.materials.new("lane"))
+    ego = next(o for o in scene.objects if o.adv3d.role == "EGO")
+    # A chase camera: 16 m behind the ego, 9 m up, looking 18 m ahead of it.
+    from mathutils import Vector
+
+    centre = np.array(ego.matrix_world.translation)
+    yaw = ego.matrix_world.to_euler().z
+    fwd = np.array([math.cos(yaw), math.sin(yaw), 0.0])
+    cam_data = bpy.data.cameras.new("camera")
+    cam_data.lens = 28.0
+    cam_data.clip_end = 2000.0
+    cam = bpy.data.objects.new("camera", cam_data)
+    scene.collection.objects.link(cam)
+    scene.camera = cam
+    cam.location = centre - 16.0 * fwd + np.array([0.0, 0.0, 9.0])
+    target = Vector((centre + 18.0 * fwd).tolist())
+    cam.rotation_euler = (target - cam.location).to_track_quat("-Z", "Y").to_euler()
+    blender_addon.unregister()
+    _render(out)
+
+
 def _fail(message: str) -> int:
     print(f"adv3d render: {message}", file=sys.stderr)
     return 2
@@ -243,7 +301,9 @@ def _fail(message: str) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m blender_addon.render")
-    parser.add_argument("--what", choices=("library", "sweep"), required=True)
+    parser.add_argument("--what", choices=("library", "sweep", "scene"), required=True)
+    parser.add_argument("--scene", type=Path, default=None)
+    parser.add_argument("--frame", type=int, default=0)
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--library", type=Path, default=None)
     parser.add_argument("--space", type=Path, default=None)
@@ -258,6 +318,10 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.what == "library":
             render_library(args.library, args.out, width, height, args.engine)
+        elif args.what == "scene":
+            if args.scene is None:
+                return _fail("--what scene needs --scene FILE")
+            render_scene(args.scene, args.library, args.out, args.frame, width, height, args.engine)
         else:
             render_sweep(args.space, args.out, args.dim, args.steps, width, height, args.engine)
     except Adv3dError as exc:
