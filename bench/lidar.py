@@ -149,14 +149,23 @@ def actor_meshes():
     return out
 
 
-def timed(fn, repeats: int):
-    times = []
+CLOCK = time.thread_time  # CPU time of this thread: the machine is shared, wall time is not ours
+WALL: dict[str, float] = {}
+
+
+def timed(fn, repeats: int, name: str | None = None):
+    """Median CPU time (s) of ``fn`` over ``repeats`` calls, and its last result; the median
+    wall time goes to ``WALL[name]``."""
+    cpu, wall = [], []
     result = None
     for _ in range(repeats):
-        t0 = time.perf_counter()
+        w0, t0 = time.perf_counter(), CLOCK()
         result = fn()
-        times.append(time.perf_counter() - t0)
-    return float(np.median(times)), result
+        cpu.append(CLOCK() - t0)
+        wall.append(time.perf_counter() - w0)
+    if name:
+        WALL[name] = float(np.median(wall))
+    return float(np.median(cpu)), result
 
 
 def merged_static_bvh(world: LidarWorld, poses: np.ndarray):
@@ -180,10 +189,17 @@ def section_a(repeats: int) -> dict:
     world, ego, poses, what, tris = build_scene_world(30)
     rig = LidarRig.single(get_model("hdl64"), mount=(0, 0, 1.73, 0, 0, 0), ego_dimensions=(4.6, 1.9, 1.5))
     rng = np.random.default_rng(0)
-    stats = {}
     simulate_frame(world, rig, ego, poses, rng)  # warm-up (ego-box cache)
-    t_pipe, _ = timed(lambda: simulate_frame(world, rig, ego, poses, np.random.default_rng(0), stats=stats), repeats)
-    embree_in_pipe = stats["embree_s"] / repeats
+    embree_times = []
+
+    def pipeline():
+        stats = {"clock": CLOCK}
+        frame = simulate_frame(world, rig, ego, poses, np.random.default_rng(0), stats=stats)
+        embree_times.append(stats["embree_s"])
+        return frame
+
+    t_pipe, _ = timed(pipeline, repeats, "pipeline")
+    embree_in_pipe = float(np.median(embree_times))
     # Raw: one cast of the same rays on a merged static BVH.
     sensor = rig.sensors[0]
     c, s = np.cos(ego[2]), np.sin(ego[2])
@@ -199,7 +215,7 @@ def section_a(repeats: int) -> dict:
         prim, _ = merged.intersect(origin, dirs, t)
         return t, prim
 
-    t_raw, (t_ref, prim_ref) = timed(raw, repeats)
+    t_raw, (t_ref, prim_ref) = timed(raw, repeats, "raw")
     # Error: pipeline without effects vs the merged cast, per ray (ray order is the same).
     ideal = simulate_frame(world, LidarRig.single(sensor.model.with_overrides(min_range=0.0), mount=(0, 0, 1.73, 0, 0, 0)),
                            ego, poses, None)
@@ -213,10 +229,11 @@ def section_a(repeats: int) -> dict:
         "raw_merged_cast_ms": 1e3 * t_raw, "merged_bvh_build_ms": 1e3 * t_build,
         "overhead_vs_raw_cast": t_pipe / t_raw - 1.0,
         "overhead_vs_own_embree": t_pipe / embree_in_pipe - 1.0,
+        "wall_pipeline_ms": 1e3 * WALL["pipeline"], "wall_raw_cast_ms": 1e3 * WALL["raw"],
         "hits_pipeline": int(ideal.distance.size), "hits_raw": int(hit_ref.sum()),
         "max_range_diff_m": max_err,
     }
-    print("\n(a) HDL-64E frame, 30 actors: full pipeline vs raw Embree on the same rays (median ms)")
+    print("\n(a) HDL-64E frame, 30 actors: full pipeline vs raw Embree on the same rays (median CPU ms)")
     print(f"  world: {what}; actor triangles {sum(tris)}; rays {sensor.n_rays}")
     print(f"  {'full pipeline':34s} {row['pipeline_ms']:8.2f}   (of which inside Embree {row['pipeline_embree_ms']:.2f})")
     print(f"  {'raw cast, one merged static BVH':34s} {row['raw_merged_cast_ms']:8.2f}   "
@@ -230,14 +247,14 @@ def section_a(repeats: int) -> dict:
 
 def section_b(repeats: int) -> list[dict]:
     rows = []
-    print("\n(b) HDL-64E per-frame time against actors (median ms; identical points with/without culling)")
+    print("\n(b) HDL-64E per-frame time against actors (median CPU ms; identical points with/without culling)")
     print(f"  {'actors':>6s} {'cull ms':>9s} {'no-cull ms':>11s} {'speed-up':>9s} {'actor rays cull':>16s} "
           f"{'no cull':>10s} {'points':>8s} {'same':>5s}")
     rig = LidarRig.single(get_model("hdl64"), mount=(0, 0, 1.73, 0, 0, 0), ego_dimensions=(4.6, 1.9, 1.5))
     for n in ACTOR_COUNTS:
         world, ego, poses, _, _ = build_scene_world(n)
         simulate_frame(world, rig, ego, poses, None)
-        st_c, st_n = {}, {}
+        st_c, st_n = {"clock": CLOCK}, {"clock": CLOCK}
         t_c, f_c = timed(lambda: simulate_frame(world, rig, ego, poses, np.random.default_rng(1), stats=st_c), repeats)
         t_n, f_n = timed(lambda: simulate_frame(world, rig, ego, poses, np.random.default_rng(1), cull=False,
                                                 stats=st_n), max(1, repeats // 3))
@@ -257,7 +274,7 @@ def section_c(repeats: int) -> list[dict]:
     world, ego, poses, _, _ = build_scene_world(30)
     models = [get_model("vlp32c"), get_model("hdl64"), get_model("os1-128")]
     models += [generic_model(b, 10.0, -25.0, 2048, 120.0, name=f"generic-{b}x2048") for b in (32, 64, 128)]
-    print("\n(c) points per frame against beam count (30 actors, median ms)")
+    print("\n(c) points per frame against beam count (30 actors, median CPU ms)")
     print(f"  {'model':18s} {'beams':>5s} {'rays':>8s} {'points':>8s} {'on actors':>9s} {'ms':>8s} {'us/ray':>7s}")
     for model in models:
         rig = LidarRig.single(model, mount=(0, 0, 1.73, 0, 0, 0), ego_dimensions=(4.6, 1.9, 1.5))
@@ -283,6 +300,7 @@ def main() -> int:
     result = {
         "benchmark": "lidar", "command": " ".join([Path(sys.executable).name] + sys.argv), "quick": args.quick,
         "repeats": repeats, "machine": info,
+        "timing": "median CPU time of the (single) thread, time.thread_time; wall medians for (a) too",
         "a_pipeline_vs_raw": section_a(repeats),
         "b_actors_culling": section_b(repeats),
         "c_beams": section_c(repeats),

@@ -307,7 +307,9 @@ def simulate_frame(world, rig: LidarRig, ego_pose, actor_poses=None, rng: np.ran
             (identical output, faster). False casts every ray against every actor.
         noise, drop: switch range noise / ray drop off even with an rng.
         stats: if a dict, ``embree_s`` (time inside Embree), ``rays_cast`` and
-            ``actor_rays`` are accumulated into it.
+            ``actor_rays`` are accumulated into it; its optional ``clock`` entry is the timer
+            (default ``time.perf_counter``; benchmarks on a shared machine pass
+            ``time.thread_time``).
 
     Returns:
         :class:`LidarFrame` in the ego frame.
@@ -338,7 +340,7 @@ def _simulate_sensor(world, rig, k, sensor: MountedLidar, ego, poses, present, a
     c, s = float(np.cos(ego[2])), float(np.sin(ego[2]))
     px, py, pz = sensor.position
     sensor_map = np.array([ego[0] + c * px - s * py, ego[1] + s * px + c * py, pz])
-    timer = time.perf_counter
+    timer = stats.get("clock", time.perf_counter) if stats is not None else time.perf_counter
     embree_s = 0.0
     actor_rays = 0
 
@@ -352,9 +354,10 @@ def _simulate_sensor(world, rig, k, sensor: MountedLidar, ego, poses, present, a
     t = np.full(n, model.max_range, np.float32)
     origin_bg = (sensor_map - world.origin).astype(np.float32).reshape(1, 3)
     t0 = timer()
-    prim_bg, normal = world.background.intersect(origin_bg, dirs, t)
+    prim_bg, _ = world.background.intersect(origin_bg, dirs, t)
     embree_s += timer() - t0
     label = np.full(n, BACKGROUND, np.int32)
+    cos_actor = None  # (N,) |cos incidence| of the rays whose nearest hit is an actor
 
     # The ego's own body (ego frame, rays in the ego frame): blocks rays, returns nothing.
     if world.ego is not None:
@@ -400,11 +403,10 @@ def _simulate_sensor(world, rig, k, sensor: MountedLidar, ego, poses, present, a
             if rays is not None:
                 t[rows] = t_sub[hit]
             label[rows] = i
-            # Local normal -> map frame (rotate by the actor yaw), for the incidence angle.
-            nl = ng[hit]
-            normal[rows, 0] = ca * nl[:, 0] - sa * nl[:, 1]
-            normal[rows, 1] = sa * nl[:, 0] + ca * nl[:, 1]
-            normal[rows, 2] = nl[:, 2]
+            # |cos incidence| in the actor's frame, from its unit face normals.
+            if cos_actor is None:
+                cos_actor = np.zeros(n, np.float32)
+            cos_actor[rows] = np.abs(np.einsum("ij,ij->i", bvh.face_normals[prim[hit]], local[hit]))
 
     if stats is not None:
         stats["embree_s"] = stats.get("embree_s", 0.0) + embree_s
@@ -447,17 +449,22 @@ def _simulate_sensor(world, rig, k, sensor: MountedLidar, ego, poses, present, a
 
     # Intensity = reflectivity x |cos incidence| x exp(-attenuation x true range).
     lab = label[idx]
-    refl = world.background_reflectivity[prim_bg[idx]]  # prim -1 -> the trailing 0 slot
+    refl = world.background_reflectivity.take(prim_bg.take(idx))  # prim -1 -> the trailing 0 slot
     on_actor = lab >= 0
     if on_actor.any():
         refl[on_actor] = actor_refl[lab[on_actor]]
-    # Row-wise dot products over all rays, then one 1-D gather each: cheaper than gathering
-    # the strided (N, 3) columns of the normals and directions.
-    dot = np.einsum("ij,ij->i", normal, dirs).take(idx)
-    norm = np.einsum("ij,ij->i", normal, normal).take(idx)
-    np.sqrt(norm, out=norm)  # |direction| = 1 up to float32 rounding
-    cos_inc = np.abs(dot, out=dot)
-    np.divide(cos_inc, norm, out=cos_inc, where=norm > 0)
+    # |cos incidence| from unit face normals: background by face index (a miss indexes the
+    # zero row), actors from the loop above. n_map . d_map = n_ego . d_ego, with the normal
+    # turned into the ego frame; everything here is 1-D contiguous gathers and arithmetic.
+    prim_b = prim_bg.take(idx)
+    fnx, fny, fnz = (col.take(prim_b) for col in world.background.normal_columns)
+    dxe, dye = sensor.dx.take(idx), sensor.dy.take(idx)
+    cos_inc = fnz * sensor.dz.take(idx)
+    cos_inc += (np.float32(c) * fnx + np.float32(s) * fny) * dxe
+    cos_inc += (np.float32(c) * fny - np.float32(s) * fnx) * dye
+    np.abs(cos_inc, out=cos_inc)
+    if on_actor.any():
+        cos_inc[on_actor] = cos_actor[idx[on_actor]]
     np.minimum(cos_inc, 1.0, out=cos_inc)
     cos_inc *= refl
     cos_inc *= np.exp(np.float32(-rig.attenuation) * t[idx])

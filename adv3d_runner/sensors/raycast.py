@@ -57,6 +57,8 @@ class MeshBVH:
         xy_radius: radius of the smallest origin-centred circle holding the mesh's xy footprint.
         radius: radius of the origin-centred sphere holding the mesh.
         z_range: (zmin, zmax) of the vertices.
+        face_normals: (F + 1, 3) float32 unit face normals (zero for degenerate faces), with
+            a trailing zero row so that a miss (face -1) indexes safely.
     """
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray):
@@ -73,6 +75,15 @@ class MeshBVH:
         else:
             self.xy_radius = self.radius = 0.0
             self.z_range = (0.0, 0.0)
+        normals = np.zeros((self.n_faces + 1, 3), np.float32)
+        if self.n_faces:
+            v64 = v.astype(np.float64)
+            cross = np.cross(v64[f[:, 1]] - v64[f[:, 0]], v64[f[:, 2]] - v64[f[:, 0]])
+            norm = np.linalg.norm(cross, axis=1, keepdims=True)
+            normals[:-1] = np.divide(cross, norm, out=np.zeros_like(cross), where=norm > 0)
+        self.face_normals = normals
+        # The same as contiguous columns: 1-D gathers are several times faster than row gathers.
+        self.normal_columns = tuple(np.ascontiguousarray(normals[:, j]) for j in range(3))
         self._scene = None
         if self.n_faces:
             from embreex import rtcore_scene as rtcs
