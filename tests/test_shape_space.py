@@ -338,6 +338,12 @@ def test_cli_decode_and_info(space, tmp_path, capsys):
     assert rc == 0 and out.stat().st_size > 0
     loaded = trimesh.load(out, force="mesh")
     assert len(loaded.faces) > 0
+    # glTF is y-up: the file's y extent is the car's height, read back in the library frame.
+    from adv3d_runner.shapes.mesh_io import read_library_mesh
+
+    back = read_library_mesh(out)
+    ref = space.decode([0.5] * 5)
+    assert np.allclose(back.bounds, ref.bounds, atol=1e-5)
     for suffix in (".obj", ".ply", ".stl"):
         rc = adv3d_main(["-q", "shapes", "decode", "--u", "0,1,0,1,0", "-o", str(tmp_path / f"car{suffix}"),
                          "--space", str(sp_path)])

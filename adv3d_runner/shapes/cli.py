@@ -86,8 +86,15 @@ def _decode(args: argparse.Namespace) -> int:
         raise ConfigError(f"--u must be comma-separated numbers, got {args.u!r}") from None
     space = _load_space(args.space)
     mesh = space.decode(u)
+    out_mesh = mesh
+    if suffix in (".glb", ".gltf"):
+        # glTF is y-up: store the library's glTF frame so Blender's importer shows it upright.
+        from .mesh_io import CONVENTION_TO_GLTF
+
+        out_mesh = mesh.copy()
+        out_mesh.vertices = mesh.vertices @ CONVENTION_TO_GLTF.T
     with atomic_path(args.out, suffix=suffix) as tmp:
-        mesh.export(tmp, file_type=suffix.lstrip("."))
+        out_mesh.export(tmp, file_type=suffix.lstrip("."))
     z, scales = space.unit_to_latent(u)
     ext = mesh.extents
     status(f"decoded z={[round(float(x), 4) for x in z]} width/length scale={[round(float(x), 3) for x in scales]}: "

@@ -12,10 +12,11 @@ Methods (``METHODS``):
     2. sign from the generalised winding number (``igl.fast_winding_number``): inside where
        w > 0.5. Interior parts and overlapping parts only raise w (1 -> 2), open bodies give a
        fractional w that is still > 0.5 in a mostly closed cabin;
-    3. unsigned distance (libigl AABB, ``igl.point_mesh_squared_distance``) to the *boundary*
-       faces only: faces whose two sides have different inside/outside status. Interior parts
-       would otherwise create small |SDF| pockets inside the body that a PCA blend can turn
-       into spurious surfaces.
+    3. unsigned distance (libigl AABB: ``igl.signed_distance`` with the unsigned sign type and
+       an upper bound at the truncation) to the *boundary* pieces only: triangles, split to
+       about a voxel, whose two sides have different inside/outside status. Interior parts and
+       faces hidden inside overlapping parts would otherwise create small |SDF| pockets inside
+       the body that a PCA blend can turn into spurious surfaces.
 ``floodfill`` (the paper's mesh2sdf style)
     Unsigned distance to all faces; voxels closer than 0.75 voxel to a face are walls; the
     outside is the wall-free region connected to the grid border (6-connectivity). Robust to
