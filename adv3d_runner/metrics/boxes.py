@@ -207,18 +207,24 @@ def box_separation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def _axis_overlaps(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Projection overlap (m) of two boxes on each of the 4 candidate axes: (..., 4)."""
-    ca, cb = box_corners(a), box_corners(b)
-    ca, cb = np.broadcast_arrays(ca, cb)
-    ya, yb = np.broadcast_arrays(a[..., 4], b[..., 4])
-    # the four candidate separating axes of two rectangles are their local x and y axes; they
-    # are unit vectors even for degenerate boxes
-    axes = np.stack([np.stack([np.cos(ya), np.sin(ya)], -1), np.stack([-np.sin(ya), np.cos(ya)], -1),
-                     np.stack([np.cos(yb), np.sin(yb)], -1), np.stack([-np.sin(yb), np.cos(yb)], -1)], axis=-2)
-    centre = 0.5 * (ca.mean(axis=-2) + cb.mean(axis=-2))  # project relative to a nearby point
-    pa = np.einsum("...vk,...ak->...av", ca - centre[..., None, :], axes)  # (..., 4 axes, 4 verts)
-    pb = np.einsum("...vk,...ak->...av", cb - centre[..., None, :], axes)
-    return np.minimum(pa.max(-1), pb.max(-1)) - np.maximum(pa.min(-1), pb.min(-1))
+    """Projection overlap (m) of two boxes on each of the 4 candidate separating axes (the local
+    x and y axes of each box; unit vectors even for degenerate boxes): (..., 4).
+
+    Closed form for rectangles: on box a's x axis the overlap is
+    ``hl_a + (hl_b |cos dyaw| + hw_b |sin dyaw|) - |centre offset . x_a|``, and so on.
+    """
+    hla, hwa = 0.5 * np.maximum(a[..., 2], 0.0), 0.5 * np.maximum(a[..., 3], 0.0)
+    hlb, hwb = 0.5 * np.maximum(b[..., 2], 0.0), 0.5 * np.maximum(b[..., 3], 0.0)
+    dx, dy = b[..., 0] - a[..., 0], b[..., 1] - a[..., 1]
+    ca, sa = np.cos(a[..., 4]), np.sin(a[..., 4])
+    cb, sb = np.cos(b[..., 4]), np.sin(b[..., 4])
+    c = np.abs(ca * cb + sa * sb)  # |cos(yaw_b - yaw_a)|
+    s = np.abs(ca * sb - sa * cb)  # |sin(yaw_b - yaw_a)|
+    o1 = hla + hlb * c + hwb * s - np.abs(dx * ca + dy * sa)
+    o2 = hwa + hlb * s + hwb * c - np.abs(-dx * sa + dy * ca)
+    o3 = hlb + hla * c + hwa * s - np.abs(dx * cb + dy * sb)
+    o4 = hwb + hla * s + hwa * c - np.abs(-dx * sb + dy * cb)
+    return np.stack(np.broadcast_arrays(o1, o2, o3, o4), axis=-1)
 
 
 def boxes_overlap(a: np.ndarray, b: np.ndarray, tol: float = 1e-9) -> np.ndarray:

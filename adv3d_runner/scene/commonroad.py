@@ -300,14 +300,29 @@ def import_commonroad(path: str | Path, seconds: float | None = None, extend: bo
 
 def _edge_barriers(lanes: list[Lane], shoulder_left: float = 1.0) -> list[Barrier]:
     """Concrete barrier beyond the left edge (+ shoulder) of every lane without a left
-    neighbour (US-101: median barrier)."""
+    neighbour (US-101: median barrier), cut where it would stand on another lane's surface
+    (lanelets that touch without being linked as neighbours, e.g. slip roads)."""
     out = []
     for lane in lanes:
         if lane.left is not None or lg.length(lane.centerline) < 1.0:
             continue
         pts = lg.clean_polyline(lane.centerline)
+        pts = lg.resample(pts, 2.0)
         w = lg.width_at(lane.centerline, lane.width, lg.arc_length(pts))
-        out.append(Barrier("concrete", lg.offset_polyline(pts, 0.5 * w + shoulder_left + 0.3), height=0.81))
+        line = lg.offset_polyline(pts, 0.5 * w + shoulder_left + 0.3)
+        free = np.ones(len(line), bool)
+        for other in lanes:
+            if other.id == lane.id:
+                continue
+            s, d, _ = lg.project(other.centerline, line)
+            inside = (s >= 0) & (s <= lg.length(other.centerline))
+            half = 0.5 * lg.width_at(other.centerline, other.width, np.clip(s, 0, None))
+            free &= ~(inside & (np.abs(d) < half + 3.0))  # 3 m: not in a gore next to a lane
+        # keep runs of consecutive free points (at least 2)
+        edges = np.flatnonzero(np.diff(np.concatenate([[0], free.astype(int), [0]])))
+        for a, b in zip(edges[::2], edges[1::2]):
+            if b - a >= 2:
+                out.append(Barrier("concrete", line[a:b], height=0.81))
     return out
 
 

@@ -316,17 +316,38 @@ def _lanes_for_map(road: RoadLayout, speed_limit: float) -> list[Lane]:
 
 
 def _barriers(rng, road: RoadLayout, shoulder_left: float, shoulder_right: float) -> list[Barrier]:
-    """Concrete median barrier on the left edge; a guardrail on the right (70 % of scenes)."""
+    """Concrete median barrier on the left edge; a guardrail on the right (70 % of scenes).
+    With an on-ramp the right guardrail runs along the main road up to the gore (where the
+    ramp comes within its shoulder of the main road), and a second one along the ramp's outer
+    edge, so no barrier ever crosses a lane."""
     s = np.linspace(0.0, road.length, max(2, int(road.length / 10.0) + 1))
     ks = np.arange(road.n_lanes)
     exists = (s[None, :] >= road.start[:, None]) & (s[None, :] <= road.end[:, None])
     offs = np.stack([road.offset(k, s) for k in ks])
     wid = np.stack([road.width(k, s) for k in ks])
     left_edge = np.max(np.where(exists, offs + wid / 2, -np.inf), axis=0) + shoulder_left + 0.3
-    right_edge = np.min(np.where(exists, offs - wid / 2, np.inf), axis=0) - shoulder_right - 0.3
     out = [Barrier("concrete", lg.pose_at(road.ref, s, left_edge)[:, :2], height=0.81)]
-    if rng.random() < 0.7:
+    if rng.random() >= 0.7:
+        return out
+    if road.ramp_lane is None:
+        right_edge = np.min(np.where(exists, offs - wid / 2, np.inf), axis=0) - shoulder_right - 0.3
         out.append(Barrier("guardrail", lg.pose_at(road.ref, s, right_edge)[:, :2], height=0.75))
+        return out
+    r = road.ramp_lane
+    main = np.ones(road.n_lanes, bool)
+    main[r] = False
+    main_edge = np.min(np.where(exists[main], (offs - wid / 2)[main], np.inf), axis=0) - shoulder_right - 0.3
+    ramp_inner = offs[r] + wid[r] / 2
+    gore = exists[r] & (ramp_inner > main_edge - 1.0)
+    nose = s[np.argmax(gore)] if gore.any() else road.length
+    before = s < nose
+    if before.sum() >= 2:
+        out.append(Barrier("guardrail", lg.pose_at(road.ref, s[before], main_edge[before])[:, :2], height=0.75))
+    after = s >= road.start[r]
+    outer = np.where(exists[r], offs[r] - wid[r] / 2, main_edge + shoulder_right + 0.3) - shoulder_right - 0.3
+    outer = np.minimum(outer, main_edge)
+    if after.sum() >= 2:
+        out.append(Barrier("guardrail", lg.pose_at(road.ref, s[after], outer[after])[:, :2], height=0.75))
     return out
 
 

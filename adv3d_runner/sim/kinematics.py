@@ -56,7 +56,8 @@ class BicycleParams:
     @property
     def max_curvature(self) -> float:
         """Largest path curvature (1/m) of the reference point at full steering."""
-        return float(steer_to_curvature(self.max_steer, self))
+        d = self.max_steer
+        return float(np.cos(np.arctan(self.lr * np.tan(d) / self.wheelbase)) * np.tan(d) / self.wheelbase)
 
 
 def _slip(delta: np.ndarray, p: BicycleParams) -> np.ndarray:
@@ -104,23 +105,26 @@ def step(state: np.ndarray, accel: np.ndarray | float, steer: np.ndarray | float
         raise ValueError("give exactly one of steer or curvature")
     st = np.asarray(state, dtype=np.float64)
     x, y, yaw, v = st[..., 0], st[..., 1], st[..., 2], np.maximum(st[..., 3], 0.0)
-    a = np.clip(np.asarray(accel, dtype=np.float64), -params.max_decel, params.max_accel)
+    a = np.minimum(np.maximum(np.asarray(accel, dtype=np.float64), -params.max_decel), params.max_accel)
     if steer is not None:
         delta = np.clip(np.asarray(steer, dtype=np.float64), -params.max_steer, params.max_steer)
         kappa = steer_to_curvature(delta, params)
         beta = _slip(delta, params)
     else:
-        kappa = np.clip(np.asarray(curvature, dtype=np.float64), -params.max_curvature, params.max_curvature)
-        beta = np.arcsin(np.clip(kappa * params.lr, -1.0, 1.0))
+        k_max = params.max_curvature
+        kappa = np.minimum(np.maximum(np.asarray(curvature, dtype=np.float64), -k_max), k_max)
+        beta = np.arcsin(np.clip(kappa * params.lr, -1.0, 1.0)) if params.lr else 0.0
     v_end = v + a * dt
     # arc length over the step; a braking vehicle stops when v reaches 0 and stays there
     stops = v_end < 0
     t_stop = np.where(stops, v / np.where(a < 0, -a, 1.0), dt)
-    s = np.where(stops, 0.5 * v * t_stop, v * dt + 0.5 * a * dt * dt)
-    s = np.maximum(s, 0.0)
-    v_end = np.clip(v_end, 0.0, params.max_speed)
+    s = np.maximum(np.where(stops, 0.5 * v * t_stop, v * dt + 0.5 * a * dt * dt), 0.0)
+    v_end = np.minimum(np.maximum(v_end, 0.0), params.max_speed)
     dx, dy, dth = _arc(s, kappa, yaw + beta)
-    return np.stack(np.broadcast_arrays(x + dx, y + dy, yaw + dth, v_end), axis=-1)
+    x1, y1, yaw1, v1 = np.broadcast_arrays(x + dx, y + dy, yaw + dth, v_end)
+    out = np.empty(x1.shape + (4,))
+    out[..., 0], out[..., 1], out[..., 2], out[..., 3] = x1, y1, yaw1, v1
+    return out
 
 
 def rollout(state0: np.ndarray, accel: np.ndarray, steer: np.ndarray | None = None,

@@ -101,7 +101,8 @@ class Candidates:
         spec: what each candidate aimed for.
         states: (B, T + 1, 4) x, y, yaw, v; index 0 = the ego now.
         accel: (B, T) m/s^2; curvature: (B, T) 1/m (controls of each step).
-        s: (B, T + 1) arc length along the candidate's own corridor; d: (B, T + 1) offset.
+        s: (B, T + 1) arc length along the candidate's own corridor (projected every 5th step,
+            integrated in between); d: (B, T + 1) offset (NaN where not projected).
         leader_gap: (B, T + 1) bumper gap to the IDM leader (m, +inf without leader).
         dt: s.
     """
@@ -212,6 +213,9 @@ def rollout_candidates(ego_pose: np.ndarray, ego_speed: float, ego_accel: float,
 
     # actors' Frenet coordinates on each corridor, for the IDM leader
     leader_s, leader_ok, leader_len = _actor_frenet(actors, corridors, spec, target_d, ego_width, config, T)
+    used = leader_ok.any(axis=(0, 2))  # actor-modes that are ever in some candidate's lane
+    leader_s, leader_ok, leader_len = leader_s[:, used], leader_ok[:, used], leader_len[used]
+    has_leaders = leader_s.shape[1] > 0
 
     states = np.empty((B, T + 1, 4))
     states[:, 0] = [pose[0], pose[1], pose[2], v0]
@@ -225,19 +229,27 @@ def rollout_candidates(ego_pose: np.ndarray, ego_speed: float, ego_accel: float,
     half_len = 0.5 * ego_length
     sqrt_ab = 2.0 * np.sqrt(config.idm_accel * config.idm_decel)
     kappa_max = params.max_curvature
+    rows = np.arange(B)
+    v_des = np.maximum(spec.target_speed, 0.0)
+    stop_target = v_des <= 0.1
+    v_des_safe = np.maximum(v_des, 0.1)
     for k in range(T + 1):
         st = states[:, k]
-        s_cur, d_cur = corridors.project_local(c, st[:, :2], s_cur, window=2)
-        s_hist[:, k], d_hist[:, k] = s_cur, d_cur
+        if k % 5 == 0 or k == T:  # exact projection now and then; in between the arc length driven
+            s_cur, d_cur = corridors.project_local(c, st[:, :2], s_cur, window=2)
+            d_hist[:, k] = d_cur
+        else:
+            d_hist[:, k] = np.nan
+        s_hist[:, k] = s_cur
         v = st[:, 3]
         # leader: nearest predicted actor ahead in the candidate's corridor at this time
-        if leader_s.shape[1]:
-            ahead = leader_ok[:, :, k] & (leader_s[:, :, k] > s_cur[:, None])
-            gaps = np.where(ahead, leader_s[:, :, k] - s_cur[:, None] - half_len - leader_len[None, :], np.inf)
+        if has_leaders:
+            ls = leader_s[:, :, k]
+            ahead = leader_ok[:, :, k] & (ls > s_cur[:, None])
+            gaps = np.where(ahead, ls - s_cur[:, None] - half_len - leader_len[None, :], np.inf)
             j = np.argmin(gaps, axis=1)
-            gap = gaps[np.arange(B), j]
-            kn = min(k + 1, T)
-            v_lead = np.maximum((leader_s[np.arange(B), j, kn] - leader_s[np.arange(B), j, k]) / dt, 0.0) if kn > k else v
+            gap = gaps[rows, j]
+            v_lead = np.maximum((leader_s[rows, j, min(k + 1, T)] - ls[rows, j]) / dt, 0.0) if k < T else v
         else:
             gap = np.full(B, np.inf)
             v_lead = v
@@ -245,38 +257,36 @@ def rollout_candidates(ego_pose: np.ndarray, ego_speed: float, ego_accel: float,
         if k == T:
             break
         # ---- longitudinal: IDM towards the target speed
-        v_des = np.maximum(spec.target_speed, 0.0)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            free = np.where(v_des > 0.1, config.idm_accel * (1.0 - (v / np.maximum(v_des, 0.1)) ** 4),
-                            -config.idm_decel * np.minimum(1.0, v))  # stop target: brake comfortably
+        free = np.where(stop_target, -config.idm_decel * np.minimum(1.0, v),  # stop target: brake comfortably
+                        config.idm_accel * (1.0 - (v / v_des_safe) ** 4))
         free = np.maximum(free, -config.idm_decel)  # above the target: slow down comfortably
-        s_star = config.idm_gap + np.maximum(0.0, v * config.idm_headway + v * (v - v_lead) / sqrt_ab)
-        finite = np.isfinite(gap)
-        interact = np.where(finite, -config.idm_accel * (s_star / np.maximum(gap, 0.1)) ** 2, 0.0)
-        interact = np.where(finite & (gap <= 0.0), -config.max_decel, interact)
-        a = np.clip(free + interact, -config.max_decel, config.idm_accel)
-        a = np.clip(a, a_prev - config.max_jerk * dt, a_prev + config.max_jerk * dt)
+        a = free
+        if has_leaders:
+            finite = np.isfinite(gap)
+            s_star = config.idm_gap + np.maximum(0.0, v * config.idm_headway + v * (v - v_lead) / sqrt_ab)
+            interact = np.where(finite, -config.idm_accel * (s_star / np.maximum(gap, 0.1)) ** 2, 0.0)
+            a = np.where(finite & (gap <= 0.0), -config.max_decel, free + interact)
+        a = np.minimum(np.maximum(a, -config.max_decel), config.idm_accel)
+        a = np.minimum(np.maximum(a, a_prev - config.max_jerk * dt), a_prev + config.max_jerk * dt)
         a = np.where(spec.emergency, -config.max_decel, a)
         a = np.where((v <= 1e-6) & (a < 0), 0.0, a)  # standing still: no braking "stored up"
         # ---- lateral: pure pursuit on the reference path
         ld = np.maximum(config.min_lookahead, v * config.lookahead_time)
         s_la = s_cur + ld
-        d_ref = _hermite(np.clip((s_la - s0) / trans_len, 0.0, 1.0), d0, slope0, target_d)
-        tgt = corridors.pose_at(c, s_la, d_ref)
+        u = np.minimum(np.maximum((s_la - s0) / trans_len, 0.0), 1.0)
+        tgt = corridors.pose_at(c, s_la, _hermite(u, d0, slope0, target_d))
         dx, dy = tgt[:, 0] - st[:, 0], tgt[:, 1] - st[:, 1]
-        cy, sy = np.cos(st[:, 2]), np.sin(st[:, 2])
-        ly = -sy * dx + cy * dy
-        l2 = np.maximum(dx * dx + dy * dy, 1e-6)
-        kappa = 2.0 * ly / l2
+        ly = -np.sin(st[:, 2]) * dx + np.cos(st[:, 2]) * dy
+        kappa = 2.0 * ly / np.maximum(dx * dx + dy * dy, 1e-6)
         k_lim = np.minimum(kappa_max, config.max_lat_accel / np.maximum(v * v, 1e-6))
-        kappa = np.clip(kappa, -k_lim, k_lim)
+        kappa = np.minimum(np.maximum(kappa, -k_lim), k_lim)
         states[:, k + 1] = step(st, a, curvature=kappa, dt=dt, params=params)
         # the acceleration actually applied (speed clamped at 0 when braking to a stop)
         a_applied = (states[:, k + 1, 3] - v) / dt
         acc[:, k] = a_applied
         kap[:, k] = kappa
         a_prev = a_applied
-        s_cur = s_cur + 0.5 * (v + states[:, k + 1, 3]) * dt  # guess for the next projection
+        s_cur = s_cur + 0.5 * (v + states[:, k + 1, 3]) * dt  # arc length driven (next guess)
     return Candidates(spec, states, acc, kap, s_hist, d_hist, gap_hist, dt)
 
 
@@ -295,19 +305,22 @@ def _actor_frenet(actors: ActorForecast, corridors: CorridorSet, spec: Candidate
     K = actors.poses.shape[1]
     xy = actors.poses[:, :, :T + 1, :2]
     M = N * K
-    s_all = np.empty((len(corridors), M, T + 1))
-    d_all = np.empty((len(corridors), M, T + 1))
+    # modes too unlikely to lead are not projected at all
+    relevant = (actors.probs >= config.min_mode_prob).reshape(M)
+    s_all = np.zeros((len(corridors), M, T + 1))
+    d_all = np.full((len(corridors), M, T + 1), np.inf)
+    xy = xy.reshape(M, T + 1, 2)[relevant]
     # global projection every 5th step, local projection of every step around the interpolation
     coarse = np.unique(np.r_[np.arange(0, T + 1, 5), T])
     right = np.clip(np.searchsorted(coarse, np.arange(T + 1)), 1, len(coarse) - 1)
     left = right - 1
     w = (np.arange(T + 1) - coarse[left]) / np.maximum(coarse[right] - coarse[left], 1)
     for ci in range(len(corridors)):
-        s_c, _ = corridors.project(ci, xy[:, :, coarse])
+        s_c, _ = corridors.project(ci, xy[:, coarse])
         guess = s_c[..., left] * (1 - w) + s_c[..., right] * w
-        s_ci, d_ci = corridors.project_local(np.full(guess.shape, ci), xy, guess)
-        s_all[ci] = s_ci.reshape(M, T + 1)
-        d_all[ci] = d_ci.reshape(M, T + 1)
+        s_ci, d_ci = corridors.project_local(np.full(guess.shape, ci), xy, guess, window=2)
+        s_all[ci, relevant] = s_ci
+        d_all[ci, relevant] = d_ci
     half_w = np.repeat(0.5 * actors.dims[:, 1], K)
     half_l = np.repeat(0.5 * actors.dims[:, 0], K)
     prob_ok = (actors.probs.reshape(M) >= config.min_mode_prob)
