@@ -382,7 +382,7 @@ class ADV3D_OT_library_import(bpy.types.Operator, ImportHelper):
 
     bl_idname = "adv3d.library_import"
     bl_label = "Import vehicle"
-    bl_options = {"REGISTER", "UNDO"}
+    bl_options = {"REGISTER"}  # writes files: Blender undo cannot take that back
 
     filter_glob: StringProperty(default="*.glb;*.gltf;*.obj;*.fbx;*.ply;*.stl;*.blend", options={"HIDDEN"})
     asset_id: StringProperty(name="Id", description="Asset id (default: <folder>.<file name>)")
@@ -409,7 +409,7 @@ class ADV3D_OT_library_rescale(bpy.types.Operator):
 
     bl_idname = "adv3d.library_rescale"
     bl_label = "Set real length"
-    bl_options = {"REGISTER", "UNDO"}
+    bl_options = {"REGISTER"}  # writes files: Blender undo cannot take that back
 
     asset_id: StringProperty(options={"SKIP_SAVE"})
     length: FloatProperty(name="Length", min=0.5, max=30.0, default=4.5, unit="LENGTH")
@@ -439,7 +439,7 @@ class ADV3D_OT_library_turn(bpy.types.Operator):
 
     bl_idname = "adv3d.library_turn"
     bl_label = "Turn front"
-    bl_options = {"REGISTER", "UNDO"}
+    bl_options = {"REGISTER"}  # writes files: Blender undo cannot take that back
 
     asset_id: StringProperty(options={"SKIP_SAVE"})
     angle: EnumProperty(name="Turn", items=[("180", "180°", ""), ("90", "90° left", ""), ("-90", "90° right", "")],
