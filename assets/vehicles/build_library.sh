@@ -5,6 +5,8 @@
 #
 # PACKS_DIR defaults to ../shared/vehicle-packs relative to the repository root. The output is
 # deterministic: running this twice gives byte-identical library.json and .glb files.
+# ADV3D_LIBRARY_DIR=DIR builds into DIR instead of assets/vehicles (the tests use it to check
+# that a rebuild reproduces the shipped files byte for byte).
 # Every choice below (axes, class, real-world dimensions) is recorded in library.json; the
 # reasons are in docs/library.md. Axes were checked on `adv3d assets preview` renders.
 set -euo pipefail
@@ -14,12 +16,13 @@ PACKS="$(cd "${1:-$REPO/../shared/vehicle-packs}" && pwd)"
 PY="${PYTHON:-$REPO/.venv/bin/python}"
 [ -x "$PY" ] || PY=python3
 cd "$REPO"
-LIB=assets/vehicles/library.json
-adv3d() { "$PY" -m adv3d_runner.cli --quiet "$@"; }
+OUT="${ADV3D_LIBRARY_DIR:-$REPO/assets/vehicles}"
+LIB="$OUT/library.json"
+adv3d() { "$PY" -m adv3d_runner.cli --quiet "$@" --library "$LIB"; }
 
 # start clean so removed assets do not linger (git keeps the previous library)
 rm -f "$LIB"
-rm -rf assets/vehicles/quaternius-cars assets/vehicles/quaternius-transport assets/vehicles/kenney-car-kit
+rm -rf "$OUT/quaternius-cars" "$OUT/quaternius-transport" "$OUT/kenney-car-kit"
 
 # --- Quaternius "Realistic Car Pack" (CC0): .blend files, Blender Z up, front towards -Y ----
 # Already metric and within 30 % of their class's typical size on every axis: kept as modelled.
