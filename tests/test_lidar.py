@@ -144,7 +144,11 @@ def test_culling_is_exact(ego_yaw):
     rig = LidarRig([
         MountedLidar(get_model("vlp32c", columns=600), (0.5, 0.0, 1.9, 0.0, 0.0, 0.0)),
         MountedLidar(small_sensor(range_noise=0.02, ray_drop=0.1), (1.5, 0.6, 1.2, 0.05, -0.1, 0.7)),
+        MountedLidar(get_model("hdl64", columns=500), (0.0, 0.0, 1.73, 0.0, 0.0, 0.0)),
     ], ego_dimensions=(4.6, 1.9, 1.5))
+    # Both window searches are exercised: per-row (azimuth offsets, tilt) and shared columns.
+    assert rig.sensors[0]._common_azimuth is None and rig.sensors[1]._common_azimuth is None
+    assert rig.sensors[2]._common_azimuth is not None
     stats_cull, stats_all = {}, {}
     a = simulate_frame(world, rig, ego, poses, np.random.default_rng(5), cull=True, stats=stats_cull)
     b = simulate_frame(world, rig, ego, poses, np.random.default_rng(5), cull=False, stats=stats_all)

@@ -99,6 +99,10 @@ class MountedLidar:
         self.dz = np.ascontiguousarray(self.dirs[:, 2])
         self.ring = np.ascontiguousarray(ring.reshape(-1), dtype=np.int16)
         self._row_offsets = _TWO_PI * np.arange(b)
+        # Sensors without per-laser azimuth offsets or tilt have the same column azimuths in
+        # every row (up to rounding far below the culling padding): one search serves all rows.
+        self._common_azimuth = az[0].copy() if np.abs(az - az[0]).max() < 1e-9 else None
+        self._row_starts = np.arange(b, dtype=np.intp) * c
 
     @property
     def n_rays(self) -> int:
@@ -135,6 +139,12 @@ class MountedLidar:
             return np.zeros(0, np.intp)
         half = math.asin(radius / dist) + _ANGLE_PAD
         center = math.atan2(-rel_xy[1], -rel_xy[0]) - ego_yaw
+        if self._common_azimuth is not None:
+            az = self._common_azimuth
+            cols = [np.arange(np.searchsorted(az, lo, "left"), np.searchsorted(az, hi, "right"))
+                    for lo, hi in _azimuth_intervals(center, half)]
+            cols = cols[0] if len(cols) == 1 else np.concatenate(cols)
+            return (self._row_starts[rows][:, None] + cols).reshape(-1)
         starts, ends = [], []
         for lo, hi in _azimuth_intervals(center, half):
             s, e = self.window(rows, lo, hi)
