@@ -405,14 +405,18 @@ class ADV3D_OT_library_import(bpy.types.Operator, ImportHelper):
 
 
 class ADV3D_OT_library_rescale(bpy.types.Operator):
-    """Scale the asset's stored mesh uniformly to a real-world length"""
+    """Scale the asset's stored mesh to real-world dimensions (uniformly from the length, or per axis)"""
 
     bl_idname = "adv3d.library_rescale"
-    bl_label = "Set real length"
+    bl_label = "Set real size"
     bl_options = {"REGISTER"}  # writes files: Blender undo cannot take that back
 
     asset_id: StringProperty(options={"SKIP_SAVE"})
     length: FloatProperty(name="Length", min=0.5, max=30.0, default=4.5, unit="LENGTH")
+    width: FloatProperty(name="Width", min=0.0, max=5.0, default=0.0, unit="LENGTH",
+                         description="0: scale with the length (keep proportions)")
+    height: FloatProperty(name="Height", min=0.0, max=6.0, default=0.0, unit="LENGTH",
+                          description="0: scale with the length (keep proportions)")
 
     def invoke(self, context, event):
         lib_props = context.scene.adv3d.library
@@ -425,9 +429,12 @@ class ADV3D_OT_library_rescale(bpy.types.Operator):
         lib_props = context.scene.adv3d.library
         try:
             asset = library_from_props(lib_props).get(self.asset_id)
-            factor = self.length / asset.dimensions[0]
-            _edit_asset_mesh(lib_props, self.asset_id, lambda v: v * factor,
-                             {"scale": round(float(factor), 6), "length": float(self.length)})
+            L, W, H = asset.dimensions
+            s = self.length / L
+            factors = np.array([s, self.width / W if self.width > 0 else s, self.height / H if self.height > 0 else s])
+            _edit_asset_mesh(lib_props, self.asset_id, lambda v: v * factors,
+                             {"scale": [round(float(f), 6) for f in factors],
+                              "dimensions": [float(self.length), float(self.width or W * s), float(self.height or H * s)]})
         except (runner.Adv3dError, KeyError) as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}

@@ -50,7 +50,7 @@ class ADV3D_PT_library(_Adv3dPanel, bpy.types.Panel):
             if item.source:
                 col.label(text=item.source)
             row = box.row(align=True)
-            row.operator("adv3d.library_rescale", text="Set length").asset_id = item.asset_id
+            row.operator("adv3d.library_rescale", text="Set size").asset_id = item.asset_id
             row.operator("adv3d.library_turn", text="Turn front").asset_id = item.asset_id
             report = box.box()
             report.label(text="Cleaning report", icon="INFO")

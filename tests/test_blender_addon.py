@@ -243,6 +243,9 @@ def test_library_rescale_and_turn(ctx, lib_copy):
     assert bpy.ops.adv3d.library_turn("EXEC_DEFAULT", asset_id="fx.sedan", angle="90") == {"FINISHED"}
     L2, W2, _ = load_library(lib_copy).get("fx.sedan").dimensions
     assert (L2, W2) == pytest.approx((W1, L1), abs=2e-3)
+    assert bpy.ops.adv3d.library_turn("EXEC_DEFAULT", asset_id="fx.sedan", angle="-90") == {"FINISHED"}
+    bpy.ops.adv3d.library_rescale("EXEC_DEFAULT", asset_id="fx.sedan", length=4.0, width=2.0, height=1.5)
+    assert load_library(lib_copy).get("fx.sedan").dimensions == pytest.approx((4.0, 2.0, 1.5), abs=2e-3)
 
 
 def test_library_show_creates_object(ctx, lib_copy):
