@@ -115,3 +115,20 @@ def test_interface_containers_validate_shapes():
         Plan(np.zeros((5, 3)), np.zeros(4))
     assert EgoState([0, 0, 0], -1.0).speed == 0.0
     assert len(Tracks()) == 0
+
+
+def test_constant_velocity_predictor_from_tracks():
+    from adv3d_runner.autonomy.baselines import ConstantVelocityPredictor
+    from adv3d_runner.metrics.prediction import prediction_metrics
+
+    tr = MultiObjectTracker()
+    for k in range(15):
+        out = tr.update(dets([10.0 + 20.0 * k * DT, 3.5]))
+    pred = ConstantVelocityPredictor().predict(out)
+    assert pred.trajectories.shape == (1, 3, 60, 2) and pred.probabilities.sum() == pytest.approx(1.0)
+    truth = np.c_[10.0 + 20.0 * (14 + np.arange(1, 61)) * DT, np.full(60, 3.5)][None]
+    m = prediction_metrics(pred.trajectories, truth)
+    assert m.min_ade < 0.5  # the constant-velocity mode is right for a constant-velocity object
+    assert m.mean_ade > m.min_ade
+    empty = ConstantVelocityPredictor().predict(Tracks())
+    assert empty.trajectories.shape == (0, 3, 60, 2)
