@@ -184,11 +184,21 @@ def rig_from_scene(scene, model: str | None = None, **model_overrides):
     return LidarRig(rig, ego_dimensions=tuple(float(d) for d in scene.ego.dimensions))
 
 
-def _box_mesh(dimensions) -> "object":
-    """A box of (length, width, height) standing on z=0: the fallback actor shape."""
-    import trimesh
+class _Mesh:
+    """Minimal vertices/faces holder (same attribute names as ``trimesh.Trimesh``)."""
 
-    length, width, height = (float(d) for d in dimensions)
-    box = trimesh.creation.box((length, width, height))
-    box.apply_translation((0.0, 0.0, height / 2.0))
-    return box
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray):
+        self.vertices, self.faces = vertices, faces
+
+
+_BOX_FACES = np.array([[0, 2, 1], [0, 3, 2], [4, 5, 6], [4, 6, 7], [0, 1, 5], [0, 5, 4],
+                       [1, 2, 6], [1, 6, 5], [2, 3, 7], [2, 7, 6], [3, 0, 4], [3, 4, 7]], dtype=np.int32)
+
+
+def _box_mesh(dimensions) -> _Mesh:
+    """A closed box of (length, width, height) standing on z=0, centred on its footprint: the
+    fallback actor shape (outward-facing triangles)."""
+    half_l, half_w, height = 0.5 * float(dimensions[0]), 0.5 * float(dimensions[1]), float(dimensions[2])
+    corners = np.array([[-half_l, -half_w], [half_l, -half_w], [half_l, half_w], [-half_l, half_w]])
+    vertices = np.concatenate([np.c_[corners, np.zeros(4)], np.c_[corners, np.full(4, height)]])
+    return _Mesh(vertices, _BOX_FACES.copy())
