@@ -51,9 +51,19 @@ def _fcurves(obj, create: bool = True):
             return None
         ad.action_slot = action.slots.new(id_type="OBJECT", name=obj.name)
     if create:
-        return anim_utils.action_ensure_channelbag_for_slot(action, ad.action_slot).fcurves
+        return _ensure_channelbag(action, ad.action_slot).fcurves
     bag = anim_utils.action_get_channelbag_for_slot(action, ad.action_slot)
     return None if bag is None else bag.fcurves
+
+
+def _ensure_channelbag(action, slot):
+    """The action's channelbag for ``slot`` (created if missing): Blender 5.0 has a helper for
+    it; 4.4/4.5 go through the layer / keyframe strip API it wraps."""
+    if hasattr(anim_utils, "action_ensure_channelbag_for_slot"):
+        return anim_utils.action_ensure_channelbag_for_slot(action, slot)
+    layer = action.layers[0] if action.layers else action.layers.new("Layer")
+    strip = layer.strips[0] if layer.strips else layer.strips.new(type="KEYFRAME")
+    return strip.channelbag(slot, ensure=True)
 
 
 def set_keys(obj, data_path: str, index: int, frames: np.ndarray, values: np.ndarray,
