@@ -213,3 +213,12 @@ def test_failed_save_keeps_existing_file(tmp_path):
         save_scene(broken, path)
     assert path.read_bytes() == before
     assert [p.name for p in tmp_path.iterdir()] == ["keep.json"]
+
+
+def test_docs_example_is_a_valid_scene(repo_root):
+    import re
+    text = (repo_root / "docs" / "formats.md").read_text()
+    section = text[text.index("## Scene"):]
+    doc = json.loads(re.search(r"```json\n(.*?)```", section, re.S).group(1))
+    scene = Scene.from_dict(doc, "docs/formats.md")
+    assert scene.frames == 3 and scene.actor_valid(1).tolist() == [False, True, True]

@@ -252,7 +252,7 @@ class Actor:
 
 def default_sensors() -> list[Lidar]:
     """The default rig: one Velodyne HDL-64E on the roof (KITTI-like height)."""
-    return [Lidar(name="top", model="hdl64e", mount=np.array([0.0, 0.0, 1.73, 0.0, 0.0, 0.0]))]
+    return [Lidar(name="top", model="hdl64", mount=np.array([0.0, 0.0, 1.73, 0.0, 0.0, 0.0]))]
 
 
 @dataclass
