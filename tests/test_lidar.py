@@ -336,3 +336,20 @@ def test_lidar_render_command(tmp_path, repo_root):
     first = out.read_bytes()
     assert main(args) == 0 and out.read_bytes() == first
     assert main(["-q", "lidar", "render", str(scenes[0]), "--frame", "100000", "-o", str(out)]) == 1
+
+
+def test_scene_with_unknown_lidar_model_names_the_field(repo_root):
+    from adv3d_runner.errors import FileFormatError
+    from adv3d_runner.scene.schema import load_scene
+    from adv3d_runner.sensors.world import rig_from_scene
+
+    scenes = sorted((repo_root / "scenes" / "highway").glob("*.json*"))
+    if not scenes:
+        pytest.skip("no bundled highway scene")
+    scene = load_scene(scenes[0])
+    rig = rig_from_scene(scene)
+    assert rig.sensors and rig.ego_dimensions == tuple(scene.ego.dimensions)
+    scene.ego.sensors[0].model = "hdl-65x"
+    with pytest.raises(FileFormatError, match=r"\$\.ego\.sensors\[0\]\.model"):
+        rig_from_scene(scene, path=scenes[0])
+    assert rig_from_scene(scene, "vlp32c").sensors[0].model.name == "vlp32c"  # an override needs no lookup

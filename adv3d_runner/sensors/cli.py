@@ -63,7 +63,7 @@ def _render(args: argparse.Namespace) -> int:
     library = _load_library(args.library)
     world = world_from_scene(scene, library, scene_dir=scene_path.parent)
     overrides = {"range_noise": 0.0, "ray_drop": 0.0} if args.ideal else {}
-    rig = rig_from_scene(scene, args.sensor, **overrides)
+    rig = rig_from_scene(scene, args.sensor, path=scene_path, **overrides)
     ego = scene.ego_poses()[args.frame]
     poses, valid = scene.all_actor_poses()
     actor_poses = poses[:, args.frame].copy()

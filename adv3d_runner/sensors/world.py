@@ -166,21 +166,34 @@ def world_from_scene(scene, library=None, scene_dir=None) -> LidarWorld:
     return world
 
 
-def rig_from_scene(scene, model: str | None = None, **model_overrides):
+def rig_from_scene(scene, model: str | None = None, path=None, **model_overrides):
     """The ego's :class:`~adv3d_runner.sensors.lidar.LidarRig` from the scene's sensor list.
 
     Args:
         scene: a loaded scene (``scene.ego.sensors``: model names and mount poses).
         model: replace every sensor's model by this one (e.g. ``"vlp32c"``), keeping mounts.
+        path: the scene file, named in the error for an unknown model.
         model_overrides: fields changed on every model (e.g. ``ray_drop=0``).
+
+    Raises:
+        FileFormatError: a sensor names a model that is not in the model table.
     """
-    from .beams import get_model
+    from ..errors import ConfigError, FileFormatError
+    from .beams import get_model, model_names
     from .lidar import LidarRig, MountedLidar
 
     mounts = [(s.model, np.asarray(s.mount, dtype=np.float64)) for s in scene.ego.sensors]
     if not mounts:
         mounts = [("hdl64", np.array([0.0, 0.0, 1.73, 0.0, 0.0, 0.0]))]
-    rig = [MountedLidar(get_model(model or name, **model_overrides), mount) for name, mount in mounts]
+    rig = []
+    for i, (name, mount) in enumerate(mounts):
+        if model is None:
+            try:
+                get_model(name)
+            except ConfigError:
+                raise FileFormatError(path, f"$.ego.sensors[{i}].model",
+                                      f"a LiDAR model ({', '.join(model_names())}, generic-N)", name) from None
+        rig.append(MountedLidar(get_model(model or name, **model_overrides), mount))
     return LidarRig(rig, ego_dimensions=tuple(float(d) for d in scene.ego.dimensions))
 
 
