@@ -312,7 +312,8 @@ def build_extension(out: Path, platforms: list[str] | None = None, wheel_cache: 
                 _blender_ext(tool, ["build", "--source-dir", str(stage), "--output-filepath", str(target)])
             else:  # no bpy here: zip the staged folder the way Blender's tool does
                 _zip_dir(stage, target)
-        validate_extension_zip(target, bpy_check=bpy_check)
+        # Installing is only possible on the platform the zip is for.
+        validate_extension_zip(target, bpy_check=bpy_check and platform == host_platform())
         zips.append(target)
     return zips
 
