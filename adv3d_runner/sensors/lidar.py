@@ -448,35 +448,42 @@ def _simulate_sensor(world, rig, k, sensor: MountedLidar, ego, poses, present, a
 
     # Columns are gathered one by one: 1-D gathers of contiguous arrays are the fast kind.
     m = idx.size
+    dxe, dye, dze = sensor.dx.take(idx), sensor.dy.take(idx), sensor.dz.take(idx)
     points = np.empty((m, 4), np.float32)
     px, py, pz = (np.float32(v) for v in sensor.position)
-    np.multiply(sensor.dx[idx], dist, out=points[:, 0])
+    np.multiply(dxe, dist, out=points[:, 0])
     points[:, 0] += px
-    np.multiply(sensor.dy[idx], dist, out=points[:, 1])
+    np.multiply(dye, dist, out=points[:, 1])
     points[:, 1] += py
-    np.multiply(sensor.dz[idx], dist, out=points[:, 2])
+    np.multiply(dze, dist, out=points[:, 2])
     points[:, 2] += pz
 
     # Intensity = reflectivity x |cos incidence| x exp(-attenuation x true range).
-    lab = label[idx]
-    refl = world.background_reflectivity.take(prim_bg.take(idx))  # prim -1 -> the trailing 0 slot
+    lab = label.take(idx)
+    prim_b = prim_bg.take(idx)
+    refl = world.background_reflectivity.take(prim_b)  # prim -1 -> the trailing 0 slot
     on_actor = lab >= 0
-    if on_actor.any():
+    any_actor = bool(on_actor.any())
+    if any_actor:
         refl[on_actor] = actor_refl[lab[on_actor]]
     # |cos incidence| from unit face normals: background by face index (a miss indexes the
-    # zero row), actors from the loop above. n_map . d_map = n_ego . d_ego, with the normal
-    # turned into the ego frame; everything here is 1-D contiguous gathers and arithmetic.
-    prim_b = prim_bg.take(idx)
-    fnx, fny, fnz = (col.take(prim_b) for col in world.background.normal_columns)
-    dxe, dye = sensor.dx.take(idx), sensor.dy.take(idx)
-    cos_inc = fnz * sensor.dz.take(idx)
-    cos_inc += (np.float32(c) * fnx + np.float32(s) * fny) * dxe
-    cos_inc += (np.float32(c) * fny - np.float32(s) * fnx) * dye
+    # zero row), actors from the loop above. n_map . d_map = n_ego . d_ego: the background's
+    # normal table (small) is turned into the ego frame, then gathered per return.
+    fnx, fny, fnz = world.background.normal_columns
+    cf, sf = np.float32(c), np.float32(s)
+    cos_inc = (cf * fnx + sf * fny).take(prim_b)
+    cos_inc *= dxe
+    tmp = (cf * fny - sf * fnx).take(prim_b)
+    tmp *= dye
+    cos_inc += tmp
+    np.multiply(fnz.take(prim_b), dze, out=tmp)
+    cos_inc += tmp
     np.abs(cos_inc, out=cos_inc)
-    if on_actor.any():
+    if any_actor:
         cos_inc[on_actor] = cos_actor[idx[on_actor]]
     np.minimum(cos_inc, 1.0, out=cos_inc)
     cos_inc *= refl
-    cos_inc *= np.exp(np.float32(-rig.attenuation) * t[idx])
+    np.multiply(t.take(idx), np.float32(-rig.attenuation), out=tmp)
+    cos_inc *= np.exp(tmp, out=tmp)
     points[:, 3] = cos_inc
-    return LidarFrame(points, sensor.ring[idx], lab, np.full(m, k, np.int8), dist)
+    return LidarFrame(points, sensor.ring.take(idx), lab, np.full(m, k, np.int8), dist)
