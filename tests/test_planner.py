@@ -246,3 +246,19 @@ def test_forecast_joins_tracks_and_derives_yaw():
     assert f.probs[0].tolist() == [0.5, 0.5]
     assert np.allclose(f.poses[0, 0, 1:, 2], math.pi / 2) and np.allclose(f.poses[0, 0, 0, :2], [0.0, 0.0])
     assert f.dims[1].tolist() == [10.0, 2.5] and np.allclose(f.poses[1, :, :, 2], 1.0)  # track yaw held
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])  # straight, curved, on-ramp, lane drop
+def test_benchmark_scenes_with_oracle_perception(repo_root, seed):
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("bench_planner", repo_root / "bench" / "planner.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    path = repo_root / "scenes" / "highway" / f"highway-benchmark-{seed:06d}.json.gz"
+    if not path.exists():
+        pytest.skip("benchmark scenes not present")
+    r = bench.run_scene(path, 5.0, "log")
+    assert not r["at_fault"] and r["off_road_m"] == 0.0
+    assert r["progress_m"] > 20.0

@@ -73,8 +73,17 @@ def locate(lanes: Sequence[Any], pose: np.ndarray, max_heading_error: float = np
     nearest such lane by |d|. Returns (lane id or None if there are no lanes, s, d)."""
     best = None
     x, y, yaw = (float(v) for v in np.asarray(pose, dtype=np.float64).reshape(3))
+    candidates = []
     for lane in lanes:
         pts = np.asarray(lane.centerline, dtype=np.float64).reshape(-1, 2)
+        # bounding-box distance: far lanes are skipped without projecting (large maps)
+        gap = np.hypot(max(pts[:, 0].min() - x, 0.0, x - pts[:, 0].max()),
+                       max(pts[:, 1].min() - y, 0.0, y - pts[:, 1].max()))
+        candidates.append((gap, lane, pts))
+    nearest = min((c[0] for c in candidates), default=np.inf)
+    for gap, lane, pts in candidates:
+        if gap > nearest + 50.0:
+            continue
         s, d, h = lanegeo.project(pts, np.array([x, y]))
         herr = abs((yaw - h + np.pi) % (2 * np.pi) - np.pi)
         if herr > max_heading_error:
