@@ -222,3 +222,12 @@ def test_docs_example_is_a_valid_scene(repo_root):
     doc = json.loads(re.search(r"```json\n(.*?)```", section, re.S).group(1))
     scene = Scene.from_dict(doc, "docs/formats.md")
     assert scene.frames == 3 and scene.actor_valid(1).tolist() == [False, True, True]
+
+
+def test_actor_speeds_recorded_or_from_positions():
+    scene = make_scene()
+    np.testing.assert_allclose(scene.actor_speeds(7), 18.0)
+    speeds = scene.actor_speeds(9)  # no recorded speed: from positions (20 m over 11 frames)
+    valid = scene.actor_valid(9)
+    assert np.isnan(speeds[~valid]).all()
+    np.testing.assert_allclose(speeds[valid], 20.0 / 11 / 0.1, rtol=1e-2)

@@ -308,6 +308,22 @@ class Scene:
         """(T, 3) float64: x, y (m), yaw (rad) per frame; NaN rows where the actor is not valid."""
         return _track_array(self.actor(actor_id).track, self.frames, ("x", "y", "yaw"))
 
+    def actor_speeds(self, actor_id: int) -> np.ndarray:
+        """(T,) float64 m/s; NaN where invalid. Tracks without recorded speeds get the speed
+        of their positions (central differences, one-sided at the ends and next to gaps)."""
+        track = self.actor(actor_id).track
+        if track.speed is not None:
+            return _track_array(track, self.frames, ("speed",))[:, 0]
+        xy = _track_array(track, self.frames, ("x", "y"))
+        step = np.hypot(*np.diff(xy, axis=0).T) / self.dt  # (T-1,), NaN across gaps
+        fwd = np.append(step, np.nan)
+        bwd = np.insert(step, 0, np.nan)
+        with np.errstate(invalid="ignore"):
+            both = 0.5 * (fwd + bwd)
+        out = np.where(np.isfinite(both), both, np.where(np.isfinite(fwd), fwd, bwd))
+        out[np.isnan(xy[:, 0])] = np.nan
+        return out
+
     def actor_valid(self, actor_id: int) -> np.ndarray:
         """(T,) bool: True where the actor exists (recorded or synthetic)."""
         return _track_mask(self.actor(actor_id).track, self.frames, "valid")
