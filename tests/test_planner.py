@@ -262,3 +262,16 @@ def test_benchmark_scenes_with_oracle_perception(repo_root, seed):
     r = bench.run_scene(path, 5.0, "log")
     assert not r["at_fault"] and r["off_road_m"] == 0.0
     assert r["progress_m"] > 20.0
+
+
+def test_driving_west_across_the_yaw_wrap():
+    xs = np.linspace(600.0, -600.0, 121)  # driving direction -x: heading +-pi
+    wiggle = 0.3 * np.sin(xs / 40.0)  # the heading crosses +-pi back and forth
+    lanes = [Lane(0, np.c_[xs, wiggle], LANE_W, speed_limit=20.0)]
+    ego = EgoState([0.0, 0.0, -math.pi + 0.004], 15.0)
+    ego_boxes, _, speeds, plans = closed_loop(lanes, ego, stopped_at(), 4.0)
+    assert np.all(np.isfinite(ego_boxes))
+    assert ego_boxes[-1, 0] < -55.0  # moved west
+    assert np.abs(ego_boxes[:, 1] - 0.3 * np.sin(ego_boxes[:, 0] / 40.0)).max() < 0.3
+    assert all(np.all(np.abs(p.trajectory[:, 2]) <= math.pi) for p in plans)
+    assert speeds[-1] > 16.0

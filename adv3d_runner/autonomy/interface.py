@@ -198,7 +198,8 @@ class Plan:
     """The chosen ego plan (map frame).
 
     Attributes:
-        trajectory: (T, 3) x, y, yaw at t, t + dt, ..., t + (T - 1) dt; index 0 is the current pose.
+        trajectory: (T, 3) x, y, yaw (wrapped to [-pi, pi)) at t, t + dt, ..., t + (T - 1) dt;
+            index 0 is the current pose.
         speed: (T,) m/s along the trajectory.
         acceleration: (T - 1,) m/s^2 per step; curvature: (T - 1,) 1/m per step (the controls of
             the kinematic bicycle rollout).

@@ -164,7 +164,9 @@ class SamplingPlanner:
         i = table.best
         target_lane = chain_ids[int(spec.corridor[i])]
         self._committed_lane = target_lane if target_lane != lane_id else None
-        plan = Plan(trajectory=cands.poses[i].copy(), speed=cands.speeds[i].copy(), acceleration=cands.accel[i].copy(),
+        traj = cands.poses[i].copy()
+        traj[:, 2] = (traj[:, 2] + np.pi) % (2 * np.pi) - np.pi  # map-frame yaw in [-pi, pi)
+        plan = Plan(trajectory=traj, speed=cands.speeds[i].copy(), acceleration=cands.accel[i].copy(),
                     curvature=cands.curvature[i].copy(), dt=dt, cost=float(table.total[i]),
                     cost_terms=table.breakdown(i), label=spec.labels[i])
         return plan, cands, table
@@ -205,5 +207,7 @@ class SamplingPlanner:
         acc = np.full((1, T), -pc.idm_decel)
         states = rollout(state0, acc, curvature=np.zeros((1, T)), dt=pc.dt, params=params)[0]
         a = np.diff(states[:, 3]) / pc.dt
-        return Plan(trajectory=states[:, :3], speed=states[:, 3], acceleration=a, curvature=np.zeros(T), dt=pc.dt,
+        traj = states[:, :3].copy()
+        traj[:, 2] = (traj[:, 2] + np.pi) % (2 * np.pi) - np.pi
+        return Plan(trajectory=traj, speed=states[:, 3], acceleration=a, curvature=np.zeros(T), dt=pc.dt,
                     label="no-lane/stop")
