@@ -277,3 +277,11 @@ def test_collisions_and_min_distance():
     rep2 = cf.collisions(ego, actors, valid)
     assert not rep2.collided and rep2.first_frame == -1 and rep2.min_distance == pytest.approx(3.0)
     assert cf.min_distance(ego, actors[:, :0]) == np.inf
+
+
+def test_match_tracks_to_ground_truth():
+    gt = np.array([[0, 0, 4, 2, 0], [10, 0, 4, 2, 0], [np.nan, 0, 4, 2, 0]], float)
+    tracks = np.array([[10.5, 0.2, 4, 2, 0], [50, 50, 4, 2, 0], [0.4, 0, 4, 2, 0], [9.0, 0, 4, 2, 0]], float)
+    # track 3 is also near GT 1 but further than track 0: one-to-one keeps the closer pair
+    assert pred.match_to_ground_truth(tracks, gt).tolist() == [1, -1, 0, -1]
+    assert pred.match_to_ground_truth(np.zeros((0, 5)), gt).shape == (0,)

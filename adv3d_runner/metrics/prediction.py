@@ -123,3 +123,32 @@ def prediction_loss(pred: np.ndarray, gt: np.ndarray, valid: np.ndarray | None =
     elif reduction != "sum":
         raise ValueError("reduction must be 'mean' or 'sum'")
     return float(np.mean(per_mode[ok].mean(axis=1)))
+
+
+def match_to_ground_truth(pred_boxes: np.ndarray, gt_boxes: np.ndarray, max_distance: float = 3.0) -> np.ndarray:
+    """Which ground-truth actor each tracked/predicted actor is (to look up its true future).
+
+    One-to-one Hungarian assignment (``scipy.optimize.linear_sum_assignment``) on centre
+    distance, accepting pairs closer than ``max_distance`` m.
+
+    Args:
+        pred_boxes: (N, 5) current boxes of the tracks that have predictions.
+        gt_boxes: (G, 5) current ground-truth boxes (non-finite rows never match).
+    Returns:
+        (N,) int: index into ``gt_boxes``, or -1 for tracks without a ground-truth actor
+        (false positives, which have no future to compare with).
+    """
+    from scipy.optimize import linear_sum_assignment
+
+    p = np.asarray(pred_boxes, dtype=np.float64).reshape(-1, 5)
+    g = np.asarray(gt_boxes, dtype=np.float64).reshape(-1, 5)
+    out = np.full(len(p), -1, np.int64)
+    if len(p) == 0 or len(g) == 0:
+        return out
+    dist = np.hypot(p[:, None, 0] - g[None, :, 0], p[:, None, 1] - g[None, :, 1])
+    dist = np.where(np.isfinite(dist), dist, np.inf)
+    ok = dist <= max_distance
+    rows, cols = linear_sum_assignment(np.where(ok, dist, 1e9))
+    keep = ok[rows, cols]
+    out[rows[keep]] = cols[keep]
+    return out
