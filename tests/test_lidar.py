@@ -277,9 +277,15 @@ def test_replacing_an_actor_mesh_changes_only_its_points():
     far0 = before.select((before.label == BACKGROUND) & (before.xyz[:, 1] < 2))
     far1 = after.select((after.label == BACKGROUND) & (after.xyz[:, 1] < 2))
     assert_frames_equal(far0, far1)
-    # Identical meshes share one BVH; unused ones are released.
+    # Identical meshes share one BVH; replaced ones are released, the original kept.
     world.set_actor_mesh("b", *box_mesh(3.0, 1.6, 2.4))
-    assert world.n_cached_meshes == 1 and world.actor_bvh(0) is world.actor_bvh(1)
+    assert world.actor_bvh(0) is world.actor_bvh(1)
+    world.set_actor_mesh("b", *box_mesh(3.1, 1.6, 2.4))
+    assert world.n_cached_meshes == 3  # original + a's + b's current
+    # Resetting restores the benign frame without building anything.
+    world.reset_actor_mesh()
+    assert world.actor_bvh(1) is bvh_b and world.n_cached_meshes == 1
+    assert_frames_equal(simulate_frame(world, rig, EGO, poses, None), before)
 
 
 def test_actor_poses_shape_checked():

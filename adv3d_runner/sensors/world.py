@@ -24,11 +24,14 @@ DEFAULT_ACTOR_REFLECTIVITY = 0.35
 
 @dataclass
 class ActorSlot:
-    """One actor of the world: its id, its mesh's BVH key and its reflectivity."""
+    """One actor of the world: its id, its mesh's BVH key, its reflectivity, and the key and
+    reflectivity it was added with (kept so :meth:`LidarWorld.reset_actor_mesh` rebuilds nothing)."""
 
     actor_id: object
     key: str | None
     reflectivity: float
+    original_key: str | None = None
+    original_reflectivity: float = DEFAULT_ACTOR_REFLECTIVITY
 
 
 class LidarWorld:
@@ -92,7 +95,8 @@ class LidarWorld:
         if actor_id in self._index:
             raise ValueError(f"actor {actor_id!r} already in the world")
         self._index[actor_id] = len(self._actors)
-        self._actors.append(ActorSlot(actor_id, self._bvh_for(vertices, faces), float(reflectivity)))
+        key = self._bvh_for(vertices, faces)
+        self._actors.append(ActorSlot(actor_id, key, float(reflectivity), key, float(reflectivity)))
         self._prune()
         return self._index[actor_id]
 
@@ -107,6 +111,14 @@ class LidarWorld:
         slot.key = self._bvh_for(vertices, faces)
         if reflectivity is not None:
             slot.reflectivity = float(reflectivity)
+        self._prune()
+
+    def reset_actor_mesh(self, actor_id=None) -> None:
+        """Give one actor (or every actor, for None) back the mesh it was added with; its BVH
+        was kept, so nothing is built."""
+        slots = self._actors if actor_id is None else [self._actors[self._index[actor_id]]]
+        for slot in slots:
+            slot.key, slot.reflectivity = slot.original_key, slot.original_reflectivity
         self._prune()
 
     def set_ego_mesh(self, vertices: np.ndarray | None, faces: np.ndarray | None) -> None:
@@ -127,8 +139,9 @@ class LidarWorld:
         return len(self._bvh)
 
     def _prune(self) -> None:
-        # Drop BVHs no actor uses any more, so repeated attack queries do not grow memory.
-        used = {a.key for a in self._actors}
+        # Drop BVHs no actor uses any more (the meshes actors were added with stay), so
+        # repeated attack queries do not grow memory.
+        used = {a.key for a in self._actors} | {a.original_key for a in self._actors}
         for key in [k for k in self._bvh if k not in used]:
             del self._bvh[key]
 
