@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import bpy
 
-from . import ops_library, ops_scene, ops_shapes, panels, props
+from . import ops_library, ops_scene, ops_shapes, panels, props, review
 
 classes = props.classes + ops_library.classes + ops_shapes.classes + ops_scene.classes + panels.classes
 
@@ -23,6 +23,7 @@ def register() -> None:
 
 def unregister() -> None:
     ops_shapes.cancel_timers()
+    review.remove_handler()
     props.unregister_pointers()
     for cls in reversed(classes):
         bpy.utils.unregister_class(cls)

@@ -514,3 +514,64 @@ def test_built_zip_validates(tmp_path):
     assert any(n.startswith("wheels/adv3d-") for n in names)
     assert any(n.startswith("wheels/scikit_image-") for n in names)
     assert not any("numpy" in n or "torch" in n for n in names)
+
+
+# --------------------------------------------------------------------------- review engine
+
+def _review_data(frames: int = 12, seed: int = 0):
+    from blender_addon import review
+
+    rng = np.random.default_rng(seed)
+    ego = np.stack([np.arange(frames) * 1.0, np.zeros(frames), np.zeros(frames)], axis=1)
+    gone = np.stack([20 + np.arange(frames) * 0.8, np.full(frames, 3.5), np.full(frames, 0.1)], axis=1)
+    gone[8:] = np.nan  # leaves the scene at frame 8
+    actors = [review.ReviewActor(1, gone, np.array([4.5, 1.8, 1.5]), adversarial=True),
+              review.ReviewActor(2, gone + [5, 0, 0], np.array([4.0, 1.7, 1.4]))]
+    points = [rng.random((50 + 10 * t, 3)).astype(np.float32) * 30 for t in range(frames)]
+    dets = [np.column_stack([rng.random((t % 3 + 1, 2)) * 30, np.zeros(t % 3 + 1),
+                             np.tile([4.5, 1.8, 1.5], (t % 3 + 1, 1)), rng.random(t % 3 + 1)]) for t in range(frames)]
+    preds = [rng.random((2, 6, 2)) * 30 for _ in range(frames)]
+    plan = [np.column_stack([np.linspace(t, t + 30, 10), np.linspace(0, 1, 10)]) for t in range(frames)]
+    return review.ReviewData(ego, np.array([4.8, 1.9, 1.55]), actors, points, dets, preds, plan)
+
+
+def test_review_objects_follow_the_timeline(ctx):
+    from blender_addon import meshdata, review
+
+    data = _review_data()
+    counts = review.build_review(ctx.scene, data)
+    assert counts == {"frames": 12, "actors": 2, "adversarial": 1}
+    assert review.on_frame_change in bpy.app.handlers.frame_change_post
+    objs = bpy.data.objects
+    assert objs["review actor 1"]["adv3d_adversarial"] and not objs["review actor 2"]["adv3d_adversarial"]
+    for frame in (0, 5, 11):
+        ctx.scene.frame_set(frame)
+        lidar = objs["review lidar"].data
+        co = np.empty(len(lidar.vertices) * 3, np.float32)
+        lidar.vertices.foreach_get("co", co)
+        np.testing.assert_array_equal(co.reshape(-1, 3), data.points[frame])
+        v, f = meshdata.mesh_arrays(objs["review detections"].data)
+        assert len(v) == 8 * len(data.detections[frame]) and len(f) == 12 * len(data.detections[frame])
+        centre = v[:8].mean(axis=0)
+        assert centre[:2] == pytest.approx(data.detections[frame][0, :2], abs=1e-4)
+        plan = objs["review plan"].data.splines[0].points
+        got = np.array([p.co[:2] for p in plan])
+        np.testing.assert_allclose(got, data.plan[frame], atol=1e-4)
+        assert len(objs["review predictions"].data.splines) == 2
+        actor = objs["review actor 1"]
+        assert actor.hide_render == (frame >= 8)
+        if frame < 8:
+            assert actor.location.x == pytest.approx(data.actors[0].poses[frame, 0], abs=1e-4)
+    review.clear_review(ctx.scene)
+    assert "review lidar" not in bpy.data.objects
+    assert review.on_frame_change not in bpy.app.handlers.frame_change_post
+
+
+def test_review_rejects_inconsistent_data(ctx):
+    from adv3d_runner.errors import Adv3dError
+    from blender_addon import review
+
+    data = _review_data()
+    data.points = data.points[:-1]
+    with pytest.raises(Adv3dError, match="points"):
+        review.build_review(ctx.scene, data)

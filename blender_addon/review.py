@@ -1,0 +1,241 @@
+"""Review engine: per-frame episode data (poses, LiDAR points, detections, predictions, plan) as
+Blender objects that follow the timeline.
+
+This is the Blender side of the Review panel, written against in-memory arrays (``ReviewData``)
+because the run-bundle replay file that will feed it is not defined yet (DESIGN.md contract 4;
+the attack issue writes it). A loader for that file only has to fill ``ReviewData``.
+
+How scrubbing stays cheap: ego and actors are keyframed once (their poses are known for every
+frame); the per-frame geometry whose size changes from frame to frame (points, detection boxes,
+trajectories) lives in three objects whose data are rewritten in place by a
+``frame_change_post`` handler from arrays kept in memory (whole-array ``foreach_set``; the
+geometry is rebuilt only when the count changes). Nothing per frame is created up front, so
+loading is fast even with points in every frame.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import bpy
+import numpy as np
+
+from . import meshdata
+
+REVIEW_COLLECTION = "Adv3D Review"
+ADVERSARIAL_RGBA = (0.95, 0.1, 0.1, 1.0)
+BENIGN_RGBA = (0.6, 0.6, 0.62, 1.0)
+EGO_RGBA = (0.1, 0.35, 0.9, 1.0)
+
+# scene name -> the ReviewData shown in it (rebuilt by loading again; not saved in .blend files)
+_LOADED: dict[str, "ReviewData"] = {}
+
+
+@dataclass
+class ReviewActor:
+    """One actor: ``poses`` (T, 3) x, y, yaw (NaN where absent), ``dimensions`` (L, W, H) m,
+    optional mesh ``vertices`` (V, 3) / ``faces`` (F, 3) in its local frame (else a box),
+    ``adversarial`` to highlight the attacked shapes."""
+
+    id: int
+    poses: np.ndarray
+    dimensions: np.ndarray
+    vertices: np.ndarray | None = None
+    faces: np.ndarray | None = None
+    adversarial: bool = False
+
+
+@dataclass
+class ReviewData:
+    """An episode to review, everything in the scene's map frame (metres, radians).
+
+    Attributes:
+        ego_poses: (T, 3) x, y, yaw of the ego per frame.
+        ego_dimensions: (3,) L, W, H.
+        actors: the actors.
+        points: per frame (N_t, 3) float32 LiDAR points in the map frame, or None.
+        detections: per frame (D_t, 7) x, y, yaw, L, W, H, score, or None.
+        predictions: per frame (M_t, P, 2) predicted trajectories, or None.
+        plan: per frame (P, 2) the ego's chosen plan, or None.
+        dt: seconds per frame.
+    """
+
+    ego_poses: np.ndarray
+    ego_dimensions: np.ndarray
+    actors: list[ReviewActor] = field(default_factory=list)
+    points: list[np.ndarray] | None = None
+    detections: list[np.ndarray] | None = None
+    predictions: list[np.ndarray] | None = None
+    plan: list[np.ndarray] | None = None
+    dt: float = 0.1
+
+    @property
+    def frames(self) -> int:
+        return len(self.ego_poses)
+
+
+# --------------------------------------------------------------------------- building
+
+def _animate(obj, poses: np.ndarray) -> None:
+    """Keyframe (x, y, yaw) where finite; hide the object where the pose is NaN."""
+    from .ops_scene import _set_visibility, set_keys
+
+    valid = np.isfinite(poses).all(axis=1)
+    frames = np.flatnonzero(valid)
+    if not len(frames):
+        obj.hide_viewport = obj.hide_render = True
+        return
+    set_keys(obj, "location", 0, frames, poses[valid, 0])
+    set_keys(obj, "location", 1, frames, poses[valid, 1])
+    set_keys(obj, "rotation_euler", 2, frames, np.unwrap(poses[valid, 2]))
+    vis = np.concatenate([[False], valid, [False]])
+    change = np.flatnonzero(vis[1:] != vis[:-1])
+    key_frames = np.concatenate([[-1], change])
+    hidden = np.concatenate([[True], ~vis[change + 1]])
+    for path in ("hide_viewport", "hide_render"):
+        _set_visibility(obj, path, key_frames, hidden)
+
+
+def _colour(obj, rgba) -> None:
+    obj.color = rgba  # Workbench "Object" colour; a material for other engines
+    mat = bpy.data.materials.new(obj.name)
+    mat.diffuse_color = rgba
+    obj.data.materials.append(mat)
+
+
+def build_review(bscene, data: ReviewData) -> dict:
+    """Create the review objects in ``bscene`` (replacing a previous review) and show frame 0.
+
+    Returns:
+        counts of what was created.
+    """
+    clear_review(bscene)
+    _validate(data)
+    root = meshdata.get_collection(REVIEW_COLLECTION, bscene.collection)
+    bscene.frame_start = 0
+    bscene.frame_end = data.frames - 1
+    ego = meshdata.new_mesh_object("review ego", *meshdata.box_arrays(*data.ego_dimensions), root)
+    _colour(ego, EGO_RGBA)
+    _animate(ego, data.ego_poses)
+    for actor in data.actors:
+        if actor.vertices is not None:
+            v, f = actor.vertices, actor.faces
+        else:
+            v, f = meshdata.box_arrays(*actor.dimensions)
+        obj = meshdata.new_mesh_object(f"review actor {actor.id}", v, f, root)
+        obj["adv3d_adversarial"] = bool(actor.adversarial)
+        _colour(obj, ADVERSARIAL_RGBA if actor.adversarial else BENIGN_RGBA)
+        _animate(obj, actor.poses)
+    points = bpy.data.objects.new("review lidar", bpy.data.meshes.new("review lidar"))
+    root.objects.link(points)
+    boxes = meshdata.new_mesh_object("review detections", np.zeros((0, 3)), np.zeros((0, 3), int), root)
+    _colour(boxes, (0.1, 0.9, 0.2, 1.0))
+    boxes.display_type = "WIRE"
+    for name in ("review predictions", "review plan"):
+        curve = bpy.data.curves.new(name, "CURVE")
+        curve.dimensions = "3D"
+        obj = bpy.data.objects.new(name, curve)
+        root.objects.link(obj)
+    _LOADED[bscene.name] = data
+    if on_frame_change not in bpy.app.handlers.frame_change_post:
+        bpy.app.handlers.frame_change_post.append(on_frame_change)
+    bscene.frame_set(0)
+    return {"frames": data.frames, "actors": len(data.actors),
+            "adversarial": sum(a.adversarial for a in data.actors)}
+
+
+def _validate(data: ReviewData) -> None:
+    from adv3d_runner.errors import Adv3dError
+
+    t = data.frames
+    for name in ("points", "detections", "predictions", "plan"):
+        seq = getattr(data, name)
+        if seq is not None and len(seq) != t:
+            raise Adv3dError(f"review {name}: expected one entry per frame ({t}), got {len(seq)}")
+    for actor in data.actors:
+        if actor.poses.shape != (t, 3):
+            raise Adv3dError(f"review actor {actor.id}: poses must be ({t}, 3), got {actor.poses.shape}")
+
+
+def clear_review(bscene) -> None:
+    _LOADED.pop(bscene.name, None)
+    coll = bpy.data.collections.get(REVIEW_COLLECTION)
+    if coll is not None:
+        for obj in list(coll.objects):
+            ad = obj.animation_data
+            if ad is not None and ad.action is not None:
+                action = ad.action
+                ad.action = None
+                if action.users == 0:
+                    bpy.data.actions.remove(action)
+        meshdata.remove_collection(REVIEW_COLLECTION)
+    if not _LOADED:
+        remove_handler()
+
+
+def remove_handler() -> None:
+    while on_frame_change in bpy.app.handlers.frame_change_post:
+        bpy.app.handlers.frame_change_post.remove(on_frame_change)
+
+
+# --------------------------------------------------------------------------- per-frame update
+
+def _set_points(mesh, pts: np.ndarray) -> None:
+    pts = np.ascontiguousarray(pts, dtype=np.float32).reshape(-1, 3)
+    if len(mesh.vertices) != len(pts) or len(mesh.polygons):
+        mesh.clear_geometry()
+        mesh.vertices.add(len(pts))
+    mesh.vertices.foreach_set("co", pts.ravel())
+    mesh.update()
+
+
+def _boxes_arrays(dets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Detection boxes (D, 7) -> one mesh: (8D, 3) vertices, (12D, 3) triangles."""
+    d = np.asarray(dets, dtype=np.float64).reshape(-1, 7)
+    base_v, base_f = meshdata.box_arrays(1.0, 1.0, 1.0)
+    v = base_v[None] * d[:, None, 3:6]  # (D, 8, 3) scaled unit boxes
+    c, s = np.cos(d[:, 2]), np.sin(d[:, 2])
+    x = v[..., 0] * c[:, None] - v[..., 1] * s[:, None] + d[:, None, 0]
+    y = v[..., 0] * s[:, None] + v[..., 1] * c[:, None] + d[:, None, 1]
+    verts = np.stack([x, y, v[..., 2]], axis=-1).reshape(-1, 3)
+    faces = (base_f[None] + 8 * np.arange(len(d))[:, None, None]).reshape(-1, 3)
+    return verts, faces
+
+
+def _set_polylines(curve, lines: list[np.ndarray], z: float = 0.3) -> None:
+    """Replace a curve's splines by 2-D polylines (each (P, 2)) at height ``z``."""
+    curve.splines.clear()
+    for line in lines:
+        line = np.asarray(line, dtype=np.float64).reshape(-1, 2)
+        line = line[np.isfinite(line).all(axis=1)]
+        if len(line) < 2:
+            continue
+        spline = curve.splines.new("POLY")
+        spline.points.add(len(line) - 1)
+        co = np.empty((len(line), 4), dtype=np.float32)
+        co[:, :2] = line
+        co[:, 2] = z
+        co[:, 3] = 1.0
+        spline.points.foreach_set("co", co.ravel())
+
+
+def update_frame(bscene, frame: int) -> None:
+    """Write frame ``frame``'s points, detection boxes, predictions and plan into the objects."""
+    data = _LOADED.get(bscene.name)
+    if data is None:
+        return
+    f = int(np.clip(frame, 0, data.frames - 1))
+    objs = bpy.data.objects
+    if data.points is not None and "review lidar" in objs:
+        _set_points(objs["review lidar"].data, data.points[f])
+    if data.detections is not None and "review detections" in objs:
+        meshdata.set_mesh_arrays(objs["review detections"].data, *_boxes_arrays(data.detections[f]))
+    if data.predictions is not None and "review predictions" in objs:
+        pred = np.asarray(data.predictions[f], dtype=np.float64)
+        _set_polylines(objs["review predictions"].data, list(pred) if pred.ndim == 3 else [])
+    if data.plan is not None and "review plan" in objs:
+        _set_polylines(objs["review plan"].data, [data.plan[f]], z=0.35)
+
+
+@bpy.app.handlers.persistent
+def on_frame_change(scene, depsgraph=None) -> None:
+    update_frame(scene, scene.frame_current)
