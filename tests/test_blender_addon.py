@@ -575,3 +575,18 @@ def test_review_rejects_inconsistent_data(ctx):
     data.points = data.points[:-1]
     with pytest.raises(Adv3dError, match="points"):
         review.build_review(ctx.scene, data)
+
+
+def test_bundled_scenes_round_trip_identically(ctx, repo_root, tmp_path):
+    """Real data: a generated highway scene and a CommonRoad import (read-only from the repo)."""
+    import gzip
+
+    picks = sorted((repo_root / "scenes" / "real").glob("*.json.gz"))[:1] + \
+        sorted((repo_root / "scenes" / "highway").glob("*.json.gz"))[:1]
+    if not picks:
+        pytest.skip("no bundled scenes in this checkout")
+    for path in picks:
+        assert bpy.ops.adv3d.scene_load(filepath=str(path)) == {"FINISHED"}
+        out = tmp_path / path.name
+        assert bpy.ops.adv3d.scene_export(filepath=str(out)) == {"FINISHED"}
+        assert gzip.decompress(out.read_bytes()) == gzip.decompress(path.read_bytes()), path.name
