@@ -3,7 +3,8 @@
 Pipeline of :func:`simulate_frame` for each sensor of the rig:
 
 1. rays: the beam table in the sensor frame, rotated by the mount pose into the ego frame once
-   (:class:`MountedLidar`, sorted by ego-frame azimuth), rotated by the ego yaw per frame;
+   (:class:`MountedLidar`: one row per laser, each sorted by ego-frame azimuth), rotated by the
+   ego yaw per frame;
 2. background: one Embree cast against the static background BVH (float32, centred);
 3. actors: each actor that can be seen (range, azimuth and elevation windows, see
    :meth:`MountedLidar.candidate_rays`) is hit by casting the rays of its windows, expressed in
@@ -313,8 +314,8 @@ def simulate_frame(world, rig: LidarRig, ego_pose, actor_poses=None, rng: np.ran
             are absent this frame. None = no actor present.
         rng: the only source of randomness (range noise, ray drop); None = ideal sensor
             (no noise, no drop).
-        cull: skip actors out of range and rays out of each actor's azimuth window
-            (identical output, faster). False casts every ray against every actor.
+        cull: skip actors out of range and rays out of each actor's azimuth and elevation
+            windows (identical output, faster). False casts every ray against every actor.
         noise, drop: switch range noise / ray drop off even with an rng.
         stats: if a dict, ``embree_s`` (time inside Embree), ``rays_cast`` and
             ``actor_rays`` are accumulated into it; its optional ``clock`` entry is the timer
@@ -397,7 +398,7 @@ def _simulate_sensor(world, rig, k, sensor: MountedLidar, ego, poses, present, a
         if rays is None:
             dx, dy, dz, t_sub = sensor.dx, sensor.dy, sensor.dz, t  # t updated in place
         else:
-            dx, dy, dz, t_sub = sensor.dx[rays], sensor.dy[rays], sensor.dz[rays], t[rays]
+            dx, dy, dz, t_sub = sensor.dx.take(rays), sensor.dy.take(rays), sensor.dz.take(rays), t.take(rays)
         m = len(dx)
         local = np.empty((m, 3), np.float32)
         np.subtract(cp * dx, sp * dy, out=local[:, 0])
