@@ -590,3 +590,52 @@ def test_bundled_scenes_round_trip_identically(ctx, repo_root, tmp_path):
         out = tmp_path / path.name
         assert bpy.ops.adv3d.scene_export(filepath=str(out)) == {"FINISHED"}
         assert gzip.decompress(out.read_bytes()) == gzip.decompress(path.read_bytes()), path.name
+
+
+class _Layout:
+    """Stand-in for UILayout: checks that every drawn property and operator exists."""
+
+    def __init__(self, seen):
+        self.seen = seen
+
+    def prop(self, data, name, **kw):
+        assert name in data.bl_rna.properties, f"{type(data).__name__} has no property {name!r}"
+        self.seen.append(name)
+
+    def operator(self, idname, **kw):
+        mod, op = idname.split(".")
+        assert hasattr(getattr(bpy.ops, mod), op), idname
+        assert getattr(getattr(bpy.ops, mod), op).poll is not None
+        self.seen.append(idname)
+        return _Props()
+
+    def template_list(self, listtype, list_id, data, prop, active_data, active_prop, **kw):
+        assert prop in data.bl_rna.properties and active_prop in active_data.bl_rna.properties
+        assert hasattr(bpy.types, listtype)
+
+    def label(self, **kw):
+        pass
+
+    def __getattr__(self, name):  # row(), column(), box(), scale_y, ...
+        return lambda *a, **kw: _Layout(self.seen)
+
+
+class _Props:
+    def __setattr__(self, name, value):
+        pass
+
+
+def test_panels_draw_with_existing_properties_and_operators(ctx, data, lib_copy):
+    from types import SimpleNamespace
+
+    from blender_addon import panels
+
+    bpy.ops.adv3d.library_load(filepath=str(lib_copy))
+    bpy.ops.adv3d.shapes_load(filepath=str(data["space"]))
+    bpy.ops.adv3d.scene_load(filepath=str(data["scene"]))
+    ctx.view_layer.objects.active = bpy.data.objects["actor 3"]
+    seen = []
+    for panel in (panels.ADV3D_PT_library, panels.ADV3D_PT_shapes, panels.ADV3D_PT_scenes):
+        panel.draw(SimpleNamespace(layout=_Layout(seen)), ctx)
+    for expected in ("adv3d.library_import", "adv3d.shapes_random", "adv3d.scene_export", "latent", "asset_id"):
+        assert expected in seen
