@@ -40,7 +40,7 @@ MARKING_Z = 0.005
 MARKING_WIDTH = 0.15
 DASH, GAP = 3.0, 9.0
 GROUND_Z = -0.05
-STEP = 5.0  # m, longitudinal resolution of strips
+STEP = 20.0  # m, extra stations on long segments (every centre-line vertex is always kept)
 
 
 class _Soup:
@@ -145,8 +145,7 @@ def _guardrail(soup: _Soup, line: np.ndarray, height: float) -> None:
     bottom = max(0.05, height - 0.31)  # a W-beam is about 0.31 m tall
     _extrude(soup, line, np.array([[0.0, bottom], [0.0, top]]), METAL)
     total = lg.length(line)
-    for s in np.arange(0.0, total + 1e-9, 4.0):
-        pose = lg.pose_at(line, s)
+    for pose in lg.pose_at(line, np.arange(0.0, total + 1e-9, 4.0)):
         v, f = _box(pose[:2], float(pose[2]), (0.15, 0.15, bottom + 0.1))
         soup.add(v, f, METAL)
 

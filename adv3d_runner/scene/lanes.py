@@ -23,18 +23,32 @@ def clean_polyline(points: np.ndarray, eps: float = EPS) -> np.ndarray:
     Args:
         points: (P, 2) m, P >= 1.
     Returns:
-        (P', 2) float64, 1 <= P' <= P, consecutive points at least ``eps`` apart.
+        (P', 2) float64, 1 <= P' <= P, consecutive points more than ``eps`` apart.
     """
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
     if len(pts) == 0:
         raise ValueError("polyline has no points")
     if not np.all(np.isfinite(pts)):
         raise ValueError("polyline has non-finite coordinates")
-    keep = [0]
-    for i in range(1, len(pts)):  # sequential: a run of near-duplicates collapses to its first
-        if np.hypot(*(pts[i] - pts[keep[-1]])) > eps:
-            keep.append(i)
-    return pts[keep]
+    return pts[_kept_indices(pts, eps)]
+
+
+def _kept_indices(points: np.ndarray, eps: float = EPS) -> np.ndarray:
+    """Indices ``clean_polyline`` keeps: each kept point is more than ``eps`` from the
+    previous kept one (a run of near-duplicates collapses to its first point)."""
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    if len(pts) < 2:
+        return np.arange(len(pts))
+    step = np.hypot(*np.diff(pts, axis=0).T)
+    keep = np.flatnonzero(np.concatenate([[True], step > eps]))
+    kept = pts[keep]
+    if len(kept) < 2 or np.all(np.hypot(*np.diff(kept, axis=0).T) > eps):
+        return keep  # the usual case, vectorised
+    out = [0]  # rare: creeping sub-eps steps; compare against the last kept point
+    for i in range(1, len(pts)):
+        if np.hypot(*(pts[i] - pts[out[-1]])) > eps:
+            out.append(i)
+    return np.asarray(out)
 
 
 def arc_length(points: np.ndarray) -> np.ndarray:
@@ -182,14 +196,6 @@ def offset_polyline(points: np.ndarray, d: np.ndarray | float) -> np.ndarray:
         d = d.reshape(-1)[keep]
     pts = clean_polyline(raw)
     return pts + np.reshape(d, (-1, 1)) * vertex_normals(pts)
-
-
-def _kept_indices(points: np.ndarray, eps: float = EPS) -> np.ndarray:
-    keep = [0]
-    for i in range(1, len(points)):
-        if np.hypot(*(points[i] - points[keep[-1]])) > eps:
-            keep.append(i)
-    return np.asarray(keep)
 
 
 def curvature(points: np.ndarray) -> np.ndarray:
