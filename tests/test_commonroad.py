@@ -94,3 +94,14 @@ def test_bad_xml_names_file(tmp_path):
     bad.write_text("<commonRoad><lanelet")
     with pytest.raises(FileFormatError, match="broken.xml"):
         import_commonroad(bad)
+
+
+@needs_source
+def test_cli_import(tmp_path, capsys):
+    from adv3d_runner.cli import main
+    out = tmp_path / "real" / "x.json.gz"
+    assert main(["scenes", "import-commonroad", str(XML_33), "--out", str(out), "--seconds", "5"]) == 1
+    assert "--extend" in capsys.readouterr().err and not out.exists()
+    assert main(["-q", "scenes", "import-commonroad", str(XML_33), "--out", str(out), "--seconds", "5", "--extend"]) == 0
+    scene = load_scene(out)
+    assert scene.frames == 50 and scene.ego.track.synthetic[-1]
