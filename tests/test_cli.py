@@ -40,3 +40,15 @@ def test_check_header_rejects_wrong_format():
     with pytest.raises(FileFormatError, match=r"\$\.version"):
         check_header({"format": "adv3d-scene", "version": 9}, "f.json", "adv3d-scene", (1,))
     assert check_header(json.loads('{"format": "adv3d-scene", "version": 1}'), None, "adv3d-scene", (1,)) == 1
+
+
+def test_atomic_write_gives_a_normal_file_mode(tmp_path):
+    import os
+    target = tmp_path / "y.json"
+    write_json(target, {"a": 1})
+    umask = os.umask(0)
+    os.umask(umask)
+    assert target.stat().st_mode & 0o777 == 0o666 & ~umask
+    os.chmod(target, 0o640)  # a user's own mode is kept on rewrite
+    write_json(target, {"a": 2})
+    assert target.stat().st_mode & 0o777 == 0o640
