@@ -44,8 +44,13 @@ def oracle_inputs(poses, valid, dims, k, predictor):
     T = poses.shape[1]
     for r, i in enumerate(idx):
         if predictor == "cv":
-            prev = k - 1 if k > 0 and valid[i, k - 1] else k
-            vel = (poses[i, k, :2] - poses[i, prev, :2]) / DT if prev != k else np.zeros(2)
+            # finite difference of the log (backward; forward at an actor's first frame)
+            if k > 0 and valid[i, k - 1]:
+                vel = (poses[i, k, :2] - poses[i, k - 1, :2]) / DT
+            elif k + 1 < T and valid[i, k + 1]:
+                vel = (poses[i, k + 1, :2] - poses[i, k, :2]) / DT
+            else:
+                vel = np.zeros(2)
             fut[r] = poses[i, k, :2] + np.arange(1, H + 1)[:, None] * DT * vel
         else:
             last = k

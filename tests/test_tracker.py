@@ -132,3 +132,11 @@ def test_constant_velocity_predictor_from_tracks():
     assert m.mean_ade > m.min_ade
     empty = ConstantVelocityPredictor().predict(Tracks())
     assert empty.trajectories.shape == (0, 3, 60, 2)
+
+
+def test_prior_speed_for_new_tracks():
+    tr = MultiObjectTracker(TrackerConfig(min_hits=1))
+    out = tr.update(dets([0.0, 0.0], yaw=np.pi / 2), prior_speed=25.0)
+    assert out.velocities[0] == pytest.approx([0.0, 25.0], abs=1e-9)
+    tr.reset()
+    assert tr.update(dets([0.0, 0.0])).velocities[0].tolist() == [0.0, 0.0]

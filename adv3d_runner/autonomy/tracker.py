@@ -101,8 +101,14 @@ class MultiObjectTracker:
         self.frame = 0
 
     # ------------------------------------------------------------------ one frame
-    def update(self, detections: Detections) -> Tracks:
-        """Advance one frame with this frame's detections (may be empty); returns confirmed tracks."""
+    def update(self, detections: Detections, prior_speed: float | None = None) -> Tracks:
+        """Advance one frame with this frame's detections (may be empty); returns confirmed tracks.
+
+        ``prior_speed`` (m/s): new tracks start moving at this speed along their detected yaw
+        instead of standing still (still with ``init_speed_std`` uncertainty). On a highway the
+        ego's own speed is a good prior: without it, vehicles seen for the first time look
+        parked for a few frames and a planner downstream brakes for them.
+        """
         c = self.config
         boxes = np.asarray(detections.boxes, dtype=np.float64).reshape(-1, 5)
         scores = np.asarray(detections.scores, dtype=np.float64).reshape(-1)
@@ -126,7 +132,7 @@ class MultiObjectTracker:
                         if (t.confirmed and t.misses <= c.max_misses) or (not t.confirmed and t.misses == 0)]
         for k in range(len(boxes)):
             if k not in matched_dets and scores[k] >= c.min_score:
-                self._birth(boxes[k], scores[k])
+                self._birth(boxes[k], scores[k], prior_speed)
         for t in self._tracks:
             if t.hits >= c.min_hits:
                 t.confirmed = True
@@ -167,11 +173,12 @@ class MultiObjectTracker:
         t.hits += 1
         t.misses = 0
 
-    def _birth(self, box: np.ndarray, score: float) -> None:
+    def _birth(self, box: np.ndarray, score: float, prior_speed: float | None = None) -> None:
         c = self.config
         P = np.diag([c.pos_std ** 2, c.pos_std ** 2, c.init_speed_std ** 2, c.init_speed_std ** 2])
-        t = _Track(self._next_id, np.array([box[0], box[1], 0.0, 0.0]), P, max(box[2], 0.0), max(box[3], 0.0),
-                   _wrap(box[4]), float(score))
+        v = 0.0 if prior_speed is None or not np.isfinite(prior_speed) else float(prior_speed)
+        x0 = np.array([box[0], box[1], v * np.cos(box[4]), v * np.sin(box[4])])
+        t = _Track(self._next_id, x0, P, max(box[2], 0.0), max(box[3], 0.0), _wrap(box[4]), float(score))
         self._next_id += 1
         self._tracks.append(t)
 
