@@ -362,7 +362,31 @@ def test_cli_decode_and_info(space, tmp_path, capsys):
 def test_shipped_shape_space_loads_and_decodes():
     assert DEFAULT_SHAPE_SPACE.exists(), f"no shipped shape space at {DEFAULT_SHAPE_SPACE}"
     sp = ShapeSpace.load()
-    assert sp.k == 3 and len(sp.asset_ids) >= 2 and sp.rank >= 1
-    mesh = sp.decode([0.5] * sp.dim)
-    assert mesh.is_watertight and mesh.volume > 0
-    assert 3.0 < mesh.extents[0] < 7.0
+    assert sp.k == 3 and len(sp.asset_ids) >= 2 and sp.rank == 3
+    assert sp.grid.resolution == 64 and sp.method == "winding"
+    for corner in itertools.product((0.0, 1.0), repeat=sp.dim):
+        mesh = sp.decode(corner)
+        assert mesh.is_watertight and mesh.volume > 0, corner
+        assert mesh.area_faces.min() > 1e-10, corner
+        assert 2.5 < mesh.extents[0] < 8.0 and abs(mesh.bounds[0, 2]) < 1e-9, corner
+
+
+def test_shipped_shape_space_matches_shipped_library():
+    """The shipped space was built from exactly the library's shape-space vehicles, and its
+    common scale is 1.1 x their largest dimension."""
+    from adv3d_runner.shapes.library import load_library
+
+    lib = load_library()
+    sp = ShapeSpace.load()
+    assets = lib.shape_space_assets()
+    assert sp.asset_ids == [a.id for a in assets], "shipped shape space is stale: run `adv3d shapes build`"
+    largest = max(max(a.dimensions) for a in assets)
+    assert sp.grid.extent_m == pytest.approx(1.1 * largest, rel=0.02)
+
+
+@pytest.mark.slow
+def test_rebuilding_shipped_shape_space_is_byte_identical(tmp_path):
+    from adv3d_runner.shapes.library import load_library
+
+    sp = build_shape_space(load_library(), resolution=64, k=3, progress=False)
+    assert sp.to_bytes() == DEFAULT_SHAPE_SPACE.read_bytes()
