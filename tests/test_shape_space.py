@@ -390,3 +390,30 @@ def test_rebuilding_shipped_shape_space_is_byte_identical(tmp_path):
 
     sp = build_shape_space(load_library(), resolution=64, k=3, progress=False)
     assert sp.to_bytes() == DEFAULT_SHAPE_SPACE.read_bytes()
+
+
+def test_decode_drops_crumbs_and_cavities():
+    """Tiny detached parts and internal cavities (PCA-blend artefacts) are removed; a real
+    second part is kept."""
+    from adv3d_runner.shapes.decode import extract_surface
+    from adv3d_runner.shapes.sdf import GridSpec
+
+    grid = GridSpec(40, 5.0, -0.15, 0.1)
+    p = grid.points()
+
+    def box_field(c, half):
+        q = np.abs(p - np.asarray(c)) - np.asarray(half)
+        return np.linalg.norm(np.maximum(q, 0), axis=1) + np.minimum(q.max(axis=1), 0)
+
+    body = box_field((0, 0, 0), (0.35, 0.15, 0.1))
+    crumb = box_field((0, 0, 0.3), (0.02, 0.02, 0.02))
+    cavity = -box_field((0.1, 0, 0), (0.03, 0.03, 0.03))
+    second = box_field((0, 0.35, 0), (0.1, 0.1, 0.1))
+    field = np.minimum(np.minimum(body, crumb), second)
+    field = np.maximum(field, cavity).reshape((40,) * 3).astype(np.float32)
+    raw = trimesh.Trimesh(*extract_surface(field, grid, min_part_fraction=0.0), process=False)
+    assert len(raw.split(only_watertight=False)) == 4
+    clean = trimesh.Trimesh(*extract_surface(field, grid), process=False)
+    parts = clean.split(only_watertight=False)
+    assert len(parts) == 2 and all(part.volume > 0 for part in parts)
+    assert clean.is_watertight and clean.volume > raw.volume  # the cavity no longer subtracts
