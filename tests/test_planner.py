@@ -162,8 +162,11 @@ def test_collision_cost_weights_modes_and_time():
 
 def test_buffer_cost():
     dist = np.full((1, 1, 2, 4), 0.5)
-    dist[..., 2:] = 5.0
-    assert costs.buffer_cost(dist, np.array([[0.25, 0.75]]), buffer=1.0)[0] == pytest.approx(0.5 * 0.5)
+    # a constant violation costs its size (the time weights are normalised to mean 1)
+    assert costs.buffer_cost(dist, np.array([[0.25, 0.75]]), buffer=1.0)[0] == pytest.approx(0.5)
+    dist[..., 2:] = 5.0  # violated only in the first half of the horizon, which weighs more
+    w = np.linspace(1.0, 0.5, 4) / np.linspace(1.0, 0.5, 4).mean()
+    assert costs.buffer_cost(dist, np.array([[0.25, 0.75]]), buffer=1.0)[0] == pytest.approx(0.5 * w[:2].sum() / 4)
 
 
 def test_clearance_matches_box_geometry():
@@ -193,7 +196,11 @@ def test_simple_terms():
     assert costs.progress_cost(np.array([50.0, 150.0, 0.0]), 100.0).tolist() == [0.5, 0.0, 1.0]
     assert costs.jerk_cost(np.array([[1.0, 1.0, 1.0]]), 0.0, 0.1)[0] == pytest.approx(10.0 / 3)
     assert costs.lateral_accel_cost(np.array([[10.0, 10.0]]), np.array([[0.01, -0.01]]))[0] == pytest.approx(1.0)
-    assert costs.lane_change_cost(np.array([0, 1, 2]), 0, committed_lane=2).tolist() == [0.0, 1.0, 0.0]
+    assert costs.lane_change_cost(np.array([True, False, False]), np.array([False, False, True])).tolist() == [0, 1, 0]
+    same = np.array([True, True, False, True])
+    assert costs.offset_change_cost(np.array([0.5, 0.0, -0.5, np.nan]), same, 0.0).tolist() == [0.5, 0.0, 0.0, 0.0]
+    assert costs.offset_change_cost(np.array([0.5, 0.0, -0.5]), np.ones(3, bool), 0.5).tolist() == [0.0, 0.5, 1.0]
+    assert costs.offset_change_cost(np.array([0.5]), np.array([True]), None).tolist() == [0.0]
 
 
 def test_road_geometry_on_a_straight_lane():

@@ -140,3 +140,30 @@ def test_prior_speed_for_new_tracks():
     assert out.velocities[0] == pytest.approx([0.0, 25.0], abs=1e-9)
     tr.reset()
     assert tr.update(dets([0.0, 0.0])).velocities[0].tolist() == [0.0, 0.0]
+
+
+def test_lane_following_predictor_keeps_the_lane():
+    from adv3d_runner.autonomy.baselines import LaneFollowingPredictor
+    from adv3d_runner.scene.schema import Lane
+
+    R = 200.0
+    th = np.linspace(0.0, 1.5, 80)
+    lane = Lane(0, np.c_[R * np.sin(th), R * (1 - np.cos(th))], 3.7, speed_limit=30.0)
+    far = Lane(1, np.array([[0.0, 500.0], [10.0, 500.0]]), 3.7)
+    # a track 0.5 m left of the lane centre at s = 40 m, heading slightly wrong, 20 m/s
+    s0 = 40.0
+    p = np.array([R * np.sin(s0 / R), R * (1 - np.cos(s0 / R))])
+    normal = np.array([-np.sin(s0 / R), np.cos(s0 / R)])
+    xy = p + 0.5 * normal
+    yaw = s0 / R + 0.03
+    tracks = Tracks(np.array([3, 4]), np.array([[*xy, 4.5, 1.9, yaw], [0.0, -40.0, 4.5, 1.9, 0.0]]),
+                    np.array([[20 * np.cos(yaw), 20 * np.sin(yaw)], [10.0, 0.0]]), np.ones(2), np.zeros(2, np.int64),
+                    np.zeros((2, 1, 3)), np.ones((2, 1), bool))
+    pred = LaneFollowingPredictor().predict(tracks, [lane, far])
+    assert pred.trajectories.shape == (2, 3, 60, 2) and np.all(np.isfinite(pred.trajectories))
+    radial = np.hypot(pred.trajectories[0, :, :, 0], pred.trajectories[0, :, :, 1] - R)
+    assert np.allclose(radial, R - 0.5, atol=0.05)  # stays 0.5 m left of the centre line (inside the curve)
+    arc = R * np.arctan2(pred.trajectories[0, 0, -1, 0], R - pred.trajectories[0, 0, -1, 1])
+    assert arc == pytest.approx(s0 + 20 * np.cos(0.03) * 6.0, rel=1e-3)  # speed along the heading, along the lane
+    # the off-road track falls back to constant velocity
+    assert np.allclose(pred.trajectories[1, 0, -1], [60.0, -40.0])

@@ -112,13 +112,22 @@ def collision_cost(dist: np.ndarray, probs: np.ndarray) -> np.ndarray:
     return np.einsum("bnk,nk->b", w, probs)
 
 
+def _horizon_weights(T: int, last: float = 0.5) -> np.ndarray:
+    """Per-time weights from 1 (now) to ``last`` (horizon end), normalised to mean 1: the far
+    future is predicted less well, so violations there count less."""
+    w = np.linspace(1.0, last, T) if T > 1 else np.ones(1)
+    return w / w.mean()
+
+
 def buffer_cost(dist: np.ndarray, probs: np.ndarray, buffer: float = 1.0) -> np.ndarray:
-    """Clearance below ``buffer`` m, as a fraction of the buffer, averaged over time and summed
-    over actor modes weighted by probability. Unit: (buffer fraction) x (fraction of horizon)."""
+    """Clearance below ``buffer`` m, as a fraction of the buffer, averaged over time (weights
+    falling from 1 now to 0.5 at the horizon, normalised) and summed over actor modes weighted by
+    probability. Unit: (buffer fraction) x (fraction of horizon)."""
     if dist.shape[1] == 0:
         return np.zeros(dist.shape[0])
     short = np.clip((buffer - dist) / buffer, 0.0, 1.0)
-    return np.einsum("bnk,nk->b", short.mean(axis=-1), probs)
+    w = _horizon_weights(dist.shape[-1])
+    return np.einsum("bnkt,t,nk->b", short, w, probs) / dist.shape[-1]
 
 
 def headway_cost(ego_poses: np.ndarray, ego_speeds: np.ndarray, ego_dims: tuple[float, float],
@@ -127,7 +136,8 @@ def headway_cost(ego_poses: np.ndarray, ego_speeds: np.ndarray, ego_dims: tuple[
     """Following too closely: for an actor ahead in the ego's path (in the ego's frame at each
     time, ahead and laterally overlapping the ego's width plus margin), the shortfall of the
     bumper gap below ``min_gap + time_headway x speed``, as a fraction of that distance.
-    Per time the worst actor counts (its modes weighted by probability); averaged over time.
+    Per time the worst actor counts (its modes weighted by probability); averaged over time with
+    weights falling from 1 now to 0.5 at the horizon (normalised, as :func:`buffer_cost`).
     ego_poses (B, T, 3), ego_speeds (B, T), actor_poses (N, K, T, 3). Unit: fraction."""
     B, T = ego_poses.shape[:2]
     if actor_poses.shape[0] == 0:
@@ -148,7 +158,7 @@ def headway_cost(ego_poses: np.ndarray, ego_speeds: np.ndarray, ego_dims: tuple[
     desired = min_gap + time_headway * np.maximum(ego_speeds, 0.0)[:, None, None, :]
     short = np.where(in_path, np.clip((desired - gap) / desired, 0.0, 1.0), 0.0)
     per_actor = np.einsum("bnkt,nk->bnt", short, probs)
-    return per_actor.max(axis=1).mean(axis=-1)
+    return (per_actor.max(axis=1) * _horizon_weights(T)).mean(axis=-1)
 
 
 def lane_center_cost(centre_dev: np.ndarray) -> np.ndarray:
@@ -185,9 +195,21 @@ def lateral_accel_cost(speeds: np.ndarray, curvature: np.ndarray) -> np.ndarray:
     return np.mean(np.abs(speeds * speeds * curvature), axis=1)
 
 
-def lane_change_cost(target_lane: np.ndarray, current_lane: int, committed_lane: int | None = None) -> np.ndarray:
-    """1 for candidates heading to a lane other than the current one (or the lane a lane change
-    already in progress is heading to), else 0: a hysteresis that stops dithering between lanes."""
-    t = np.asarray(target_lane)
-    free = (t == current_lane) | ((committed_lane is not None) & (t == committed_lane))
-    return np.where(free, 0.0, 1.0)
+def lane_change_cost(is_current: np.ndarray, is_committed: np.ndarray) -> np.ndarray:
+    """1 for candidates heading to a lane other than the current one, unless a lane change to
+    that lane is already in progress (``is_committed``, the previous plan's target): a
+    hysteresis that stops dithering between lanes. Both (B,) bool. Unit: lane changes."""
+    return np.where(np.asarray(is_current, bool) | np.asarray(is_committed, bool), 0.0, 1.0)
+
+
+def offset_change_cost(offsets: np.ndarray, same_target: np.ndarray, previous_offset: float | None) -> np.ndarray:
+    """|target lateral offset - the previous plan's| (m) for candidates on the previous plan's
+    target lane: hysteresis against flipping between in-lane nudges (weighted below the lane-centre
+    term, so a nudge that is no longer needed is still undone). 0 on other lanes (see
+    :func:`lane_change_cost`), for the first plan, and for candidates keeping their present
+    offset (NaN)."""
+    off = np.asarray(offsets, dtype=np.float64)
+    if previous_offset is None or not np.isfinite(previous_offset):
+        return np.zeros(off.shape)
+    change = np.abs(off - previous_offset)
+    return np.where(np.asarray(same_target, bool) & np.isfinite(change), change, 0.0)

@@ -120,8 +120,9 @@ class SamplingPlanner:
         self.reset()
 
     def reset(self) -> None:
-        """Forget the lane a lane change was heading to."""
-        self._committed_lane: int | None = None
+        """Forget the previous plan's target (lane-change and offset hysteresis)."""
+        self._prev_target_ids: frozenset[int] = frozenset()  # lane ids of the previous target corridor
+        self._prev_offset: float | None = None
 
     def plan(self, ego: EgoState, lanes: Sequence[Any], predictions: Predictions | None = None,
              tracks: Tracks | None = None) -> Plan:
@@ -160,10 +161,10 @@ class SamplingPlanner:
         spec = make_specs(corridors, names, limit_now, pc, current_index=0)
         cands = rollout_candidates(ego.pose, ego.speed, ego.acceleration, spec, corridors, forecast,
                                    ego.length, ego.width, pc, params)
-        table = self.score_candidates(cands, corridors, forecast, ego, chain_ids, lane_id, limit_now)
+        table = self.score_candidates(cands, corridors, forecast, ego, limit_now)
         i = table.best
-        target_lane = chain_ids[int(spec.corridor[i])]
-        self._committed_lane = target_lane if target_lane != lane_id else None
+        self._prev_target_ids = frozenset(corridors.corridors[int(spec.corridor[i])].lane_ids)
+        self._prev_offset = None if spec.emergency[i] else float(spec.offset[i])
         traj = cands.poses[i].copy()
         traj[:, 2] = (traj[:, 2] + np.pi) % (2 * np.pi) - np.pi  # map-frame yaw in [-pi, pi)
         plan = Plan(trajectory=traj, speed=cands.speeds[i].copy(), acceleration=cands.accel[i].copy(),
@@ -172,7 +173,7 @@ class SamplingPlanner:
         return plan, cands, table
 
     def score_candidates(self, cands: Candidates, corridors: CorridorSet, forecast: ActorForecast, ego: EgoState,
-                         chain_ids: list[int], lane_id: int, limit_now: float) -> ScoreTable:
+                         limit_now: float) -> ScoreTable:
         """All named cost terms of every candidate, weighted (see :mod:`.scorer`)."""
         cfg = self.config
         dims = (ego.length, ego.width)
@@ -184,7 +185,10 @@ class SamplingPlanner:
         dev, excess = costs.road_geometry(poses, travelled, corridors, s_start, dims)
         limits = corridors.limit_at(cands.spec.corridor[:, None], cands.s)
         horizon = cands.dt * (poses.shape[1] - 1)
-        target_lanes = np.array([chain_ids[int(c)] for c in cands.spec.corridor])
+        # corridor 0 is the current lane; a corridor sharing a lane with the previous plan's
+        # target corridor continues that plan (lane ids change along the road in sections)
+        same = np.array([bool(self._prev_target_ids & set(corridors.corridors[int(c)].lane_ids))
+                         for c in cands.spec.corridor])
         raw = {
             "collision": costs.collision_cost(dist, forecast.probs),
             "drivable_area": costs.drivable_area_cost(excess),
@@ -194,7 +198,8 @@ class SamplingPlanner:
             "speed_limit": costs.speed_limit_cost(speeds, limits),
             "progress": costs.progress_cost(travelled[:, -1], limit_now * horizon),
             "lane_center": costs.lane_center_cost(dev),
-            "lane_change": costs.lane_change_cost(target_lanes, lane_id, self._committed_lane),
+            "lane_change": costs.lane_change_cost(cands.spec.corridor == 0, same),
+            "offset_change": costs.offset_change_cost(cands.spec.offset, same, self._prev_offset),
             "jerk": costs.jerk_cost(cands.accel, ego.acceleration, cands.dt),
             "lat_accel": costs.lateral_accel_cost(speeds[:, :-1], cands.curvature),
         }

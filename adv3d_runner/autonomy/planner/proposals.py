@@ -49,7 +49,8 @@ class ProposalConfig:
         idm_accel, idm_decel: IDM maximum acceleration / comfortable deceleration.
         idm_gap, idm_headway: IDM jam distance (m) and time headway (s).
         max_decel: hardest braking of any candidate (and of the emergency stop).
-        max_jerk: |da/dt| limit of the IDM candidates.
+        max_jerk: |da/dt| limit of the IDM candidates; max_release_jerk: the limit while
+            the acceleration rises from a negative value (releasing the brakes).
         min_mode_prob: predicted modes below this probability are ignored as leaders.
         lane_margin: extra lateral margin when deciding that an actor is in a corridor, m.
     """
@@ -71,6 +72,7 @@ class ProposalConfig:
     idm_headway: float = 1.5
     max_decel: float = 7.0
     max_jerk: float = 4.0
+    max_release_jerk: float = 10.0
     min_mode_prob: float = 0.1
     lane_margin: float = 0.3
 
@@ -267,7 +269,10 @@ def rollout_candidates(ego_pose: np.ndarray, ego_speed: float, ego_accel: float,
             interact = np.where(finite, -config.idm_accel * (s_star / np.maximum(gap, 0.1)) ** 2, 0.0)
             a = np.where(finite & (gap <= 0.0), -config.max_decel, free + interact)
         a = np.minimum(np.maximum(a, -config.max_decel), config.idm_accel)
-        a = np.minimum(np.maximum(a, a_prev - config.max_jerk * dt), a_prev + config.max_jerk * dt)
+        # jerk limit; releasing the brakes may be faster (max_release_jerk) so that a plan that
+        # braked hard does not keep the ego decelerating for seconds after the reason is gone
+        up = np.where(a_prev < 0, config.max_release_jerk, config.max_jerk)
+        a = np.minimum(np.maximum(a, a_prev - config.max_jerk * dt), a_prev + up * dt)
         a = np.where(spec.emergency, -config.max_decel, a)
         a = np.where((v <= 1e-6) & (a < 0), 0.0, a)  # standing still: no braking "stored up"
         # ---- lateral: pure pursuit on the reference path

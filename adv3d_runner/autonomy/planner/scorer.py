@@ -13,6 +13,7 @@ speed_limit       5     1 m/s over the limit on average
 progress         20     no progress at all (vs. driving at the limit for the horizon)
 lane_center       2     1 m from the nearest lane centre on average
 lane_change       2     starting a lane change
+offset_change     1     moving the in-lane target offset by 1 m from the previous plan's
 jerk            0.3     1 m/s^3 mean |jerk|
 lat_accel       1.0     1 m/s^2 mean |lateral acceleration|
 ============== ======== ==========================================================
@@ -29,7 +30,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 TERMS = ("collision", "drivable_area", "buffer", "headway", "speed_limit", "progress", "lane_center",
-         "lane_change", "jerk", "lat_accel")
+         "lane_change", "offset_change", "jerk", "lat_accel")
 
 
 @dataclass(frozen=True)
@@ -42,6 +43,7 @@ class CostWeights:
     progress: float = 20.0
     lane_center: float = 2.0
     lane_change: float = 2.0
+    offset_change: float = 1.0
     jerk: float = 0.3
     lat_accel: float = 1.0
 
