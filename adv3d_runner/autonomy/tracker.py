@@ -50,7 +50,7 @@ class TrackerConfig:
     gate_chi2: float = 13.8
     min_score: float = 0.0
     pos_std: float = 0.3
-    accel_std: float = 3.0
+    accel_std: float = 2.0
     init_speed_std: float = 15.0
     size_alpha: float = 0.3
     yaw_alpha: float = 0.5
