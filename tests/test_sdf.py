@@ -216,3 +216,56 @@ def test_grid_common_scale_and_ground():
     assert g.to_metric(np.array([[0.0, 0.0, 0.0]]))[0, 2] == pytest.approx(0.95)
     p = np.array([[1.0, -0.5, 0.3]])
     assert np.allclose(g.to_metric(g.to_unit(p)), p)
+
+
+def double_walled_body(hole: bool = True) -> trimesh.Trimesh:
+    """The body box as a shell: outer skin plus an inward-facing inner skin 8 cm inside,
+    joined by a rim around a small opening in the roof, so both skins are one orientable
+    patch (as in game/CAD models with interior trim). The winding number is ~0 in the hollow."""
+    outer = box(*BODY).subdivide().subdivide().subdivide()
+    v = np.asarray(outer.vertices)
+    f = np.asarray(outer.faces)
+    c = np.asarray(BODY[1])
+    half = np.asarray(BODY[0]) / 2
+    inner_v = c + (v - c) * (half - 0.08) / half
+    centres = v[f].mean(axis=1)
+    roof_cut = (np.abs(centres[:, 2] - 1.0) < 1e-9) & (np.abs(centres[:, 0] - 0.1) < 0.15) & (np.abs(centres[:, 1]) < 0.1)
+    assert 0 < roof_cut.sum() <= 4
+    keep = ~roof_cut if hole else np.ones(len(f), dtype=bool)
+    n = len(v)
+    faces = [f[keep], f[keep][:, ::-1] + n]
+    if hole:
+        # Boundary edges of the outer skin (a -> b as its faces run them) joined to the inner.
+        e = np.concatenate([f[keep][:, [0, 1]], f[keep][:, [1, 2]], f[keep][:, [2, 0]]])
+        key = {tuple(x) for x in e.tolist()}
+        rim = [(a, b) for a, b in e.tolist() if (b, a) not in key]
+        assert len(rim) >= 3
+        faces += [np.array([[b, a, a + n], [b, a + n, b + n]]) for a, b in rim]
+    mesh = trimesh.Trimesh(np.concatenate([v, inner_v]), np.concatenate(faces), process=False)
+    return mesh
+
+
+def test_double_walled_shell_is_filled_solid():
+    mesh = double_walled_body()
+    assert mesh.is_watertight and mesh.is_winding_consistent and mesh.body_count == 1
+    sdf = sdf_volume(mesh.vertices, mesh.faces, GRID, "winding")
+    # Solid everywhere except, at most, a one-voxel dimple where the opening was.
+    p = nodes_m()
+    wrong = (in_boxes(p, [BODY]) != (sdf.ravel() < 0)) & ~band(p, [BODY], 1e-3)
+    assert wrong.sum() <= 4
+    assert np.all(np.abs(box_sdf(p[wrong], *BODY)) < GRID.voxel * GRID.extent_m)
+    # Deep inside, the distance is to the outer skin, not to the (now interior) inner skin.
+    plain = sdf_volume(*_arrays(box(*BODY)), GRID, "winding")
+    core = in_boxes(nodes_m(), [((2.6, 1.0, 0.4), BODY[1])])
+    assert np.all(sdf.ravel()[core] < -0.1 / GRID.extent_m)
+    assert np.abs(sdf.ravel()[core] - plain.ravel()[core]).max() < 1.01 * GRID.voxel
+
+
+def test_double_walled_shell_without_fill_would_be_hollow():
+    """The fill step is what makes the shell solid: the raw winding number says 'outside'."""
+    from adv3d_runner.shapes.sdf import orient_faces, winding_numbers
+
+    mesh = double_walled_body()
+    v = GRID.to_unit(mesh.vertices)
+    w = winding_numbers(v, orient_faces(v, np.asarray(mesh.faces)), GRID.to_unit(np.array([[0.0, 0.0, 0.6]])))
+    assert abs(w[0]) < 0.1

@@ -12,7 +12,10 @@ Methods (``METHODS``):
     2. sign from the generalised winding number (``igl.fast_winding_number``): inside where
        w > 0.5. Interior parts and overlapping parts only raise w (1 -> 2), open bodies give a
        fractional w that is still > 0.5 in a mostly closed cabin;
-    3. unsigned distance (libigl AABB: ``igl.signed_distance`` with the unsigned sign type and
+    3. sealed hollows (double-walled shells: the winding number is ~0 inside them) are
+       filled: free space a flood fill from the border cannot reach, see
+       ``fill_enclosed_cavities``;
+    4. unsigned distance (libigl AABB: ``igl.signed_distance`` with the unsigned sign type and
        an upper bound at the truncation) to the *boundary* pieces only: triangles, split to
        about a voxel, whose two sides have different inside/outside status. Interior parts and
        faces hidden inside overlapping parts would otherwise create small |SDF| pockets inside
@@ -274,6 +277,61 @@ def ray_escape_inside(vertices: np.ndarray, faces: np.ndarray, points: np.ndarra
     return escapes <= 4
 
 
+def enclosed_free_space(dist_all: np.ndarray, n: int, wall: float) -> np.ndarray:
+    """(N^3,) bool: nodes farther than ``wall`` from every face that cannot be reached from the
+    grid border without passing within ``wall`` of a face (6-connected flood fill)."""
+    from scipy import ndimage
+
+    free = (dist_all >= wall).reshape(n, n, n)
+    labels, _ = ndimage.label(free)
+    border = np.unique(
+        np.concatenate(
+            [labels[0].ravel(), labels[-1].ravel(), labels[:, 0].ravel(), labels[:, -1].ravel(),
+             labels[:, :, 0].ravel(), labels[:, :, -1].ravel()]
+        )
+    )
+    outside = np.isin(labels, border[border > 0])
+    return (free & ~outside).ravel()
+
+
+def fill_enclosed_cavities(
+    vertices: np.ndarray, faces: np.ndarray, inside: np.ndarray, dist: np.ndarray, grid: GridSpec, bound: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Make sealed hollows solid and keep inside distances away from hidden walls.
+
+    Game and CAD bodies are often double-walled shells (outer skin + interior trim joined at a
+    rim, one orientable patch): the winding number is then ~0 inside the cabin or cargo box and
+    the vehicle would be hollow. Free space that a flood fill from the grid border cannot reach
+    (gaps narrower than 1.5 voxels count as closed) is made inside, grown by one node
+    (26-neighbourhood) so the band along the hollow's walls joins it (on walls thinner than a
+    voxel this moves the outer surface out by < 1 voxel).
+
+    Inside distances are then bounded below by the voxel distance transform of the inside set
+    minus one voxel: faces that are now interior (the hollow's walls) would otherwise leave
+    near-zero values deep inside the solid, which PCA blends turn into bubbles. Where the
+    boundary faces are the true surface the exact distance is already larger, so it stays.
+
+    Args:
+        vertices, faces: oriented mesh in unit-cube coordinates.
+        inside: (N^3,) bool winding-number inside test; dist: (N^3,) unsigned distance to the
+            boundary pieces (clamped at ``bound``).
+    Returns:
+        inside, dist (new arrays).
+    """
+    from scipy import ndimage
+
+    n = grid.resolution
+    dist_all = unsigned_distance(vertices, faces, grid.points(), bound)
+    hollow = enclosed_free_space(dist_all, n, 0.75 * grid.voxel) & ~inside
+    if not hollow.any():
+        return inside, dist
+    grown = ndimage.binary_dilation(hollow.reshape(n, n, n), structure=np.ones((3, 3, 3), dtype=bool))
+    inside = inside | grown.ravel()
+    depth = ndimage.distance_transform_edt(inside.reshape(n, n, n)).ravel() * grid.voxel
+    dist = np.where(inside, np.maximum(dist, np.minimum(depth - grid.voxel, bound)), dist)
+    return inside, dist
+
+
 # ----------------------------------------------------------------------------------- SDF
 
 
@@ -317,6 +375,7 @@ def sdf_volume(vertices_m: np.ndarray, faces: np.ndarray, grid: GridSpec, method
         inside = inside_fn(pts)
         vb, fb = boundary_faces(v, fo, inside_fn, eps, grid.voxel)
         dist = unsigned_distance(vb, fb, pts, bound) if len(fb) else unsigned_distance(v, fo, pts, bound)
+        inside, dist = fill_enclosed_cavities(v, fo, inside, dist, grid, bound)
     elif method == "rayvote":
 
         def inside_fn(p: np.ndarray) -> np.ndarray:
@@ -326,19 +385,10 @@ def sdf_volume(vertices_m: np.ndarray, faces: np.ndarray, grid: GridSpec, method
         vb, fb = boundary_faces(v, f, inside_fn, eps, grid.voxel)
         dist = unsigned_distance(vb, fb, pts, bound) if len(fb) else unsigned_distance(v, f, pts, bound)
     else:  # floodfill
-        from scipy import ndimage
-
         dist = unsigned_distance(v, f, pts, bound)
-        free = (dist >= 0.75 * grid.voxel).reshape(n, n, n)
-        labels, _ = ndimage.label(free)  # 6-connectivity
-        border = np.unique(
-            np.concatenate(
-                [labels[0].ravel(), labels[-1].ravel(), labels[:, 0].ravel(), labels[:, -1].ravel(),
-                 labels[:, :, 0].ravel(), labels[:, :, -1].ravel()]
-            )
-        )
-        border = border[border > 0]
-        inside = ~np.isin(labels, border).ravel()
+        wall = 0.75 * grid.voxel
+        # mesh2sdf style: every wall node counts as inside, which biases the surface outwards.
+        inside = enclosed_free_space(dist, n, wall) | (dist < wall)
 
     if not inside.any():
         raise Adv3dError("mesh encloses no volume on this grid (no grid node is inside it)")
