@@ -167,3 +167,36 @@ def test_lane_following_predictor_keeps_the_lane():
     assert arc == pytest.approx(s0 + 20 * np.cos(0.03) * 6.0, rel=1e-3)  # speed along the heading, along the lane
     # the off-road track falls back to constant velocity
     assert np.allclose(pred.trajectories[1, 0, -1], [60.0, -40.0])
+
+
+def test_modular_stack_runs_the_chain_in_the_map_frame():
+    from adv3d_runner.autonomy.interface import AutonomyStack
+    from adv3d_runner.autonomy.modular import ModularStack
+    from adv3d_runner.scene.schema import Lane
+
+    class OracleDetector:
+        """Sees one car 30 m ahead of the ego whenever there are points."""
+
+        def detect(self, points):
+            if len(points) == 0:
+                return Detections()
+            return Detections(np.array([[30.0, 0.0, 4.5, 1.9, 0.0]]), np.array([0.95]))
+
+    xs = np.linspace(-100.0, 600.0, 71)
+    lanes = [Lane(0, np.c_[xs, np.full_like(xs, 10.0)], 3.7, speed_limit=25.0)]
+    stack = ModularStack(OracleDetector())
+    assert isinstance(stack, AutonomyStack)
+    ego = EgoState([100.0, 10.0, 0.0], 20.0)
+    pts = np.ones((10, 4))
+    for k in range(3):
+        seen_from = ego.pose.copy()
+        out = stack.step(pts, ego, lanes)
+        ego = EgoState(out.plan.trajectory[1], out.plan.speed[1], acceleration=float(out.plan.acceleration[0]))
+    assert out.detections.boxes[0, :2] == pytest.approx(seen_from[:2] + [30.0, 0.0], abs=1e-6)  # map frame
+    assert len(out.tracks) == 1 and out.predictions.trajectories.shape == (1, 3, 60, 2)
+    assert set(out.timings) == {"detector", "tracker", "predictor", "planner"}
+    assert out.plan.cost_terms["collision"] == 0.0
+    empty = stack.step(np.zeros((0, 4)), ego, lanes)  # a frame without points
+    assert len(empty.detections) == 0 and len(empty.tracks) == 1 and empty.tracks.misses[0] == 1
+    stack.reset()
+    assert len(stack.step(np.zeros((0, 4)), ego, lanes).tracks) == 0

@@ -39,8 +39,9 @@ class ConstantVelocityPredictor:
         if len(self.speed_factors) != len(self.probabilities) or not self.speed_factors:
             raise ValueError("need one probability per speed factor")
 
-    def predict(self, tracks: Tracks) -> Predictions:
-        """(N,) tracks -> Predictions with trajectories (N, K, steps, 2) at t + dt .. t + steps dt."""
+    def predict(self, tracks: Tracks, lanes=None) -> Predictions:
+        """(N,) tracks -> Predictions with trajectories (N, K, steps, 2) at t + dt .. t + steps dt.
+        ``lanes`` is ignored (accepted so every predictor has the same signature)."""
         n = len(tracks)
         f = np.asarray(self.speed_factors, dtype=np.float64)
         p = np.asarray(self.probabilities, dtype=np.float64)
