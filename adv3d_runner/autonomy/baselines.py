@@ -84,7 +84,7 @@ class LaneFollowingPredictor:
 
     def predict(self, tracks: Tracks, lanes) -> Predictions:
         """(N,) tracks and the scene's lanes -> Predictions (N, K, steps, 2)."""
-        from .planner.corridor import CorridorSet, build_corridor, lanes_by_id, locate
+        from .planner.corridor import CorridorSet, build_corridor, lanes_by_id, locate_many
 
         cv = ConstantVelocityPredictor(self.speed_factors, self.probabilities, self.steps, self.dt, along_heading=True)
         out = cv.predict(tracks)
@@ -96,27 +96,23 @@ class LaneFollowingPredictor:
         t = np.arange(1, self.steps + 1) * self.dt
         boxes = np.asarray(tracks.boxes, dtype=np.float64)
         vel = np.nan_to_num(np.asarray(tracks.velocities, dtype=np.float64))
-        cache: dict[int, CorridorSet] = {}
+        ok = np.all(np.isfinite(boxes), axis=1)
+        lane_ids = np.full(n, -1, np.int64)
+        lane_ids[ok], _, d = locate_many(lanes, boxes[ok][:, [0, 1, 4]])
         reach = float(f.max()) * self.steps * self.dt
-        for i in range(n):
-            pose = boxes[i, [0, 1, 4]]
-            if not np.all(np.isfinite(pose)):
-                continue
-            lane_id, _, d = locate(lanes, pose)
-            if lane_id is None:
-                continue
-            half = 0.5 * float(np.max(np.asarray(by_id[lane_id].width, dtype=np.float64)))
-            if abs(d) - half > self.max_off_lane:
-                continue
-            speed = max(0.0, float(vel[i] @ np.array([np.cos(pose[2]), np.sin(pose[2])])))
-            if lane_id not in cache:  # the whole lane plus what any mode can reach past its end
-                start = np.asarray(by_id[lane_id].centerline, dtype=np.float64)[0]
-                cache[lane_id] = CorridorSet([build_corridor(by_id, lane_id, start, behind=0.0,
-                                                             ahead=_lane_length(by_id[lane_id]) + reach + 10.0)])
-            cs = cache[lane_id]
-            s0, d0 = cs.project(0, pose[:2])
-            s = float(s0) + f[:, None] * speed * t[None, :]  # (K, H)
-            out.trajectories[i] = cs.pose_at(np.zeros(s.shape, int), s, np.full(s.shape, float(d0)))[..., :2]
+        for lid in np.unique(lane_ids[lane_ids >= 0]):
+            rows = np.flatnonzero(lane_ids == lid)
+            lane = by_id[int(lid)]
+            cs = CorridorSet([build_corridor(by_id, int(lid), np.asarray(lane.centerline, dtype=np.float64)[0],
+                                             behind=0.0, ahead=_lane_length(lane) + reach + 10.0)])
+            s0, d0 = cs.project(0, boxes[rows, :2])
+            half = 0.5 * cs.width_at(np.zeros(len(rows), int), s0)
+            lane_bound = np.abs(d0) - half <= self.max_off_lane  # the rest keep constant velocity
+            heading = np.c_[np.cos(boxes[rows, 4]), np.sin(boxes[rows, 4])]
+            speed = np.maximum(np.sum(vel[rows] * heading, axis=1), 0.0)
+            s = s0[:, None, None] + f[None, :, None] * speed[:, None, None] * t[None, None, :]  # (R, K, H)
+            xy = cs.pose_at(np.zeros(s.shape, int), s, np.broadcast_to(d0[:, None, None], s.shape))[..., :2]
+            out.trajectories[rows[lane_bound]] = xy[lane_bound]
         return out
 
 

@@ -70,34 +70,59 @@ def _lane_width(lane: Any) -> np.ndarray:
 def locate(lanes: Sequence[Any], pose: np.ndarray, max_heading_error: float = np.pi / 2) -> tuple[int | None, float, float]:
     """The lane the pose is on: the lane whose strip contains the point with the smallest |d|,
     among lanes heading within ``max_heading_error`` of the pose; if no strip contains it, the
-    nearest such lane by |d|. Returns (lane id or None if there are no lanes, s, d)."""
-    best = None
-    x, y, yaw = (float(v) for v in np.asarray(pose, dtype=np.float64).reshape(3))
-    candidates = []
+    nearest such lane by |d| (plus the distance past the lane's ends). Returns (lane id, or None
+    if no lane has a compatible heading, s, d)."""
+    ids, s, d = locate_many(lanes, np.asarray(pose, dtype=np.float64).reshape(1, 3), max_heading_error)
+    if ids[0] < 0:
+        return None, 0.0, 0.0
+    return int(ids[0]), float(s[0]), float(d[0])
+
+
+def locate_many(lanes: Sequence[Any], poses: np.ndarray, max_heading_error: float = np.pi / 2,
+                max_gap: float = 50.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`locate` for many poses (N, 3) at once (one projection call per lane).
+
+    Lanes whose bounding box is more than ``max_gap`` m further from a pose than the nearest
+    lane's box are not considered for it (they cannot be the lane it is on).
+    Returns:
+        lane ids (N,) int64 (-1: none), s (N,), d (N,).
+    """
+    P = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
+    n = len(P)
+    best_key = np.full((n, 2), np.inf)
+    out_id = np.full(n, -1, np.int64)
+    out_s = np.zeros(n)
+    out_d = np.zeros(n)
+    if n == 0 or not len(lanes):
+        return out_id, out_s, out_d
+    boxes = []
     for lane in lanes:
         pts = np.asarray(lane.centerline, dtype=np.float64).reshape(-1, 2)
-        # bounding-box distance: far lanes are skipped without projecting (large maps)
-        gap = np.hypot(max(pts[:, 0].min() - x, 0.0, x - pts[:, 0].max()),
-                       max(pts[:, 1].min() - y, 0.0, y - pts[:, 1].max()))
-        candidates.append((gap, lane, pts))
-    nearest = min((c[0] for c in candidates), default=np.inf)
-    for gap, lane, pts in candidates:
-        if gap > nearest + 50.0:
+        lo, hi = pts.min(axis=0), pts.max(axis=0)
+        gap = np.hypot(np.maximum(np.maximum(lo[0] - P[:, 0], P[:, 0] - hi[0]), 0.0),
+                       np.maximum(np.maximum(lo[1] - P[:, 1], P[:, 1] - hi[1]), 0.0))
+        boxes.append((lane, pts, gap))
+    nearest = np.min([g for _, _, g in boxes], axis=0)
+    for lane, pts, gap in boxes:
+        use = np.flatnonzero(gap <= nearest + max_gap)
+        if len(use) == 0:
             continue
-        s, d, h = lanegeo.project(pts, np.array([x, y]))
-        herr = abs((yaw - h + np.pi) % (2 * np.pi) - np.pi)
-        if herr > max_heading_error:
-            continue
+        s, d, h = lanegeo.project(pts, P[use, :2])
+        s, d, h = np.atleast_1d(s), np.atleast_1d(d), np.atleast_1d(h)
+        herr = np.abs((P[use, 2] - h + np.pi) % (2 * np.pi) - np.pi)
         total = lanegeo.length(pts)
-        half = 0.5 * float(lanegeo.width_at(pts, _lane_width(lane), np.clip(s, 0, total)))
-        beyond = max(0.0, -s, s - total)  # distance past the lane's ends
-        inside = abs(d) <= half and beyond == 0.0
-        key = (0 if inside else 1, abs(d) + beyond)
-        if best is None or key < best[0]:
-            best = (key, int(lane.id), float(s), float(d))
-    if best is None:
-        return None, 0.0, 0.0
-    return best[1], best[2], best[3]
+        half = 0.5 * lanegeo.width_at(pts, _lane_width(lane), np.clip(s, 0, total))
+        beyond = np.maximum(np.maximum(-s, s - total), 0.0)  # distance past the lane's ends
+        inside = (np.abs(d) <= half) & (beyond == 0.0)
+        key = np.stack([np.where(inside, 0.0, 1.0), np.abs(d) + beyond], axis=1)
+        key[herr > max_heading_error] = np.inf
+        better = (key[:, 0] < best_key[use, 0]) | ((key[:, 0] == best_key[use, 0]) & (key[:, 1] < best_key[use, 1]))
+        rows = use[better]
+        best_key[rows] = key[better]
+        out_id[rows] = int(lane.id)
+        out_s[rows] = s[better]
+        out_d[rows] = d[better]
+    return out_id, out_s, out_d
 
 
 def _chain(by_id: dict[int, Any], start: int, need: float) -> tuple[list[int], bool]:
