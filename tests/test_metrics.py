@@ -285,3 +285,22 @@ def test_match_tracks_to_ground_truth():
     # track 3 is also near GT 1 but further than track 0: one-to-one keeps the closer pair
     assert pred.match_to_ground_truth(tracks, gt).tolist() == [1, -1, 0, -1]
     assert pred.match_to_ground_truth(np.zeros((0, 5)), gt).shape == (0,)
+
+
+def test_iou_symmetries_far_from_the_origin(rng):
+    A = np.c_[rng.uniform(-1e5, 1e5, (500, 2)), rng.uniform(0.1, 20, (500, 2)), rng.uniform(-10, 10, 500)]
+    assert np.allclose(bx.iou_paired(A, A), 1.0, atol=1e-8)
+    flipped = A.copy()
+    flipped[:, 4] += math.pi  # a box turned by 180 deg covers the same footprint
+    assert np.allclose(bx.iou_paired(A, flipped), 1.0, atol=1e-8)
+    swapped = A.copy()
+    swapped[:, 4] += math.pi / 2
+    swapped[:, [2, 3]] = A[:, [3, 2]]  # so does one turned by 90 deg with length and width swapped
+    assert np.allclose(bx.iou_paired(A, swapped), 1.0, atol=1e-8)
+    ahead = A.copy()  # nose to tail: shifted by its length along its heading
+    ahead[:, 0] += A[:, 2] * np.cos(A[:, 4])
+    ahead[:, 1] += A[:, 2] * np.sin(A[:, 4])
+    assert np.allclose(bx.iou_paired(A, ahead), 0.0, atol=1e-8)
+    thin = A.copy()
+    thin[:, 3] = 1e-12
+    assert np.all(np.isfinite(bx.iou_pairwise(A[:40], thin[:40])))
