@@ -33,7 +33,6 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from adv3d_runner.shapes.decode import extract_surface  # noqa: E402
 from adv3d_runner.shapes.library import load_asset_mesh, load_library  # noqa: E402
 from adv3d_runner.shapes.sdf import METHODS, GridSpec, sdf_volume  # noqa: E402
 from adv3d_runner.shapes.shape_space import (  # noqa: E402
