@@ -244,7 +244,7 @@ def main() -> int:
 
     # (d) whole-library build at the default resolution (also gives the SDFs for (b)).
     t0 = time.perf_counter()
-    grid, assets, sdfs = library_sdfs(library, lib_res, progress=False, mesh_loader=mesh_of)
+    grid, assets, sdfs, _ = library_sdfs(library, lib_res, progress=False, mesh_loader=mesh_of)
     t_sdf = time.perf_counter() - t0
     t1 = time.perf_counter()
     space = shape_space_from_sdfs(sdfs, [a.id for a in assets], grid, 3)

@@ -376,12 +376,18 @@ def test_shipped_shape_space_matches_shipped_library():
     common scale is 1.1 x their largest dimension."""
     from adv3d_runner.shapes.library import load_library
 
+    from adv3d_runner.shapes.library import load_asset_mesh
+    from adv3d_runner.shapes.shape_space import library_fingerprint
+
     lib = load_library()
     sp = ShapeSpace.load()
     assets = lib.shape_space_assets()
     assert sp.asset_ids == [a.id for a in assets], "shipped shape space is stale: run `adv3d shapes build`"
     largest = max(max(a.dimensions) for a in assets)
     assert sp.grid.extent_m == pytest.approx(1.1 * largest, rel=0.02)
+    meshes = [load_asset_mesh(lib, a.id) for a in assets]
+    assert sp.build["library_fingerprint"] == library_fingerprint(assets, meshes), (
+        "the library changed since the shipped shape space was built: run `adv3d shapes build`")
 
 
 @pytest.mark.slow

@@ -483,6 +483,21 @@ def shape_space_from_sdfs(
     return space
 
 
+def library_fingerprint(assets: Sequence, meshes: Sequence) -> str:
+    """SHA-256 over the ids, recorded dimensions and mesh geometry of the shape-space assets.
+
+    Stored in the built file (``build.library_fingerprint``) so a stale shape space (library
+    changed since the build) can be detected without rebuilding.
+    """
+    h = hashlib.sha256()
+    for a, mesh in zip(assets, meshes):
+        h.update(a.id.encode() + b"\0")
+        h.update(np.asarray(a.dimensions, dtype=np.float64).tobytes())
+        h.update(np.ascontiguousarray(mesh.vertices, dtype=np.float64).tobytes())
+        h.update(np.ascontiguousarray(mesh.faces, dtype=np.int64).tobytes())
+    return "sha256:" + h.hexdigest()
+
+
 def library_sdfs(
     library,
     resolution: int = DEFAULT_RESOLUTION,
@@ -494,7 +509,8 @@ def library_sdfs(
     """SDF volumes of every shape-space asset on the common grid.
 
     Returns:
-        grid, the assets (``library.shape_space_assets()`` order), sdfs (M, N, N, N) float32.
+        grid, the assets (``library.shape_space_assets()`` order), sdfs (M, N, N, N) float32,
+        and the ``library_fingerprint`` of the assets.
     """
     from .sdf import grid_for_dimensions, sdf_volume
 
@@ -523,7 +539,7 @@ def library_sdfs(
             sdfs[i] = sdf_volume(mesh.vertices, mesh.faces, grid, method)
         except Adv3dError as exc:
             raise Adv3dError(f"asset {a.id}: {exc}") from None
-    return grid, assets, sdfs
+    return grid, assets, sdfs, library_fingerprint(assets, meshes)
 
 
 def build_shape_space(
@@ -546,6 +562,7 @@ def build_shape_space(
         progress: show a progress bar per asset.
         mesh_loader: ``(library, asset_id) -> trimesh.Trimesh``; default ``load_asset_mesh``.
     """
-    grid, assets, sdfs = library_sdfs(library, resolution, method, truncation, progress, mesh_loader)
-    build = {"assets": len(assets), "classes": sorted({a.vehicle_class for a in assets})}
+    grid, assets, sdfs, fingerprint = library_sdfs(library, resolution, method, truncation, progress, mesh_loader)
+    build = {"assets": len(assets), "classes": sorted({a.vehicle_class for a in assets}),
+             "library_fingerprint": fingerprint}
     return shape_space_from_sdfs(sdfs, [a.id for a in assets], grid, k, method, build)
