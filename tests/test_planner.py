@@ -160,6 +160,26 @@ def test_collision_cost_weights_modes_and_time():
     assert costs.collision_cost(np.zeros((3, 0, 1, 5)), np.zeros((0, 1))).tolist() == [0, 0, 0]
 
 
+def test_rear_end_exemption():
+    ego = np.zeros((1, 3, 3))
+    ego[0, :, 0] = [0.0, 1.0, 2.0]
+    act = np.zeros((2, 1, 3, 3))
+    act[0, 0, :, 0] = [-6.0, -3.0, 0.5]   # same direction, catching up from behind
+    act[1, 0, :, 0] = [8.0, 5.0, 2.5]     # ahead, coming towards the ego
+    act[1, 0, :, 2] = math.pi
+    fb = costs.from_behind(ego, act)
+    assert fb[0, 0, 0].tolist() == [True, True, True] and not fb[0, 1].any()
+    dist = np.zeros((1, 2, 1, 3))  # both overlap the ego at every step
+    probs = np.ones((2, 1))
+    assert costs.collision_cost(dist, probs)[0] == pytest.approx(2.0)
+    assert costs.collision_cost(dist, probs, exempt=fb)[0] == pytest.approx(1.0)
+    assert costs.buffer_cost(dist, probs, 1.0, exempt=fb)[0] == pytest.approx(1.0)
+    # an actor that hits from behind and then "drives through" the ego stays exempt
+    through = fb.copy()
+    through[0, 0, 0, 2] = False
+    assert costs.collision_cost(dist, probs, exempt=through)[0] == pytest.approx(1.0)
+
+
 def test_buffer_cost():
     dist = np.full((1, 1, 2, 4), 0.5)
     # a constant violation costs its size (the time weights are normalised to mean 1)

@@ -98,16 +98,36 @@ def road_geometry(poses: np.ndarray, travelled: np.ndarray, corridors: CorridorS
 
 # ------------------------------------------------------------------ cost terms
 
-def collision_cost(dist: np.ndarray, probs: np.ndarray) -> np.ndarray:
+def from_behind(ego_poses: np.ndarray, actor_poses: np.ndarray, max_heading_diff: float = np.pi / 4) -> np.ndarray:
+    """Whether each actor mode is behind the ego and driving the same way, per candidate and time:
+    its centre is behind the ego's centre (in the ego's frame) and its heading within
+    ``max_heading_diff`` of the ego's. ego_poses (B, T, 3), actor_poses (N, K, T', 3) ->
+    (B, N, K, T) bool. Used to exempt being rear-ended from the collision and buffer terms."""
+    B, T = ego_poses.shape[:2]
+    ap = actor_poses[:, :, :T]
+    if ap.shape[2] < T:
+        ap = np.concatenate([ap, np.repeat(ap[:, :, -1:], T - ap.shape[2], axis=2)], axis=2)
+    e = ego_poses[:, None, None]
+    lon = (ap[None, ..., 0] - e[..., 0]) * np.cos(e[..., 2]) + (ap[None, ..., 1] - e[..., 1]) * np.sin(e[..., 2])
+    dh = np.abs((ap[None, ..., 2] - e[..., 2] + np.pi) % (2 * np.pi) - np.pi)
+    return (lon < 0.0) & (dh < max_heading_diff)
+
+
+def collision_cost(dist: np.ndarray, probs: np.ndarray, exempt: np.ndarray | None = None) -> np.ndarray:
     """Expected collisions: sum over actor modes of probability x [footprints overlap at some
     time], discounted from 1 (now) to 0.5 (horizon end) so later collisions are preferred when
-    none can be avoided. dist: (B, N, K, T) from :func:`clearance`; probs (N, K). Unit: collisions."""
+    none can be avoided. dist: (B, N, K, T) from :func:`clearance`; probs (N, K); ``exempt``
+    (B, N, K, T) bool marks times when an overlap would not be the ego's fault (being rear-ended
+    while keeping its lane, see :func:`from_behind`); a collision is judged at its first
+    overlap. Unit: collisions."""
     if dist.shape[1] == 0:
         return np.zeros(dist.shape[0])
     T = dist.shape[-1]
     hit = dist <= 1e-9
     any_hit = hit.any(axis=-1)
     first = np.argmax(hit, axis=-1)
+    if exempt is not None:  # a collision that starts as a rear-end stays exempt while they overlap
+        any_hit &= ~np.take_along_axis(exempt, first[..., None], axis=-1)[..., 0]
     w = np.where(any_hit, 1.0 - 0.5 * first / max(T - 1, 1), 0.0)
     return np.einsum("bnk,nk->b", w, probs)
 
@@ -119,13 +139,17 @@ def _horizon_weights(T: int, last: float = 0.5) -> np.ndarray:
     return w / w.mean()
 
 
-def buffer_cost(dist: np.ndarray, probs: np.ndarray, buffer: float = 1.0) -> np.ndarray:
+def buffer_cost(dist: np.ndarray, probs: np.ndarray, buffer: float = 1.0, exempt: np.ndarray | None = None) -> np.ndarray:
     """Clearance below ``buffer`` m, as a fraction of the buffer, averaged over time (weights
     falling from 1 now to 0.5 at the horizon, normalised) and summed over actor modes weighted by
-    probability. Unit: (buffer fraction) x (fraction of horizon)."""
+    probability; ``exempt`` as in :func:`collision_cost`. Unit: (buffer fraction) x (fraction
+    of horizon)."""
     if dist.shape[1] == 0:
         return np.zeros(dist.shape[0])
     short = np.clip((buffer - dist) / buffer, 0.0, 1.0)
+    if exempt is not None:  # judged at the first violation: an actor overtaking from behind
+        first = np.argmax(short > 0, axis=-1)
+        short = np.where(np.take_along_axis(exempt, first[..., None], axis=-1), 0.0, short)
     w = _horizon_weights(dist.shape[-1])
     return np.einsum("bnkt,t,nk->b", short, w, probs) / dist.shape[-1]
 

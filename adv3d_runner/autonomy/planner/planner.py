@@ -39,6 +39,8 @@ class PlannerConfig:
         default_speed_limit: m/s for lanes without one.
         off_lane_distance: if the ego is further than this from every lane strip, it has no
             lane (brakes to a stop), m.
+        exempt_rear_end: ignore collisions and buffer violations with actors that come from
+            behind in the same direction, for candidates that keep the current lane.
     """
 
     proposals: ProposalConfig = field(default_factory=ProposalConfig)
@@ -50,6 +52,7 @@ class PlannerConfig:
     corridor_behind: float = 20.0
     default_speed_limit: float = DEFAULT_SPEED_LIMIT
     off_lane_distance: float = 10.0
+    exempt_rear_end: bool = True
 
 
 def forecast_from(predictions: Predictions | None, tracks: Tracks | None, steps: int, dt: float,
@@ -189,10 +192,15 @@ class SamplingPlanner:
         # target corridor continues that plan (lane ids change along the road in sections)
         same = np.array([bool(self._prev_target_ids & set(corridors.corridors[int(c)].lane_ids))
                          for c in cands.spec.corridor])
+        # being rear-ended while keeping the lane is not the ego's fault (as nuPlan's at-fault
+        # collisions); changing lanes in front of a faster car is
+        exempt = None
+        if cfg.exempt_rear_end and len(forecast):
+            exempt = costs.from_behind(poses, forecast.poses) & (cands.spec.corridor == 0)[:, None, None, None]
         raw = {
-            "collision": costs.collision_cost(dist, forecast.probs),
+            "collision": costs.collision_cost(dist, forecast.probs, exempt),
             "drivable_area": costs.drivable_area_cost(excess),
-            "buffer": costs.buffer_cost(dist, forecast.probs, cfg.buffer),
+            "buffer": costs.buffer_cost(dist, forecast.probs, cfg.buffer, exempt),
             "headway": costs.headway_cost(poses, speeds, dims, forecast.poses, forecast.dims, forecast.probs,
                                           cfg.time_headway, cfg.min_gap),
             "speed_limit": costs.speed_limit_cost(speeds, limits),
