@@ -60,6 +60,9 @@ def main(argv: list[str] | None = None) -> int:
     except Adv3dError as exc:
         print(f"adv3d: error: {exc}", file=sys.stderr)
         return 1
+    except BrokenPipeError:  # `adv3d ... | head`: the reader left; not an error of ours
+        sys.stderr.close()
+        return 0
     except KeyboardInterrupt:
         print("adv3d: interrupted", file=sys.stderr)
         return 130

@@ -22,6 +22,7 @@ def register(subparsers) -> None:
 def run_demo(args: argparse.Namespace) -> int:
     from .progress import status
     from .shapes.library import load_library
+    from .shapes.mesh_io import write_mesh
     from .shapes.shape_space import DEFAULT_SHAPE_SPACE, ShapeSpace, build_shape_space
 
     library = load_library()
@@ -40,7 +41,7 @@ def run_demo(args: argparse.Namespace) -> int:
     for name, u in samples.items():
         mesh = space.decode(u)
         path = args.out / f"{name}.glb"
-        mesh.export(path)
+        write_mesh(mesh, path)
         length, width, height = mesh.extents
         status(
             f"{path}: {len(mesh.faces)} triangles, {length:.2f} x {width:.2f} x {height:.2f} m, "

@@ -4,8 +4,6 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-MESH_SUFFIXES = (".glb", ".gltf", ".obj", ".ply", ".stl")
-
 
 def register(subparsers) -> None:
     p = subparsers.add_parser("shapes", help="build, decode and inspect the PCA vehicle shape space")
@@ -74,8 +72,8 @@ def _build(args: argparse.Namespace) -> int:
 
 def _decode(args: argparse.Namespace) -> int:
     from ..errors import ConfigError
-    from ..fileio import atomic_path
     from ..progress import status
+    from .mesh_io import MESH_SUFFIXES, write_mesh
 
     suffix = args.out.suffix.lower()
     if suffix not in MESH_SUFFIXES:
@@ -86,15 +84,7 @@ def _decode(args: argparse.Namespace) -> int:
         raise ConfigError(f"--u must be comma-separated numbers, got {args.u!r}") from None
     space = _load_space(args.space)
     mesh = space.decode(u)
-    out_mesh = mesh
-    if suffix in (".glb", ".gltf"):
-        # glTF is y-up: store the library's glTF frame so Blender's importer shows it upright.
-        from .mesh_io import CONVENTION_TO_GLTF
-
-        out_mesh = mesh.copy()
-        out_mesh.vertices = mesh.vertices @ CONVENTION_TO_GLTF.T
-    with atomic_path(args.out, suffix=suffix) as tmp:
-        out_mesh.export(tmp, file_type=suffix.lstrip("."))
+    write_mesh(mesh, args.out)
     z, scales = space.unit_to_latent(u)
     ext = mesh.extents
     status(f"decoded z={[round(float(x), 4) for x in z]} width/length scale={[round(float(x), 3) for x in scales]}: "

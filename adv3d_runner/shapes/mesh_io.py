@@ -381,3 +381,32 @@ def import_vehicle(path: str | Path, up: str | None = None, forward: str | None 
         converted, scaled = scale_to_dimensions(converted, dimensions)
         curation.update(scaled)
     return converted, curation, report
+
+
+# ----------------------------------------------------------------------------- writing meshes
+
+MESH_SUFFIXES = (".glb", ".gltf", ".obj", ".ply", ".stl")
+
+
+def write_mesh(mesh, path: str | Path) -> Path:
+    """Write a convention-frame ``trimesh.Trimesh`` to ``path`` atomically, format by extension.
+
+    glTF is y-up, so .glb/.gltf get the library's glTF frame and open upright in Blender; the
+    other formats keep the convention frame (z up, +x forward).
+
+    Raises:
+        ConfigError: the extension is not one of ``MESH_SUFFIXES``.
+    """
+    from ..fileio import atomic_path
+
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in MESH_SUFFIXES:
+        raise ConfigError(f"{path.name}: mesh files must end in one of {', '.join(MESH_SUFFIXES)}")
+    out = mesh
+    if suffix in (".glb", ".gltf"):
+        out = mesh.copy()
+        out.vertices = np.asarray(mesh.vertices) @ CONVENTION_TO_GLTF.T
+    with atomic_path(path, suffix=suffix) as tmp:
+        out.export(tmp, file_type=suffix.lstrip("."))
+    return path
