@@ -1,0 +1,167 @@
+"""``adv3d train ...``: train the learned autonomy models.
+
+This module defines the ``train`` command group and ``adv3d train detector``. Other models
+hook in through ``adv3d_runner.autonomy.predictor_cli.add_train_predictor(train_subparsers)``
+(skipped while that module does not exist). torch is imported inside the handlers only.
+"""
+from __future__ import annotations
+
+import argparse
+import shlex
+import sys
+from pathlib import Path
+
+
+def register(subparsers) -> None:
+    train = subparsers.add_parser("train", help="train the learned autonomy models (detector, predictor)",
+                                  description="Train the learned autonomy models on data the simulator makes "
+                                              "from training-split scenes (never the benchmark scenes).")
+    train_sub = train.add_subparsers(dest="train_command", metavar="MODEL")
+    train.set_defaults(func=lambda args: (train.print_help(), 2)[1])
+    add_train_detector(train_sub)
+    try:
+        from .predictor_cli import add_train_predictor
+    except ImportError:
+        add_train_predictor = None
+    if add_train_predictor is not None:
+        add_train_predictor(train_sub)
+
+
+def add_train_detector(train_sub) -> None:
+    p = train_sub.add_parser(
+        "detector", help="train the PIXOR-like BEV LiDAR detector",
+        description="Simulate LiDAR frames of training-split scenes (seeds 100000 + [0, N)), train the BEV "
+                    "detector, evaluate AP/recall at BEV IoU 0.5 on held-out scenes (seeds 900000 + [0, M)), "
+                    "and write weights, config.json, training_report.json and loss_curves.png to --out.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("--scenes", type=int, default=160, help="training scenes")
+    p.add_argument("--val-scenes", type=int, default=40, help="held-out evaluation scenes")
+    p.add_argument("--frames-per-scene", type=int, default=10, help="LiDAR frames per scene")
+    p.add_argument("--epochs", type=int, default=14)
+    p.add_argument("--batch", type=int, default=8)
+    p.add_argument("--lr", type=float, default=2e-3)
+    p.add_argument("--resolution", type=float, default=0.25, help="BEV cell size, m")
+    p.add_argument("--min-points", type=int, default=5, help="LiDAR returns for a vehicle to count as ground truth")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--threads", type=int, default=1, help="torch threads for training")
+    p.add_argument("--time-limit", type=float, default=40 * 60,
+                   help="stop training after the epoch that passes this many seconds (data included)")
+    p.add_argument("--cache", default=None, help="frame cache folder (default ~/.cache/adv3d/detector)")
+    p.add_argument("--out", default="assets/models/detector", help="model folder")
+    p.add_argument("--quick", action="store_true",
+                   help="small recipe for smoke tests and the resolution benchmark (24 scenes, 4 epochs)")
+    p.set_defaults(func=_train_detector)
+
+
+def _train_detector(args) -> int:
+    import time
+
+    t0 = time.perf_counter()
+    import numpy as np
+
+    from ..errors import ConfigError
+    from ..fileio import write_json
+    from ..progress import status
+    from .detector import DetectorConfig, save_detector
+    from .detector_data import TRAIN_SEED0, VAL_SEED0, make_frames
+    from .detector_train import evaluate_detector, machine_info, plot_losses, train_detector
+
+    if args.quick:
+        args.scenes = min(args.scenes, 24)
+        args.val_scenes = min(args.val_scenes, 8)
+        args.epochs = min(args.epochs, 4)
+    if args.scenes < 1 or args.epochs < 1 or args.val_scenes < 0:
+        raise ConfigError("--scenes and --epochs must be >= 1, --val-scenes >= 0")
+    if args.scenes > VAL_SEED0 - TRAIN_SEED0:
+        raise ConfigError(f"--scenes must be <= {VAL_SEED0 - TRAIN_SEED0} (held-out seeds start at {VAL_SEED0})")
+    cfg = DetectorConfig(resolution=args.resolution)
+    out = Path(args.out)
+    status(f"detector: resolution {cfg.resolution} m, grid {cfg.grid_shape}, {args.scenes} training scenes x "
+           f"{args.frames_per_scene} frames, {args.val_scenes} held-out scenes")
+    train_seeds = list(range(TRAIN_SEED0, TRAIN_SEED0 + args.scenes))
+    val_seeds = list(range(VAL_SEED0, VAL_SEED0 + args.val_scenes))
+    t_data = time.perf_counter()
+    train = make_frames(train_seeds, args.frames_per_scene, cache_dir=args.cache, desc="training scenes")
+    val = make_frames(val_seeds, args.frames_per_scene, cache_dir=args.cache, desc="held-out scenes")
+    data_s = time.perf_counter() - t_data
+    status(f"data: {len(train)} training frames, {len(val)} held-out frames ({data_s:.0f} s)")
+    limit = None if args.time_limit is None else max(0.0, args.time_limit - (time.perf_counter() - t0))
+    t_train = time.perf_counter()
+    det, hist = train_detector(train, val, cfg, epochs=args.epochs, batch=args.batch, lr=args.lr, seed=args.seed,
+                               min_points=args.min_points, threads=args.threads, log=status, time_limit_s=limit)
+    train_s = time.perf_counter() - t_train
+    t_eval = time.perf_counter()
+    metrics = evaluate_detector(det, val, min_points=args.min_points) if len(val) else {}
+    train_metrics = evaluate_detector(det, _subset(train, 200), min_points=args.min_points)
+    eval_s = time.perf_counter() - t_eval
+    status(f"held-out AP@0.5 {metrics.get('ap', float('nan')):.4f} recall {metrics.get('recall', float('nan')):.4f}"
+           f" ({metrics.get('n_gt', 0)} vehicles in ROI); training frames AP {train_metrics['ap']:.4f}")
+    command = "adv3d " + " ".join(shlex.quote(a) for a in sys.argv[1:]) if sys.argv and "adv3d" in sys.argv[0] \
+        else "adv3d train detector " + _args_line(args)
+    recipe = {"split": "train", "train_seeds": [train_seeds[0], train_seeds[-1]],
+              "val_seeds": [val_seeds[0], val_seeds[-1]] if val_seeds else [],
+              "frames_per_scene": args.frames_per_scene, "library": "bundled benign vehicle library",
+              "lidar": "scene rig (HDL-64E at 1.73 m) with noise and ray drop", "min_points": args.min_points,
+              "train_frames": len(train), "val_frames": len(val)}
+    training = {"epochs": args.epochs, "epochs_run": len(hist["epoch"]), "batch": args.batch, "lr": args.lr,
+                "seed": args.seed, "threads": args.threads, "optimizer": "AdamW + one-cycle cosine",
+                "augmentation": "random left/right mirror", "quick": bool(args.quick)}
+    save_detector(det, out, {"seed": args.seed, "data": recipe, "training": training})
+    total_s = time.perf_counter() - t0
+    report = {
+        "format": "adv3d-detector-training-report", "version": 1,
+        "command": command,
+        "machine": machine_info(),
+        "seconds": {"data": round(data_s, 1), "train": round(train_s, 1), "eval": round(eval_s, 1),
+                    "total": round(total_s, 1)},
+        "data": recipe, "training": training, "detector": cfg.to_dict(),
+        "history": hist,
+        "held_out": metrics, "training_frames_subset": train_metrics,
+        "parameters": int(sum(p.numel() for p in det.net.parameters())),
+    }
+    write_json(out / "training_report.json", _finite(report))
+    plot_losses(hist, out / "loss_curves.png",
+                title=f"BEV detector {cfg.resolution} m: held-out AP@0.5 {metrics.get('ap', float('nan')):.3f}")
+    status(f"wrote {out} ({total_s / 60:.1f} min)")
+    return 0
+
+
+def _subset(fs, n: int):
+    from .detector_data import FrameSet
+    if len(fs) <= n:
+        return fs
+    import numpy as np
+    idx = np.linspace(0, len(fs) - 1, n).astype(int)
+    parts = []
+    for f in idx:
+        boxes, npts = fs.frame_boxes(int(f))
+        m = fs.box_frame == f
+        parts.append(FrameSet(fs.frame_points(int(f)), np.array([0, fs.offsets[f + 1] - fs.offsets[f]], np.int64),
+                              boxes, np.zeros(len(boxes), np.int64), npts, fs.box_actor[m],
+                              fs.scene_seed[f:f + 1], fs.frame_index[f:f + 1]))
+    return FrameSet.concat(parts)
+
+
+def _args_line(args) -> str:
+    parts = [f"--scenes {args.scenes}", f"--val-scenes {args.val_scenes}", f"--frames-per-scene {args.frames_per_scene}",
+             f"--epochs {args.epochs}", f"--resolution {args.resolution}", f"--seed {args.seed}", f"--out {args.out}"]
+    if args.quick:
+        parts.append("--quick")
+    return " ".join(parts)
+
+
+def _finite(obj):
+    """JSON without NaN/inf (null instead)."""
+    import math
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_finite(v) for v in obj]
+    if hasattr(obj, "item") and not isinstance(obj, (str, bytes)):
+        try:
+            return _finite(obj.item())
+        except (ValueError, AttributeError):
+            pass
+    return obj

@@ -1,0 +1,503 @@
+"""PIXOR-like bird's-eye-view (BEV) LiDAR vehicle detector (Autonomy-A perception).
+
+Pipeline (Yang et al., "PIXOR", CVPR 2018, simplified to one stage and a small network):
+
+1. **Voxelise** the ego-frame points on a BEV grid (``DetectorConfig.resolution`` m per cell,
+   the knob; x in ``x_range`` forward, y in ``y_range`` left): one occupancy channel per height
+   slice (``z_edges``, metres above the ground) plus one log point-density channel. Points below
+   the first edge (the road) and above the last are ignored.
+2. A small fully-convolutional **backbone** (three stride-2 stages, a top-down merge of the last
+   two) outputs, at 1/``out_stride`` of the grid, a vehicle **score** map and a 6-channel
+   **box** map per cell: ``(dx/2, dy/2, log l - 1.5, log w - 0.65, cos yaw, sin yaw)``, the
+   offset from the cell centre to the box centre (m), the size and heading of the box.
+3. **Decode**: cells scoring above ``score_threshold`` (top ``pre_nms`` by score) each give a
+   box; greedy rotated NMS (BEV IoU from :mod:`adv3d_runner.metrics.boxes`) keeps the best box
+   of each cluster, refined by the score-weighted mean of the cluster's boxes ("box voting").
+
+Boxes are ``(x, y, length, width, yaw)`` in the **ego frame** (see
+:mod:`adv3d_runner.autonomy.interface`). Weights ship as a ``state_dict`` ``.pt`` loaded with
+``torch.load(..., weights_only=True)`` (no pickle), next to a ``config.json``.
+
+Numpy-only parts (grid, voxelisation, training targets, decoding, NMS) are module functions so
+tests and the data pipeline use them without a network.
+"""
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+from torch import nn
+
+from ..errors import ConfigError, FileFormatError
+from ..fileio import REPO_ROOT
+from ..metrics.boxes import iou_pairwise
+from .interface import Detections
+
+DEFAULT_MODEL_DIR = REPO_ROOT / "assets" / "models" / "detector"
+WEIGHTS_NAME = "detector.pt"
+CONFIG_NAME = "config.json"
+CONFIG_FORMAT = "adv3d-detector-config"
+CONFIG_VERSION = 1
+# Regression parameterisation constants (log of typical car length / width; offsets in units
+# of 2 m) so every target is O(1).
+_LOG_L0, _LOG_W0, _OFFSET_SCALE = 1.5, 0.65, 2.0
+_DOWNSAMPLE = 8  # the backbone's coarsest stride: grid sizes are padded to a multiple of it
+
+
+@dataclass
+class DetectorConfig:
+    """Architecture, input grid and decoding parameters (stored in ``config.json``).
+
+    Attributes:
+        resolution: BEV cell size, m (the speed/accuracy knob: 0.2, 0.25, 0.4, ...).
+        x_range, y_range: grid extent in the ego frame, m; the far end is extended so the cell
+            counts are multiples of 8.
+        z_edges: height slice edges above the ground, m (one occupancy channel per slice).
+        channels: backbone stage widths (strides 2, 4, 8).
+        head_channels: width of the merged stride-``out_stride`` feature map.
+        out_stride: output cell = ``out_stride`` x ``resolution`` m (4 or 2).
+        score_threshold: minimum score of a kept detection.
+        nms_iou: rotated-BEV IoU above which a lower-scored box is suppressed.
+        pre_nms: at most this many cells (highest scores) enter NMS.
+        max_detections: at most this many boxes per frame.
+    """
+
+    resolution: float = 0.25
+    x_range: tuple[float, float] = (-12.0, 60.0)
+    y_range: tuple[float, float] = (-24.0, 24.0)
+    z_edges: tuple[float, ...] = (0.3, 0.8, 1.3, 1.8, 2.3, 3.0, 4.5)
+    channels: tuple[int, int, int] = (16, 32, 64)
+    head_channels: int = 48
+    out_stride: int = 4
+    score_threshold: float = 0.1
+    nms_iou: float = 0.1
+    pre_nms: int = 300
+    max_detections: int = 100
+
+    def __post_init__(self) -> None:
+        self.x_range = tuple(float(v) for v in self.x_range)
+        self.y_range = tuple(float(v) for v in self.y_range)
+        self.z_edges = tuple(float(v) for v in self.z_edges)
+        self.channels = tuple(int(v) for v in self.channels)
+        if not (self.resolution > 0 and math.isfinite(self.resolution)):
+            raise ConfigError(f"detector resolution must be > 0 m, got {self.resolution}")
+        if self.out_stride not in (2, 4):
+            raise ConfigError(f"out_stride must be 2 or 4, got {self.out_stride}")
+        if len(self.channels) != 3 or len(self.z_edges) < 2 or np.any(np.diff(self.z_edges) <= 0):
+            raise ConfigError("channels must have 3 entries and z_edges be increasing (>= 2 edges)")
+
+    @property
+    def grid_shape(self) -> tuple[int, int]:
+        """(nx, ny) input cells (multiples of 8)."""
+        def cells(lo: float, hi: float) -> int:
+            n = int(math.ceil((hi - lo) / self.resolution - 1e-9))
+            return int(math.ceil(n / _DOWNSAMPLE) * _DOWNSAMPLE)
+        return cells(*self.x_range), cells(*self.y_range)
+
+    @property
+    def out_shape(self) -> tuple[int, int]:
+        nx, ny = self.grid_shape
+        return nx // self.out_stride, ny // self.out_stride
+
+    @property
+    def in_channels(self) -> int:
+        return len(self.z_edges) - 1 + 1
+
+    @property
+    def out_cell(self) -> float:
+        return self.resolution * self.out_stride
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}
+
+    @classmethod
+    def from_dict(cls, d: dict, path: str | Path | None = None) -> "DetectorConfig":
+        known = {f for f in cls.__dataclass_fields__}
+        unknown = sorted(set(d) - known)
+        if unknown:
+            raise FileFormatError(path, f"$.detector.{unknown[0]}", f"one of {sorted(known)}", unknown[0])
+        try:
+            return cls(**d)
+        except (TypeError, ValueError) as exc:
+            raise FileFormatError(path, "$.detector", "valid detector parameters", str(exc)) from None
+
+
+# ----------------------------------------------------------------------------- numpy parts
+
+def voxelize(points: np.ndarray, cfg: DetectorConfig) -> np.ndarray:
+    """BEV input tensor of one frame.
+
+    Args:
+        points: (P, 3|4) x, y, z [, intensity] in the ego frame (m); P may be 0.
+        cfg: grid parameters.
+    Returns:
+        (C, nx, ny) float32: C - 1 height-slice occupancies in {0, 1} and log(1 + n) / log(64)
+        of the number n of points (all slices) per column.
+    """
+    nx, ny = cfg.grid_shape
+    nz = len(cfg.z_edges) - 1
+    out = np.zeros((nz + 1, nx, ny), np.float32)
+    p = np.asarray(points)
+    if p.size == 0:
+        return out
+    p = p.reshape(len(p), -1)
+    res = cfg.resolution
+    ix = np.floor((p[:, 0] - cfg.x_range[0]) / res).astype(np.int64)
+    iy = np.floor((p[:, 1] - cfg.y_range[0]) / res).astype(np.int64)
+    iz = np.searchsorted(np.asarray(cfg.z_edges, p.dtype), p[:, 2], side="right") - 1
+    ok = (ix >= 0) & (ix < nx) & (iy >= 0) & (iy < ny) & (iz >= 0) & (iz < nz)
+    if not ok.any():
+        return out
+    ix, iy, iz = ix[ok], iy[ok], iz[ok]
+    col = ix * ny + iy
+    occ = np.bincount(iz * (nx * ny) + col, minlength=nz * nx * ny)
+    out[:nz] = (occ > 0).reshape(nz, nx, ny)
+    count = np.bincount(col, minlength=nx * ny).reshape(nx, ny)
+    out[nz] = np.minimum(np.log1p(count) / np.log(64.0), 1.0)
+    return out
+
+
+def cell_centres(cfg: DetectorConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Ego-frame centres of the output cells: x (ox,), y (oy,) in m."""
+    ox, oy = cfg.out_shape
+    c = cfg.out_cell
+    return cfg.x_range[0] + (np.arange(ox) + 0.5) * c, cfg.y_range[0] + (np.arange(oy) + 0.5) * c
+
+
+def encode_targets(boxes: np.ndarray, cfg: DetectorConfig, ignore_boxes: np.ndarray | None = None
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Training targets on the output grid.
+
+    A cell is positive when its centre lies inside a ground-truth box (the cell holding the box
+    centre always is, so small boxes on coarse grids keep one); it then regresses that box
+    (the box whose centre is nearest when boxes overlap). Cells inside ``ignore_boxes``
+    (vehicles with too few LiDAR points to be detectable) and not positive get no score loss.
+
+    Args:
+        boxes: (G, 5) ego-frame boxes to detect. ignore_boxes: (I, 5) or None.
+    Returns:
+        score (ox, oy) float32 in {0, 1}; weight (ox, oy) float32 (0 = ignored);
+        reg (6, ox, oy) float32 regression targets (meaningful where score = 1).
+    """
+    ox, oy = cfg.out_shape
+    cx, cy = cell_centres(cfg)
+    score = np.zeros((ox, oy), np.float32)
+    weight = np.ones((ox, oy), np.float32)
+    reg = np.zeros((6, ox, oy), np.float32)
+    best = np.full((ox, oy), np.inf)
+    c = cfg.out_cell
+
+    def cells_in(box: np.ndarray):
+        x, y, l, w, yaw = (float(v) for v in box)
+        r = 0.5 * math.hypot(l, w)
+        i0, i1 = np.searchsorted(cx, [x - r, x + r])
+        j0, j1 = np.searchsorted(cy, [y - r, y + r])
+        if i1 <= i0 or j1 <= j0:
+            return None
+        gx, gy = np.meshgrid(cx[i0:i1], cy[j0:j1], indexing="ij")
+        dx, dy = gx - x, gy - y
+        u = np.cos(yaw) * dx + np.sin(yaw) * dy
+        v = -np.sin(yaw) * dx + np.cos(yaw) * dy
+        inside = (np.abs(u) <= 0.5 * l) & (np.abs(v) <= 0.5 * w)
+        return i0, j0, inside, dx, dy
+
+    if ignore_boxes is not None:
+        for box in np.asarray(ignore_boxes, np.float64).reshape(-1, 5):
+            got = cells_in(box)
+            if got is not None:
+                i0, j0, inside, _, _ = got
+                sub = weight[i0:i0 + inside.shape[0], j0:j0 + inside.shape[1]]
+                sub[inside] = 0.0
+    for box in np.asarray(boxes, np.float64).reshape(-1, 5):
+        got = cells_in(box)
+        i0, j0 = 0, 0
+        if got is None:
+            inside = None
+        else:
+            i0, j0, inside, dx, dy = got
+            # The cell holding the centre is always positive.
+            ic = int(np.floor((box[0] - cfg.x_range[0]) / c)) - i0
+            jc = int(np.floor((box[1] - cfg.y_range[0]) / c)) - j0
+            if 0 <= ic < inside.shape[0] and 0 <= jc < inside.shape[1]:
+                inside[ic, jc] = True
+        if inside is None or not inside.any():
+            continue
+        ii, jj = np.nonzero(inside)
+        gi, gj = ii + i0, jj + j0
+        d2 = dx[ii, jj] ** 2 + dy[ii, jj] ** 2
+        take = d2 < best[gi, gj]
+        gi, gj, ii, jj = gi[take], gj[take], ii[take], jj[take]
+        best[gi, gj] = d2[take]
+        score[gi, gj] = 1.0
+        weight[gi, gj] = 1.0
+        reg[0, gi, gj] = -dx[ii, jj] / _OFFSET_SCALE
+        reg[1, gi, gj] = -dy[ii, jj] / _OFFSET_SCALE
+        reg[2, gi, gj] = math.log(max(box[2], 0.1)) - _LOG_L0
+        reg[3, gi, gj] = math.log(max(box[3], 0.1)) - _LOG_W0
+        reg[4, gi, gj] = math.cos(box[4])
+        reg[5, gi, gj] = math.sin(box[4])
+    return score, weight, reg
+
+
+def decode_boxes(reg: np.ndarray, cfg: DetectorConfig, ii: np.ndarray, jj: np.ndarray) -> np.ndarray:
+    """Boxes (K, 5) predicted by output cells (ii, jj) from the box map ``reg`` (6, ox, oy)."""
+    cx, cy = cell_centres(cfg)
+    r = np.asarray(reg, np.float64)[:, ii, jj]
+    x = cx[ii] + _OFFSET_SCALE * r[0]
+    y = cy[jj] + _OFFSET_SCALE * r[1]
+    length = np.exp(np.clip(r[2] + _LOG_L0, -3.0, 4.0))
+    width = np.exp(np.clip(r[3] + _LOG_W0, -3.0, 3.0))
+    yaw = np.arctan2(r[5], r[4])
+    return np.stack([x, y, length, width, yaw], axis=1)
+
+
+def rotated_nms(boxes: np.ndarray, scores: np.ndarray, iou_threshold: float, max_keep: int | None = None,
+                vote: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Greedy non-maximum suppression on rotated BEV boxes.
+
+    Args:
+        boxes: (K, 5). scores: (K,).
+        iou_threshold: a box whose IoU with a kept, higher-scored box exceeds this is dropped.
+        max_keep: keep at most this many.
+        vote: replace each kept box by the score-weighted mean of its cluster (itself and the
+            boxes it suppressed): centre, log size and heading (as a unit vector).
+    Returns:
+        boxes (M, 5) and scores (M,) of the kept boxes, by decreasing score.
+    """
+    boxes = np.asarray(boxes, np.float64).reshape(-1, 5)
+    scores = np.asarray(scores, np.float64).reshape(-1)
+    if len(boxes) == 0:
+        return np.zeros((0, 5)), np.zeros(0)
+    order = np.argsort(-scores, kind="stable")
+    boxes, scores = boxes[order], scores[order]
+    # IoU is computed lazily, keeper against the alive boxes near it (most candidates are
+    # suppressed by few keepers, so this is far cheaper than the full K x K matrix).
+    radius = 0.5 * np.hypot(np.maximum(boxes[:, 2], 0), np.maximum(boxes[:, 3], 0))
+    alive = np.ones(len(boxes), bool)
+    keep_boxes, keep_scores = [], []
+    for i in range(len(boxes)):
+        if not alive[i]:
+            continue
+        alive[i] = False
+        near = np.flatnonzero(alive & (np.hypot(boxes[:, 0] - boxes[i, 0], boxes[:, 1] - boxes[i, 1])
+                                       < radius + radius[i]))
+        cluster = np.array([i], np.int64)
+        if near.size:
+            iou = iou_pairwise(boxes[i:i + 1], boxes[near])[0]
+            sup = near[iou > iou_threshold]
+            alive[sup] = False
+            cluster = np.concatenate([cluster, sup])
+        box = boxes[i].copy()
+        if vote and len(cluster) > 1:
+            # Only boxes that agree with the keeper's heading vote (a reversed box would
+            # average the heading away).
+            b, w = boxes[cluster], scores[cluster]
+            agree = np.cos(b[:, 4] - box[4]) > 0.5
+            b, w = b[agree], w[agree]
+            w = w / w.sum()
+            box[0:2] = w @ b[:, 0:2]
+            box[2:4] = np.exp(w @ np.log(np.maximum(b[:, 2:4], 1e-3)))
+            box[4] = math.atan2(w @ np.sin(b[:, 4]), w @ np.cos(b[:, 4]))
+        keep_boxes.append(box)
+        keep_scores.append(scores[i])
+        if max_keep is not None and len(keep_boxes) >= max_keep:
+            break
+    return np.array(keep_boxes).reshape(-1, 5), np.array(keep_scores)
+
+
+def decode(score_map: np.ndarray, reg: np.ndarray, cfg: DetectorConfig,
+           score_threshold: float | None = None) -> Detections:
+    """Detections (ego frame) from one frame's network outputs.
+
+    Args:
+        score_map: (ox, oy) vehicle probability per output cell.
+        reg: (6, ox, oy) box map.
+        score_threshold: overrides ``cfg.score_threshold``.
+    """
+    thr = cfg.score_threshold if score_threshold is None else score_threshold
+    s = np.asarray(score_map, np.float64)
+    flat = s.reshape(-1)
+    cand = np.flatnonzero(flat > thr)
+    if cand.size == 0:
+        return Detections()
+    if cand.size > cfg.pre_nms:
+        cand = cand[np.argpartition(-flat[cand], cfg.pre_nms - 1)[:cfg.pre_nms]]
+    ii, jj = np.unravel_index(cand, s.shape)
+    boxes = decode_boxes(reg, cfg, ii, jj)
+    boxes, scores = rotated_nms(boxes, flat[cand], cfg.nms_iou, cfg.max_detections)
+    return Detections(boxes, np.clip(scores, 0.0, 1.0))
+
+
+# ----------------------------------------------------------------------------- network
+
+def _conv(cin: int, cout: int, stride: int = 1) -> nn.Sequential:
+    return nn.Sequential(nn.Conv2d(cin, cout, 3, stride, 1, bias=False), nn.BatchNorm2d(cout), nn.ReLU(inplace=True))
+
+
+class PixorNet(nn.Module):
+    """Small PIXOR-style backbone + header.
+
+    Input (B, C, nx, ny); outputs score logits (B, 1, nx/s, ny/s) and box map (B, 6, nx/s, ny/s)
+    with s = ``out_stride``.
+    """
+
+    def __init__(self, cfg: DetectorConfig):
+        super().__init__()
+        c1, c2, c3 = cfg.channels
+        h = cfg.head_channels
+        self.out_stride = cfg.out_stride
+        self.stage1 = nn.Sequential(_conv(cfg.in_channels, c1, 2), _conv(c1, c1))           # /2
+        self.stage2 = nn.Sequential(_conv(c1, c2, 2), _conv(c2, c2), _conv(c2, c2))          # /4
+        self.stage3 = nn.Sequential(_conv(c2, c3, 2), _conv(c3, c3), _conv(c3, c3))          # /8
+        skip = c2 if cfg.out_stride == 4 else c1
+        self.merge = nn.Sequential(nn.Conv2d(c3 + skip, h, 1, bias=False), nn.BatchNorm2d(h), nn.ReLU(inplace=True),
+                                   _conv(h, h))
+        self.score = nn.Conv2d(h, 1, 1)
+        self.box = nn.Conv2d(h, 6, 1)
+        nn.init.constant_(self.score.bias, -4.6)  # prior 1%: stable start for the focal loss
+        nn.init.normal_(self.box.weight, std=1e-3)
+        nn.init.zeros_(self.box.bias)
+
+    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        f1 = self.stage1(x)
+        f2 = self.stage2(f1)
+        f3 = self.stage3(f2)
+        skip = f2 if self.out_stride == 4 else f1
+        up = nn.functional.interpolate(f3, size=skip.shape[-2:], mode="nearest")
+        f = self.merge(torch.cat([up, skip], dim=1))
+        return self.score(f), self.box(f)
+
+
+# ----------------------------------------------------------------------------- detector
+
+class BevDetector:
+    """The learned BEV detector behind the ``Detector`` protocol of
+    :mod:`adv3d_runner.autonomy.modular`.
+
+    Args:
+        cfg: grid/architecture/decoding parameters.
+        net: a :class:`PixorNet` for ``cfg`` (random weights when None).
+        threads: torch intra-op threads used by :meth:`detect` (None: leave torch's setting).
+
+    ``timings`` accumulates seconds per step of the last :meth:`detect` call
+    (``voxelize``, ``network``, ``decode``).
+    """
+
+    def __init__(self, cfg: DetectorConfig | None = None, net: PixorNet | None = None, threads: int | None = 1):
+        self.cfg = cfg or DetectorConfig()
+        self.net = (net or PixorNet(self.cfg)).eval()
+        self.threads = threads
+        self.timings: dict[str, float] = {}
+
+    def _forward(self, grids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if self.threads is not None and torch.get_num_threads() != self.threads:
+            torch.set_num_threads(self.threads)
+        with torch.inference_mode():
+            logits, box = self.net(torch.from_numpy(np.ascontiguousarray(grids)))
+            return torch.sigmoid(logits[:, 0]).numpy(), box.numpy()
+
+    def detect(self, points: np.ndarray, score_threshold: float | None = None) -> Detections:
+        """Vehicles in one LiDAR frame.
+
+        Args:
+            points: (P, 3|4) x, y, z [, intensity] in the ego frame, m; P may be 0.
+            score_threshold: overrides the configured one.
+        Returns:
+            :class:`Detections` with boxes (N, 5) in the **ego** frame and scores in [0, 1];
+            empty when no point falls in the grid.
+        """
+        t0 = time.perf_counter()
+        grid = voxelize(points, self.cfg)
+        t1 = time.perf_counter()
+        if not grid[-1].any():  # no point in the grid: nothing to see (and no wasted forward)
+            self.timings = {"voxelize": t1 - t0, "network": 0.0, "decode": 0.0}
+            return Detections()
+        score, box = self._forward(grid[None])
+        t2 = time.perf_counter()
+        dets = decode(score[0], box[0], self.cfg, score_threshold)
+        self.timings = {"voxelize": t1 - t0, "network": t2 - t1, "decode": time.perf_counter() - t2}
+        return dets
+
+    def detect_batch(self, frames: Sequence[np.ndarray], score_threshold: float | None = None,
+                     batch_size: int = 8) -> list[Detections]:
+        """:meth:`detect` over many frames (batched network calls; same results)."""
+        out: list[Detections] = []
+        for k in range(0, len(frames), batch_size):
+            grids = np.stack([voxelize(p, self.cfg) for p in frames[k:k + batch_size]])
+            score, box = self._forward(grids)
+            for g, s, b in zip(grids, score, box):
+                out.append(decode(s, b, self.cfg, score_threshold) if g[-1].any() else Detections())
+        return out
+
+
+def save_detector(det: BevDetector, out_dir: str | Path, extra_config: dict[str, Any] | None = None) -> Path:
+    """Write ``detector.pt`` (float32 state_dict) and ``config.json`` into ``out_dir`` (atomic)."""
+    from ..fileio import atomic_path, write_json
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    state = {k: v.detach().cpu().contiguous() for k, v in det.net.state_dict().items()}
+    with atomic_path(out_dir / WEIGHTS_NAME) as tmp:
+        torch.save(state, tmp)
+    doc = {"format": CONFIG_FORMAT, "version": CONFIG_VERSION, "weights": WEIGHTS_NAME,
+           "detector": det.cfg.to_dict()}
+    doc.update(extra_config or {})
+    write_json(out_dir / CONFIG_NAME, doc)
+    return out_dir / WEIGHTS_NAME
+
+
+def load_detector(path: str | Path = DEFAULT_MODEL_DIR, threads: int | None = 1, **overrides: Any) -> BevDetector:
+    """Load a trained detector.
+
+    Args:
+        path: the model folder (``config.json`` + weights) or its ``config.json``.
+        threads: torch threads for inference (1 = one core, as the episode benchmark assumes).
+        overrides: decoding parameters to change (e.g. ``score_threshold=0.3``).
+    Raises:
+        FileFormatError: missing/invalid config, or weights that are not a plain tensor
+            state_dict (anything needing pickle is refused by ``weights_only=True``).
+    """
+    from ..fileio import check_header, read_json
+
+    path = Path(path)
+    cfg_path = path / CONFIG_NAME if path.is_dir() else path
+    if not cfg_path.is_file():
+        raise FileFormatError(cfg_path, "$", "a detector config.json (train one with `adv3d train detector`)",
+                              "no such file")
+    doc = read_json(cfg_path)
+    check_header(doc, cfg_path, CONFIG_FORMAT, (CONFIG_VERSION,))
+    if not isinstance(doc.get("detector"), dict):
+        raise FileFormatError(cfg_path, "$.detector", "an object of detector parameters", type(doc.get("detector")).__name__)
+    params = dict(doc["detector"])
+    params.update(overrides)
+    cfg = DetectorConfig.from_dict(params, cfg_path)
+    weights = cfg_path.parent / str(doc.get("weights", WEIGHTS_NAME))
+    net = PixorNet(cfg)
+    try:
+        state = torch.load(weights, map_location="cpu", weights_only=True)
+    except FileNotFoundError:
+        raise FileFormatError(weights, "$", "detector weights (state_dict .pt)", "no such file") from None
+    except Exception as exc:  # pickle.UnpicklingError & co: not a plain tensor state_dict
+        raise FileFormatError(weights, "$", "a tensor-only state_dict loadable with torch.load(weights_only=True)",
+                              f"{type(exc).__name__}: {str(exc).splitlines()[0][:200]}") from None
+    if not isinstance(state, dict) or not all(isinstance(v, torch.Tensor) for v in state.values()):
+        raise FileFormatError(weights, "$", "a dict of tensors (state_dict)", type(state).__name__)
+    try:
+        net.load_state_dict(state, strict=True)
+    except RuntimeError as exc:
+        raise FileFormatError(weights, "$", f"weights matching the architecture in {cfg_path.name}",
+                              str(exc).splitlines()[0][:200]) from None
+    return BevDetector(cfg, net, threads=threads)
+
+
+def model_info(path: str | Path = DEFAULT_MODEL_DIR) -> dict:
+    """The model folder's config.json as a dict (no torch needed by callers beyond import)."""
+    p = Path(path)
+    return json.loads(((p / CONFIG_NAME) if p.is_dir() else p).read_text())

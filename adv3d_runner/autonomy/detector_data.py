@@ -1,0 +1,228 @@
+"""Training / evaluation data for the BEV detector, made with the simulator (numpy only).
+
+Recipe (deterministic in its arguments):
+
+* scenes: ``generate_scene(seed, split="train")`` for a range of seeds of the **training split**
+  (seeds >= 100 000, their own namespace: never equal to a benchmark scene). The default
+  training seeds are 100 000 + [0, N) and the held-out evaluation seeds 900 000 + [0, M):
+  disjoint ranges of the same split (see ``TRAIN_SEED0`` / ``VAL_SEED0``). Layouts and
+  densities cycle with the seed, so any 20 consecutive seeds cover every combination.
+* actors get the benign vehicle library's meshes (``world_from_scene(scene, library)``).
+* frames: ``frames_per_scene`` frames per scene, evenly spaced over the 200 recorded frames with
+  an offset drawn from ``default_rng([seed, 1])``; the LiDAR (the scene's rig, HDL-64E) with
+  noise and ray drop from ``default_rng([seed, frame])``.
+* stored per frame: the points in the ego frame inside ``CROP`` (x in [-20, 80] m,
+  |y| <= 35 m, z in [0.15, 5] m: ground returns are never used by the detector), and every
+  valid actor whose centre is inside the crop as an ego-frame box (x, y, length, width, yaw) with
+  its number of LiDAR returns.
+
+What counts as ground truth is decided when the data is used (:func:`split_gt`): boxes with at
+least ``min_points`` returns are targets; the others (occluded or out of range, including
+zero-point actors) are "ignore" boxes: no training loss inside them, and detections on them are
+neither true nor false positives in the evaluation. The same rule serves training and
+evaluation.
+
+Cache: one ``.npz`` per scene (``np.savez_compressed``, loaded with ``allow_pickle=False``) in
+``cache_dir`` (default ``~/.cache/adv3d/detector``), named by scene id, frame count and the data
+version, so a second run reuses the work.
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterable, Sequence
+
+import numpy as np
+
+from ..metrics.boxes import boxes_to_frame
+
+DATA_VERSION = 1
+TRAIN_SEED0 = 100_000     # training scenes: TRAIN_SEED0 + [0, N)
+VAL_SEED0 = 900_000       # held-out scenes (same split, disjoint seed range): VAL_SEED0 + [0, M)
+CROP = {"x": (-20.0, 80.0), "y": (-35.0, 35.0), "z": (0.15, 5.0)}
+DEFAULT_MIN_POINTS = 5
+
+
+def default_cache_dir() -> Path:
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "adv3d" / "detector"
+
+
+@dataclass
+class FrameSet:
+    """Frames flattened into arrays (what one cache file holds, or several concatenated).
+
+    Attributes:
+        points: (P, 3) float32 ego-frame x, y, z of all frames.
+        offsets: (F + 1,) int64: frame f's points are ``points[offsets[f]:offsets[f + 1]]``.
+        boxes: (B, 5) float64 ego-frame boxes of all frames; box_frame (B,) int64 their frame.
+        box_points: (B,) int64 LiDAR returns on each box's actor.
+        box_actor: (B,) int64 scene actor id.
+        scene_seed: (F,) int64 and frame_index (F,) int64: where each frame came from.
+    """
+
+    points: np.ndarray
+    offsets: np.ndarray
+    boxes: np.ndarray
+    box_frame: np.ndarray
+    box_points: np.ndarray
+    box_actor: np.ndarray
+    scene_seed: np.ndarray
+    frame_index: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.offsets) - 1
+
+    def frame_points(self, f: int) -> np.ndarray:
+        return self.points[self.offsets[f]:self.offsets[f + 1]]
+
+    def frame_boxes(self, f: int) -> tuple[np.ndarray, np.ndarray]:
+        """(G, 5) boxes and (G,) point counts of frame ``f``."""
+        m = self.box_frame == f
+        return self.boxes[m], self.box_points[m]
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        return {k: getattr(self, k) for k in self.__dataclass_fields__}
+
+    @staticmethod
+    def concat(sets: Sequence["FrameSet"]) -> "FrameSet":
+        if not sets:
+            return empty_frameset()
+        pts, offs, fr = [], [np.zeros(1, np.int64)], []
+        n_pts, n_frames = 0, 0
+        for s in sets:
+            pts.append(s.points)
+            offs.append(s.offsets[1:] + n_pts)
+            fr.append(s.box_frame + n_frames)
+            n_pts += len(s.points)
+            n_frames += len(s)
+        cat = lambda name: np.concatenate([getattr(s, name) for s in sets])  # noqa: E731
+        return FrameSet(np.concatenate(pts), np.concatenate(offs), cat("boxes"), np.concatenate(fr),
+                        cat("box_points"), cat("box_actor"), cat("scene_seed"), cat("frame_index"))
+
+
+def empty_frameset() -> FrameSet:
+    return FrameSet(np.zeros((0, 3), np.float32), np.zeros(1, np.int64), np.zeros((0, 5)), np.zeros(0, np.int64),
+                    np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64))
+
+
+def split_gt(boxes: np.ndarray, n_points: np.ndarray, min_points: int = DEFAULT_MIN_POINTS
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """(targets, ignore) boxes: actors with >= ``min_points`` returns, and the rest."""
+    ok = np.asarray(n_points) >= min_points
+    return np.asarray(boxes).reshape(-1, 5)[ok], np.asarray(boxes).reshape(-1, 5)[~ok]
+
+
+def frame_indices(seed: int, frames_per_scene: int, n_frames: int = 200) -> np.ndarray:
+    """Evenly spaced frame indices with a seeded offset."""
+    k = max(1, min(int(frames_per_scene), n_frames))
+    stride = n_frames // k
+    offset = int(np.random.default_rng([seed, 1]).integers(stride))
+    return offset + stride * np.arange(k)
+
+
+def simulate_scene_frames(scene, world, rig, frames: Iterable[int], seed: int) -> FrameSet:
+    """LiDAR frames of one scene with their ego-frame ground-truth boxes (see module doc).
+
+    Args:
+        scene: a loaded scene. world, rig: its ``LidarWorld`` / ``LidarRig``.
+        frames: frame indices. seed: seeds the LiDAR noise per frame (``[seed, frame]``).
+    """
+    from ..sensors.lidar import simulate_frame
+
+    poses, valid = scene.all_actor_poses()           # (A, T, 3), (A, T)
+    dims = scene.actor_dimensions()                  # (A, 3)
+    ids = np.array(scene.actor_ids, np.int64)
+    ego = scene.ego_poses()
+    pts_all, offs, boxes, bframe, bpts, bact, fidx = [], [0], [], [], [], [], []
+    (x0, x1), (y0, y1), (z0, z1) = CROP["x"], CROP["y"], CROP["z"]
+    index_of = {a: i for i, a in enumerate(world.actor_ids)}
+    for k, f in enumerate(frames):
+        f = int(f)
+        rng = np.random.default_rng([seed, f])
+        fr = simulate_frame(world, rig, ego[f], poses[:, f], rng)
+        p = fr.points[:, :3]
+        keep = (p[:, 0] >= x0) & (p[:, 0] <= x1) & (np.abs(p[:, 1]) <= y1) & (p[:, 2] >= z0) & (p[:, 2] <= z1)
+        pts_all.append(np.ascontiguousarray(p[keep], np.float32))
+        offs.append(offs[-1] + int(keep.sum()))
+        counts = np.bincount(fr.label[fr.label >= 0], minlength=len(world.actor_ids))
+        ok = valid[:, f]
+        if ok.any():
+            world_boxes = np.c_[poses[ok, f, :2], dims[ok, :2], poses[ok, f, 2]]
+            local = boxes_to_frame(world_boxes, ego[f])
+            inside = (local[:, 0] >= x0) & (local[:, 0] <= x1) & (local[:, 1] >= y0) & (local[:, 1] <= y1)
+            a_ids = ids[ok][inside]
+            boxes.append(local[inside])
+            bframe.append(np.full(int(inside.sum()), k, np.int64))
+            bpts.append(np.array([counts[index_of[a]] if a in index_of else 0 for a in a_ids], np.int64))
+            bact.append(a_ids)
+        fidx.append(f)
+    cat = lambda xs, shape, dt: np.concatenate(xs).astype(dt) if xs else np.zeros(shape, dt)  # noqa: E731
+    n = len(fidx)
+    return FrameSet(cat(pts_all, (0, 3), np.float32), np.array(offs, np.int64), cat(boxes, (0, 5), np.float64),
+                    cat(bframe, (0,), np.int64), cat(bpts, (0,), np.int64), cat(bact, (0,), np.int64),
+                    np.full(n, seed, np.int64), np.array(fidx, np.int64))
+
+
+def _cache_path(cache_dir: Path, split: str, seed: int, frames_per_scene: int, library_tag: str) -> Path:
+    return cache_dir / f"v{DATA_VERSION}-{split}-{seed:09d}-f{frames_per_scene}-{library_tag}.npz"
+
+
+def save_frameset(fs: FrameSet, path: Path) -> None:
+    from ..fileio import atomic_path
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path, suffix=".npz") as tmp:
+        with open(tmp, "wb") as fh:
+            np.savez_compressed(fh, format=np.array("adv3d-detector-frames"), version=np.array(DATA_VERSION),
+                                **fs.arrays())
+
+
+def load_frameset(path: Path) -> FrameSet:
+    from ..errors import FileFormatError
+
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            if str(z["format"]) != "adv3d-detector-frames" or int(z["version"]) != DATA_VERSION:
+                raise FileFormatError(path, "$.format", f"adv3d-detector-frames v{DATA_VERSION}",
+                                      f"{z['format']} v{z['version']}")
+            return FrameSet(**{k: z[k] for k in FrameSet.__dataclass_fields__})
+    except (KeyError, ValueError, OSError) as exc:
+        raise FileFormatError(path, "$", "a detector frame cache (.npz)", str(exc)) from None
+
+
+def make_frames(seeds: Sequence[int], frames_per_scene: int, split: str = "train", library="default",
+                cache_dir: str | Path | None = None, desc: str = "scenes") -> FrameSet:
+    """Simulated frames of the scenes ``seeds`` (generated on the fly), cached per scene.
+
+    Args:
+        seeds: scene seeds of ``split`` (training split: >= 100 000).
+        frames_per_scene: frames taken from each 200-frame scene.
+        library: "default" (the bundled benign vehicle library), None (actors as boxes), or a
+            ``VehicleLibrary``.
+        cache_dir: cache folder (None: :func:`default_cache_dir`; False-y string "" disables).
+    """
+    from ..progress import progress
+    from ..scene.generate import generate_scene
+    from ..sensors.world import rig_from_scene, world_from_scene
+
+    if isinstance(library, str) and library == "default":
+        from ..shapes.library import load_library
+        library = load_library()
+    tag = "lib" if library is not None else "box"
+    cache = default_cache_dir() if cache_dir is None else (Path(cache_dir) if cache_dir != "" else None)
+    sets = []
+    for seed in progress(list(seeds), desc=desc, unit="scene"):
+        path = _cache_path(cache, split, int(seed), frames_per_scene, tag) if cache else None
+        if path is not None and path.is_file():
+            sets.append(load_frameset(path))
+            continue
+        scene = generate_scene(int(seed), split)
+        world = world_from_scene(scene, library)
+        rig = rig_from_scene(scene)
+        fs = simulate_scene_frames(scene, world, rig, frame_indices(int(seed), frames_per_scene, scene.frames), int(seed))
+        if path is not None:
+            save_frameset(fs, path)
+        sets.append(fs)
+    return FrameSet.concat(sets)
