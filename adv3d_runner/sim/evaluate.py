@@ -1,0 +1,158 @@
+"""Metrics of one episode (paper Table 1 columns plus safety): ``episode_metrics(result, lanes)``.
+
+* **Detection** (AP and recall at BEV IoU 0.5, pooled over the frames): ground truth = actors
+  whose centre is 0-50 m ahead of the ego (the paper's ROI) and that the LiDAR hit with at
+  least ``min_gt_points`` returns in that frame. Detections in the ROI that match (IoU >= 0.5)
+  an actor with fewer returns (fully occluded) are ignored, neither TP nor FP.
+* **Prediction** (minADE / meanADE over the 6 s horizon, m): every predicted track in the ROI
+  is matched to a ground-truth actor (Hungarian on centre distance, <= 3 m) and compared with
+  that actor's actual future (its log, or the reactive traffic's continuation), over the
+  steps where it exists. Unmatched tracks (false positives) have no ground truth and are left
+  out. Averaged over all (frame, track) pairs.
+* **Planning comfort**: lateral acceleration and jerk of every chosen plan, averaged over the
+  plans; **driving comfort**: of the executed ego trajectory (``metrics.comfort``).
+* **Collision** (footprint overlap with any actor), ``at_fault`` (the first collision is with
+  an actor ahead of the ego: a replayed actor can drive into a slower ego from behind),
+  minimum ego-actor footprint distance, **off road** (largest distance of an ego footprint
+  corner outside the union of the lane strips; ``off_road`` when > ``OFF_ROAD_TOLERANCE``), and
+  **progress** (path length, m).
+
+:func:`detection_frames` and :func:`prediction_pairs` give the per-frame inputs the attack
+objective (paper Eq. 4-5) needs, with the same ground-truth rules.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ..metrics.boxes import box_corners, iou_pairwise
+from ..metrics.comfort import collisions, driving_comfort, planning_comfort
+from ..metrics.detection import ROI_AHEAD, evaluate_frames, roi_mask
+from ..metrics.prediction import match_to_ground_truth, prediction_metrics
+from ..scene import lanes as lanegeo
+
+METRICS_FORMAT = "adv3d-episode-metrics"
+METRICS_VERSION = 1
+MIN_GT_POINTS = 5
+OFF_ROAD_TOLERANCE = 0.3  # m a footprint corner may stray outside the lanes (onto the shoulder paint)
+
+
+def detection_frames(result, min_gt_points: int = MIN_GT_POINTS, ahead: float = ROI_AHEAD
+                     ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Per frame (gt boxes (G, 5), detected boxes (D, 5), scores (D,)), map frame, restricted
+    to the ROI, with the visibility rule of the module docstring."""
+    frames = []
+    for k in range(result.frames):
+        ego = result.ego_poses[k]
+        gt = result.gt_boxes(k)
+        valid = np.isfinite(gt).all(axis=1)
+        gt = gt[valid]
+        vis = result.actor_points[k][valid] >= min_gt_points
+        in_roi = roi_mask(gt, ego, ahead) if len(gt) else np.zeros(0, bool)
+        det = result.outputs[k].detections
+        d, s = det.boxes, det.scores
+        keep = roi_mask(d, ego, ahead) if len(d) else np.zeros(0, bool)
+        d, s = d[keep], s[keep]
+        hidden = gt[in_roi & ~vis]
+        if len(hidden) and len(d):
+            d_ok = ~(iou_pairwise(d, hidden) >= 0.5).any(axis=1)
+            d, s = d[d_ok], s[d_ok]
+        frames.append((gt[in_roi & vis], d, s))
+    return frames
+
+
+def prediction_pairs(result, ahead: float = ROI_AHEAD, max_distance: float = 3.0
+                     ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Per frame (predictions (M, K, H, 2), true futures (M, H, 2), valid (M, H)) of the
+    predicted tracks in the ROI that match a ground-truth actor."""
+    out = []
+    for k in range(result.frames):
+        o = result.outputs[k]
+        preds = o.predictions
+        H = preds.horizon
+        if len(preds) == 0:
+            out.append((np.zeros((0, preds.num_modes, H, 2)), np.zeros((0, H, 2)), np.zeros((0, H), bool)))
+            continue
+        row = {int(t): i for i, t in enumerate(o.tracks.ids)}
+        tb = np.array([o.tracks.boxes[row[int(t)]] for t in preds.track_ids]).reshape(-1, 5)
+        in_roi = roi_mask(tb, result.ego_poses[k], ahead)
+        gt = result.gt_boxes(k)
+        valid = np.flatnonzero(np.isfinite(gt).all(axis=1))
+        match = match_to_ground_truth(tb, gt[valid], max_distance) if len(valid) else np.full(len(tb), -1)
+        use = np.flatnonzero(in_roi & (match >= 0))
+        actors = valid[match[use]]
+        fut = result.actor_poses[k + 1:k + 1 + H, :, :2]  # (<=H, N, 2)
+        gt_fut = np.full((len(use), H, 2), np.nan)
+        gt_fut[:, :len(fut)] = np.transpose(fut[:, actors], (1, 0, 2))
+        ok = np.isfinite(gt_fut).all(axis=-1)
+        out.append((preds.trajectories[use], np.nan_to_num(gt_fut), ok))
+    return out
+
+
+def off_road_distance(lanes, boxes: np.ndarray) -> np.ndarray:
+    """(T,) largest distance (m) of a footprint corner outside every lane strip, per box (T, 5)."""
+    corners = box_corners(np.asarray(boxes, float).reshape(-1, 5)).reshape(-1, 2)  # (T*4, 2)
+    best = np.full(len(corners), np.inf)
+    for lane in lanes:
+        pts = np.asarray(lane.centerline, float)
+        s, d, _ = lanegeo.project(pts, corners)
+        total = lanegeo.length(pts)
+        half = 0.5 * np.asarray(lanegeo.width_at(pts, np.atleast_1d(lane.width), np.clip(s, 0, total)))
+        out = np.hypot(np.maximum(np.abs(d) - half, 0.0), np.maximum(np.maximum(-s, s - total), 0.0))
+        best = np.minimum(best, out)
+    return best.reshape(-1, 4).max(axis=1)
+
+
+def _f(x) -> float | None:
+    x = float(x)
+    return x if np.isfinite(x) else None
+
+
+def episode_metrics(result, lanes, min_gt_points: int = MIN_GT_POINTS) -> dict:
+    """The metrics document of one episode (JSON-ready; see module docstring)."""
+    frames = detection_frames(result, min_gt_points)
+    det = evaluate_frames([g for g, _, _ in frames], [d for _, d, _ in frames], [s for _, _, s in frames])
+    pairs = prediction_pairs(result)
+    K = max((p.shape[1] for p, _, _ in pairs if len(p)), default=3)
+    H = max((p.shape[2] for p, _, _ in pairs if len(p)), default=60)
+    pred = np.concatenate([p for p, _, _ in pairs if len(p)] or [np.zeros((0, K, H, 2))])
+    gt = np.concatenate([g for _, g, _ in pairs if len(g)] or [np.zeros((0, H, 2))])
+    ok = np.concatenate([v for _, _, v in pairs if len(v)] or [np.zeros((0, H), bool)])
+    pm = prediction_metrics(pred, gt, ok) if len(pred) else None
+    ego_boxes = result.ego_boxes()
+    T = result.frames
+    act = np.stack([result.gt_boxes(k) for k in range(T)]) if T else np.zeros((0, 0, 5))
+    rep = collisions(ego_boxes, act, result.actor_valid[:T])
+    at_fault = False
+    if rep.collided:
+        e = ego_boxes[rep.first_frame]
+        for i in rep.actors:
+            b = act[rep.first_frame, i]
+            if not np.isfinite(b).all():
+                continue
+            rel = b[:2] - e[:2]
+            at_fault |= bool(rel[0] * np.cos(e[4]) + rel[1] * np.sin(e[4]) > 0)
+    off = off_road_distance(lanes, ego_boxes)
+    pc, dc = planning_comfort(result.plans(), result.dt), driving_comfort(result.ego_poses, result.dt)
+    path = float(np.sum(np.hypot(*np.diff(result.ego_poses[:, :2], axis=0).T))) if T > 1 else 0.0
+    timing = {k: _f(1000 * np.mean(v)) for k, v in result.timings.items()}
+    total = float(np.sum(result.timings.get("total", np.zeros(1))))
+    return {
+        "format": METRICS_FORMAT, "version": METRICS_VERSION,
+        "scene": result.scene_id, "start_frame": result.start_frame, "frames": T, "dt": result.dt,
+        "closed_loop": result.closed_loop, "reactive": result.reactive, "seed": result.seed,
+        "adversarial_actors": [int(a) for a in result.actor_ids[result.adversarial]],
+        "detection": {"ap": _f(det.ap), "recall": _f(det.recall), "n_gt": int(det.n_gt), "n_det": int(det.n_det),
+                      "n_tp": int(det.n_tp), "iou_threshold": 0.5, "roi_ahead_m": ROI_AHEAD,
+                      "min_gt_points": int(min_gt_points)},
+        "prediction": {"min_ade": _f(pm.min_ade) if pm else None, "mean_ade": _f(pm.mean_ade) if pm else None,
+                       "min_fde": _f(pm.min_fde) if pm else None, "mean_fde": _f(pm.mean_fde) if pm else None,
+                       "n": int(len(pred))},
+        "planning_comfort": {"lat": pc.lat, "jerk": pc.jerk, "max_lat": pc.max_lat, "max_jerk": pc.max_jerk},
+        "driving_comfort": {"lat": dc.lat, "jerk": dc.jerk, "max_lat": dc.max_lat, "max_jerk": dc.max_jerk},
+        "collision": {"collided": rep.collided, "at_fault": bool(at_fault), "first_frame": rep.first_frame,
+                      "actors": [int(result.actor_ids[i]) for i in rep.actors]},
+        "min_distance": _f(rep.min_distance),
+        "off_road": bool(off.max(initial=0.0) > OFF_ROAD_TOLERANCE), "off_road_m": float(off.max(initial=0.0)),
+        "progress_m": path, "mean_speed": _f(np.mean(result.ego_speeds)) if T else None,
+        "ms_per_frame": timing, "fps": _f(T / total) if total > 0 else None,
+    }
