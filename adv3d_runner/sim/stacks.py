@@ -16,6 +16,8 @@ before each ``stack.step`` on any detector that has an ``observe`` method.
 """
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
 from ..autonomy.interface import Detections
@@ -95,6 +97,11 @@ def _load(module: str, func: str, options: dict):
         loader = getattr(mod, func)
     except (ImportError, AttributeError) as exc:
         raise ConfigError(f"{hint} ({exc})") from None
+    from ..fileio import REPO_ROOT
+
+    folder = Path(getattr(mod, "DEFAULT_MODEL_DIR", REPO_ROOT / "assets" / "models" / module))
+    if not (folder / "config.json").is_file():
+        raise ConfigError(f"{hint} (no {folder / 'config.json'})")
     try:
         return loader(**options)
     except (FileNotFoundError, OSError) as exc:
