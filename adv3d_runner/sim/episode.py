@@ -255,7 +255,7 @@ def run_episode(scene, stack, *, seconds: float = 5.0, closed_loop: bool = True,
             frame = simulate_frame(world, rig, ego.pose, world_poses, rng if lidar_noise else None)
             t1 = time.perf_counter()
             timings["lidar"][k] = t1 - t0
-            counts_world = np.bincount(frame.label[frame.label >= 0], minlength=len(world_ids))
+            counts_world = np.bincount(frame.label[frame.label >= 0], minlength=len(world_ids) + 1)
             counts = np.where(have, counts_world[np.maximum(to_world, 0)], 0)
             actor_points[k] = counts
             n_points[k] = len(frame.points)

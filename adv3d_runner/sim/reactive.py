@@ -172,6 +172,7 @@ class ReactiveTraffic:
         self.slot = np.full(n, -1)            # actor -> traffic index
         self.replay = np.zeros(n, bool)       # unmapped actors replay their log
         self.residual = np.zeros(n)           # lateral offset from the lane centre at entry
+        self.yaw_residual = np.zeros(n)       # logged yaw minus the model's yaw at entry
         self.age = np.zeros(n)                # s since entry
         self.frame = 0
         s, _, k = r.locate(np.asarray(ego_pose, float)[None, :2])
@@ -200,6 +201,9 @@ class ReactiveTraffic:
             self.slot[i] = self.traffic.add(s[0], int(k[0]), v, self.lengths[i], v0=v0)
             self.residual[i] = d[0] - r.offset(k[:1], s[:1])[0]
             self.age[i] = 0.0
+            self.yaw_residual[i] = 0.0
+            model_yaw = self.poses()[i, 2]
+            self.yaw_residual[i] = (pose[2] - model_yaw + np.pi) % (2 * np.pi) - np.pi
 
     def poses(self) -> np.ndarray:
         """(N, 3) current actor poses (NaN for absent actors)."""
@@ -221,6 +225,8 @@ class ReactiveTraffic:
                     - np.where(fade > 0, self.residual[live] / (self.settle_s * v), 0.0))
             good = np.isfinite(d)
             out[live[good]] = r.pose(t.s[j][good], d[good], np.nan_to_num(rate[good]))
+            yaw = out[live[good], 2] + fade[good] * self.yaw_residual[live[good]]
+            out[live[good], 2] = (yaw + np.pi) % (2 * np.pi) - np.pi
         rep = np.flatnonzero(self.replay)
         if len(rep) and self.frame < self.log.shape[1]:
             out[rep] = self.log[rep, self.frame]

@@ -1,0 +1,165 @@
+"""Episode loop: open vs closed loop, determinism, empty frames, reactive actors, shape
+substitution, metrics of a short oracle episode."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from adv3d_runner.errors import ConfigError
+from adv3d_runner.fileio import REPO_ROOT
+from adv3d_runner.metrics.boxes import boxes_overlap, boxes_to_frame
+from adv3d_runner.scene import load_scene
+from adv3d_runner.sensors.world import LidarWorld, rig_from_scene, world_from_scene
+from adv3d_runner.sim.episode import run_episode
+from adv3d_runner.sim.evaluate import episode_metrics
+from adv3d_runner.sim.stacks import OracleDetector, make_stack
+
+
+@pytest.fixture(scope="module")
+def free():
+    """A free-flow 3-lane scene with box actors and a light rig (fast)."""
+    scene = load_scene(REPO_ROOT / "scenes/highway/highway-benchmark-000000.json.gz")
+    world = world_from_scene(scene, None)
+    rig = rig_from_scene(scene, model="generic-32", columns=512, ray_drop=0.05)
+    return scene, world, rig
+
+
+@pytest.fixture(scope="module")
+def dense():
+    scene = load_scene(REPO_ROOT / "scenes/highway/highway-benchmark-000015.json.gz")
+    return scene, world_from_scene(scene, None), rig_from_scene(scene, model="generic-16", columns=256)
+
+
+def _box_mesh(L, W, H):
+    from adv3d_runner.sensors.world import _box_mesh
+
+    m = _box_mesh((L, W, H))
+    return np.asarray(m.vertices, float), np.asarray(m.faces, np.int64)
+
+
+def test_open_loop_ego_replays_log_and_closed_loop_follows_plans(free):
+    scene, world, rig = free
+    op = run_episode(scene, make_stack("oracle"), seconds=1.0, closed_loop=False, world=world, rig=rig)
+    cl = run_episode(scene, make_stack("oracle"), seconds=1.0, closed_loop=True, world=world, rig=rig)
+    log = scene.ego_poses()[:10]
+    np.testing.assert_array_equal(op.ego_poses, log)
+    np.testing.assert_array_equal(op.ego_speeds, scene.ego_speeds()[:10])
+    # same start; afterwards the closed-loop ego is exactly where its previous plan put it
+    np.testing.assert_array_equal(cl.ego_poses[0], log[0])
+    for k in range(cl.frames - 1):
+        np.testing.assert_allclose(cl.ego_poses[k + 1], cl.outputs[k].plan.trajectory[1], atol=1e-12)
+        assert cl.ego_speeds[k + 1] == pytest.approx(cl.outputs[k].plan.speed[1])
+    assert not np.allclose(cl.ego_poses, log)  # the planner does not reproduce the log to the mm
+    # the replayed actors do not depend on the ego
+    np.testing.assert_array_equal(op.actor_poses, cl.actor_poses)
+    assert op.frames == cl.frames == 10 and len(cl.outputs) == 10
+
+
+def test_deterministic_for_a_seed(free):
+    scene, world, rig = free
+    a = run_episode(scene, make_stack("oracle"), seconds=0.5, world=world, rig=rig, seed=3, record_points=True)
+    b = run_episode(scene, make_stack("oracle"), seconds=0.5, world=world, rig=rig, seed=3, record_points=True)
+    c = run_episode(scene, make_stack("oracle"), seconds=0.5, world=world, rig=rig, seed=4, record_points=True)
+    for pa, pb in zip(a.points, b.points):
+        np.testing.assert_array_equal(pa, pb)
+    np.testing.assert_array_equal(a.ego_poses, b.ego_poses)
+    for oa, ob in zip(a.outputs, b.outputs):
+        np.testing.assert_array_equal(oa.plan.trajectory, ob.plan.trajectory)
+        np.testing.assert_array_equal(oa.detections.boxes, ob.detections.boxes)
+    assert any(len(pa) != len(pc) or not np.array_equal(pa, pc) for pa, pc in zip(a.points, c.points))
+
+
+def test_frames_without_points(free):
+    scene, _, rig = free
+    empty = LidarWorld(np.zeros((0, 3)), np.zeros((0, 3), np.int64))
+    r = run_episode(scene, make_stack("oracle"), seconds=0.5, world=empty, rig=rig)
+    assert (r.n_points == 0).all() and (r.actor_points == 0).all()
+    assert all(len(o.detections) == 0 and len(o.tracks) == 0 for o in r.outputs)
+    assert np.isfinite(r.ego_poses).all() and r.ego_speeds[-1] > 0  # still drives on its lane
+    m = episode_metrics(r, scene.lanes)
+    assert m["detection"]["n_det"] == 0
+
+
+def test_reactive_actors_start_from_the_log_and_never_on_the_ego(dense):
+    scene, world, rig = dense
+    r = run_episode(scene, make_stack("oracle"), seconds=2.0, reactive=True, world=world, rig=rig)
+    log, valid = scene.all_actor_poses()
+    v0 = valid[:, 0]
+    np.testing.assert_allclose(r.actor_poses[0, v0], log[v0, 0], atol=1e-6)
+    L, W = scene.ego.dimensions[:2]
+    ego = np.array([*r.ego_poses[0, :2], L, W, r.ego_poses[0, 2]])
+    boxes = r.gt_boxes(0)
+    ok = np.isfinite(boxes).all(axis=1)
+    assert ok.sum() >= 5
+    assert not boxes_overlap(ego[None], boxes[ok]).any()
+    # nobody drives into the ego over the episode (IDM keeps its gap behind the ego)
+    m = episode_metrics(r, scene.lanes)
+    assert not m["collision"]["collided"]
+    # the traffic model moved the actors (they do not simply replay the log)
+    later = valid[:, 15] & np.isfinite(r.actor_poses[15]).all(axis=1)
+    assert np.abs(r.actor_poses[15, later, :2] - log[later, 15, :2]).max() > 0.05
+    assert np.isfinite(r.actor_poses[r.frames:]).any()  # traffic continued for prediction ground truth
+
+
+def test_substituted_mesh_changes_points_and_ground_truth_box(free):
+    scene, world, rig = free
+    base = run_episode(scene, make_stack("oracle"), seconds=0.3, world=world, rig=rig, lidar_noise=False)
+    # the actor with the most returns
+    i = int(np.argmax(base.actor_points.sum(axis=0)))
+    aid = int(base.actor_ids[i])
+    dims = np.array([9.0, 2.6, 3.2])
+    v, f = _box_mesh(*dims)
+    adv = run_episode(scene, make_stack("oracle"), seconds=0.3, world=world, rig=rig, lidar_noise=False,
+                      actor_overrides={aid: (v, f, dims)})
+    assert adv.adversarial[i] and adv.adversarial.sum() == 1
+    np.testing.assert_array_equal(adv.actor_dimensions[i], dims)
+    assert adv.gt_boxes(0)[i, 2] == 9.0 and adv.gt_boxes(0)[i, 3] == 2.6
+    assert adv.actor_points[:, i].sum() > base.actor_points[:, i].sum()  # a bigger body reflects more rays
+    # the oracle sees the new box
+    det = adv.outputs[0].detections.boxes
+    j = np.argmin(np.hypot(*(det[:, :2] - adv.gt_boxes(0)[i, :2]).T))
+    assert det[j, 2] == pytest.approx(9.0)
+    # the world got its benign mesh back
+    again = run_episode(scene, make_stack("oracle"), seconds=0.3, world=world, rig=rig, lidar_noise=False)
+    np.testing.assert_array_equal(again.actor_points, base.actor_points)
+
+
+def test_bad_overrides_and_missing_models(free):
+    scene, world, rig = free
+    with pytest.raises(ConfigError):
+        run_episode(scene, make_stack("oracle"), seconds=0.1, world=world, rig=rig,
+                    actor_overrides={99999: (np.zeros((3, 3)), np.array([[0, 1, 2]]), np.ones(3))})
+    aid = scene.actors[0].id
+    with pytest.raises(ConfigError):
+        run_episode(scene, make_stack("oracle"), seconds=0.1, world=world, rig=rig,
+                    actor_overrides={aid: (np.zeros((3, 3)), np.array([[0, 1, 5]]), np.ones(3))})
+    with pytest.raises(ConfigError):
+        make_stack("B")
+    with pytest.raises(ConfigError):
+        run_episode(scene, make_stack("oracle"), seconds=30.0, closed_loop=False, world=world, rig=rig)
+
+
+def test_oracle_detector_needs_points_and_returns():
+    det = OracleDetector(min_points=5)
+    det.observe(np.array([[10.0, 0, 4.5, 1.9, 0], [20.0, 3, 4.5, 1.9, 0], [np.nan] * 5]), np.array([50, 2, 100]))
+    out = det.detect(np.ones((10, 4)))
+    assert len(out) == 1 and out.boxes[0, 0] == 10.0 and out.scores[0] == 1.0
+    assert len(det.detect(np.zeros((0, 4)))) == 0
+
+
+def test_short_oracle_episode_has_sane_metrics(free):
+    scene, world, rig = free
+    r = run_episode(scene, make_stack("oracle"), seconds=1.5, world=world, rig=rig)
+    m = episode_metrics(r, scene.lanes)
+    assert m["frames"] == 15
+    assert m["detection"]["n_gt"] > 0 and m["detection"]["ap"] > 0.8 and m["detection"]["recall"] > 0.8
+    assert m["prediction"]["n"] > 0 and 0 <= m["prediction"]["min_ade"] < 2.0
+    assert m["prediction"]["min_ade"] <= m["prediction"]["mean_ade"] < 30
+    assert not m["collision"]["collided"] and not m["off_road"]
+    speed = scene.ego_speeds()[0]
+    assert m["progress_m"] == pytest.approx(speed * 1.4, rel=0.2)
+    assert 0 <= m["planning_comfort"]["jerk"] < 5 and 0 <= m["driving_comfort"]["lat"] < 1
+    assert m["min_distance"] > 0
+    # ground truth in the ROI really is ahead of the ego
+    local = boxes_to_frame(r.gt_boxes(0)[np.isfinite(r.gt_boxes(0)).all(axis=1)], r.ego_poses[0])
+    assert m["detection"]["n_gt"] <= 15 * int(((local[:, 0] > -5) & (local[:, 0] < 60)).sum())
