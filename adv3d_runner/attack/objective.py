@@ -1,0 +1,168 @@
+"""The adversarial objective of paper Eq. 3-5, summed over the frames of an episode.
+
+``C = sum_t [ w_det * l_det^t + lambda_pred * l_pred^t + lambda_plan * c_plan^t ]`` with
+
+* ``l_det^t = -alpha * sum_TP IoU * conf + beta * sum_FP (1 - IoU) * conf`` over the frame's
+  detections in the region of interest (:mod:`adv3d_runner.metrics.detection`);
+* ``l_pred^t`` = the multi-modal ADE (``1/K sum_modes`` of the displacement error) of the
+  predicted tracks matched to ground-truth actors, averaged over those actors
+  (:func:`adv3d_runner.metrics.prediction.prediction_loss`, mean over the horizon);
+* ``c_plan^t = c_jerk + c_lat``: mean |jerk| + mean |lateral acceleration| of the frame's plan
+  (:func:`adv3d_runner.metrics.comfort.plan_comfort_cost`).
+
+Higher C = worse autonomy; the attack **maximises** C. Every weight is configurable and the
+paper's ablations (Table 3 / supp. Table 6) are named presets (:data:`ABLATIONS`): M0 = all
+three terms (the paper's full objective), M1 = detection only, M2 = prediction only, M3 =
+planning only, M4 = detection + prediction, M5 = detection + planning.
+
+The functions here are pure: per-frame terms from plain arrays (hand-made in tests), and
+:func:`episode_objective` that pulls those arrays from an ``EpisodeResult`` with the same
+ground-truth rules as the episode metrics (``adv3d_runner.sim.evaluate``).
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, replace
+from typing import Sequence
+
+import numpy as np
+
+from ..errors import ConfigError
+from ..metrics.comfort import plan_comfort_cost
+from ..metrics.detection import IOU_THRESHOLD, false_positive_term, true_positive_term
+from ..metrics.prediction import prediction_loss
+
+LAMBDA_PRED = 0.1
+LAMBDA_PLAN = 0.5
+
+
+@dataclass(frozen=True)
+class ObjectiveWeights:
+    """Weights of Eq. 3-4. ``det``, ``pred``, ``plan`` multiply the three per-frame terms (0
+    switches a term off); ``alpha``/``beta`` weight true and false positives inside l_det."""
+
+    det: float = 1.0
+    pred: float = LAMBDA_PRED
+    plan: float = LAMBDA_PLAN
+    alpha: float = 1.0
+    beta: float = 1.0
+    iou_threshold: float = IOU_THRESHOLD
+
+    def __post_init__(self) -> None:
+        for k, v in asdict(self).items():
+            if not np.isfinite(v) or v < 0:
+                raise ConfigError(f"objective weight {k} must be a finite number >= 0, got {v}")
+        if self.det == 0 and self.pred == 0 and self.plan == 0:
+            raise ConfigError("the objective needs at least one of det, pred, plan > 0")
+
+    def as_dict(self) -> dict:
+        return {k: float(v) for k, v in asdict(self).items()}
+
+
+#: The paper's objective ablations (supp. Table 6): which terms are on.
+ABLATIONS: dict[str, ObjectiveWeights] = {
+    "M0": ObjectiveWeights(),
+    "M1": ObjectiveWeights(det=1.0, pred=0.0, plan=0.0),
+    "M2": ObjectiveWeights(det=0.0, pred=LAMBDA_PRED, plan=0.0),
+    "M3": ObjectiveWeights(det=0.0, pred=0.0, plan=LAMBDA_PLAN),
+    "M4": ObjectiveWeights(det=1.0, pred=LAMBDA_PRED, plan=0.0),
+    "M5": ObjectiveWeights(det=1.0, pred=0.0, plan=LAMBDA_PLAN),
+}
+
+
+def parse_objective(text: str | None) -> ObjectiveWeights:
+    """``"M0"``..``"M5"``, or comma-separated ``key=value`` overrides of M0
+    (``"det=1,pred=0.1,plan=0.5,alpha=1,beta=1"``), optionally after a preset
+    (``"M1,beta=2"``)."""
+    if not text:
+        return ABLATIONS["M0"]
+    w = ABLATIONS["M0"]
+    fields = set(asdict(w))
+    for part in [p.strip() for p in text.split(",") if p.strip()]:
+        if part.upper() in ABLATIONS:
+            w = ABLATIONS[part.upper()]
+            continue
+        key, sep, value = part.partition("=")
+        key = key.strip()
+        if not sep or key not in fields:
+            raise ConfigError(f"--objective: expected M0..M5 or key=value with key in {sorted(fields)}, got {part!r}")
+        try:
+            w = replace(w, **{key: float(value)})
+        except ValueError:
+            raise ConfigError(f"--objective: {key} must be a number, got {value!r}") from None
+    return w
+
+
+# ------------------------------------------------------------------------ per-frame terms
+
+def detection_terms(frames: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]],
+                    iou_threshold: float = IOU_THRESHOLD) -> tuple[np.ndarray, np.ndarray]:
+    """Per frame sum_TP IoU x conf and sum_FP (1 - IoU) x conf.
+
+    Args:
+        frames: T tuples (gt boxes (G, 5), detected boxes (D, 5), scores (D,)), already
+            restricted to the region of interest.
+    Returns:
+        tp (T,), fp (T,), both >= 0.
+    """
+    tp = np.array([true_positive_term(g, d, s, iou_threshold) for g, d, s in frames], dtype=np.float64)
+    fp = np.array([false_positive_term(g, d, s, iou_threshold) for g, d, s in frames], dtype=np.float64)
+    return tp.reshape(-1), fp.reshape(-1)
+
+
+def prediction_terms(pairs: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> np.ndarray:
+    """Per frame l_pred (Eq. 5): mean over matched actors of the mode-averaged ADE (m); 0 for a
+    frame without matched predictions.
+
+    Args:
+        pairs: T tuples (predictions (M, K, H, 2), true futures (M, H, 2), valid (M, H)).
+    """
+    return np.array([prediction_loss(p, g, v) if len(p) else 0.0 for p, g, v in pairs], dtype=np.float64).reshape(-1)
+
+
+def planning_terms(plans: Sequence[np.ndarray], dt: float = 0.1) -> np.ndarray:
+    """Per frame c_plan = mean |jerk| + mean |lateral acceleration| of the plan (T,) (Eq. 5).
+
+    Args:
+        plans: T plan trajectories (P, 3) x, y, yaw (or (P, 2)) sampled every ``dt``.
+    """
+    return np.array([plan_comfort_cost(p, dt) for p in plans], dtype=np.float64).reshape(-1)
+
+
+@dataclass
+class ObjectiveValue:
+    """The objective of one episode: ``total`` and its frame sums (unweighted) per term."""
+
+    total: float
+    det: float
+    tp: float
+    fp: float
+    pred: float
+    plan: float
+    frames: int
+
+    def components(self) -> dict:
+        return {"det": self.det, "tp": self.tp, "fp": self.fp, "pred": self.pred, "plan": self.plan,
+                "frames": self.frames}
+
+
+def combine(tp: np.ndarray, fp: np.ndarray, pred: np.ndarray, plan: np.ndarray,
+            weights: ObjectiveWeights = ABLATIONS["M0"]) -> ObjectiveValue:
+    """Eq. 3 summed over the frames: per-frame term arrays (T,) -> :class:`ObjectiveValue`.
+
+    Non-finite per-frame terms (a broken output) propagate to a non-finite total, which the
+    searchers penalise rather than trust."""
+    tp, fp, pred, plan = (np.asarray(a, dtype=np.float64).reshape(-1) for a in (tp, fp, pred, plan))
+    det = -weights.alpha * tp + weights.beta * fp
+    total = weights.det * det.sum() + weights.pred * pred.sum() + weights.plan * plan.sum()
+    return ObjectiveValue(float(total), float(det.sum()), float(tp.sum()), float(fp.sum()), float(pred.sum()),
+                          float(plan.sum()), int(max(len(tp), len(pred), len(plan))))
+
+
+def episode_objective(result, weights: ObjectiveWeights = ABLATIONS["M0"]) -> ObjectiveValue:
+    """The objective of an :class:`~adv3d_runner.sim.episode.EpisodeResult` (all frames)."""
+    from ..sim.evaluate import detection_frames, prediction_pairs
+
+    tp, fp = detection_terms(detection_frames(result), weights.iou_threshold)
+    pred = prediction_terms(prediction_pairs(result)) if weights.pred > 0 else np.zeros(result.frames)
+    plan = planning_terms(result.plans(), result.dt)
+    return combine(tp, fp, pred, plan, weights)
