@@ -1,0 +1,136 @@
+"""Attack driver and run journal: resume after a crash, determinism, failed queries, CLI."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from adv3d_runner.attack.driver import AttackConfig, run_attack
+from adv3d_runner.attack.journal import Journal, query_record, read_run, strip_times
+from adv3d_runner.errors import ConfigError, FileFormatError
+
+
+def cfg(**kw):
+    base = dict(scenes=["synthetic:peak"], algo="bo", budget=24, batch=2, n_initial=6, seed=5)
+    base.update(kw)
+    return AttackConfig(**base)
+
+
+def lines(path):
+    return [json.loads(x) for x in (path / "queries.jsonl").read_text().splitlines()]
+
+
+def test_same_seed_same_journal(tmp_path):
+    run_attack(cfg(), tmp_path / "a", show_progress=False)
+    run_attack(cfg(), tmp_path / "b", show_progress=False)
+    a, b = lines(tmp_path / "a"), lines(tmp_path / "b")
+    assert len(a) == 24
+    assert strip_times(a) == strip_times(b)
+    assert [r["index"] for r in a] == list(range(24))
+    run_attack(cfg(seed=6), tmp_path / "c", show_progress=False)
+    assert strip_times(lines(tmp_path / "c")) != strip_times(a)
+
+
+def test_failed_queries_recorded_and_run_continues(tmp_path):
+    # random search over the unit cube hits the synthetic invalid regions (u0 or u1 > 0.95)
+    run_attack(cfg(algo="random", budget=80), tmp_path / "r", show_progress=False)
+    recs = lines(tmp_path / "r")
+    assert len(recs) == 80
+    status = {r["status"] for r in recs}
+    assert {"ok", "invalid", "error"} <= status
+    for r in recs:
+        if r["status"] != "ok":
+            assert r["cost"] is None and r["error"]
+        else:
+            assert isinstance(r["cost"], float)
+    inv = [r for r in recs if r["status"] == "invalid"]
+    assert all("EmptySurfaceError" in r["error"] for r in inv)
+    summary = json.loads((tmp_path / "r" / "summary.json").read_text())
+    m = summary["scenes"]["synthetic:peak"]["modes"]["closed"]
+    ok = [r["cost"] for r in recs if r["status"] == "ok"]
+    assert m["best_cost"] == pytest.approx(max(ok))
+    assert m["n_failed"] == sum(r["status"] != "ok" for r in recs)
+
+
+@pytest.mark.parametrize("algo", ["bo", "random", "grid", "blendsearch"])
+def test_resume_after_crash_does_not_redo_queries(tmp_path, algo):
+    if algo == "blendsearch":
+        pytest.importorskip("flaml")
+        pytest.importorskip("optuna")
+    full = tmp_path / "full"
+    run_attack(cfg(algo=algo), full, show_progress=False)
+    crashed = tmp_path / "crashed"
+    run_attack(cfg(algo=algo), crashed, show_progress=False, stop_after=10)
+    journal = crashed / "queries.jsonl"
+    done = journal.read_text().splitlines()
+    assert len(done) == 10
+    # kill -9 in the middle of a write: a truncated last line
+    with open(journal, "a") as fh:
+        fh.write(done[-1][: len(done[-1]) // 2])
+    calls = []
+
+    def counting(task):
+        from adv3d_runner.attack.driver import evaluate_task
+        calls.append(task["unit"])
+        return evaluate_task(task)
+
+    run_attack(cfg(algo=algo), crashed, show_progress=False, evaluate=counting)
+    assert len(calls) == 24 - 10  # only the queries that were not in the journal
+    assert strip_times(lines(crashed)) == strip_times(lines(full))
+    # a second resume of a finished run evaluates nothing
+    calls.clear()
+    run_attack(cfg(algo=algo), crashed, show_progress=False, evaluate=counting)
+    assert calls == []
+    assert len(lines(crashed)) == 24
+
+
+def test_resume_with_other_options_refused(tmp_path):
+    run_attack(cfg(budget=4), tmp_path / "x", show_progress=False)
+    with pytest.raises(ConfigError):
+        run_attack(cfg(budget=4, seed=99), tmp_path / "x", show_progress=False)
+    # workers may change on resume (the first run's batch size is kept)
+    run_attack(cfg(budget=6, batch=2), tmp_path / "y", show_progress=False)
+    with pytest.raises(ConfigError):
+        run_attack(cfg(budget=6, batch=3), tmp_path / "y", show_progress=False)
+
+
+def test_workers_give_the_same_journal(tmp_path):
+    run_attack(cfg(budget=12), tmp_path / "serial", workers=1, show_progress=False)
+    run_attack(cfg(budget=12), tmp_path / "pool", workers=2, show_progress=False)
+    assert strip_times(lines(tmp_path / "serial")) == strip_times(lines(tmp_path / "pool"))
+
+
+def test_journal_corrupt_middle_line_is_an_error(tmp_path):
+    j = Journal(tmp_path)
+    j.start({"seed": 0})
+    for i in range(3):
+        j.append(query_record("s", "closed", i, [1], np.full(5, 0.5), cost=float(i)))
+    text = (tmp_path / "queries.jsonl").read_text().splitlines()
+    text[1] = "{not json"
+    (tmp_path / "queries.jsonl").write_text("\n".join(text) + "\n")
+    with pytest.raises(FileFormatError):
+        Journal(tmp_path).load()
+    with pytest.raises(FileFormatError):
+        read_run(tmp_path)
+
+
+def test_journal_nonfinite_cost_written_as_null(tmp_path):
+    j = Journal(tmp_path)
+    j.start({"seed": 0})
+    j.append(query_record("s", "closed", 0, [1], np.full(5, 0.5), cost=float("nan"), status="error", error="x"))
+    rec = json.loads((tmp_path / "queries.jsonl").read_text())
+    assert rec["cost"] is None and rec["status"] == "error"
+
+
+def test_cli_attack_and_report(tmp_path, capsys):
+    from adv3d_runner.cli import main
+
+    out = tmp_path / "run"
+    assert main(["-q", "attack", "synthetic:peak", "--algo", "random", "--budget", "8", "--out", str(out)]) == 0
+    assert len(lines(out)) == 8
+    assert main(["-q", "report", str(out)]) == 0
+    text = (out / "report.md").read_text()
+    assert "synthetic:peak" in text and "random" in text
+    assert (out / "convergence.png").exists()
+    assert main(["-q", "attack", "synthetic:peak", "--budget", "0", "--out", str(tmp_path / "z")]) == 1
