@@ -1,0 +1,223 @@
+"""``adv3d report``: a markdown report of one or more attack runs.
+
+Sections: the paper's Table 1 (Original / Adv. open-loop / Adv. closed-loop, every shape
+evaluated in closed loop: AP, recall, minADE, meanADE, planning and driving comfort), as mean
++- std over scenes; per algorithm the best cost against the number of queries and against wall
+time (table + ``convergence.png``); the best shapes per scene as thumbnails (matplotlib renders
+of the decoded meshes).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from ..fileio import atomic_write_text
+from .journal import read_run, record_cost
+
+COLUMNS = (("AP", ("detection", "ap"), 100.0), ("Recall", ("detection", "recall"), 100.0),
+           ("minADE", ("prediction", "min_ade"), 1.0), ("meanADE", ("prediction", "mean_ade"), 1.0),
+           ("Plan lat.", ("planning_comfort", "lat"), 1.0), ("Plan jerk", ("planning_comfort", "jerk"), 1.0),
+           ("Drive lat.", ("driving_comfort", "lat"), 1.0), ("Drive jerk", ("driving_comfort", "jerk"), 1.0))
+
+
+def _get(metrics: dict | None, path: tuple[str, str]) -> float:
+    try:
+        v = metrics[path[0]][path[1]]
+    except (KeyError, TypeError):
+        return float("nan")
+    return float(v) if isinstance(v, (int, float)) else float("nan")
+
+
+def _cell(values: list[float], scale: float) -> str:
+    v = np.asarray(values, dtype=np.float64) * scale
+    v = v[np.isfinite(v)]
+    if len(v) == 0:
+        return "-"
+    return f"{v.mean():.3g} ± {v.std():.2g}" if len(v) > 1 else f"{v.mean():.3g}"
+
+
+def table1(runs: list[tuple[str, dict, list, dict]]) -> str:
+    """Markdown Table 1 over all scenes of all runs."""
+    rows: dict[str, list[dict]] = {}
+    seen_original: set[str] = set()
+    for _, run, _, summary in runs:
+        algo = run.get("algo", "?")
+        for sid, entry in summary.get("scenes", {}).items():
+            if "original" in entry and sid not in seen_original:
+                rows.setdefault("Original", []).append(entry["original"]["metrics"])
+                seen_original.add(sid)
+            for mode, m in entry.get("modes", {}).items():
+                ev = m.get("closed_loop_eval")
+                if ev:
+                    rows.setdefault(f"Adv. {mode}-loop ({algo})", []).append(ev["metrics"])
+    if not rows:
+        return "_No closed-loop evaluations in these runs (synthetic scenes have no autonomy metrics)._\n"
+    head = "| | scenes | " + " | ".join(c for c, _, _ in COLUMNS) + " |\n"
+    head += "|---|---:|" + "---:|" * len(COLUMNS) + "\n"
+    order = sorted(rows, key=lambda k: (k != "Original", "closed" in k, k))
+    body = ""
+    for name in order:
+        ms = rows[name]
+        body += f"| {name} | {len(ms)} | " + " | ".join(_cell([_get(m, p) for m in ms], s) for _, p, s in COLUMNS) + " |\n"
+    return head + body + ("\nAP and recall in %, ADE in m, lateral acceleration in m/s², jerk in m/s³; "
+                          "mean ± std over scenes; every row evaluated in closed loop.\n")
+
+
+def convergence(runs: list[tuple[str, dict, list, dict]]) -> dict[str, dict]:
+    """Per algorithm (and mode): best-so-far cost per query index and per cumulative wall
+    time, averaged over scenes (each scene's curve relative to its first query's cost)."""
+    curves: dict[str, dict] = {}
+    for _, run, records, _ in runs:
+        by: dict[tuple, list] = {}
+        for r in records:
+            by.setdefault((r["scene"], r["mode"]), []).append(r)
+        for (sid, mode), recs in by.items():
+            recs = sorted(recs, key=lambda r: r["index"])
+            c = np.array([record_cost(r) for r in recs])
+            best = np.fmax.accumulate(np.where(np.isfinite(c), c, -np.inf))
+            wall = np.cumsum([r.get("wall_s", 0.0) for r in recs])
+            key = f"{run.get('algo', '?')} [{mode}]"
+            d = curves.setdefault(key, {"best": [], "wall": [], "final": [], "failed": 0, "queries": 0})
+            finite0 = best[np.isfinite(best)]
+            ref = finite0[0] if len(finite0) else 0.0
+            d["best"].append(best - ref)
+            d["wall"].append(wall)
+            d["final"].append(best[-1] if len(best) else np.nan)
+            d["failed"] += int(np.sum(~np.isfinite(c)))
+            d["queries"] += len(c)
+    return curves
+
+
+def plot_convergence(curves: dict[str, dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
+    for key, d in sorted(curves.items()):
+        n = min(len(b) for b in d["best"])
+        B = np.array([b[:n] for b in d["best"]])
+        B = np.where(np.isfinite(B), B, np.nan)
+        mean = np.nanmean(B, axis=0)
+        axes[0].plot(np.arange(1, n + 1), mean, label=key)
+        W = np.array([w[:n] for w in d["wall"]]).mean(axis=0)
+        axes[1].plot(W, mean, label=key)
+    axes[0].set_xlabel("queries")
+    axes[1].set_xlabel("wall time (s, summed over workers)")
+    for ax in axes:
+        ax.set_ylabel("best cost − first query's cost")
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def render_shape(vertices: np.ndarray, faces: np.ndarray, path: Path, title: str = "") -> None:
+    """A side view and a three-quarter view of a mesh (flat shading by normal) to ``path``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64)
+    tri = v[f]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    light = np.array([0.4, -0.6, 0.7]) / np.linalg.norm([0.4, -0.6, 0.7])
+    shade = 0.35 + 0.65 * np.clip(n @ light, 0, 1)
+    colors = np.c_[0.95 * shade, 0.55 * shade, 0.2 * shade, np.ones_like(shade)]
+    fig = plt.figure(figsize=(8, 2.8))
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    ext = np.maximum(hi - lo, 1e-3)
+    for i, (elev, azim) in enumerate(((0, -90), (25, -50))):
+        ax = fig.add_subplot(1, 2, i + 1, projection="3d")
+        ax.add_collection3d(Poly3DCollection(tri, facecolors=colors, edgecolor="none"))
+        ax.set_xlim(lo[0], hi[0])
+        ax.set_ylim(lo[1], hi[1])
+        ax.set_zlim(lo[2], hi[2])
+        ax.set_box_aspect(tuple(ext), zoom=1.0 if i == 0 else 1.1)
+        ax.set_proj_type("ortho")
+        ax.view_init(elev=elev, azim=azim)
+        ax.set_axis_off()
+    if title:
+        fig.suptitle(title, fontsize=9)
+    fig.subplots_adjust(left=0, right=1, bottom=0, top=0.9, wspace=0)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def thumbnails(runs: list[tuple[str, dict, list, dict]], out_dir: Path) -> list[tuple[str, str]]:
+    """Render the best shape of every scene, mode and attacked actor; (caption, png path)."""
+    from ..errors import Adv3dError
+    from ..shapes.shape_space import DEFAULT_SHAPE_SPACE, ShapeSpace
+    from .targets import split_query
+
+    out = []
+    spaces: dict = {}
+    for root, run, _, summary in runs:
+        for sid, entry in summary.get("scenes", {}).items():
+            if sid.startswith("synthetic:"):
+                continue
+            for mode, m in entry.get("modes", {}).items():
+                if not m.get("best_unit"):
+                    continue
+                sp_path = run.get("shape_space") or str(DEFAULT_SHAPE_SPACE)
+                space = spaces.get(sp_path) or spaces.setdefault(sp_path, ShapeSpace.load(sp_path))
+                U = split_query(np.asarray(m["best_unit"]).reshape(-1), len(entry["targets"]), space.dim)
+                for aid, u in zip(entry["targets"], U):
+                    png = out_dir / f"thumb_{Path(root).name}_{sid}_{mode}_actor{aid}.png"
+                    try:
+                        v, f = space.decode_arrays(u)
+                    except Adv3dError:
+                        continue
+                    d = v.max(axis=0) - v.min(axis=0)
+                    render_shape(v, f, png, f"{sid} [{mode}, {run.get('algo')}] actor {aid}: "
+                                             f"{d[0]:.2f} x {d[1]:.2f} x {d[2]:.2f} m")
+                    out.append((f"{sid} [{mode}, {run.get('algo')}] actor {aid}, cost {m.get('best_cost'):.4g}", png))
+    return out
+
+
+def write_report(run_dirs: Sequence[str | Path], out: str | Path | None = None) -> Path:
+    """Write the markdown report (and its PNGs next to it). Returns the report path."""
+    runs = []
+    for d in run_dirs:
+        run, records, summary = read_run(d)
+        runs.append((str(d), run, records, summary))
+    out_path = Path(out) if out else Path(run_dirs[0]) / "report.md"
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    lines = ["# Adversarial shape attack report", ""]
+    lines.append("| run | algorithm | mode | budget | seed | objective | autonomy | scenes |")
+    lines.append("|---|---|---|---:|---:|---|---|---|")
+    for root, run, _, _ in runs:
+        lines.append(f"| {root} | {run.get('algo')} | {run.get('mode')} | {run.get('budget')} | {run.get('seed')} | "
+                     f"{run.get('objective')} | {run.get('autonomy')} | {', '.join(run.get('scene_ids', []))} |")
+    lines += ["", "## Closed-loop evaluation (paper Table 1)", "", table1(runs), ""]
+    curves = convergence(runs)
+    lines += ["## Search: best cost against queries and wall time", ""]
+    if curves:
+        png = out_path.parent / "convergence.png"
+        plot_convergence(curves, png)
+        lines.append("| algorithm [mode] | scene runs | queries | failed | best cost (mean ± std over scenes) | "
+                     "gain over first query | wall s per query |")
+        lines.append("|---|---:|---:|---:|---:|---:|---:|")
+        for key, d in sorted(curves.items()):
+            gain = [b[-1] for b in d["best"] if len(b)]
+            wall = sum(w[-1] for w in d["wall"] if len(w)) / max(d["queries"], 1)
+            lines.append(f"| {key} | {len(d['final'])} | {d['queries']} | {d['failed']} | {_cell(d['final'], 1.0)} | "
+                         f"{_cell(gain, 1.0)} | {wall:.3g} |")
+        lines += ["", f"![convergence]({png.name})", ""]
+    else:
+        lines += ["_No queries journalled._", ""]
+    thumbs = thumbnails(runs, out_path.parent)
+    if thumbs:
+        lines += ["## Best shapes", ""]
+        for caption, png in thumbs:
+            lines += [f"**{caption}**", "", f"![{caption}]({png.name})", ""]
+    atomic_write_text(out_path, "\n".join(lines) + "\n")
+    return out_path
