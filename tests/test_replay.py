@@ -143,3 +143,14 @@ def test_simulate_command_writes_metrics_and_replay(tmp_path):
     # the replay's ego is the episode's: progress in metrics = path length of the poses
     path = float(np.sum(np.hypot(*np.diff(rp.ego_poses[:, :2], axis=0).T)))
     assert path == pytest.approx(m["progress_m"], abs=0.01)
+
+
+def test_docs_example_loads(tmp_path):
+    text = (REPO_ROOT / "docs" / "formats.md").read_text()
+    section = text.split("## Replay", 1)[1].split("\n## ", 1)[0]
+    doc = json.loads(section.split("```json", 1)[1].split("```", 1)[0])
+    path = tmp_path / "replay.json"
+    write_json(path, doc)
+    rp = load_replay(path, points=False)
+    assert rp.n_frames == 2 and rp.actors[0].adversarial and np.isnan(rp.actors[0].poses[1]).all()
+    assert rp.frames[1].pred_trajectories.shape == (1, 3, 2, 2)
