@@ -134,3 +134,19 @@ def test_cli_attack_and_report(tmp_path, capsys):
     assert "synthetic:peak" in text and "random" in text
     assert (out / "convergence.png").exists()
     assert main(["-q", "attack", "synthetic:peak", "--budget", "0", "--out", str(tmp_path / "z")]) == 1
+
+
+@pytest.mark.slow
+def test_ray_local_instance_same_journal(tmp_path, monkeypatch):
+    """Queries evaluated as Ray tasks on a local Ray instance give the serial journal."""
+    ray = pytest.importorskip("ray")
+    monkeypatch.setenv("RAY_USAGE_STATS_ENABLED", "0")
+    ray.init(num_cpus=1, include_dashboard=False, log_to_driver=False, namespace="adv3d-test")
+    try:
+        address = ray.get_runtime_context().gcs_address
+        run_attack(cfg(budget=8), tmp_path / "ray", ray_address=address, show_progress=False)
+    finally:
+        ray.shutdown()
+    run_attack(cfg(budget=8), tmp_path / "serial", show_progress=False)
+    assert strip_times(lines(tmp_path / "ray")) == strip_times(lines(tmp_path / "serial"))
+    assert json.loads((tmp_path / "ray" / "run.json").read_text())["ray_address"] == address
