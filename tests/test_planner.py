@@ -302,3 +302,15 @@ def test_driving_west_across_the_yaw_wrap():
     assert np.abs(ego_boxes[:, 1] - 0.3 * np.sin(ego_boxes[:, 0] / 40.0)).max() < 0.3
     assert all(np.all(np.abs(p.trajectory[:, 2]) <= math.pi) for p in plans)
     assert speeds[-1] > 16.0
+
+
+def test_plan_with_scores_reports_every_term():
+    from adv3d_runner.autonomy.planner.scorer import TERMS
+
+    planner = SamplingPlanner()
+    plan, cands, table = planner.plan_with_scores(EgoState([0.0, LANE_W, 0.0], 10.0), straight_lanes(3))  # middle lane
+    assert set(plan.cost_terms) == set(TERMS) == set(table.raw)
+    assert len(cands) == len(table.total) == 3 * 5 + 2 * 5 + 1  # offsets x speeds per lane + emergency stop
+    assert plan.cost == pytest.approx(sum(plan.cost_terms.values()))
+    assert plan.trajectory.shape == (51, 3) and plan.acceleration.shape == (50,)
+    assert np.allclose(plan.trajectory[0], [0.0, LANE_W, 0.0]) and plan.speed[0] == 10.0
