@@ -10,6 +10,7 @@ baseline, and a sensible fallback for the planner).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -102,9 +103,7 @@ class LaneFollowingPredictor:
         reach = float(f.max()) * self.steps * self.dt
         for lid in np.unique(lane_ids[lane_ids >= 0]):
             rows = np.flatnonzero(lane_ids == lid)
-            lane = by_id[int(lid)]
-            cs = CorridorSet([build_corridor(by_id, int(lid), np.asarray(lane.centerline, dtype=np.float64)[0],
-                                             behind=0.0, ahead=_lane_length(lane) + reach + 10.0)])
+            cs = _lane_corridor(by_id, int(lid), reach, build_corridor, CorridorSet)
             s0, d0 = cs.project(0, boxes[rows, :2])
             half = 0.5 * cs.width_at(np.zeros(len(rows), int), s0)
             lane_bound = np.abs(d0) - half <= self.max_off_lane  # the rest keep constant velocity
@@ -114,6 +113,31 @@ class LaneFollowingPredictor:
             xy = cs.pose_at(np.zeros(s.shape, int), s, np.broadcast_to(d0[:, None, None], s.shape))[..., :2]
             out.trajectories[rows[lane_bound]] = xy[lane_bound]
         return out
+
+
+_CORRIDOR_CACHE: dict[tuple[int, float], tuple[list, list, Any]] = {}
+
+
+def _lane_corridor(by_id: dict, lane_id: int, reach: float, build_corridor, CorridorSet):
+    """The whole lane plus ``reach`` m of successors as a CorridorSet, cached across calls (the
+    map is static within a scene): the entry is reused while the chain's lanes are the same
+    objects with the same centre lines."""
+    lane = by_id[lane_id]
+    key = (id(lane), reach)
+    hit = _CORRIDOR_CACHE.get(key)
+    if hit is not None:
+        chain, raws, cs = hit
+        same = chain[0] is lane and all(by_id.get(int(obj.id)) is obj for obj in chain)
+        if same and all(np.array_equal(np.asarray(o.centerline), r) for o, r in zip(chain, raws)):
+            return cs
+    cor = build_corridor(by_id, lane_id, np.asarray(lane.centerline, dtype=np.float64)[0], behind=0.0,
+                         ahead=_lane_length(lane) + reach + 10.0)
+    cs = CorridorSet([cor])
+    if len(_CORRIDOR_CACHE) > 2048:
+        _CORRIDOR_CACHE.clear()
+    chain = [by_id[i] for i in cor.lane_ids]
+    _CORRIDOR_CACHE[key] = (chain, [np.array(o.centerline, dtype=np.float64) for o in chain], cs)
+    return cs
 
 
 def _lane_length(lane) -> float:

@@ -26,6 +26,79 @@ DEFAULT_SPEED_LIMIT = 29.0  # m/s (~65 mph, US highway) when a lane has none
 
 
 @dataclass
+class LaneGeometry:
+    """Cleaned centre line of one lane, prepared once for fast repeated projection.
+
+    Attributes: points (P, 2) (``scene.lanes.clean_polyline``), cum (P,) arc length, unit
+    (S, 2) and seg_len (S,) of its segments, width (P,) m, lo / hi (2,) bounding box, length m.
+    """
+
+    points: np.ndarray
+    cum: np.ndarray
+    unit: np.ndarray
+    seg_len: np.ndarray
+    width: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
+    length: float
+
+    def project(self, xy: np.ndarray, chunk: int = 2048) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Points (N, 2) -> s, d, heading (N,), as ``scene.lanes.project`` (ends extrapolated)."""
+        q = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        S = len(self.unit)
+        p0 = self.points[:S]
+        lo = np.zeros(S)
+        hi = self.seg_len.copy()
+        lo[0], hi[-1] = -np.inf, np.inf
+        out = np.empty((3, len(q)))
+        for a in range(0, len(q), chunk):
+            qq = q[a:a + chunk]
+            rx = qq[:, None, 0] - p0[None, :, 0]
+            ry = qq[:, None, 1] - p0[None, :, 1]
+            t = np.clip(rx * self.unit[:, 0] + ry * self.unit[:, 1], lo, hi)
+            ex, ey = rx - t * self.unit[:, 0], ry - t * self.unit[:, 1]
+            best = np.argmin(ex * ex + ey * ey, axis=1)
+            rows = np.arange(len(qq))
+            u = self.unit[best]
+            out[0, a:a + chunk] = self.cum[best] + t[rows, best]
+            out[1, a:a + chunk] = u[:, 0] * ry[rows, best] - u[:, 1] * rx[rows, best]
+            out[2, a:a + chunk] = np.arctan2(u[:, 1], u[:, 0])
+        return out[0], out[1], out[2]
+
+    def width_at(self, s: np.ndarray) -> np.ndarray:
+        return np.interp(np.clip(s, 0.0, self.length), self.cum, self.width)
+
+
+_GEOMETRY_CACHE: dict[int, tuple[Any, np.ndarray, LaneGeometry]] = {}
+_GEOMETRY_CACHE_MAX = 4096
+
+
+def lane_geometry(lane: Any) -> LaneGeometry:
+    """The :class:`LaneGeometry` of a lane object, cached by identity (and checked against its
+    current centre line, so a lane edited in place is re-prepared)."""
+    raw = np.asarray(lane.centerline, dtype=np.float64).reshape(-1, 2)
+    hit = _GEOMETRY_CACHE.get(id(lane))
+    if hit is not None and hit[0] is lane and hit[1].shape == raw.shape and np.array_equal(hit[1], raw):
+        return hit[2]
+    pts = lanegeo.clean_polyline(raw)
+    width = _lane_width(lane)
+    keep = np.concatenate([[True], np.linalg.norm(np.diff(raw, axis=0), axis=1) > lanegeo.EPS])
+    width = width[keep] if len(width) == len(raw) and keep.sum() == len(pts) else np.full(len(pts), float(width[0]))
+    if len(pts) == 1:  # degenerate lane: a point with one zero-length segment along +x
+        pts2, unit, seg = np.vstack([pts, pts]), np.array([[1.0, 0.0]]), np.zeros(1)
+        geo = LaneGeometry(pts2, np.zeros(2), unit, seg, np.repeat(width[:1], 2), pts[0], pts[0], 0.0)
+    else:
+        d = np.diff(pts, axis=0)
+        seg = np.hypot(d[:, 0], d[:, 1])
+        cum = lanegeo.arc_length(pts)
+        geo = LaneGeometry(pts, cum, d / seg[:, None], seg, width, pts.min(axis=0), pts.max(axis=0), float(cum[-1]))
+    if len(_GEOMETRY_CACHE) >= _GEOMETRY_CACHE_MAX:
+        _GEOMETRY_CACHE.clear()
+    _GEOMETRY_CACHE[id(lane)] = (lane, raw.copy(), geo)
+    return geo
+
+
+@dataclass
 class Corridor:
     """One lane chain, resampled at uniform spacing.
 
@@ -95,24 +168,18 @@ def locate_many(lanes: Sequence[Any], poses: np.ndarray, max_heading_error: floa
     out_d = np.zeros(n)
     if n == 0 or not len(lanes):
         return out_id, out_s, out_d
-    boxes = []
-    for lane in lanes:
-        pts = np.asarray(lane.centerline, dtype=np.float64).reshape(-1, 2)
-        lo, hi = pts.min(axis=0), pts.max(axis=0)
-        gap = np.hypot(np.maximum(np.maximum(lo[0] - P[:, 0], P[:, 0] - hi[0]), 0.0),
-                       np.maximum(np.maximum(lo[1] - P[:, 1], P[:, 1] - hi[1]), 0.0))
-        boxes.append((lane, pts, gap))
-    nearest = np.min([g for _, _, g in boxes], axis=0)
-    for lane, pts, gap in boxes:
+    geos = [lane_geometry(lane) for lane in lanes]
+    gaps = np.stack([np.hypot(np.maximum(np.maximum(g.lo[0] - P[:, 0], P[:, 0] - g.hi[0]), 0.0),
+                              np.maximum(np.maximum(g.lo[1] - P[:, 1], P[:, 1] - g.hi[1]), 0.0)) for g in geos])
+    nearest = gaps.min(axis=0)
+    for lane, geo, gap in zip(lanes, geos, gaps):
         use = np.flatnonzero(gap <= nearest + max_gap)
         if len(use) == 0:
             continue
-        s, d, h = lanegeo.project(pts, P[use, :2])
-        s, d, h = np.atleast_1d(s), np.atleast_1d(d), np.atleast_1d(h)
+        s, d, h = geo.project(P[use, :2])
         herr = np.abs((P[use, 2] - h + np.pi) % (2 * np.pi) - np.pi)
-        total = lanegeo.length(pts)
-        half = 0.5 * lanegeo.width_at(pts, _lane_width(lane), np.clip(s, 0, total))
-        beyond = np.maximum(np.maximum(-s, s - total), 0.0)  # distance past the lane's ends
+        half = 0.5 * geo.width_at(s)
+        beyond = np.maximum(np.maximum(-s, s - geo.length), 0.0)  # distance past the lane's ends
         inside = (np.abs(d) <= half) & (beyond == 0.0)
         key = np.stack([np.where(inside, 0.0, 1.0), np.abs(d) + beyond], axis=1)
         key[herr > max_heading_error] = np.inf
