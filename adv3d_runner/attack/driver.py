@@ -369,6 +369,10 @@ def finalize_scene(root: Path, cfg: dict, ref: str, run: SceneRun, summary: dict
     if ref.startswith("synthetic:") or run.best_unit is None:
         entry["modes"][run.mode] = m
         return
+    old = entry["modes"].get(run.mode) or {}
+    if (old.get("best_index") == run.best_index and old.get("closed_loop_eval") and "original" in entry
+            and (root / old.get("files", {}).get("replay", "missing")).exists()):
+        return  # a resumed run that had already finished this scene: nothing new to simulate
     from ..shapes.mesh_io import write_mesh
     from ..sim.replay import replay_from_episode, save_replay
     from .targets import decode_query
