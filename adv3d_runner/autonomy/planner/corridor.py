@@ -289,6 +289,12 @@ class CorridorSet:
         for i, k in enumerate(self.n_points):
             self.unit[i, k - 1:] = self.unit[i, k - 2]
         self.heading = np.arctan2(self.unit[..., 1], self.unit[..., 0])
+        # flat copies: gathering with one flat index is much cheaper than 2-D fancy indexing,
+        # and the planner gathers every step for every candidate
+        self._P = P
+        self._px, self._py = self.points[..., 0].ravel(), self.points[..., 1].ravel()
+        self._ux, self._uy = self.unit[..., 0].ravel(), self.unit[..., 1].ravel()
+        self._hd = self.heading.ravel()
 
     def __len__(self) -> int:
         return len(self.corridors)
@@ -298,13 +304,20 @@ class CorridorSet:
 
     def pose_at(self, c: np.ndarray, s: np.ndarray, d: np.ndarray | float = 0.0) -> np.ndarray:
         """(..., 3) x, y, heading at arc length s (extrapolated beyond the ends) and offset d."""
-        c, s = np.broadcast_arrays(np.asarray(c), np.asarray(s, dtype=np.float64))
+        c, s = np.asarray(c), np.asarray(s, dtype=np.float64)
+        if c.shape != s.shape:
+            c, s = np.broadcast_arrays(c, s)
         i = self._seg_index(c, s)
-        u = self.unit[c, i]
-        base = self.points[c, i] + (s - i * self.spacing[c])[..., None] * u
-        normal = np.stack([-u[..., 1], u[..., 0]], axis=-1)
-        xy = base + np.asarray(d, dtype=np.float64)[..., None] * normal
-        return np.concatenate([xy, self.heading[c, i][..., None]], axis=-1)
+        ku = c * (self._P - 1) + i
+        ux, uy = self._ux[ku], self._uy[ku]
+        t = s - i * self.spacing[c]
+        d = np.asarray(d, dtype=np.float64)
+        out = np.empty(s.shape + (3,))
+        kp = c * self._P + i
+        out[..., 0] = self._px[kp] + t * ux - d * uy
+        out[..., 1] = self._py[kp] + t * uy + d * ux
+        out[..., 2] = self._hd[ku]
+        return out
 
     def width_at(self, c: np.ndarray, s: np.ndarray) -> np.ndarray:
         c, s = np.broadcast_arrays(np.asarray(c), np.asarray(s, dtype=np.float64))
@@ -328,20 +341,19 @@ class CorridorSet:
         n = len(c)
         last = self.n_points[c] - 2  # last segment index per query
         idx = np.clip(self._seg_index(c, s_guess)[:, None] + np.arange(-window, window + 1), 0, last[:, None])
-        cc = c[:, None]
-        p0 = self.points[cc, idx]  # (n, W, 2)
-        u = self.unit[cc, idx]
-        rx, ry = q[:, None, 0] - p0[..., 0], q[:, None, 1] - p0[..., 1]
-        t = rx * u[..., 0] + ry * u[..., 1]
+        kp = c[:, None] * self._P + idx  # (n, W) flat indices
+        ku = c[:, None] * (self._P - 1) + idx
+        ux, uy = self._ux[ku], self._uy[ku]
+        rx, ry = q[:, None, 0] - self._px[kp], q[:, None, 1] - self._py[kp]
+        t = rx * ux + ry * uy
         lo = np.where(idx == 0, -np.inf, 0.0)
         hi = np.where(idx == last[:, None], np.inf, self.spacing[c][:, None])
         tc = np.minimum(np.maximum(t, lo), hi)
-        ex, ey = rx - tc * u[..., 0], ry - tc * u[..., 1]
+        ex, ey = rx - tc * ux, ry - tc * uy
         best = np.argmin(ex * ex + ey * ey, axis=1)
         rows = np.arange(n)
-        ib, ub = idx[rows, best], u[rows, best]
-        s = ib * self.spacing[c] + tc[rows, best]
-        d = ub[:, 0] * ry[rows, best] - ub[:, 1] * rx[rows, best]
+        s = idx[rows, best] * self.spacing[c] + tc[rows, best]
+        d = ux[rows, best] * ry[rows, best] - uy[rows, best] * rx[rows, best]
         return s.reshape(shape), d.reshape(shape)
 
     def project(self, c: int, xy: np.ndarray, chunk: int = 2048) -> tuple[np.ndarray, np.ndarray]:
