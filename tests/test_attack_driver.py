@@ -150,3 +150,43 @@ def test_ray_local_instance_same_journal(tmp_path, monkeypatch):
     run_attack(cfg(budget=8), tmp_path / "serial", show_progress=False)
     assert strip_times(lines(tmp_path / "ray")) == strip_times(lines(tmp_path / "serial"))
     assert json.loads((tmp_path / "ray" / "run.json").read_text())["ray_address"] == address
+
+
+def test_real_scene_short_attack_bundle(tmp_path, repo_root, monkeypatch):
+    """A 2-query, 1 s closed-loop attack on a bundled scene with oracle perception: costs and
+    metrics journalled, an invalid shape (no surface) recorded without stopping the run, the
+    best shape's glb and replay written and loadable."""
+    scene = repo_root / "scenes" / "highway" / "highway-benchmark-000000.json.gz"
+    if not scene.exists():
+        pytest.skip("no bundled scenes")
+    from adv3d_runner.attack import driver
+    from adv3d_runner.errors import EmptySurfaceError
+    from adv3d_runner.shapes.shape_space import ShapeSpace
+    from adv3d_runner.sim.replay import load_replay
+
+    real = ShapeSpace.decode_latent
+    calls = []
+
+    def flaky(self, z, scales=(1.0, 1.0)):
+        calls.append(1)
+        if len(calls) == 2:  # the second query has "no surface"
+            raise EmptySurfaceError("test: no surface")
+        return real(self, z, scales)
+
+    monkeypatch.setattr(ShapeSpace, "decode_latent", flaky)
+    monkeypatch.setattr(driver, "_CONTEXTS", {})
+    c = AttackConfig([str(scene)], algo="random", budget=3, seconds=1.0, autonomy="oracle", seed=1)
+    summary = run_attack(c, tmp_path / "run", show_progress=False)
+    recs = lines(tmp_path / "run")
+    assert [r["status"] for r in recs] == ["ok", "invalid", "ok"]
+    ok = recs[0]
+    assert np.isfinite(ok["cost"]) and ok["metrics"]["detection"]["n_gt"] >= 0
+    assert ok["components"]["frames"] == 10 and len(ok["dimensions"][0]) == 3
+    entry = summary["scenes"]["highway-benchmark-000000"]
+    m = entry["modes"]["closed"]
+    assert m["best_cost"] == pytest.approx(max(r["cost"] for r in recs if r["status"] == "ok"))
+    assert "original" in entry and m["closed_loop_eval"]["cost"] == pytest.approx(m["best_cost"])
+    aid = entry["targets"][0]
+    assert (tmp_path / "run" / m["files"]["meshes"][str(aid)]).exists()
+    rp = load_replay(tmp_path / "run" / m["files"]["replay"], points=False)
+    assert rp.n_frames == 10 and any(a.adversarial for a in rp.actors)
