@@ -190,3 +190,19 @@ def test_real_scene_short_attack_bundle(tmp_path, repo_root, monkeypatch):
     assert (tmp_path / "run" / m["files"]["meshes"][str(aid)]).exists()
     rp = load_replay(tmp_path / "run" / m["files"]["replay"], points=False)
     assert rp.n_frames == 10 and any(a.adversarial for a in rp.actors)
+
+
+def test_scene_without_targets_is_skipped(tmp_path, monkeypatch):
+    from adv3d_runner.attack import driver
+
+    real = driver.scene_targets
+
+    def no_targets(ref, c):
+        if ref == "synthetic:peak" and c["seed"] == 11:
+            raise ConfigError("no actor in front of the ego")
+        return real(ref, c)
+
+    monkeypatch.setattr(driver, "scene_targets", no_targets)
+    s = run_attack(cfg(seed=11, budget=4), tmp_path / "s", show_progress=False)
+    assert "skipped" in s["scenes"]["synthetic:peak"]
+    assert not (tmp_path / "s" / "queries.jsonl").exists() or lines(tmp_path / "s") == []

@@ -423,7 +423,7 @@ def run_attack(config: AttackConfig, out: str | Path, *, workers: int = 1, ray_a
     """
     from tqdm.auto import tqdm
 
-    from ..progress import is_quiet
+    from ..progress import is_quiet, status
 
     root = Path(out)
     cfg = asdict(config)
@@ -445,6 +445,13 @@ def run_attack(config: AttackConfig, out: str | Path, *, workers: int = 1, ray_a
     t_start = time.perf_counter()
     try:
         for ref, sid in zip(cfg["scenes"], ids):
+            try:
+                scene_targets(ref, cfg)
+            except ConfigError as exc:  # e.g. no actor in front of the ego: skip, keep going
+                status(f"skipping {sid}: {exc}")
+                summary["scenes"][sid] = {"ref": ref, "skipped": str(exc)}
+                journal.write_summary(summary)
+                continue
             for mode in config.modes:
                 bar = tqdm(total=cfg["budget"], desc=f"{sid} [{mode}]", unit="query", disable=not show_progress or is_quiet(),
                            leave=True, dynamic_ncols=True)
