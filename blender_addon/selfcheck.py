@@ -20,6 +20,9 @@ from pathlib import Path
 
 # Top-level packages the extension must ship (looked up only outside this Python environment).
 MUST_SHIP = ("adv3d_runner", "trimesh", "skimage", "lazy_loader")
+# Packages a stock Blender lacks and the extension does not ship: blocked outright, so an
+# add-on code path that needs them fails here rather than on a user's machine.
+NOT_IN_BLENDER = ("scipy", "igl", "embreex", "torch")
 EXPECTED_OPERATORS = ("library_load", "library_save", "shapes_load", "shapes_random", "scene_load", "scene_export")
 
 
@@ -30,6 +33,8 @@ class _HideEnvironment:
         self.allowed = allowed
 
     def find_spec(self, name, path=None, target=None):
+        if name.split(".")[0] in NOT_IN_BLENDER:
+            raise ImportError(f"{name} is not available in a stock Blender", name=name)
         if name.split(".")[0] not in MUST_SHIP or "." in name:
             return None
         search = [p for p in sys.path if p and os.path.abspath(p).startswith(self.allowed)]
@@ -47,7 +52,7 @@ def main(argv: list[str]) -> int:
     with tempfile.TemporaryDirectory(prefix="adv3d-selfcheck-") as tmp:
         os.environ["BLENDER_USER_RESOURCES"] = tmp  # must be set before bpy starts
         for name in list(sys.modules):
-            if name.split(".")[0] in MUST_SHIP:
+            if name.split(".")[0] in MUST_SHIP + NOT_IN_BLENDER:
                 del sys.modules[name]
         sys.meta_path.insert(0, _HideEnvironment(os.path.abspath(tmp)))
         import bpy
@@ -70,6 +75,7 @@ def main(argv: list[str]) -> int:
             import skimage.measure  # noqa: F401
             import trimesh  # noqa: F401
             from skimage.measure import marching_cubes  # noqa: F401
+            problems += _decode_check()
         except ImportError as exc:
             problems.append(f"import failed inside Blender: {exc}")
         else:
@@ -89,6 +95,24 @@ def main(argv: list[str]) -> int:
             return 2
     print(f"{zip_path}: installed, registered and unregistered cleanly")
     return 0
+
+
+def _decode_check() -> list[str]:
+    """Decode a two-part field (a body and a crumb) with the extension's own packages."""
+    import numpy as np
+
+    from adv3d_runner.shapes.decode import extract_surface
+    from adv3d_runner.shapes.sdf import GridSpec
+
+    grid = GridSpec(resolution=32, extent_m=6.0, ground_z=-0.2)
+    axis = np.linspace(-0.5, 0.5, 32)
+    x, y, z = np.meshgrid(axis, axis, axis, indexing="ij")
+    body = np.sqrt(x**2 + y**2 + z**2) - 0.3
+    crumb = np.sqrt((x - 0.42) ** 2 + y**2 + z**2) - 0.04
+    vertices, faces = extract_surface(np.minimum(body, crumb).astype(np.float32), grid)
+    if len(faces) == 0 or not np.isfinite(vertices).all():
+        return ["decoding a test field inside Blender gave no surface"]
+    return []
 
 
 if __name__ == "__main__":
