@@ -124,6 +124,12 @@ class LaneIndex:
         self.right = np.array([self.row.get(_opt_int(lane.right), -1) for lane in lanes], np.int64)
         self.limit = np.array([float(lane.speed_limit) if getattr(lane, "speed_limit", None) is not None
                                else DEFAULT_SPEED_LIMIT for lane in lanes])
+        # projection bounds: interior segments clamp to [0, len]; the end segments extend
+        self._lo = np.zeros_like(self.seg_len)
+        self._hi = self.seg_len.copy()
+        if L:
+            self._lo[:, 0] = -np.inf
+            self._hi[np.arange(L), self.n_seg - 1] = np.inf
         chains = [self._chain(by_id, int(lane.id)) for lane in lanes]
         cmax = max([len(p) for p, _ in chains], default=2)
         self.chain = np.zeros((L, cmax, 2))
@@ -174,22 +180,20 @@ class LaneIndex:
         past the lane's ends (0 inside its length).
         """
         q = np.asarray(xy, np.float64).reshape(-1, 2)
-        rel = q[:, None, None, :] - self.seg_a[None]                         # (N, L, S, 2)
-        t = np.einsum("nlsk,lsk->nls", rel, self.seg_u)
-        lo = np.zeros_like(self.seg_len)
-        hi = self.seg_len.copy()
         rows = np.arange(len(self.ids))
-        lo[:, 0] = -np.inf                                                    # extend the ends
-        hi[rows, self.n_seg - 1] = np.inf
-        tc = np.clip(t, lo[None], hi[None])
-        foot = self.seg_a[None] + tc[..., None] * self.seg_u[None]
-        dist2 = np.sum((q[:, None, None, :] - foot) ** 2, axis=-1)
-        dist2 = np.where(self.seg_ok[None], dist2, np.inf)
+        # squared distance to the foot on each segment without building (N, L, S, 2) feet:
+        # |r - tc u|^2 = |r|^2 - 2 tc t + tc^2 for unit u, with t = r.u and tc = clip(t)
+        rx = q[:, 0, None, None] - self.seg_a[None, ..., 0]                  # (N, L, S)
+        ry = q[:, 1, None, None] - self.seg_a[None, ..., 1]
+        t = rx * self.seg_u[None, ..., 0] + ry * self.seg_u[None, ..., 1]
+        tc = np.clip(t, self._lo[None], self._hi[None])
+        dist2 = rx * rx + ry * ry + tc * (tc - 2.0 * t)
+        dist2[:, ~self.seg_ok] = np.inf
         best = np.argmin(dist2, axis=2)                                       # (N, L)
         take = lambda a: np.take_along_axis(a, best[..., None], axis=2)[..., 0]  # noqa: E731
         tb = take(tc)
         u = self.seg_u[rows[None, :], best]                                   # (N, L, 2)
-        r = np.take_along_axis(rel, best[..., None, None], axis=2)[:, :, 0]   # (N, L, 2)
+        r = np.stack([take(rx), take(ry)], axis=-1)                           # (N, L, 2)
         s = self.seg_s[rows[None, :], best] + tb
         d = u[..., 0] * r[..., 1] - u[..., 1] * r[..., 0]
         head = np.arctan2(u[..., 1], u[..., 0])

@@ -37,12 +37,15 @@ def add_train_predictor(train_subparsers) -> None:
                     "constant-velocity and lane-following baselines.")
     p.add_argument("--scenes", type=int, default=None, help="training scenes (default 240; 8 with --quick)")
     p.add_argument("--val-scenes", type=int, default=None, help="held-out scenes (default 40; 3 with --quick)")
-    p.add_argument("--epochs", type=int, default=None, help="epochs (default 40; 2 with --quick)")
+    p.add_argument("--epochs", type=int, default=None, help="epochs (default 20; 2 with --quick)")
     p.add_argument("--seed", type=int, default=100_000, help="first training scene seed (>= 100000) and torch seed")
     p.add_argument("--modes", type=int, default=6, help="number of modes K (>= 3)")
-    p.add_argument("--batch", type=int, default=256)
+    p.add_argument("--batch", type=int, default=512)
     p.add_argument("--lr", type=float, default=2e-3)
-    p.add_argument("--threads", type=int, default=2, help="torch threads for training")
+    p.add_argument("--threads", type=int, default=1,
+                   help="torch threads for training (1: on a shared 2-core machine 2 threads were 70x slower)")
+    p.add_argument("--time-limit", type=float, default=40.0,
+                   help="minutes: stop after the epoch that passes this (data included)")
     p.add_argument("--cache", default=None, help="data cache root (default $ADV3D_CACHE or ~/.cache/adv3d)")
     p.add_argument("--no-cache", action="store_true", help="do not read or write the sample cache")
     p.add_argument("--out", default=str(DEFAULT_MODEL_DIR), help="output folder")
@@ -55,7 +58,7 @@ def _handler(args: argparse.Namespace) -> int:
 
     scenes = args.scenes if args.scenes is not None else (8 if args.quick else 240)
     val = args.val_scenes if args.val_scenes is not None else (3 if args.quick else 40)
-    epochs = args.epochs if args.epochs is not None else (2 if args.quick else 40)
+    epochs = args.epochs if args.epochs is not None else (2 if args.quick else 20)
     if scenes < 1 or val < 1 or epochs < 1:
         raise ConfigError("--scenes, --val-scenes and --epochs must be >= 1")
     if args.modes < 3:
@@ -64,7 +67,7 @@ def _handler(args: argparse.Namespace) -> int:
         else ""  # called in-process (tests): train_predictor spells out the arguments
     train_predictor(scenes=scenes, val_scenes=val, epochs=epochs, seed=args.seed, modes=args.modes,
                     batch=args.batch, lr=args.lr, threads=args.threads, cache=args.cache,
-                    use_cache=not args.no_cache, out=args.out, command=command)
+                    use_cache=not args.no_cache, out=args.out, command=command, time_limit_min=args.time_limit)
     return 0
 
 
@@ -80,10 +83,11 @@ def _wta_losses(torch, traj, logits, fut, fval):
     return reg, cls
 
 
-def train_predictor(scenes: int = 240, val_scenes: int = 40, epochs: int = 40, seed: int = 100_000,
-                    modes: int = 6, batch: int = 256, lr: float = 2e-3, threads: int = 2,
+def train_predictor(scenes: int = 240, val_scenes: int = 40, epochs: int = 20, seed: int = 100_000,
+                    modes: int = 6, batch: int = 512, lr: float = 2e-3, threads: int = 1,
                     cache: str | None = None, use_cache: bool = True, out: str | Path | None = None,
-                    command: str = "", cls_weight: float = 0.5, lane_dropout: float = 0.05) -> dict:
+                    command: str = "", cls_weight: float = 0.5, lane_dropout: float = 0.05,
+                    time_limit_min: float | None = 40.0) -> dict:
     """Train and evaluate the predictor; write weights, config, report and curves to ``out``.
 
     Returns the report dict (also written as ``training_report.json``).
@@ -106,9 +110,10 @@ def train_predictor(scenes: int = 240, val_scenes: int = 40, epochs: int = 40, s
     torch.manual_seed(seed)
     torch.set_num_threads(max(1, threads))
     t0 = time.perf_counter()
-    train = build_dataset(range(seed, seed + scenes), cache, use_cache, desc="training scenes")
+    data_stats: dict = {}
+    train = build_dataset(range(seed, seed + scenes), cache, use_cache, desc="training scenes", stats=data_stats)
     held = build_dataset(range(seed + HELD_OUT_OFFSET, seed + HELD_OUT_OFFSET + val_scenes), cache, use_cache,
-                         desc="held-out scenes")
+                         desc="held-out scenes", stats=data_stats)
     t_data = time.perf_counter() - t0
     if len(train["features"]) == 0 or len(held["features"]) == 0:
         raise ConfigError("no training or held-out samples were made; use more scenes")
@@ -132,7 +137,12 @@ def train_predictor(scenes: int = 240, val_scenes: int = 40, epochs: int = 40, s
     lane_hi = lane_lo + 3 * _LANE_F
     curves = {"epoch": [], "train_loss": [], "train_reg_ade": [], "train_cls": [], "val_min_ade": [], "val_loss": []}
     t1 = time.perf_counter()
+    stopped_early = False
     for ep in progress(range(epochs), desc="epochs", unit="epoch"):
+        if time_limit_min is not None and ep > 0 and time.perf_counter() - t0 > 60.0 * time_limit_min:
+            stopped_early = True  # the time budget is spent: keep the model of the last epoch
+            status(f"time limit of {time_limit_min} min reached after {ep} epochs")
+            break
         net.train()
         perm = torch.randperm(n, generator=gen)
         tot = reg_sum = cls_sum = 0.0
@@ -196,9 +206,11 @@ def train_predictor(scenes: int = 240, val_scenes: int = 40, epochs: int = 40, s
         "data": {"train_seeds": [seed, seed + scenes - 1], "held_out_seeds": [seed + HELD_OUT_OFFSET, seed + HELD_OUT_OFFSET + val_scenes - 1],
                  "split": "train (generator seed namespace disjoint from the benchmark)",
                  "train_samples": int(n), "held_out_samples": int(len(full)), "data_key": data_key(),
-                 "seconds": round(t_data, 1)},
+                 "seconds": round(t_data, 1), "scenes_generated": data_stats["generated"],
+                 "scenes_from_cache": data_stats["cached"]},
         "training": {"epochs": epochs, "batch": batch, "lr": lr, "optimizer": "AdamW + one-cycle", "cls_weight": cls_weight,
                      "lane_dropout": lane_dropout, "threads": threads, "seconds": round(t_train, 1),
+                     "epochs_run": len(curves["epoch"]), "stopped_by_time_limit": stopped_early,
                      "parameters": int(sum(p.numel() for p in net.parameters()))},
         "curves": curves,
         "held_out": table,

@@ -193,8 +193,12 @@ def load_samples(path: str | Path) -> dict[str, np.ndarray]:
 
 
 def build_dataset(seeds: Sequence[int], cache: str | Path | None = None, use_cache: bool = True,
-                  desc: str = "predictor data") -> dict[str, np.ndarray]:
-    """Samples of every scene seed, concatenated (cached per scene under ``cache_dir(cache)``)."""
+                  desc: str = "predictor data", stats: dict | None = None) -> dict[str, np.ndarray]:
+    """Samples of every scene seed, concatenated (cached per scene under ``cache_dir(cache)``).
+    ``stats`` (optional dict) receives the counts of scenes ``generated`` and read from ``cached``."""
+    stats = {} if stats is None else stats
+    stats.setdefault("generated", 0)
+    stats.setdefault("cached", 0)
     from ..progress import progress
 
     folder = cache_dir(cache)
@@ -204,10 +208,12 @@ def build_dataset(seeds: Sequence[int], cache: str | Path | None = None, use_cac
         if use_cache and path.is_file():
             try:
                 parts.append(load_samples(path))
+                stats["cached"] += 1
                 continue
             except Exception:  # a broken cache entry is rebuilt, never trusted
                 pass
         samples = scene_samples(int(seed))
+        stats["generated"] += 1
         if use_cache:
             save_samples(path, samples)
         parts.append(samples)
