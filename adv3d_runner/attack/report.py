@@ -16,7 +16,7 @@ import numpy as np
 from ..fileio import atomic_write_text
 from .journal import read_run, record_cost
 
-COLUMNS = (("AP", ("detection", "ap"), 100.0), ("Recall", ("detection", "recall"), 100.0),
+COLUMNS = (("Objective", ("_objective", "cost"), 1.0), ("AP", ("detection", "ap"), 100.0), ("Recall", ("detection", "recall"), 100.0),
            ("minADE", ("prediction", "min_ade"), 1.0), ("meanADE", ("prediction", "mean_ade"), 1.0),
            ("Plan lat.", ("planning_comfort", "lat"), 1.0), ("Plan jerk", ("planning_comfort", "jerk"), 1.0),
            ("Drive lat.", ("driving_comfort", "lat"), 1.0), ("Drive jerk", ("driving_comfort", "jerk"), 1.0))
@@ -46,12 +46,13 @@ def table1(runs: list[tuple[str, dict, list, dict]]) -> str:
         algo = run.get("algo", "?")
         for sid, entry in summary.get("scenes", {}).items():
             if "original" in entry and sid not in seen_original:
-                rows.setdefault("Original", []).append(entry["original"]["metrics"])
+                o = entry["original"]
+                rows.setdefault("Original", []).append({**o["metrics"], "_objective": {"cost": o["cost"]}})
                 seen_original.add(sid)
             for mode, m in entry.get("modes", {}).items():
                 ev = m.get("closed_loop_eval")
                 if ev:
-                    rows.setdefault(f"Adv. {mode}-loop ({algo})", []).append(ev["metrics"])
+                    rows.setdefault(f"Adv. {mode}-loop ({algo})", []).append({**ev["metrics"], "_objective": {"cost": ev["cost"]}})
     if not rows:
         return "_No closed-loop evaluations in these runs (synthetic scenes have no autonomy metrics)._\n"
     head = "| | scenes | " + " | ".join(c for c, _, _ in COLUMNS) + " |\n"
@@ -61,8 +62,39 @@ def table1(runs: list[tuple[str, dict, list, dict]]) -> str:
     for name in order:
         ms = rows[name]
         body += f"| {name} | {len(ms)} | " + " | ".join(_cell([_get(m, p) for m in ms], s) for _, p, s in COLUMNS) + " |\n"
-    return head + body + ("\nAP and recall in %, ADE in m, lateral acceleration in m/s², jerk in m/s³; "
-                          "mean ± std over scenes; every row evaluated in closed loop.\n")
+    return head + body + ("\nObjective: Eq. 3-5 summed over the frames (higher = worse for the stack); AP and "
+                          "recall in %, ADE in m, lateral acceleration in m/s², jerk in m/s³; mean ± std over "
+                          "scenes; every row evaluated in closed loop.\n")
+
+
+def per_scene(runs: list[tuple[str, dict, list, dict]]) -> str:
+    """Markdown table: per scene the original closed-loop objective and, per run and mode, the
+    closed-loop objective of the best shape found."""
+    cols: list[str] = []
+    table: dict[str, dict[str, str]] = {}
+    for root, run, _, summary in runs:
+        for sid, entry in summary.get("scenes", {}).items():
+            row = table.setdefault(sid, {})
+            if "skipped" in entry:
+                row["Original"] = "skipped: " + entry["skipped"][:60]
+                continue
+            if "original" in entry:
+                row["Original"] = f"{entry['original']['cost']:.4g}"
+            for mode, m in entry.get("modes", {}).items():
+                key = f"{run.get('algo')} {mode}"
+                if key not in cols:
+                    cols.append(key)
+                ev = m.get("closed_loop_eval")
+                best = m.get("best_cost")
+                row[key] = (f"{ev['cost']:.4g}" if ev else "-") + (f" (search {best:.4g})" if best is not None and mode == "open" else "")
+    if not table:
+        return ""
+    cols = ["Original"] + cols
+    out = "| scene | " + " | ".join(cols) + " |\n|---|" + "---:|" * len(cols) + "\n"
+    for sid in sorted(table):
+        out += f"| {sid} | " + " | ".join(table[sid].get(c, "-") for c in cols) + " |\n"
+    return out + ("\nClosed-loop objective of the original scene and of each run's best shape (for open-loop "
+                  "attacks the open-loop search value in parentheses).\n")
 
 
 def convergence(runs: list[tuple[str, dict, list, dict]]) -> dict[str, dict]:
@@ -198,6 +230,9 @@ def write_report(run_dirs: Sequence[str | Path], out: str | Path | None = None) 
         lines.append(f"| {root} | {run.get('algo')} | {run.get('mode')} | {run.get('budget')} | {run.get('seed')} | "
                      f"{run.get('objective')} | {run.get('autonomy')} | {', '.join(run.get('scene_ids', []))} |")
     lines += ["", "## Closed-loop evaluation (paper Table 1)", "", table1(runs), ""]
+    ps = per_scene(runs)
+    if ps:
+        lines += ["### Per scene", "", ps, ""]
     curves = convergence(runs)
     lines += ["## Search: best cost against queries and wall time", ""]
     if curves:
