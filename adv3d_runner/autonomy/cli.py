@@ -34,17 +34,17 @@ def add_train_detector(train_sub) -> None:
                     "detector, evaluate AP/recall at BEV IoU 0.5 on held-out scenes (seeds 900000 + [0, M)), "
                     "and write weights, config.json, training_report.json and loss_curves.png to --out.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    p.add_argument("--scenes", type=int, default=160, help="training scenes")
+    p.add_argument("--scenes", type=int, default=100, help="training scenes")
     p.add_argument("--val-scenes", type=int, default=40, help="held-out evaluation scenes")
     p.add_argument("--frames-per-scene", type=int, default=10, help="LiDAR frames per scene")
-    p.add_argument("--epochs", type=int, default=14)
+    p.add_argument("--epochs", type=int, default=10)
     p.add_argument("--batch", type=int, default=8)
     p.add_argument("--lr", type=float, default=2e-3)
     p.add_argument("--resolution", type=float, default=0.25, help="BEV cell size, m")
     p.add_argument("--min-points", type=int, default=5, help="LiDAR returns for a vehicle to count as ground truth")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=1, help="torch threads for training")
-    p.add_argument("--time-limit", type=float, default=40 * 60,
+    p.add_argument("--time-limit", type=float, default=38 * 60,
                    help="stop training after the epoch that passes this many seconds (data included)")
     p.add_argument("--cache", default=None, help="frame cache folder (default ~/.cache/adv3d/detector)")
     p.add_argument("--out", default="assets/models/detector", help="model folder")
@@ -64,7 +64,7 @@ def _train_detector(args) -> int:
     from ..progress import status
     from .detector import DetectorConfig, save_detector
     from .detector_data import TRAIN_SEED0, VAL_SEED0, make_frames
-    from .detector_train import evaluate_detector, machine_info, plot_losses, train_detector
+    from .detector_train import evaluate_detector, machine_info, plot_losses, subset, train_detector
 
     if args.quick:
         args.scenes = min(args.scenes, 24)
@@ -81,8 +81,11 @@ def _train_detector(args) -> int:
     train_seeds = list(range(TRAIN_SEED0, TRAIN_SEED0 + args.scenes))
     val_seeds = list(range(VAL_SEED0, VAL_SEED0 + args.val_scenes))
     t_data = time.perf_counter()
-    train = make_frames(train_seeds, args.frames_per_scene, cache_dir=args.cache, desc="training scenes")
-    val = make_frames(val_seeds, args.frames_per_scene, cache_dir=args.cache, desc="held-out scenes")
+    cache_stats: dict = {}
+    train = make_frames(train_seeds, args.frames_per_scene, cache_dir=args.cache, desc="training scenes",
+                        stats=cache_stats)
+    val = make_frames(val_seeds, args.frames_per_scene, cache_dir=args.cache, desc="held-out scenes",
+                      stats=cache_stats)
     data_s = time.perf_counter() - t_data
     status(f"data: {len(train)} training frames, {len(val)} held-out frames ({data_s:.0f} s)")
     limit = None if args.time_limit is None else max(0.0, args.time_limit - (time.perf_counter() - t0))
@@ -92,7 +95,7 @@ def _train_detector(args) -> int:
     train_s = time.perf_counter() - t_train
     t_eval = time.perf_counter()
     metrics = evaluate_detector(det, val, min_points=args.min_points) if len(val) else {}
-    train_metrics = evaluate_detector(det, _subset(train, 200), min_points=args.min_points)
+    train_metrics = evaluate_detector(det, subset(train, 200), min_points=args.min_points)
     eval_s = time.perf_counter() - t_eval
     status(f"held-out AP@0.5 {metrics.get('ap', float('nan')):.4f} recall {metrics.get('recall', float('nan')):.4f}"
            f" ({metrics.get('n_gt', 0)} vehicles in ROI); training frames AP {train_metrics['ap']:.4f}")
@@ -102,7 +105,10 @@ def _train_detector(args) -> int:
               "val_seeds": [val_seeds[0], val_seeds[-1]] if val_seeds else [],
               "frames_per_scene": args.frames_per_scene, "library": "bundled benign vehicle library",
               "lidar": "scene rig (HDL-64E at 1.73 m) with noise and ray drop", "min_points": args.min_points,
-              "train_frames": len(train), "val_frames": len(val)}
+              "train_frames": len(train), "val_frames": len(val),
+              "cache": {"scenes_from_cache": cache_stats.get("cached", 0),
+                        "scenes_simulated": cache_stats.get("simulated", 0),
+                        "simulate_s": round(cache_stats.get("simulate_s", 0.0), 1)}}
     training = {"epochs": args.epochs, "epochs_run": len(hist["epoch"]), "batch": args.batch, "lr": args.lr,
                 "seed": args.seed, "threads": args.threads, "optimizer": "AdamW + one-cycle cosine",
                 "augmentation": "random left/right mirror", "quick": bool(args.quick)}
@@ -124,22 +130,6 @@ def _train_detector(args) -> int:
                 title=f"BEV detector {cfg.resolution} m: held-out AP@0.5 {metrics.get('ap', float('nan')):.3f}")
     status(f"wrote {out} ({total_s / 60:.1f} min)")
     return 0
-
-
-def _subset(fs, n: int):
-    from .detector_data import FrameSet
-    if len(fs) <= n:
-        return fs
-    import numpy as np
-    idx = np.linspace(0, len(fs) - 1, n).astype(int)
-    parts = []
-    for f in idx:
-        boxes, npts = fs.frame_boxes(int(f))
-        m = fs.box_frame == f
-        parts.append(FrameSet(fs.frame_points(int(f)), np.array([0, fs.offsets[f + 1] - fs.offsets[f]], np.int64),
-                              boxes, np.zeros(len(boxes), np.int64), npts, fs.box_actor[m],
-                              fs.scene_seed[f:f + 1], fs.frame_index[f:f + 1]))
-    return FrameSet.concat(parts)
 
 
 def _args_line(args) -> str:

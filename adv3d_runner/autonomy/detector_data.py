@@ -29,6 +29,7 @@ version, so a second run reuses the work.
 from __future__ import annotations
 
 import os
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable, Sequence
@@ -193,7 +194,7 @@ def load_frameset(path: Path) -> FrameSet:
 
 
 def make_frames(seeds: Sequence[int], frames_per_scene: int, split: str = "train", library="default",
-                cache_dir: str | Path | None = None, desc: str = "scenes") -> FrameSet:
+                cache_dir: str | Path | None = None, desc: str = "scenes", stats: dict | None = None) -> FrameSet:
     """Simulated frames of the scenes ``seeds`` (generated on the fly), cached per scene.
 
     Args:
@@ -202,6 +203,7 @@ def make_frames(seeds: Sequence[int], frames_per_scene: int, split: str = "train
         library: "default" (the bundled benign vehicle library), None (actors as boxes), or a
             ``VehicleLibrary``.
         cache_dir: cache folder (None: :func:`default_cache_dir`; False-y string "" disables).
+        stats: if a dict, ``cached`` / ``simulated`` scene counts and ``simulate_s`` are added.
     """
     from ..progress import progress
     from ..scene.generate import generate_scene
@@ -217,7 +219,10 @@ def make_frames(seeds: Sequence[int], frames_per_scene: int, split: str = "train
         path = _cache_path(cache, split, int(seed), frames_per_scene, tag) if cache else None
         if path is not None and path.is_file():
             sets.append(load_frameset(path))
+            if stats is not None:
+                stats["cached"] = stats.get("cached", 0) + 1
             continue
+        t0 = time.perf_counter()
         scene = generate_scene(int(seed), split)
         world = world_from_scene(scene, library)
         rig = rig_from_scene(scene)
@@ -225,4 +230,7 @@ def make_frames(seeds: Sequence[int], frames_per_scene: int, split: str = "train
         if path is not None:
             save_frameset(fs, path)
         sets.append(fs)
+        if stats is not None:
+            stats["simulated"] = stats.get("simulated", 0) + 1
+            stats["simulate_s"] = stats.get("simulate_s", 0.0) + time.perf_counter() - t0
     return FrameSet.concat(sets)
