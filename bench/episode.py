@@ -172,7 +172,7 @@ def detector_table(scenes_worlds, episodes, quick: bool) -> list[dict]:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="one scene")
-    ap.add_argument("--autonomy", choices=("A", "oracle"), default=None,
+    ap.add_argument("--autonomy", choices=("A", "oracle", "A-lanefollow"), default=None,
                     help="default: A when its weights exist, else oracle")
     args = ap.parse_args()
     import torch

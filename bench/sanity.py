@@ -77,7 +77,7 @@ def _mean(rows, *keys) -> float | None:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="10 scenes instead of 100")
-    ap.add_argument("--autonomy", choices=("A", "oracle"), default="A")
+    ap.add_argument("--autonomy", choices=("A", "oracle", "A-lanefollow"), default="A")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--seconds", type=float, default=5.0)
     args = ap.parse_args()

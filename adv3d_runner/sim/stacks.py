@@ -5,6 +5,8 @@
   (``adv3d_runner.autonomy.predictor.load_predictor``). If either module or its shipped weights
   are missing this raises :class:`~adv3d_runner.errors.ConfigError` saying so: Autonomy-A is
   never silently replaced by something else.
+* ``make_stack("A-lanefollow")``: the learned detector with the lane-following predictor
+  baseline (to tell detector problems from predictor problems).
 * ``make_stack("oracle")``: the same tracker and planner, but the detector is
   :class:`OracleDetector` (the ground-truth boxes of the actors the LiDAR actually hit) and the
   predictor is :class:`~adv3d_runner.autonomy.baselines.LaneFollowingPredictor`. Needs no
@@ -23,7 +25,13 @@ import numpy as np
 from ..autonomy.interface import Detections
 from ..errors import ConfigError
 
-AUTONOMY_CHOICES = ("A", "oracle")
+AUTONOMY_CHOICES = ("A", "oracle", "A-lanefollow")
+
+#: Detections below this score never start a track in Autonomy-A (they may still update an
+#: existing one). The detector itself keeps a low threshold (0.1) so AP sees the whole
+#: precision-recall curve; without this gate its low-score false positives become tracks in
+#: the ego's lane and the planner brakes for them (bench/sanity.py, docs/episode.md).
+TRACK_MIN_SCORE = 0.5
 
 
 class OracleDetector:
@@ -61,13 +69,16 @@ class OracleDetector:
         return Detections(b[ok], scores)
 
 
-def make_stack(autonomy: str = "A", *, detector_options: dict | None = None):
+def make_stack(autonomy: str = "A", *, detector_options: dict | None = None,
+               track_min_score: float = TRACK_MIN_SCORE):
     """Build a fresh stack (call once per worker; ``run_episode`` resets it per episode).
 
     Args:
-        autonomy: ``"A"`` (learned detector + learned predictor) or ``"oracle"``.
-        detector_options: keyword arguments for ``load_detector`` (e.g. an input resolution
-            knob if the detector module offers one).
+        autonomy: ``"A"`` (learned detector + learned predictor), ``"A-lanefollow"`` or ``"oracle"``.
+        detector_options: keyword arguments for ``load_detector`` (decoding overrides such as
+            ``score_threshold``).
+        track_min_score: learned-detector stacks: the tracker's ``min_score`` (see
+            :data:`TRACK_MIN_SCORE`).
 
     Raises:
         ConfigError: unknown name, or Autonomy-A's models or weights are not available.
@@ -78,11 +89,18 @@ def make_stack(autonomy: str = "A", *, detector_options: dict | None = None):
         from ..autonomy.baselines import LaneFollowingPredictor
 
         return ModularStack(OracleDetector(), LaneFollowingPredictor())
-    if autonomy != "A":
+    if autonomy not in ("A", "A-lanefollow"):
         raise ConfigError(f"unknown autonomy {autonomy!r}; choose one of {', '.join(AUTONOMY_CHOICES)}")
+    from ..autonomy.tracker import MultiObjectTracker, TrackerConfig
+
     detector = _load("detector", "load_detector", detector_options or {})
+    tracker = MultiObjectTracker(TrackerConfig(min_score=float(track_min_score)))
+    if autonomy == "A-lanefollow":
+        from ..autonomy.baselines import LaneFollowingPredictor
+
+        return ModularStack(detector, LaneFollowingPredictor(), tracker=tracker)
     predictor = _load("predictor", "load_predictor", {})
-    return ModularStack(detector, predictor)
+    return ModularStack(detector, predictor, tracker=tracker)
 
 
 def _load(module: str, func: str, options: dict):
