@@ -446,8 +446,11 @@ def load_points(path: str | Path, frames: int, n_actors: int) -> list[np.ndarray
     if off.shape != (frames + 1,) or off[0] != 0 or off[-1] != P or np.any(np.diff(off) < 0):
         raise FileFormatError(path, "$.offsets", f"non-decreasing int array ({frames + 1},) from 0 to {P}",
                               f"{off.shape}")
-    pts = np.c_[xyz.astype(np.float32) / np.float32(100.0), inten.astype(np.float32) / np.float32(255.0),
-                lab.astype(np.float32)].astype(np.float32)
+    # filled in place (no temporaries): this is most of the load time of a long replay
+    pts = np.empty((P, 5), np.float32)
+    np.divide(xyz, np.float32(100.0), out=pts[:, :3], dtype=np.float32)
+    np.divide(inten, np.float32(255.0), out=pts[:, 3], dtype=np.float32)
+    pts[:, 4] = lab
     return [pts[off[k]:off[k + 1]] for k in range(frames)]
 
 
