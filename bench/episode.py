@@ -173,19 +173,19 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="one scene")
     ap.add_argument("--autonomy", choices=("A", "oracle", "A-lanefollow"), default=None,
-                    help="default: A when its weights exist, else oracle")
+                    help="default: A when its weights exist, else A-lanefollow (learned detector), else oracle")
     args = ap.parse_args()
     import torch
 
     torch.set_num_threads(1)
     autonomy = args.autonomy
-    if autonomy is None:
-        try:
-            make_stack("A")
-            autonomy = "A"
-        except Exception as exc:  # noqa: BLE001 - report and fall back
-            print(f"Autonomy-A not available ({exc}); timing the oracle stack")
-            autonomy = "oracle"
+    if autonomy is None:  # the most learned stack that is available
+        for autonomy in ("A", "A-lanefollow", "oracle"):
+            try:
+                make_stack(autonomy)
+                break
+            except Exception as exc:  # noqa: BLE001 - report and fall back
+                print(f"{autonomy} not available: {exc}")
     names = SCENES[:1] if args.quick else SCENES
     lib = default_library()
     rows, worlds, episodes = [], [], []
