@@ -10,8 +10,9 @@ Pinned to ONE core (torch 1 thread, OMP 1 thread), as the detector runs inside t
     shipped model (``assets/models/detector``, full recipe, see its training_report.json).
     Each is evaluated on the same held-out training-split scenes (seeds 900000 + [0, M)):
     AP / recall at BEV IoU 0.5, vehicles 0-50 m ahead and |y| <= 20 m with >= 5 LiDAR returns
-    (``adv3d_runner.autonomy.detector_train.evaluate_detector``), and timed per frame: CPU time
-    (``time.thread_time``) of voxelisation, network and decoding (median over the frames).
+    (``adv3d_runner.autonomy.detector_train.evaluate_detector``, detections above 0.05), and
+    timed per frame at the model's operating score threshold: CPU time (``time.thread_time``)
+    of the whole ``detect`` call and the wall time of its steps (median over the frames).
 (b) The shipped model on bundled benchmark scenes (evaluation only, never trained on):
     AP / recall on 5 frames of each of the first N benchmark scenes.
 
@@ -40,7 +41,7 @@ sys.path.insert(0, str(ROOT))
 
 from adv3d_runner.autonomy.detector import DEFAULT_MODEL_DIR, BevDetector, load_detector, model_info  # noqa: E402
 from adv3d_runner.autonomy.detector_data import VAL_SEED0, FrameSet, make_frames, simulate_scene_frames  # noqa: E402
-from adv3d_runner.autonomy.detector_train import evaluate_detector, machine_info  # noqa: E402
+from adv3d_runner.autonomy.detector_train import EVAL_THRESHOLD, evaluate_detector, machine_info  # noqa: E402
 from adv3d_runner.fileio import write_json  # noqa: E402
 from adv3d_runner.progress import set_quiet  # noqa: E402
 
@@ -87,7 +88,7 @@ def resolution_rows(val: FrameSet, models: list[tuple[str, Path]]) -> list[dict]
     for label, folder in models:
         det = load_detector(folder, threads=1)
         info = model_info(folder)
-        dets = [det.detect(p) for p in frames]
+        dets = [det.detect(p, score_threshold=EVAL_THRESHOLD) for p in frames]  # AP: the whole PR curve
         m = evaluate_detector(det, val, detections=dets)
         t = time_detector(det, frames[:: max(1, len(frames) // 60)])
         rows.append({"model": label, "resolution": det.cfg.resolution, "grid": list(det.cfg.grid_shape),

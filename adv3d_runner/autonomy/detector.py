@@ -62,7 +62,8 @@ class DetectorConfig:
         channels: backbone stage widths (strides 2, 4, 8).
         head_channels: width of the merged stride-``out_stride`` feature map.
         out_stride: output cell = ``out_stride`` x ``resolution`` m (4 or 2).
-        score_threshold: minimum score of a kept detection.
+        score_threshold: minimum score of a kept detection (the operating point for the
+            tracker; AP is measured with a lower threshold, see ``detector_train``).
         nms_iou: rotated-BEV IoU above which a lower-scored box is suppressed.
         pre_nms: at most this many cells (highest scores) enter NMS.
         max_detections: at most this many boxes per frame.
@@ -75,7 +76,7 @@ class DetectorConfig:
     channels: tuple[int, int, int] = (16, 32, 64)
     head_channels: int = 48
     out_stride: int = 4
-    score_threshold: float = 0.1
+    score_threshold: float = 0.4
     nms_iou: float = 0.1
     pre_nms: int = 300
     max_detections: int = 100
