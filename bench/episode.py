@@ -223,6 +223,20 @@ def main() -> int:
         f = lambda x, p=3: "n/a" if x is None else f"{x:.{p}f}"  # noqa: E731
         print(f"| {d['resolution']} | {d.get('grid')} | {d['model']} | {f(d.get('ms_cpu_median'), 1)} | "
               f"{f(d.get('ap'))} | {f(d.get('recall'))} |")
+    # AP against resolution needs one trained model per resolution: bench/detector.py (issue 4,
+    # detector owner) trains them with a quick recipe; show its table next to ours.
+    h7 = ROOT / "bench" / "results" / "detector.json"
+    h7_rows = []
+    if h7.exists():
+        import json
+
+        h7_rows = json.loads(h7.read_text()).get("resolution_rows", [])
+        print("\nfrom bench/results/detector.json (bench/detector.py: one model per resolution, held-out AP@0.5)\n")
+        print("| model | cell m | AP | recall | ms median |")
+        print("|---|---|---|---|---|")
+        for d in h7_rows:
+            print(f"| {d.get('model')} | {d.get('resolution')} | {d.get('ap', float('nan')):.3f} | "
+                  f"{d.get('recall', float('nan')):.3f} | {d.get('ms_median', float('nan')):.1f} |")
     out = ROOT / "bench" / "results" / f"episode{'.quick' if args.quick else ''}.json"
     write_json(out, {"format": "adv3d-bench", "version": 1, "topic": "episode",
                      "command": " ".join(["bench/episode.py"] + sys.argv[1:]),
@@ -233,7 +247,8 @@ def main() -> int:
                                  "load_avg": os.getloadavg() if hasattr(os, "getloadavg") else None},
                      "timing": "CPU time of the (single) thread, time.thread_time",
                      "autonomy": autonomy, "stages_ms_cpu_mean": mean, "total_ms_cpu_mean": total,
-                     "fps_cpu_mean": 1000 / total, "rows": rows, "detector_resolution": det_rows})
+                     "fps_cpu_mean": 1000 / total, "rows": rows, "detector_resolution": det_rows,
+                     "detector_resolution_from_bench_detector": h7_rows})
     print(f"wrote {out.relative_to(ROOT)}")
     return 0
 
