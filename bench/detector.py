@@ -7,7 +7,9 @@ Pinned to ONE core (torch 1 thread, OMP 1 thread), as the detector runs inside t
 (a) For each cell size in ``RESOLUTIONS`` a model trained with the SAME short recipe
     (``adv3d train detector --quick``: 24 training scenes x 10 frames, 4 epochs; cached under
     ``~/.cache/adv3d/detector-bench/res-<r>``, trained here unless ``--no-train``), plus the
-    shipped model (``assets/models/detector``, full recipe, see its training_report.json).
+    shipped model (``assets/models/detector``, full recipe, see its training_report.json) and any
+    full-recipe model at another cell size found as ``~/.cache/adv3d/detector-bench/full-<r>``
+    (made with ``adv3d train detector --resolution R --out ...``; not trained by this script).
     Each is evaluated on the same held-out training-split scenes (seeds 900000 + [0, M)):
     AP / recall at BEV IoU 0.5, vehicles 0-50 m ahead and |y| <= 20 m with >= 5 LiDAR returns
     (``adv3d_runner.autonomy.detector_train.evaluate_detector``, detections above 0.05), and
@@ -88,13 +90,18 @@ def resolution_rows(val: FrameSet, models: list[tuple[str, Path]]) -> list[dict]
     for label, folder in models:
         det = load_detector(folder, threads=1)
         info = model_info(folder)
+        report = folder / "training_report.json"
+        train_min = None
+        if report.is_file():
+            import json
+            train_min = round(json.loads(report.read_text())["seconds"]["total"] / 60, 1)
         dets = [det.detect(p, score_threshold=EVAL_THRESHOLD) for p in frames]  # AP: the whole PR curve
         m = evaluate_detector(det, val, detections=dets)
         t = time_detector(det, frames[:: max(1, len(frames) // 60)])
         rows.append({"model": label, "resolution": det.cfg.resolution, "grid": list(det.cfg.grid_shape),
                      "recipe": "quick" if info.get("training", {}).get("quick") else "full",
                      "train_frames": info.get("data", {}).get("train_frames"),
-                     "epochs": info.get("training", {}).get("epochs_run"),
+                     "epochs": info.get("training", {}).get("epochs_run"), "train_minutes_wall": train_min,
                      "ap": m["ap"], "recall": m["recall"], "n_gt": m["n_gt"], **t})
     return rows
 
@@ -135,16 +142,19 @@ def main() -> int:
             print(f"training the quick model at {res:g} m ...", flush=True)
             train_s[res] = _train_quick(res, folder)
         models.append((f"quick {res:g} m", folder))
+    for folder in sorted(BENCH_CACHE.glob("full-*")):  # optional full-recipe models at other cell sizes
+        if (folder / "config.json").is_file():
+            models.append((f"full {folder.name[5:]} m", folder))
     if (DEFAULT_MODEL_DIR / "config.json").is_file():
         models.append(("shipped", DEFAULT_MODEL_DIR))
     rows = resolution_rows(val, models)
     print(f"\n(a) resolution vs AP and CPU ms per frame (one thread), {len(val)} held-out frames "
           f"({n_val} scenes), ROI 0-50 m ahead, |y| <= 20 m\n")
     print("| model | cell m | grid | recipe | AP@0.5 | recall | ms/frame (median CPU) | voxelize | network | decode | frames/s |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         print(f"| {r['model']} | {r['resolution']:g} | {r['grid'][0]}x{r['grid'][1]} | {r['recipe']} "
-              f"({r['train_frames']} frames, {r['epochs']} ep) | {r['ap']:.3f} | {r['recall']:.3f} | "
+              f"({r['train_frames']} frames, {r['epochs']} ep, {r['train_minutes_wall']} min) | {r['ap']:.3f} | {r['recall']:.3f} | "
               f"{r['ms_median']:.1f} | {r['ms_voxelize_median']:.1f} | {r['ms_network_median']:.1f} | "
               f"{r['ms_decode_median']:.1f} | {1000 / r['ms_median']:.0f} |")
     bench_rows = []
