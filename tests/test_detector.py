@@ -132,6 +132,7 @@ class _Evil:
         return (print, ("pickle code ran",))
 
 
+@pytest.mark.filterwarnings("ignore:Detected pickle protocol")
 def test_pickled_weights_are_refused(tmp_path):
     det = BevDetector(DetectorConfig(resolution=0.4))
     save_detector(det, tmp_path)
@@ -141,6 +142,12 @@ def test_pickled_weights_are_refused(tmp_path):
         load_detector(tmp_path)
     (tmp_path / "detector.pt").write_bytes(pickle.dumps({"a": 1}))
     with pytest.raises(FileFormatError):
+        load_detector(tmp_path)
+    (tmp_path / "detector.pt").write_bytes(b"\x00garbage" * 10)            # corrupted file
+    with pytest.raises(FileFormatError):
+        load_detector(tmp_path)
+    torch.save({"stage1.0.0.weight": torch.zeros(3)}, tmp_path / "detector.pt")  # wrong architecture
+    with pytest.raises(FileFormatError, match="architecture"):
         load_detector(tmp_path)
     with pytest.raises(FileFormatError, match="config"):
         load_detector(tmp_path / "missing")
