@@ -99,8 +99,11 @@ def register(subparsers) -> None:
     r.add_argument("--dim", type=int, default=0, help="sweep: latent dimension (0-based; K, K+1 = width, length)")
     r.add_argument("--steps", type=int, default=5, help="sweep: number of shapes")
     r.add_argument("--scene", type=Path, default=None, help="scene: scene file")
-    r.add_argument("--frame", type=int, default=0, help="scene: frame to show")
-    r.add_argument("--run", type=Path, default=None, help="review: run bundle folder")
+    r.add_argument("--frame", type=int, default=None, help="scene / review: frame to show (default 0 / the middle)")
+    r.add_argument("--run", type=Path, default=None,
+                   help="review: run bundle folder (runs/NAME), adv3d simulate output folder, or a replay file")
+    r.add_argument("--replay", default=None,
+                   help="review: which replay of the bundle, e.g. 'SCENE_ID / closed' or a scene id (default: the first)")
     r.add_argument("--size", default="1280x720", help="image size WxH in pixels")
     r.add_argument("--engine", choices=("workbench", "eevee"), default="workbench")
     r.set_defaults(func=cmd_render)
@@ -123,9 +126,6 @@ def cmd_render(args) -> int:
         w, h = (int(v) for v in args.size.lower().split("x"))
     except ValueError:
         raise ConfigError(f"--size: expected WxH such as 1280x720, got {args.size!r}") from None
-    if args.what == "review":
-        raise ConfigError("render --what review needs run bundles with replay files, which this "
-                          "version of adv3d does not write yet")
     cmd = [sys.executable, "-m", "blender_addon.render", "--what", args.what, "--out", str(args.out),
            "--size", f"{w}x{h}", "--engine", args.engine, "--dim", str(args.dim), "--steps", str(args.steps)]
     if args.library:
@@ -135,7 +135,15 @@ def cmd_render(args) -> int:
     if args.what == "scene":
         if args.scene is None:
             raise ConfigError("--what scene needs --scene FILE")
-        cmd += ["--scene", str(args.scene), "--frame", str(args.frame)]
+        cmd += ["--scene", str(args.scene), "--frame", str(args.frame or 0)]
+    if args.what == "review":
+        if args.run is None:
+            raise ConfigError("--what review needs --run BUNDLE (a run bundle folder or a replay file)")
+        cmd += ["--run", str(args.run)]
+        if args.frame is not None:
+            cmd += ["--frame", str(args.frame)]
+        if args.replay:
+            cmd += ["--replay", args.replay]
     _run_child(cmd, "render")
     from .progress import status
 

@@ -1,18 +1,18 @@
 """Adv3D Blender extension: curate the vehicle library, explore the shape space with live
-sliders, author scenes. A thin UI over ``adv3d_runner`` (shapes + scene, numpy only), which
+sliders, author scenes, review attack runs. A thin UI over ``adv3d_runner`` (shapes + scene, numpy only), which
 ships with the extension as a wheel (see ``docs/blender.md``); it never imports torch.
 
 Layout follows glTF-Blender-IO: properties in PropertyGroups (``props``), thin operators per
-area (``ops_library``, ``ops_shapes``, ``ops_scene``), panels (``panels``); every class is in
+area (``ops_library``, ``ops_shapes``, ``ops_scene``, ``ops_review``), panels (``panels``); every class is in
 the ``classes`` tuple, registered in order and unregistered in reverse.
 """
 from __future__ import annotations
 
 import bpy
 
-from . import ops_library, ops_scene, ops_shapes, panels, props, review
+from . import ops_library, ops_review, ops_scene, ops_shapes, panels, props, review
 
-classes = props.classes + ops_library.classes + ops_shapes.classes + ops_scene.classes + panels.classes
+classes = props.classes + ops_library.classes + ops_shapes.classes + ops_scene.classes + ops_review.classes + panels.classes
 
 
 def register() -> None:

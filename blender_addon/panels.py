@@ -1,4 +1,4 @@
-"""The "Adv3D" sidebar tab (View3D > N): Library, Shape space and Scenes panels.
+"""The "Adv3D" sidebar tab (View3D > N): Library, Shape space, Scenes and Review panels.
 
 Panels only draw properties and operator buttons; all work is in the ``ops_*`` modules.
 """
@@ -132,9 +132,29 @@ class ADV3D_PT_scenes(_Adv3dPanel, bpy.types.Panel):
             box.label(text="Edit the pose keyframes, then Export")
 
 
+class ADV3D_PT_review(_Adv3dPanel, bpy.types.Panel):
+    bl_idname = "ADV3D_PT_review"
+    bl_label = "Review"
+
+    def draw(self, context):
+        rv = context.scene.adv3d.review
+        layout = self.layout
+        layout.prop(rv, "path", text="")
+        layout.prop(rv, "replay", text="")
+        row = layout.row(align=True)
+        row.operator("adv3d.review_load", icon="PLAY")
+        row.operator("adv3d.review_clear", text="", icon="X")
+        if rv.loaded:
+            box = layout.box()
+            box.label(text=" / ".join(rv.loaded.replace("\\", "/").split("/")[-3:]), icon="FILE")
+            box.label(text="Red: adversarial shapes; green: detections with scores")
+            box.label(text="Scrub the timeline to step through the episode")
+
+
 classes = (
     ADV3D_UL_assets,
     ADV3D_PT_library,
     ADV3D_PT_shapes,
     ADV3D_PT_scenes,
+    ADV3D_PT_review,
 )

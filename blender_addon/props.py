@@ -102,10 +102,25 @@ class ADV3D_PG_scene(bpy.types.PropertyGroup):
                               description="Text datablock holding the scene file as loaded")
 
 
+def _review_items(self, context):
+    from . import ops_review  # deferred: lists the replays of the chosen bundle
+
+    return ops_review.replay_items(self, context)
+
+
+class ADV3D_PG_review(bpy.types.PropertyGroup):
+    path: StringProperty(name="Run bundle", subtype="FILE_PATH",
+                         description="Run bundle folder (runs/NAME) or one replay file (replay.json.gz)")
+    replay: EnumProperty(name="Replay", items=_review_items,
+                         description="Scene and mode of the bundle to review")
+    loaded: StringProperty(name="Loaded replay", options={"HIDDEN"})
+
+
 class ADV3D_PG_settings(bpy.types.PropertyGroup):
     library: PointerProperty(type=ADV3D_PG_library)
     shapes: PointerProperty(type=ADV3D_PG_shapes)
     scene: PointerProperty(type=ADV3D_PG_scene)
+    review: PointerProperty(type=ADV3D_PG_review)
 
 
 OBJECT_ROLES = [
@@ -131,6 +146,7 @@ classes = (
     ADV3D_PG_library,
     ADV3D_PG_shapes,
     ADV3D_PG_scene,
+    ADV3D_PG_review,
     ADV3D_PG_settings,
     ADV3D_PG_object,
 )

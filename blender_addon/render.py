@@ -2,6 +2,7 @@
 
     python -m blender_addon.render --what library --out docs/images/library.png
     python -m blender_addon.render --what sweep --dim 0 --steps 5 --out sweep.png
+    python -m blender_addon.render --what review --run runs/NAME --frame 20 --out review.png
 
 ``adv3d blender render`` starts this module so the runner process never imports bpy. Exit
 status 2 with a one-line message on stderr for user errors (bad file, unknown dimension).
@@ -294,6 +295,69 @@ def render_scene(scene_path: Path, library_path: Path | None, out: Path, frame: 
     _render(out)
 
 
+def render_review(run_path: Path, replay: str | None, out: Path, frame: int | None, width: int, height: int,
+                  engine: str) -> None:
+    """One frame of a run bundle's replay, loaded through the Review panel code: ego (blue),
+    actors (grey, the adversarial shape red), LiDAR points, detection boxes with scores, the
+    predicted trajectories and the plan, from a camera behind and above the ego."""
+    import bpy
+    from mathutils import Vector
+
+    import blender_addon
+    from blender_addon import ops_review
+
+    found = ops_review.find_replays(run_path)
+    chosen = [p for label, p in found if replay is None or replay in label or replay == str(p)]
+    if not chosen:
+        raise SystemExit(_fail(f"--replay {replay!r} matches none of: " + ", ".join(label for label, _ in found)))
+    scene = _reset(width, height, engine)
+    if engine != "eevee":
+        shading = scene.display.shading
+        shading.color_type = "OBJECT"  # the review engine colours objects
+        shading.show_cavity = False  # cavity speckles the point cloud and the boxes
+        shading.show_specular_highlight = False
+    blender_addon.register()
+    counts = ops_review.load_review(scene, chosen[0])
+    frame = counts["frames"] // 2 if frame is None else frame
+    if not 0 <= frame < counts["frames"]:
+        raise SystemExit(_fail(f"--frame must be in [0, {counts['frames'] - 1}]"))
+    scene.frame_set(frame)
+    objs = bpy.data.objects
+    for name, width_m in (("review plan", 0.15), ("review predictions", 0.06)):
+        objs[name].data.bevel_depth = width_m  # curves need a thickness to render
+    objs["review plan"].color = (0.95, 0.75, 0.0, 1.0)
+    objs["review predictions"].color = (0.6, 0.1, 0.8, 1.0)
+    boxes = objs["review detections"]
+    boxes.display_type = "SOLID"  # a wire display is not rendered: draw the edges as thin beams
+    boxes.modifiers.new("edges", "WIREFRAME").thickness = 0.06
+    boxes.color = (0.05, 0.75, 0.15, 1.0)
+    lo, hi = np.array([-1e3, -1e3, 0.0]), np.array([1e3, 1e3, 0.0])
+    _ground(lo, hi)
+    objs["ground"].color = (0.85, 0.86, 0.88, 1.0)
+    ego = objs["review ego"]
+    centre = np.array(ego.matrix_world.translation)
+    yaw = ego.matrix_world.to_euler().z
+    fwd = np.array([math.cos(yaw), math.sin(yaw), 0.0])
+    cam_data = bpy.data.cameras.new("camera")
+    cam_data.lens = 38.0
+    cam_data.clip_end = 2000.0
+    cam = bpy.data.objects.new("camera", cam_data)
+    scene.collection.objects.link(cam)
+    scene.camera = cam
+    # Behind, above and a little to the right of the ego, looking at the road ahead.
+    side = np.array([-fwd[1], fwd[0], 0.0])
+    cam.location = centre - 20.0 * fwd - 7.0 * side + np.array([0.0, 0.0, 15.0])
+    target = Vector((centre + 14.0 * fwd).tolist())
+    cam.rotation_euler = (target - cam.location).to_track_quat("-Z", "Y").to_euler()
+    for obj in objs:  # score labels upright, facing the camera
+        if obj.name.startswith("review score"):
+            obj.data.size = 1.5
+            obj.color = (0.0, 0.45, 0.08, 1.0)
+            obj.rotation_euler = (math.radians(55.0), 0.0, yaw - math.pi / 2)
+    _render(out)
+    blender_addon.unregister()
+
+
 def _fail(message: str) -> int:
     print(f"adv3d render: {message}", file=sys.stderr)
     return 2
@@ -301,9 +365,11 @@ def _fail(message: str) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m blender_addon.render")
-    parser.add_argument("--what", choices=("library", "sweep", "scene"), required=True)
+    parser.add_argument("--what", choices=("library", "sweep", "scene", "review"), required=True)
     parser.add_argument("--scene", type=Path, default=None)
-    parser.add_argument("--frame", type=int, default=0)
+    parser.add_argument("--frame", type=int, default=None)
+    parser.add_argument("--run", type=Path, default=None)
+    parser.add_argument("--replay", default=None)
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--library", type=Path, default=None)
     parser.add_argument("--space", type=Path, default=None)
@@ -321,7 +387,11 @@ def main(argv: list[str] | None = None) -> int:
         elif args.what == "scene":
             if args.scene is None:
                 return _fail("--what scene needs --scene FILE")
-            render_scene(args.scene, args.library, args.out, args.frame, width, height, args.engine)
+            render_scene(args.scene, args.library, args.out, args.frame or 0, width, height, args.engine)
+        elif args.what == "review":
+            if args.run is None:
+                return _fail("--what review needs --run BUNDLE (or a replay file)")
+            render_review(args.run, args.replay, args.out, args.frame, width, height, args.engine)
         else:
             render_sweep(args.space, args.out, args.dim, args.steps, width, height, args.engine)
     except Adv3dError as exc:

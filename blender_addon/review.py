@@ -1,13 +1,12 @@
 """Review engine: per-frame episode data (poses, LiDAR points, detections, predictions, plan) as
 Blender objects that follow the timeline.
 
-This is the Blender side of the Review panel, written against in-memory arrays (``ReviewData``)
-because the run-bundle replay file that will feed it is not defined yet (DESIGN.md contract 4;
-the attack issue writes it). A loader for that file only has to fill ``ReviewData``.
+This is the Blender side of the Review panel, written against in-memory arrays (``ReviewData``);
+``ops_review`` fills them from a replay file ("adv3d-replay") of a run bundle.
 
 How scrubbing stays cheap: ego and actors are keyframed once (their poses are known for every
 frame); the per-frame geometry whose size changes from frame to frame (points, detection boxes,
-trajectories) lives in three objects whose data are rewritten in place by a
+trajectories, score labels) lives in a few objects whose data are rewritten in place by a
 ``frame_change_post`` handler from arrays kept in memory (whole-array ``foreach_set``; the
 geometry is rebuilt only when the count changes). Nothing per frame is created up front, so
 loading is fast even with points in every frame.
@@ -25,6 +24,10 @@ REVIEW_COLLECTION = "Adv3D Review"
 ADVERSARIAL_RGBA = (0.95, 0.1, 0.1, 1.0)
 BENIGN_RGBA = (0.6, 0.6, 0.62, 1.0)
 EGO_RGBA = (0.1, 0.35, 0.9, 1.0)
+POINTS_RGBA = (0.05, 0.05, 0.05, 1.0)
+LABEL_COLLECTION = "Adv3D Review scores"
+MAX_LABELS = 64  # score labels shown per frame (the highest-scoring first)
+POINT_RADIUS = 0.05  # m, display size of a LiDAR point
 
 # scene name -> the ReviewData shown in it (rebuilt by loading again; not saved in .blend files)
 _LOADED: dict[str, "ReviewData"] = {}
@@ -52,11 +55,13 @@ class ReviewData:
         ego_poses: (T, 3) x, y, yaw of the ego per frame.
         ego_dimensions: (3,) L, W, H.
         actors: the actors.
-        points: per frame (N_t, 3) float32 LiDAR points in the map frame, or None.
+        points: per frame (N_t, 3) float32 LiDAR points in the map frame (or in the ego frame
+            when ``points_in_ego_frame``: the point cloud is then parented to the ego), or None.
         detections: per frame (D_t, 7) x, y, yaw, L, W, H, score, or None.
         predictions: per frame (M_t, P, 2) predicted trajectories, or None.
         plan: per frame (P, 2) the ego's chosen plan, or None.
         dt: seconds per frame.
+        points_in_ego_frame: see ``points``.
     """
 
     ego_poses: np.ndarray
@@ -67,6 +72,7 @@ class ReviewData:
     predictions: list[np.ndarray] | None = None
     plan: list[np.ndarray] | None = None
     dt: float = 0.1
+    points_in_ego_frame: bool = False
 
     @property
     def frames(self) -> int:
@@ -102,6 +108,24 @@ def _colour(obj, rgba) -> None:
     obj.data.materials.append(mat)
 
 
+def _show_as_points(obj) -> None:
+    """A "Mesh to Points" geometry-nodes modifier: loose vertices are invisible in object mode
+    and in renders; as a point cloud they show in the viewport, Workbench and Eevee."""
+    group = bpy.data.node_groups.get("adv3d review points")
+    if group is None:
+        group = bpy.data.node_groups.new("adv3d review points", "GeometryNodeTree")
+        group.interface.new_socket("Geometry", in_out="INPUT", socket_type="NodeSocketGeometry")
+        group.interface.new_socket("Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
+        n_in = group.nodes.new("NodeGroupInput")
+        n_out = group.nodes.new("NodeGroupOutput")
+        to_points = group.nodes.new("GeometryNodeMeshToPoints")
+        to_points.inputs["Radius"].default_value = POINT_RADIUS
+        group.links.new(n_in.outputs[0], to_points.inputs["Mesh"])
+        group.links.new(to_points.outputs[0], n_out.inputs[0])
+    mod = obj.modifiers.new("points", "NODES")
+    mod.node_group = group
+
+
 def build_review(bscene, data: ReviewData) -> dict:
     """Create the review objects in ``bscene`` (replacing a previous review) and show frame 0.
 
@@ -127,6 +151,10 @@ def build_review(bscene, data: ReviewData) -> dict:
         _animate(obj, actor.poses)
     points = bpy.data.objects.new("review lidar", bpy.data.meshes.new("review lidar"))
     root.objects.link(points)
+    if data.points_in_ego_frame:
+        points.parent = ego  # the ego's keyframes carry the ego-frame points into the map
+    _show_as_points(points)
+    _colour(points, POINTS_RGBA)
     boxes = meshdata.new_mesh_object("review detections", np.zeros((0, 3)), np.zeros((0, 3), int), root)
     _colour(boxes, (0.1, 0.9, 0.2, 1.0))
     boxes.display_type = "WIRE"
@@ -135,6 +163,16 @@ def build_review(bscene, data: ReviewData) -> dict:
         curve.dimensions = "3D"
         obj = bpy.data.objects.new(name, curve)
         root.objects.link(obj)
+    if data.detections is not None:
+        most = max((len(d) for d in data.detections), default=0)
+        labels = meshdata.get_collection(LABEL_COLLECTION, root)
+        for i in range(min(most, MAX_LABELS)):
+            curve = bpy.data.curves.new(f"review score {i}", "FONT")
+            curve.size = 0.9
+            curve.align_x = "CENTER"
+            obj = bpy.data.objects.new(f"review score {i}", curve)
+            labels.objects.link(obj)
+            _colour(obj, (0.0, 0.45, 0.1, 1.0))
     _LOADED[bscene.name] = data
     if on_frame_change not in bpy.app.handlers.frame_change_post:
         bpy.app.handlers.frame_change_post.append(on_frame_change)
@@ -167,6 +205,7 @@ def clear_review(bscene) -> None:
                 ad.action = None
                 if action.users == 0:
                     bpy.data.actions.remove(action)
+        meshdata.remove_collection(LABEL_COLLECTION)
         meshdata.remove_collection(REVIEW_COLLECTION)
     if not _LOADED:
         remove_handler()
@@ -234,6 +273,26 @@ def update_frame(bscene, frame: int) -> None:
         _set_polylines(objs["review predictions"].data, list(pred) if pred.ndim == 3 else [])
     if data.plan is not None and "review plan" in objs:
         _set_polylines(objs["review plan"].data, [data.plan[f]], z=0.35)
+    if data.detections is not None:
+        _set_labels(data.detections[f])
+
+
+def _set_labels(dets: np.ndarray) -> None:
+    """Score labels above the detection boxes (highest scores first; unused labels hidden)."""
+    coll = bpy.data.collections.get(LABEL_COLLECTION)
+    if coll is None:
+        return
+    d = np.asarray(dets, dtype=np.float64).reshape(-1, 7)
+    d = d[np.argsort(-d[:, 6], kind="stable")]
+    for i in range(MAX_LABELS):
+        obj = bpy.data.objects.get(f"review score {i}")
+        if obj is None:
+            break
+        shown = i < len(d)
+        obj.hide_viewport = obj.hide_render = not shown
+        if shown:
+            obj.data.body = f"{d[i, 6]:.2f}"
+            obj.location = (d[i, 0], d[i, 1], d[i, 5] + 0.4)
 
 
 @bpy.app.handlers.persistent
