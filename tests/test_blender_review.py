@@ -1,0 +1,266 @@
+"""The Review panel on the ``bpy`` module: a run bundle written with the runner's replay writer
+(under tmp_path) loads as animated objects that follow the timeline; bad files are reported.
+"""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+bpy = pytest.importorskip("bpy")
+
+pytestmark = pytest.mark.blender
+
+T = 12
+ORIGIN_XY = (500123.4, 5400000.7)  # a UTM-sized map frame: the loader must shift it
+
+
+def make_replay(seed: int = 0, frames: int = T):
+    """A small replay: ego along +x, an adversarial actor (leaves at frame 9) and a benign one,
+    points, detections, predictions and a plan in every frame."""
+    from adv3d_runner.sim.replay import Replay, ReplayActor, ReplayFrame
+
+    rng = np.random.default_rng(seed)
+    x0, y0 = ORIGIN_XY
+    t = np.arange(frames)
+    ego = np.stack([x0 + 1.0 * t, np.full(frames, y0), np.full(frames, 0.05)], axis=1)
+    adv = np.stack([x0 + 20 + 0.8 * t, np.full(frames, y0 + 3.5), np.zeros(frames)], axis=1)
+    adv[9:] = np.nan
+    benign = np.stack([x0 + 35 + 0.9 * t, np.full(frames, y0 - 3.5), np.full(frames, 0.1)], axis=1)
+    actors = [ReplayActor(7, "sedan", [4.4, 1.8, 1.4], adv, adversarial=True, mesh="actor7.glb"),
+              ReplayActor(8, "suv", [4.8, 1.9, 1.7], benign)]
+    out = []
+    for k in range(frames):
+        d = k % 3 + 1
+        boxes = np.column_stack([x0 + 10 + rng.random(d) * 30, y0 + rng.random(d) * 5,
+                                 np.full(d, 4.5), np.full(d, 1.8), rng.random(d) * 0.2])
+        traj = x0 + rng.random((2, 3, 6, 2)) * 40
+        traj[..., 1] += y0 - x0
+        plan = np.column_stack([ego[k, 0] + np.linspace(0, 20, 10), np.full(10, y0), np.zeros(10)])
+        out.append(ReplayFrame(boxes, rng.random(d), [0], [[x0 + 20, y0, 4.5, 1.8, 0.0]], [[8.0, 0.0]],
+                               [0, 1], traj, np.full((2, 3), 1 / 3), plan, np.full(10, 10.0), "keep", 0.5))
+    points = [np.column_stack([rng.uniform(-40, 40, (40 + 10 * k, 2)), rng.uniform(0, 2, 40 + 10 * k),
+                               rng.random(40 + 10 * k), np.full(40 + 10 * k, -1.0)]).astype(np.float32)
+              for k in range(frames)]
+    return Replay("fixture-scene", 0.1, [4.8, 1.9, 1.55], ego, np.full(frames, 10.0), actors, out,
+                  autonomy="oracle", points=points)
+
+
+def write_bundle(root: Path, replay=None) -> tuple[Path, object]:
+    """``root`` as a run bundle: summary.json + scenes/<id>/closed/{replay.json.gz, actor7.glb}."""
+    import trimesh
+
+    from adv3d_runner.shapes.mesh_io import write_library_glb
+    from adv3d_runner.sim.replay import save_replay
+
+    replay = replay or make_replay()
+    folder = root / "scenes" / replay.scene_id / "closed"
+    folder.mkdir(parents=True)
+    body = trimesh.creation.cylinder(radius=0.8, height=4.0, sections=12)
+    body.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [0, 1, 0]))
+    body.apply_translation([0, 0, 0.8])
+    write_library_glb(body, folder / "actor7.glb")
+    save_replay(replay, folder / "replay.json.gz")
+    rel = f"scenes/{replay.scene_id}/closed"
+    (root / "summary.json").write_text(json.dumps({
+        "format": "adv3d.attack_summary", "version": 1,
+        "scenes": {replay.scene_id: {"modes": {"closed": {"files": {
+            "meshes": {"7": f"{rel}/actor7.glb"}, "replay": f"{rel}/replay.json.gz"}}}}}}))
+    return folder / "replay.json.gz", replay
+
+
+@pytest.fixture(scope="module")
+def addon():
+    import blender_addon
+
+    blender_addon.register()
+    yield blender_addon
+    blender_addon.unregister()
+
+
+@pytest.fixture
+def ctx(addon):
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    yield bpy.context
+    from blender_addon import review
+
+    review.clear_review(bpy.context.scene)
+
+
+@pytest.fixture(scope="module")
+def bundle(tmp_path_factory, addon):
+    root = tmp_path_factory.mktemp("adv3d_review") / "run"
+    path, _ = write_bundle(root)
+    from adv3d_runner.sim.replay import load_replay
+
+    return root, path, load_replay(path)  # the replay as stored (quantised)
+
+
+def _world_points(obj) -> np.ndarray:
+    mesh = obj.data
+    co = np.empty(len(mesh.vertices) * 3, np.float32)
+    mesh.vertices.foreach_get("co", co)
+    m = np.array(obj.matrix_world)
+    return co.reshape(-1, 3).astype(np.float64) @ m[:3, :3].T + m[:3, 3]
+
+
+def _origin() -> np.ndarray:
+    from blender_addon import review
+
+    return np.array([*bpy.data.collections[review.REVIEW_COLLECTION]["adv3d_origin"], 0.0])
+
+
+def _fcurve_keys(obj, data_path: str, index: int) -> int:
+    from blender_addon.ops_scene import _fcurves
+
+    return next(len(fc.keyframe_points) for fc in _fcurves(obj, create=False)
+                if fc.data_path == data_path and fc.array_index == index)
+
+
+def test_finds_the_replays_of_a_bundle(bundle, tmp_path):
+    from adv3d_runner.errors import FileFormatError
+    from blender_addon import ops_review
+
+    root, path, _ = bundle
+    assert ops_review.find_replays(root) == [("fixture-scene / closed", path)]
+    assert ops_review.find_replays(path) == [(path.name, path)]
+    with pytest.raises(FileFormatError, match="no replay file"):
+        ops_review.find_replays(tmp_path)
+
+
+def test_review_import_creates_objects_and_keyframes(ctx, bundle):
+    from adv3d_runner.shapes.mesh_io import read_library_mesh
+    from blender_addon import meshdata
+
+    root, path, replay = bundle
+    ctx.scene.adv3d.review.path = str(root)
+    assert ctx.scene.adv3d.review.replay == str(path)
+    assert bpy.ops.adv3d.review_load() == {"FINISHED"}
+    objs = bpy.data.objects
+    for name in ("review ego", "review actor 7", "review actor 8", "review lidar", "review detections",
+                 "review predictions", "review plan", "review score 0", "review score 2"):
+        assert name in objs, name
+    assert "review score 3" not in objs  # at most 3 detections per frame
+    assert (ctx.scene.frame_start, ctx.scene.frame_end) == (0, T - 1)
+    # the adversarial actor carries its substituted shape, highlighted; the benign one is a box
+    adv, benign = objs["review actor 7"], objs["review actor 8"]
+    glb = read_library_mesh(path.parent / "actor7.glb")
+    assert len(adv.data.vertices) == len(glb.vertices) and len(benign.data.vertices) == 8
+    assert adv["adv3d_adversarial"] and not benign["adv3d_adversarial"]
+    assert tuple(adv.color) != tuple(benign.color)
+    # keyframes: one per frame where present (the adversarial actor leaves at frame 9)
+    assert _fcurve_keys(objs["review ego"], "location", 0) == T
+    assert _fcurve_keys(adv, "location", 1) == 9 and _fcurve_keys(benign, "rotation_euler", 2) == T
+    origin = _origin()
+    assert np.all(np.abs(replay.ego_poses[0, :2] - origin[:2]) < 1.0)  # shifted to near zero
+    for f in (0, 4, 11):
+        ctx.scene.frame_set(f)
+        ego = np.array(objs["review ego"].matrix_world.translation) + origin
+        np.testing.assert_allclose(ego[:2], replay.ego_poses[f, :2], atol=1e-3)
+        pts = _world_points(objs["review lidar"]) + origin
+        assert len(pts) == len(replay.points[f])
+        np.testing.assert_allclose(pts, replay.points_in_map(f), atol=2e-3)
+        v, _ = meshdata.mesh_arrays(objs["review detections"].data)
+        boxes = replay.frames[f].det_boxes
+        assert len(v) == 8 * len(boxes)
+        np.testing.assert_allclose(v.reshape(-1, 8, 3).mean(axis=1)[:, :2] + origin[:2], boxes[:, :2], atol=1e-3)
+        scores = sorted(f"{s:.2f}" for s in replay.frames[f].det_scores)
+        shown = sorted(o.data.body for o in objs if o.name.startswith("review score") and not o.hide_render)
+        assert shown == scores
+        plan = np.array([p.co[:2] for p in objs["review plan"].data.splines[0].points]) + origin[:2]
+        np.testing.assert_allclose(plan, replay.frames[f].plan[:, :2], atol=1e-3)
+        assert len(objs["review predictions"].data.splines) == 2 * 3  # tracks x modes
+        assert adv.hide_render == (f >= 9)
+        if f < 9:
+            np.testing.assert_allclose(np.array(adv.matrix_world.translation)[:2] + origin[:2],
+                                       replay.actors[0].poses[f, :2], atol=1e-3)
+
+
+def test_scrubbing_updates_points_and_boxes(ctx, bundle):
+    root, path, replay = bundle
+    assert bpy.ops.adv3d.review_load(filepath=str(path)) == {"FINISHED"}
+    objs = bpy.data.objects
+    seen = {}
+    for f in (2, 7, 2):
+        ctx.scene.frame_set(f)
+        pts = _world_points(objs["review lidar"])
+        v = np.empty(len(objs["review detections"].data.vertices) * 3)
+        objs["review detections"].data.vertices.foreach_get("co", v)
+        if f in seen:  # back to the same frame: the same geometry
+            np.testing.assert_array_equal(pts, seen[f][0])
+            np.testing.assert_array_equal(v, seen[f][1])
+        seen[f] = (pts, v)
+    assert seen[2][0].shape != seen[7][0].shape  # 60 vs 110 points
+    assert not np.array_equal(seen[2][1][:24], seen[7][1][:24])
+
+
+def test_panel_draws_review(ctx, bundle):
+    from types import SimpleNamespace
+
+    from blender_addon import panels
+
+    class Layout:
+        seen: list = []
+
+        def prop(self, data, name, **kw):
+            assert name in data.bl_rna.properties, name
+            Layout.seen.append(name)
+
+        def operator(self, idname, **kw):
+            mod, op = idname.split(".")
+            assert hasattr(getattr(bpy.ops, mod), op), idname
+            Layout.seen.append(idname)
+
+        def label(self, **kw):
+            pass
+
+        def __getattr__(self, name):
+            return lambda *a, **kw: Layout()
+
+    ctx.scene.adv3d.review.path = str(bundle[0])
+    bpy.ops.adv3d.review_load()
+    panels.ADV3D_PT_review.draw(SimpleNamespace(layout=Layout()), ctx)
+    assert {"path", "replay", "adv3d.review_load", "adv3d.review_clear"} <= set(Layout.seen)
+    assert bpy.ops.adv3d.review_clear() == {"FINISHED"}
+    assert "review lidar" not in bpy.data.objects and not ctx.scene.adv3d.review.loaded
+
+
+def test_malformed_replay_is_reported(ctx, bundle, tmp_path):
+    import gzip
+
+    root, path, _ = bundle
+    doc = json.loads(gzip.decompress(path.read_bytes()))
+    doc["outputs"][3]["detections"]["scores"].append(0.5)
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps(doc))
+    with pytest.raises(RuntimeError, match=r"\$\.outputs\[3\]\.detections\.scores") as info:
+        bpy.ops.adv3d.review_load(filepath=str(bad))
+    assert "Traceback" not in str(info.value)
+    assert "Adv3D Review" not in bpy.data.collections
+    (tmp_path / "junk.json").write_text("{not json")
+    with pytest.raises(RuntimeError, match="junk.json"):
+        bpy.ops.adv3d.review_load(filepath=str(tmp_path / "junk.json"))
+    # a points file that does not match the replay
+    run = tmp_path / "run"
+    p2, _ = write_bundle(run)
+    np.savez(p2.parent / "replay.points.npz", format=np.array("adv3d-replay-points"), version=np.array(1))
+    with pytest.raises(RuntimeError, match=r"replay\.points\.npz.*\$\.xyz_cm"):
+        bpy.ops.adv3d.review_load(filepath=str(run))
+    # a missing adversarial mesh
+    (p2.parent / "replay.points.npz").unlink()
+    doc = json.loads(gzip.decompress(p2.read_bytes()))
+    doc["points"] = None
+    doc["actors"][0]["mesh"] = "gone.glb"
+    p2.write_bytes(gzip.compress(json.dumps(doc).encode()))
+    with pytest.raises(RuntimeError, match="gone.glb"):
+        bpy.ops.adv3d.review_load(filepath=str(run))
+
+
+def test_replay_loading_does_not_import_torch(repo_root):
+    code = ("import sys; import adv3d_runner.sim.replay, adv3d_runner.shapes.mesh_io; "
+            "sys.exit(int('torch' in sys.modules))")
+    assert subprocess.run([sys.executable, "-c", code], cwd=repo_root).returncode == 0
