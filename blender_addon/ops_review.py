@@ -140,6 +140,7 @@ def load_review(bscene, path: str | Path) -> dict:
 
 # Enum items must stay referenced while Blender shows them (a known bpy pitfall).
 _ITEMS: list[tuple[str, str, str]] = []
+NO_REPLAY = "NONE"
 
 
 def replay_items(self, context):
@@ -150,7 +151,9 @@ def replay_items(self, context):
     except runner.Adv3dError:
         found = []
     _ITEMS.extend((str(p), label, str(p)) for label, p in found)
-    return _ITEMS or [("", "(no replay)", "")]
+    if not _ITEMS:
+        _ITEMS.append((NO_REPLAY, "(no replay)", "Choose a run bundle folder or a replay file"))
+    return _ITEMS
 
 
 class ADV3D_OT_review_load(bpy.types.Operator):
@@ -173,7 +176,9 @@ class ADV3D_OT_review_load(bpy.types.Operator):
             return {"CANCELLED"}
         try:
             found = find_replays(path)
-            want = self.replay or props.replay
+            # the panel's choice lists the panel's bundle; an explicit filepath has its own
+            want = self.replay or ("" if self.filepath else props.replay)
+            want = "" if want == NO_REPLAY else want
             chosen = next((p for label, p in found if want and (str(p) == want or label == want)), found[0][1])
             counts = load_review(context.scene, chosen)
         except runner.Adv3dError as exc:
