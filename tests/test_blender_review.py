@@ -264,3 +264,21 @@ def test_replay_loading_does_not_import_torch(repo_root):
     code = ("import sys; import adv3d_runner.sim.replay, adv3d_runner.shapes.mesh_io; "
             "sys.exit(int('torch' in sys.modules))")
     assert subprocess.run([sys.executable, "-c", code], cwd=repo_root).returncode == 0
+
+
+def test_render_review_frame(bundle, tmp_path, repo_root):
+    """``python -m blender_addon.render --what review`` (what ``adv3d blender render`` runs)."""
+    out = tmp_path / "review.png"
+    cmd = [sys.executable, "-m", "blender_addon.render", "--what", "review", "--run", str(bundle[0]),
+           "--frame", "4", "--size", "160x90", "--out", str(out)]
+    done = subprocess.run(cmd, cwd=repo_root, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
+    from PIL import Image
+
+    pixels = np.asarray(Image.open(out).convert("RGB"), dtype=np.int64)
+    assert pixels.shape == (90, 160, 3)
+    red = (pixels[..., 0] > 120) & (pixels[..., 1] < 90) & (pixels[..., 2] < 110)
+    assert red.sum() > 0  # the adversarial shape is drawn in red
+    bad = subprocess.run(cmd[:-4] + ["--frame", "99", "--out", str(out)], cwd=repo_root, capture_output=True,
+                         text=True)
+    assert bad.returncode == 2 and "--frame must be in [0, 11]" in bad.stderr
