@@ -23,7 +23,8 @@ MUST_SHIP = ("adv3d_runner", "trimesh", "skimage", "lazy_loader")
 # Packages a stock Blender lacks and the extension does not ship: blocked outright, so an
 # add-on code path that needs them fails here rather than on a user's machine.
 NOT_IN_BLENDER = ("scipy", "igl", "embreex", "torch")
-EXPECTED_OPERATORS = ("library_load", "library_save", "shapes_load", "shapes_random", "scene_load", "scene_export")
+EXPECTED_OPERATORS = ("library_load", "library_save", "shapes_load", "shapes_random", "scene_load", "scene_export",
+                      "review_load", "review_clear")
 
 
 class _HideEnvironment:
@@ -72,6 +73,8 @@ def main(argv: list[str]) -> int:
         try:
             import adv3d_runner.scene.schema  # noqa: F401
             import adv3d_runner.shapes.library  # noqa: F401
+            import adv3d_runner.shapes.mesh_io  # noqa: F401  (review: adversarial glb shapes)
+            import adv3d_runner.sim.replay  # noqa: F401  (review: replay files)
             import skimage.measure  # noqa: F401
             import trimesh  # noqa: F401
             from skimage.measure import marching_cubes  # noqa: F401
