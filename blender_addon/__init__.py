@@ -19,11 +19,13 @@ def register() -> None:
     for cls in classes:
         bpy.utils.register_class(cls)
     props.register_pointers()
+    ops_review.add_handlers()
 
 
 def unregister() -> None:
     ops_shapes.cancel_timers()
     review.remove_handler()
+    ops_review.remove_handlers()
     props.unregister_pointers()
     for cls in reversed(classes):
         bpy.utils.unregister_class(cls)

@@ -136,6 +136,44 @@ def load_review(bscene, path: str | Path) -> dict:
     return counts
 
 
+def reattach(bscene) -> bool:
+    """After opening a .blend that holds a review: read its replay again so the per-frame
+    geometry follows the timeline (the arrays are not saved in the .blend). False when the
+    scene holds no review or its replay file is gone or changed shape (the objects then keep
+    the last frame shown)."""
+    from adv3d_runner.sim.replay import load_replay
+
+    coll = bpy.data.collections.get(review.REVIEW_COLLECTION)
+    if coll is None or "adv3d_replay" not in coll or bscene.name in review._LOADED:
+        return False
+    path = Path(coll["adv3d_replay"])
+    try:
+        replay = load_replay(path, points=True)
+        data, origin = replay_to_review(replay, path.parent)
+    except (runner.Adv3dError, OSError, ValueError):
+        return False
+    if not np.allclose(origin, list(coll.get("adv3d_origin", origin))):
+        return False
+    review.attach(bscene, data)
+    return True
+
+
+@bpy.app.handlers.persistent
+def on_load_post(*_args) -> None:
+    for bscene in bpy.data.scenes:
+        reattach(bscene)
+
+
+def add_handlers() -> None:
+    if on_load_post not in bpy.app.handlers.load_post:
+        bpy.app.handlers.load_post.append(on_load_post)
+
+
+def remove_handlers() -> None:
+    while on_load_post in bpy.app.handlers.load_post:
+        bpy.app.handlers.load_post.remove(on_load_post)
+
+
 # --------------------------------------------------------------------------- operators
 
 # Enum items must stay referenced while Blender shows them (a known bpy pitfall).

@@ -29,7 +29,8 @@ LABEL_COLLECTION = "Adv3D Review scores"
 MAX_LABELS = 64  # score labels shown per frame (the highest-scoring first)
 POINT_RADIUS = 0.05  # m, display size of a LiDAR point
 
-# scene name -> the ReviewData shown in it (rebuilt by loading again; not saved in .blend files)
+# scene name -> the ReviewData shown in it (not saved in .blend files: ops_review.reattach reads
+# the replay again when a .blend with a review is opened)
 _LOADED: dict[str, "ReviewData"] = {}
 
 
@@ -173,12 +174,17 @@ def build_review(bscene, data: ReviewData) -> dict:
             obj = bpy.data.objects.new(f"review score {i}", curve)
             labels.objects.link(obj)
             _colour(obj, (0.0, 0.45, 0.1, 1.0))
-    _LOADED[bscene.name] = data
-    if on_frame_change not in bpy.app.handlers.frame_change_post:
-        bpy.app.handlers.frame_change_post.append(on_frame_change)
+    attach(bscene, data)
     bscene.frame_set(0)
     return {"frames": data.frames, "actors": len(data.actors),
             "adversarial": sum(a.adversarial for a in data.actors)}
+
+
+def attach(bscene, data: ReviewData) -> None:
+    """Make the frame handler draw ``data`` in ``bscene`` (its objects already exist)."""
+    _LOADED[bscene.name] = data
+    if on_frame_change not in bpy.app.handlers.frame_change_post:
+        bpy.app.handlers.frame_change_post.append(on_frame_change)
 
 
 def _validate(data: ReviewData) -> None:

@@ -282,3 +282,20 @@ def test_render_review_frame(bundle, tmp_path, repo_root):
     bad = subprocess.run(cmd[:-4] + ["--frame", "99", "--out", str(out)], cwd=repo_root, capture_output=True,
                          text=True)
     assert bad.returncode == 2 and "--frame must be in [0, 11]" in bad.stderr
+
+
+def test_review_follows_the_timeline_after_reopening_the_blend(ctx, bundle, tmp_path):
+    from blender_addon import review
+
+    root, path, replay = bundle
+    assert bpy.ops.adv3d.review_load(filepath=str(path)) == {"FINISHED"}
+    blend = tmp_path / "review.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(blend))
+    review._LOADED.clear()  # as in a fresh Blender
+    bpy.ops.wm.open_mainfile(filepath=str(blend))
+    scene = bpy.context.scene
+    assert scene.name in review._LOADED
+    scene.frame_set(6)
+    lidar = bpy.data.objects["review lidar"]
+    assert len(lidar.data.vertices) == len(replay.points[6])
+    np.testing.assert_allclose(_world_points(lidar) + _origin(), replay.points_in_map(6), atol=2e-3)
