@@ -411,7 +411,29 @@ def versions(cfg: dict) -> dict:
         from ..shapes.shape_space import DEFAULT_SHAPE_SPACE, ShapeSpace
 
         v["shape_space"] = ShapeSpace.load(cfg.get("shape_space") or DEFAULT_SHAPE_SPACE).content_hash
+        if cfg["autonomy"] == "A":
+            v["models"] = model_fingerprints()
     return v
+
+
+def model_fingerprints() -> dict[str, str]:
+    """sha256 (first 16 hex digits) of every file under assets/models/{detector,predictor}: a
+    run's results depend on the weights, which may be retrained between runs."""
+    import hashlib
+
+    from ..fileio import REPO_ROOT
+
+    out = {}
+    for sub in ("detector", "predictor"):
+        d = REPO_ROOT / "assets" / "models" / sub
+        if not d.is_dir():
+            continue
+        h = hashlib.sha256()
+        for f in sorted(p for p in d.rglob("*") if p.is_file() and p.suffix in (".pt", ".json", ".safetensors")):
+            h.update(f.relative_to(d).as_posix().encode())
+            h.update(f.read_bytes())
+        out[sub] = h.hexdigest()[:16]
+    return out
 
 
 def run_attack(config: AttackConfig, out: str | Path, *, workers: int = 1, ray_address: str | None = None,
