@@ -149,7 +149,7 @@ def test_register_unregister_twice(addon):
     for _ in range(2):
         addon.register()
         assert hasattr(bpy.types.Scene, "adv3d") and hasattr(bpy.types.Object, "adv3d")
-        for panel in ("ADV3D_PT_library", "ADV3D_PT_shapes", "ADV3D_PT_scenes"):
+        for panel in ("ADV3D_PT_library", "ADV3D_PT_shapes", "ADV3D_PT_scenes", "ADV3D_PT_review"):
             cls = getattr(bpy.types, panel)
             assert cls.bl_category == "Adv3D" and cls.bl_region_type == "UI"
         addon.unregister()
