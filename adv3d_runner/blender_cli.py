@@ -103,7 +103,8 @@ def register(subparsers) -> None:
     r.add_argument("--run", type=Path, default=None,
                    help="review: run bundle folder (runs/NAME), adv3d simulate output folder, or a replay file")
     r.add_argument("--replay", default=None,
-                   help="review: which replay of the bundle, e.g. 'SCENE_ID / closed' or a scene id (default: the first)")
+                   help="review: which replay of the bundle, e.g. 'SCENE_ID / closed' or a scene id "
+                        "(default: the first)")
     r.add_argument("--size", default="1280x720", help="image size WxH in pixels")
     r.add_argument("--engine", choices=("workbench", "eevee"), default="workbench")
     r.set_defaults(func=cmd_render)

@@ -129,7 +129,8 @@ def main() -> int:
         real = real_replay(path, 5 if args.quick else 2)
     print(f"real replay: {real['frames']} frames, {real['points_per_frame_mean']:.0f} points/frame "
           f"({real['json_mb']:.1f} MB json.gz + {real['points_mb']:.1f} MB npz)")
-    print(f"  load through adv3d.review_load: {real['load_total_s']:.2f} s  (read+validate {real['read_validate_s']:.2f} s, "
+    print(f"  load through adv3d.review_load: {real['load_total_s']:.2f} s  "
+          f"(read+validate {real['read_validate_s']:.2f} s, "
           f"convert {real['convert_s']:.3f} s, build {real['build_s']:.3f} s)")
     print(f"  frame_set median / p95: {real['frame_set_median_ms']:.1f} / {real['frame_set_p95_ms']:.1f} ms, "
           f"max point error {real['max_point_error_m']:.1e} m")
