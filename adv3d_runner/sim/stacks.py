@@ -28,9 +28,9 @@ from ..errors import ConfigError
 AUTONOMY_CHOICES = ("A", "oracle", "A-lanefollow")
 
 #: Detections below this score never start a track in Autonomy-A (they may still update an
-#: existing one). The detector itself keeps a low threshold (0.1) so AP sees the whole
-#: precision-recall curve; without this gate its low-score false positives become tracks in
-#: the ego's lane and the planner brakes for them (bench/sanity.py, docs/episode.md).
+#: existing one). With a detector threshold of 0.1 (the first shipped model) its low-score
+#: false positives became tracks in the ego's lane and the planner braked for them
+#: (bench/sanity.py, docs/episode.md); the gate keeps that from coming back.
 TRACK_MIN_SCORE = 0.5
 
 
