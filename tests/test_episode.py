@@ -163,3 +163,17 @@ def test_short_oracle_episode_has_sane_metrics(free):
     # ground truth in the ROI really is ahead of the ego
     local = boxes_to_frame(r.gt_boxes(0)[np.isfinite(r.gt_boxes(0)).all(axis=1)], r.ego_poses[0])
     assert m["detection"]["n_gt"] <= 15 * int(((local[:, 0] > -5) & (local[:, 0] < 60)).sum())
+
+
+def test_autonomy_a_stack_or_a_clear_error(free):
+    """Autonomy-A is built from the shipped models, or refused with a ConfigError naming them."""
+    scene, world, rig = free
+    try:
+        stack = make_stack("A")
+    except ConfigError as exc:
+        assert "assets/models" in str(exc) and "--autonomy oracle" in str(exc)
+        return
+    assert stack.tracker.config.min_score == 0.5
+    r = run_episode(scene, stack, seconds=0.5, world=world)
+    assert r.frames == 5 and np.isfinite(r.ego_poses).all()
+    assert sum(len(o.detections) for o in r.outputs) > 0  # the learned detector sees the cars
