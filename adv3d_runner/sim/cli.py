@@ -31,8 +31,6 @@ def register(subparsers) -> None:
 
 
 def _simulate(args) -> int:
-    import numpy as np  # noqa: F401  (heavy imports stay in the handler)
-
     from ..errors import ConfigError
     from ..fileio import write_json
     from ..progress import is_quiet, status

@@ -27,7 +27,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from ..autonomy.interface import DT, PREDICTION_STEPS, AutonomyOutputs, EgoState
+from ..autonomy.interface import PREDICTION_STEPS, AutonomyOutputs, EgoState
 from ..errors import ConfigError
 from ..metrics.boxes import boxes_to_frame
 

@@ -101,7 +101,6 @@ class RoadFrame:
         # lanes reaching the ends of the reference line are through lanes
         self.lane_start[self.lane_start <= 1.0] = -np.inf
         self.lane_end[self.lane_end >= total - 1.0] = np.inf
-        self.lane_open = np.minimum(self.lane_open, np.where(np.isfinite(self.lane_open), self.lane_open, np.inf))
         self.road_end = total
 
     @property
