@@ -32,7 +32,6 @@ if hasattr(os, "sched_setaffinity"):
     os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})  # one core, before Embree starts TBB
 
 import argparse
-import platform
 import sys
 import time
 from pathlib import Path
@@ -42,6 +41,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from adv3d_runner.machine import machine_info as _machine_info  # noqa: E402
 from adv3d_runner.fileio import write_json  # noqa: E402
 from adv3d_runner.sensors.beams import generic_model, get_model  # noqa: E402
 from adv3d_runner.sensors.lidar import LidarRig, simulate_frame  # noqa: E402
@@ -53,22 +53,9 @@ DIMS = {"car": (4.6, 1.85, 1.5), "suv": (4.9, 1.95, 1.8), "truck": (9.0, 2.5, 3.
 
 
 def machine_info() -> dict:
-    cpu = platform.processor()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    from importlib.metadata import version
-
-    return {
-        "cpu": cpu, "cores_used": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
-        "python": platform.python_version(), "numpy": np.__version__, "embreex": version("embreex"),
-        "platform": platform.platform(),
-        "threads": "embreex run(): rtcIntersect1 per ray on the calling thread; BVH builds: TBB, pinned to 1 core",
-    }
+    return _machine_info(
+        "numpy", "embreex",
+        threads="embreex run(): rtcIntersect1 per ray on the calling thread; BVH builds: TBB, pinned to 1 core")
 
 
 def build_scene_world(n_actors: int, seed: int = 0):

@@ -14,8 +14,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import sys
 import tempfile
 import time
@@ -26,6 +24,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
+from adv3d_runner.machine import machine_info as _machine_info  # noqa: E402
 from adv3d_runner.scene import lanes as lg  # noqa: E402
 from adv3d_runner.scene.background import background_mesh  # noqa: E402
 from adv3d_runner.scene.generate import DENSITIES, LAYOUTS, generate_scene  # noqa: E402
@@ -33,17 +32,7 @@ from adv3d_runner.scene.schema import load_scene, save_scene  # noqa: E402
 
 
 def machine_info() -> dict:
-    cpu = platform.processor()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return {"cpu": cpu, "cores": os.cpu_count(), "load_average_at_start": list(os.getloadavg()),
-            "python": platform.python_version(), "numpy": np.__version__,
-            "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS"), "platform": platform.platform()}
+    return _machine_info("numpy")
 
 
 def edge_error(scene, step: float) -> float:

@@ -23,7 +23,6 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")  # one core for numpy/BLAS (decode
 
 import argparse
 import json
-import platform
 import sys
 import time
 from pathlib import Path
@@ -33,6 +32,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from adv3d_runner.machine import machine_info as _machine_info  # noqa: E402
 from adv3d_runner.shapes.library import load_asset_mesh, load_library  # noqa: E402
 from adv3d_runner.shapes.sdf import METHODS, GridSpec, sdf_volume  # noqa: E402
 from adv3d_runner.shapes.shape_space import (  # noqa: E402
@@ -44,30 +44,7 @@ from adv3d_runner.shapes.shape_space import (  # noqa: E402
 
 
 def machine_info() -> dict:
-    cpu = platform.processor()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    import igl
-    import skimage
-    import trimesh
-
-    return {
-        "cpu": cpu,
-        "cores": os.cpu_count(),
-        "load_average_at_start": list(os.getloadavg()),
-        "python": platform.python_version(),
-        "numpy": np.__version__,
-        "libigl": getattr(igl, "__version__", "2.6"),
-        "scikit-image": skimage.__version__,
-        "trimesh": trimesh.__version__,
-        "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS"),
-        "platform": platform.platform(),
-    }
+    return _machine_info("numpy", "libigl", "scikit-image", "trimesh")
 
 
 # ------------------------------------------------------------------------------ geometry

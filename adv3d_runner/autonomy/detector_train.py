@@ -15,7 +15,6 @@ truth = actors with >= ``min_points`` returns; detections whose best IoU with an
 from __future__ import annotations
 
 import math
-import platform
 import time
 from typing import Callable
 
@@ -229,15 +228,6 @@ def plot_losses(hist: dict, path, title: str = "") -> None:
 
 
 def machine_info() -> dict:
-    import os
+    from ..machine import machine_info as _machine_info
 
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in open("/proc/cpuinfo"):
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return {"cpu": cpu, "cores": os.cpu_count(), "python": platform.python_version(), "torch": torch.__version__,
-            "numpy": np.__version__, "platform": platform.platform()}
+    return _machine_info("torch", "numpy")
