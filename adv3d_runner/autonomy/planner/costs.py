@@ -62,6 +62,41 @@ def clearance(ego_poses: np.ndarray, ego_dims: tuple[float, float], actor_poses:
     return out
 
 
+def near_actors(ego_poses: np.ndarray, ego_speeds: np.ndarray, ego_dims: tuple[float, float],
+                actor_poses: np.ndarray, actor_dims: np.ndarray, max_distance: float,
+                time_headway: float = 1.0, min_gap: float = 2.0,
+                lateral_margin: float = 0.3) -> tuple[np.ndarray, np.ndarray]:
+    """Which actors can contribute to the interaction terms at all (a cheap, exact pre-filter).
+
+    From the centre distance between every candidate pose and every actor mode at each time:
+    ``clear`` (N,) bool, the actor comes within bounding-circle range + ``max_distance`` of some
+    candidate (elsewhere :func:`clearance` is +inf, so collision, buffer and the rear-end
+    exemption do not see it); ``head`` (N,) bool, it comes closer than the largest desired
+    headway gap (+ half the summed lengths, and the half widths + ``lateral_margin`` across)
+    (elsewhere :func:`headway_cost` gives it 0, which
+    never changes the per-time maximum over actors). ego_poses (B, T, 3), ego_speeds (B, T),
+    actor_poses (N, K, T', 3), actor_dims (N, 2)."""
+    N = actor_poses.shape[0]
+    if N == 0 or ego_poses.shape[0] == 0:
+        return np.zeros(N, bool), np.zeros(N, bool)
+    T = ego_poses.shape[1]
+    ap = actor_poses[:, :, :T]
+    if ap.shape[2] < T:
+        ap = np.concatenate([ap, np.repeat(ap[:, :, -1:], T - ap.shape[2], axis=2)], axis=2)
+    dx = ego_poses[:, None, None, :, 0] - ap[None, ..., 0]
+    dy = ego_poses[:, None, None, :, 1] - ap[None, ..., 1]
+    cd = np.sqrt((dx * dx + dy * dy).min(axis=(0, 2, 3)))  # (N,) closest approach
+    r_e = 0.5 * np.hypot(*ego_dims)
+    r_a = 0.5 * np.hypot(actor_dims[:, 0], actor_dims[:, 1])
+    clear = cd <= r_e + r_a + max_distance + 1e-6
+    desired = min_gap + time_headway * max(float(np.max(ego_speeds)), 0.0)
+    # in the path ahead and short of the gap means lon < desired + half lengths and
+    # |lat| < half widths + margin, so the centres are closer than the hypotenuse of the two
+    head = cd < np.hypot(desired + 0.5 * (ego_dims[0] + actor_dims[:, 0]),
+                         0.5 * (ego_dims[1] + actor_dims[:, 1]) + lateral_margin) + 1e-6
+    return clear, head
+
+
 def road_geometry(poses: np.ndarray, travelled: np.ndarray, corridors: CorridorSet, s_start: np.ndarray,
                   ego_dims: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
     """Lane-centre deviation and off-road excess of candidate poses against every corridor.

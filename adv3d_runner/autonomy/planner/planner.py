@@ -181,7 +181,13 @@ class SamplingPlanner:
         cfg = self.config
         dims = (ego.length, ego.width)
         poses, speeds = cands.poses, cands.speeds
-        dist = costs.clearance(poses, dims, forecast.poses, forecast.dims, max_distance=cfg.buffer + 0.5)
+        # actors that come nowhere near any candidate cannot change the interaction terms: drop
+        # them before the per-pair work (exact, see costs.near_actors)
+        near_clear, near_head = costs.near_actors(poses, speeds, dims, forecast.poses, forecast.dims,
+                                                  cfg.buffer + 0.5, cfg.time_headway, cfg.min_gap)
+        fc = forecast.subset(near_clear)
+        fh = forecast.subset(near_head)
+        dist = costs.clearance(poses, dims, fc.poses, fc.dims, max_distance=cfg.buffer + 0.5)
         travelled = np.concatenate([np.zeros((len(cands), 1)),
                                     np.cumsum(0.5 * (speeds[:, 1:] + speeds[:, :-1]) * cands.dt, axis=1)], axis=1)
         s_start = np.array([float(corridors.project(ci, ego.pose[:2])[0]) for ci in range(len(corridors))])
@@ -195,13 +201,13 @@ class SamplingPlanner:
         # being rear-ended while keeping the lane is not the ego's fault (as nuPlan's at-fault
         # collisions); changing lanes in front of a faster car is
         exempt = None
-        if cfg.exempt_rear_end and len(forecast):
-            exempt = costs.from_behind(poses, forecast.poses) & (cands.spec.corridor == 0)[:, None, None, None]
+        if cfg.exempt_rear_end and len(fc):
+            exempt = costs.from_behind(poses, fc.poses) & (cands.spec.corridor == 0)[:, None, None, None]
         raw = {
-            "collision": costs.collision_cost(dist, forecast.probs, exempt),
+            "collision": costs.collision_cost(dist, fc.probs, exempt),
             "drivable_area": costs.drivable_area_cost(excess),
-            "buffer": costs.buffer_cost(dist, forecast.probs, cfg.buffer, exempt),
-            "headway": costs.headway_cost(poses, speeds, dims, forecast.poses, forecast.dims, forecast.probs,
+            "buffer": costs.buffer_cost(dist, fc.probs, cfg.buffer, exempt),
+            "headway": costs.headway_cost(poses, speeds, dims, fh.poses, fh.dims, fh.probs,
                                           cfg.time_headway, cfg.min_gap),
             "speed_limit": costs.speed_limit_cost(speeds, limits),
             "progress": costs.progress_cost(travelled[:, -1], limit_now * horizon),

@@ -149,6 +149,12 @@ class ActorForecast:
     def __len__(self) -> int:
         return len(self.poses)
 
+    def subset(self, keep: np.ndarray) -> "ActorForecast":
+        """The actors where ``keep`` (N,) bool is true (self when all are kept)."""
+        if keep.all():
+            return self
+        return ActorForecast(self.poses[keep], self.dims[keep], self.probs[keep], self.ids[keep])
+
     @classmethod
     def empty(cls, steps: int, modes: int = 1) -> "ActorForecast":
         return cls(np.zeros((0, modes, steps + 1, 3)), np.zeros((0, 2)), np.zeros((0, modes)), np.zeros(0, np.int64))
@@ -224,75 +230,145 @@ def rollout_candidates(ego_pose: np.ndarray, ego_speed: float, ego_accel: float,
     acc = np.zeros((B, T))
     kap = np.zeros((B, T))
     s_hist = np.empty((B, T + 1))
-    d_hist = np.empty((B, T + 1))
+    d_hist = np.full((B, T + 1), np.nan)
     gap_hist = np.full((B, T + 1), np.inf)
     s_cur = s0.copy()
     a_prev = np.full(B, float(ego_accel))
     half_len = 0.5 * ego_length
     sqrt_ab = 2.0 * np.sqrt(config.idm_accel * config.idm_decel)
-    kappa_max = params.max_curvature
     rows = np.arange(B)
     v_des = np.maximum(spec.target_speed, 0.0)
     stop_target = v_des <= 0.1
     v_des_safe = np.maximum(v_des, 0.1)
+    # everything per candidate that does not change over the rollout is gathered once: the loop
+    # below runs T times over ~25 candidates, so numpy's per-call overhead dominates its cost
+    emergency = np.asarray(spec.emergency, bool)
+    any_emergency = bool(emergency.any())
+    stepper = _Stepper(params, dt)
+    path = _PathQuery(corridors, c)
+    inv_trans = 1.0 / trans_len
+    # the reference path's lateral offset as a function of u (Hermite coefficients per candidate)
+    h3 = 2 * d0 + slope0 - 2 * target_d
+    h2 = -3 * d0 - 2 * slope0 + 3 * target_d
+    h1 = slope0
+    h0 = d0
+    la_time, la_min = config.lookahead_time, config.min_lookahead
+    lat_lim = config.max_lat_accel
+    kappa_max = params.max_curvature
+    jerk_dn = config.max_jerk * dt
+    up_jerk = np.array([config.max_jerk * dt, config.max_release_jerk * dt])
     for k in range(T + 1):
         st = states[:, k]
+        x, y, yaw, v = st[:, 0], st[:, 1], st[:, 2], st[:, 3]
         if k % 5 == 0 or k == T:  # exact projection now and then; in between the arc length driven
             s_cur, d_cur = corridors.project_local(c, st[:, :2], s_cur, window=2)
             d_hist[:, k] = d_cur
-        else:
-            d_hist[:, k] = np.nan
         s_hist[:, k] = s_cur
-        v = st[:, 3]
         # leader: nearest predicted actor ahead in the candidate's corridor at this time
         if has_leaders:
             ls = leader_s[:, :, k]
-            ahead = leader_ok[:, :, k] & (ls > s_cur[:, None])
-            gaps = np.where(ahead, ls - s_cur[:, None] - half_len - leader_len[None, :], np.inf)
-            j = np.argmin(gaps, axis=1)
+            gaps = np.where(leader_ok[:, :, k] & (ls > s_cur[:, None]), ls - (s_cur + half_len)[:, None] - leader_len, np.inf)
+            j = gaps.argmin(axis=1)
             gap = gaps[rows, j]
-            v_lead = np.maximum((leader_s[rows, j, min(k + 1, T)] - ls[rows, j]) / dt, 0.0) if k < T else v
-        else:
-            gap = np.full(B, np.inf)
-            v_lead = v
-        gap_hist[:, k] = gap
+            gap_hist[:, k] = gap
+            if k < T:
+                v_lead = np.maximum((leader_s[rows, j, k + 1] - ls[rows, j]) / dt, 0.0)
         if k == T:
             break
         # ---- longitudinal: IDM towards the target speed
+        r = v / v_des_safe
+        r *= r
         free = np.where(stop_target, -config.idm_decel * np.minimum(1.0, v),  # stop target: brake comfortably
-                        config.idm_accel * (1.0 - (v / v_des_safe) ** 4))
-        free = np.maximum(free, -config.idm_decel)  # above the target: slow down comfortably
-        a = free
+                        config.idm_accel * (1.0 - r * r))
+        a = np.maximum(free, -config.idm_decel)  # above the target: slow down comfortably
         if has_leaders:
-            finite = np.isfinite(gap)
-            s_star = config.idm_gap + np.maximum(0.0, v * config.idm_headway + v * (v - v_lead) / sqrt_ab)
-            interact = np.where(finite, -config.idm_accel * (s_star / np.maximum(gap, 0.1)) ** 2, 0.0)
-            a = np.where(finite & (gap <= 0.0), -config.max_decel, free + interact)
+            finite = gap < np.inf
+            if finite.any():
+                s_star = config.idm_gap + np.maximum(0.0, v * config.idm_headway + v * (v - v_lead) / sqrt_ab)
+                q = s_star / np.maximum(gap, 0.1)
+                a = np.where(finite, np.where(gap <= 0.0, -config.max_decel, a - config.idm_accel * (q * q)), a)
         a = np.minimum(np.maximum(a, -config.max_decel), config.idm_accel)
         # jerk limit; releasing the brakes may be faster (max_release_jerk) so that a plan that
         # braked hard does not keep the ego decelerating for seconds after the reason is gone
-        up = np.where(a_prev < 0, config.max_release_jerk, config.max_jerk)
-        a = np.minimum(np.maximum(a, a_prev - config.max_jerk * dt), a_prev + up * dt)
-        a = np.where(spec.emergency, -config.max_decel, a)
-        a = np.where((v <= 1e-6) & (a < 0), 0.0, a)  # standing still: no braking "stored up"
+        a = np.minimum(np.maximum(a, a_prev - jerk_dn), a_prev + up_jerk[(a_prev < 0).view(np.int8)])
+        if any_emergency:
+            a[emergency] = -config.max_decel
+        a[(v <= 1e-6) & (a < 0)] = 0.0  # standing still: no braking "stored up"
         # ---- lateral: pure pursuit on the reference path
-        ld = np.maximum(config.min_lookahead, v * config.lookahead_time)
-        s_la = s_cur + ld
-        u = np.minimum(np.maximum((s_la - s0) / trans_len, 0.0), 1.0)
-        tgt = corridors.pose_at(c, s_la, _hermite(u, d0, slope0, target_d))
-        dx, dy = tgt[:, 0] - st[:, 0], tgt[:, 1] - st[:, 1]
-        ly = -np.sin(st[:, 2]) * dx + np.cos(st[:, 2]) * dy
-        kappa = 2.0 * ly / np.maximum(dx * dx + dy * dy, 1e-6)
-        k_lim = np.minimum(kappa_max, config.max_lat_accel / np.maximum(v * v, 1e-6))
+        s_la = s_cur + np.maximum(la_min, v * la_time)
+        u = np.minimum(np.maximum((s_la - s0) * inv_trans, 0.0), 1.0)
+        tx, ty = path.point(s_la, ((h3 * u + h2) * u + h1) * u + h0)
+        dx, dy = tx - x, ty - y
+        cy, sy = np.cos(yaw), np.sin(yaw)
+        kappa = 2.0 * (cy * dy - sy * dx) / np.maximum(dx * dx + dy * dy, 1e-6)
+        k_lim = np.minimum(kappa_max, lat_lim / np.maximum(v * v, 1e-6))
         kappa = np.minimum(np.maximum(kappa, -k_lim), k_lim)
-        states[:, k + 1] = step(st, a, curvature=kappa, dt=dt, params=params)
+        stepper(st, a, kappa, states[:, k + 1])
         # the acceleration actually applied (speed clamped at 0 when braking to a stop)
-        a_applied = (states[:, k + 1, 3] - v) / dt
+        v1 = states[:, k + 1, 3]
+        a_applied = (v1 - v) / dt
         acc[:, k] = a_applied
         kap[:, k] = kappa
         a_prev = a_applied
-        s_cur = s_cur + 0.5 * (v + states[:, k + 1, 3]) * dt  # arc length driven (next guess)
+        s_cur = s_cur + 0.5 * (v + v1) * dt  # arc length driven (next guess)
     return Candidates(spec, states, acc, kap, s_hist, d_hist, gap_hist, dt)
+
+
+class _PathQuery:
+    """:meth:`CorridorSet.pose_at` (position only) for a fixed corridor per candidate, with the
+    per-candidate gathers done once (the rollout asks every step)."""
+
+    def __init__(self, corridors: CorridorSet, c: np.ndarray):
+        P = corridors._P
+        self.spacing = corridors.spacing[c]
+        self.inv_spacing = 1.0 / self.spacing
+        self.last = (corridors.n_points[c] - 2).astype(np.float64)
+        self.base_p = c * P
+        self.base_u = c * (P - 1)
+        self.cs = corridors
+
+    def point(self, s: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        fi = np.minimum(np.maximum(np.floor(s * self.inv_spacing), 0.0), self.last)
+        i = fi.astype(np.int64)
+        ku = self.base_u + i
+        kp = self.base_p + i
+        cs = self.cs
+        ux, uy = cs._ux[ku], cs._uy[ku]
+        t = s - fi * self.spacing
+        return cs._px[kp] + t * ux - d * uy, cs._py[kp] + t * uy + d * ux
+
+
+class _Stepper:
+    """:func:`adv3d_runner.sim.kinematics.step` with a curvature input, for (B, 4) states,
+    writing into ``out``: the same arithmetic with the parameter-derived constants computed once."""
+
+    def __init__(self, params: BicycleParams, dt: float):
+        self.p = params
+        self.dt = dt
+        self.k_max = params.max_curvature
+
+    def __call__(self, st: np.ndarray, accel: np.ndarray, curvature: np.ndarray, out: np.ndarray) -> None:
+        p, dt = self.p, self.dt
+        v = np.maximum(st[:, 3], 0.0)
+        a = np.minimum(np.maximum(accel, -p.max_decel), p.max_accel)
+        kappa = np.minimum(np.maximum(curvature, -self.k_max), self.k_max)
+        v_end = v + a * dt
+        stops = v_end < 0
+        if stops.any():
+            t_stop = np.where(stops, v / np.where(a < 0, -a, 1.0), dt)
+            s = np.maximum(np.where(stops, 0.5 * v * t_stop, v * dt + 0.5 * a * dt * dt), 0.0)
+        else:
+            s = np.maximum(v * dt + 0.5 * a * dt * dt, 0.0)
+        direction = st[:, 2]
+        if p.lr:
+            direction = direction + np.arcsin(np.clip(kappa * p.lr, -1.0, 1.0))
+        dth = kappa * s
+        chord = s * np.sinc(dth / (2 * np.pi))
+        mid = direction + 0.5 * dth
+        out[:, 0] = st[:, 0] + chord * np.cos(mid)
+        out[:, 1] = st[:, 1] + chord * np.sin(mid)
+        out[:, 2] = st[:, 2] + dth
+        out[:, 3] = np.minimum(np.maximum(v_end, 0.0), p.max_speed)
 
 
 def _actor_frenet(actors: ActorForecast, corridors: CorridorSet, spec: CandidateSpec, target_d: np.ndarray,
