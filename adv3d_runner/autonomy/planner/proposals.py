@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ...sim.kinematics import BicycleParams, step
+from ...sim.kinematics import BicycleParams
 from .corridor import CorridorSet
 
 
@@ -244,7 +244,6 @@ def rollout_candidates(ego_pose: np.ndarray, ego_speed: float, ego_accel: float,
     # below runs T times over ~25 candidates, so numpy's per-call overhead dominates its cost
     emergency = np.asarray(spec.emergency, bool)
     any_emergency = bool(emergency.any())
-    stepper = _Stepper(params, dt)
     path = _PathQuery(corridors, c)
     inv_trans = 1.0 / trans_len
     # the reference path's lateral offset as a function of u (Hermite coefficients per candidate)
@@ -257,22 +256,34 @@ def rollout_candidates(ego_pose: np.ndarray, ego_speed: float, ego_accel: float,
     kappa_max = params.max_curvature
     jerk_dn = config.max_jerk * dt
     up_jerk = np.array([config.max_jerk * dt, config.max_release_jerk * dt])
+    # the bicycle step (:func:`adv3d_runner.sim.kinematics.step` with a curvature input) is
+    # inlined below with its parameter-derived constants computed once
+    max_acc, max_dec, max_speed = params.max_accel, params.max_decel, params.max_speed
+    k_max = min(kappa_max, params.max_curvature)
+    lr = params.lr
+    half_dt2 = 0.5 * dt * dt
+    inv_2pi = 1.0 / (2 * np.pi)
+    if has_leaders:  # time-major copies: one contiguous (B, M) slab per step
+        lead_s_t = np.ascontiguousarray(leader_s.transpose(2, 0, 1))
+        lead_ok_t = np.ascontiguousarray(leader_ok.transpose(2, 0, 1))
+        lead_len_half = leader_len + half_len
+    x, y, yaw, v = (states[:, 0, i].copy() for i in range(4))
     for k in range(T + 1):
-        st = states[:, k]
-        x, y, yaw, v = st[:, 0], st[:, 1], st[:, 2], st[:, 3]
         if k % 5 == 0 or k == T:  # exact projection now and then; in between the arc length driven
-            s_cur, d_cur = corridors.project_local(c, st[:, :2], s_cur, window=2)
+            s_cur, d_cur = path.project(x, y, s_cur, window=2)
             d_hist[:, k] = d_cur
         s_hist[:, k] = s_cur
         # leader: nearest predicted actor ahead in the candidate's corridor at this time
         if has_leaders:
-            ls = leader_s[:, :, k]
-            gaps = np.where(leader_ok[:, :, k] & (ls > s_cur[:, None]), ls - (s_cur + half_len)[:, None] - leader_len, np.inf)
+            ls = lead_s_t[k]
+            gaps = ls - lead_len_half
+            gaps -= s_cur[:, None]
+            gaps[~(lead_ok_t[k] & (ls > s_cur[:, None]))] = np.inf
             j = gaps.argmin(axis=1)
             gap = gaps[rows, j]
             gap_hist[:, k] = gap
             if k < T:
-                v_lead = np.maximum((leader_s[rows, j, k + 1] - ls[rows, j]) / dt, 0.0)
+                v_lead = np.maximum((lead_s_t[k + 1][rows, j] - ls[rows, j]) / dt, 0.0)
         if k == T:
             break
         # ---- longitudinal: IDM towards the target speed
@@ -299,18 +310,36 @@ def rollout_candidates(ego_pose: np.ndarray, ego_speed: float, ego_accel: float,
         u = np.minimum(np.maximum((s_la - s0) * inv_trans, 0.0), 1.0)
         tx, ty = path.point(s_la, ((h3 * u + h2) * u + h1) * u + h0)
         dx, dy = tx - x, ty - y
-        cy, sy = np.cos(yaw), np.sin(yaw)
-        kappa = 2.0 * (cy * dy - sy * dx) / np.maximum(dx * dx + dy * dy, 1e-6)
+        kappa = 2.0 * (np.cos(yaw) * dy - np.sin(yaw) * dx) / np.maximum(dx * dx + dy * dy, 1e-6)
         k_lim = np.minimum(kappa_max, lat_lim / np.maximum(v * v, 1e-6))
         kappa = np.minimum(np.maximum(kappa, -k_lim), k_lim)
-        stepper(st, a, kappa, states[:, k + 1])
+        # ---- motion: exact arc of the kinematic bicycle, speed >= 0 (kinematics.step)
+        vc = np.maximum(v, 0.0)
+        a = np.minimum(np.maximum(a, -max_dec), max_acc)
+        kappa_s = np.minimum(np.maximum(kappa, -k_max), k_max)
+        v_end = vc + a * dt
+        stops = v_end < 0
+        if stops.any():  # a braking vehicle stops when v reaches 0 and stays there
+            t_stop = np.where(stops, vc / np.where(a < 0, -a, 1.0), dt)
+            s_step = np.maximum(np.where(stops, 0.5 * vc * t_stop, vc * dt + a * half_dt2), 0.0)
+        else:
+            s_step = np.maximum(vc * dt + a * half_dt2, 0.0)
+        direction = yaw if not lr else yaw + np.arcsin(np.clip(kappa_s * lr, -1.0, 1.0))
+        dth = kappa_s * s_step
+        chord = s_step * np.sinc(dth * inv_2pi)
+        mid = direction + 0.5 * dth
+        x = x + chord * np.cos(mid)
+        y = y + chord * np.sin(mid)
+        yaw = yaw + dth
+        v1 = np.minimum(np.maximum(v_end, 0.0), max_speed)
+        states[:, k + 1, 0], states[:, k + 1, 1], states[:, k + 1, 2], states[:, k + 1, 3] = x, y, yaw, v1
         # the acceleration actually applied (speed clamped at 0 when braking to a stop)
-        v1 = states[:, k + 1, 3]
         a_applied = (v1 - v) / dt
         acc[:, k] = a_applied
         kap[:, k] = kappa
         a_prev = a_applied
         s_cur = s_cur + 0.5 * (v + v1) * dt  # arc length driven (next guess)
+        v = v1
     return Candidates(spec, states, acc, kap, s_hist, d_hist, gap_hist, dt)
 
 
@@ -326,6 +355,35 @@ class _PathQuery:
         self.base_p = c * P
         self.base_u = c * (P - 1)
         self.cs = corridors
+        self.last_i = corridors.n_points[c] - 2
+        self.spacing_col = self.spacing[:, None]
+        self._window = None
+
+    def project(self, x: np.ndarray, y: np.ndarray, s_guess: np.ndarray, window: int = 2) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`CorridorSet.project_local` of one point per candidate (same arithmetic)."""
+        if self._window != window:
+            self._window = window
+            self._offs = np.arange(-window, window + 1)
+        cs = self.cs
+        i0 = np.floor(s_guess * self.inv_spacing).astype(np.int64)
+        i0 = np.minimum(np.maximum(i0, 0), self.last_i)
+        idx = np.minimum(np.maximum(i0[:, None] + self._offs, 0), self.last_i[:, None])
+        kp = self.base_p[:, None] + idx
+        ku = self.base_u[:, None] + idx
+        ux, uy = cs._ux[ku], cs._uy[ku]
+        rx, ry = x[:, None] - cs._px[kp], y[:, None] - cs._py[kp]
+        t = rx * ux + ry * uy
+        # the first / last segment extend to infinity
+        lo = np.where(idx == 0, -np.inf, 0.0)
+        hi = np.where(idx == self.last_i[:, None], np.inf, self.spacing_col)
+        tc = np.minimum(np.maximum(t, lo), hi)
+        ex, ey = rx - tc * ux, ry - tc * uy
+        best = np.argmin(ex * ex + ey * ey, axis=1)
+        r = np.arange(len(best))
+        ib, tb = idx[r, best], tc[r, best]
+        s = ib * self.spacing + tb
+        d = ux[r, best] * ry[r, best] - uy[r, best] * rx[r, best]
+        return s, d
 
     def point(self, s: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         fi = np.minimum(np.maximum(np.floor(s * self.inv_spacing), 0.0), self.last)
@@ -336,39 +394,6 @@ class _PathQuery:
         ux, uy = cs._ux[ku], cs._uy[ku]
         t = s - fi * self.spacing
         return cs._px[kp] + t * ux - d * uy, cs._py[kp] + t * uy + d * ux
-
-
-class _Stepper:
-    """:func:`adv3d_runner.sim.kinematics.step` with a curvature input, for (B, 4) states,
-    writing into ``out``: the same arithmetic with the parameter-derived constants computed once."""
-
-    def __init__(self, params: BicycleParams, dt: float):
-        self.p = params
-        self.dt = dt
-        self.k_max = params.max_curvature
-
-    def __call__(self, st: np.ndarray, accel: np.ndarray, curvature: np.ndarray, out: np.ndarray) -> None:
-        p, dt = self.p, self.dt
-        v = np.maximum(st[:, 3], 0.0)
-        a = np.minimum(np.maximum(accel, -p.max_decel), p.max_accel)
-        kappa = np.minimum(np.maximum(curvature, -self.k_max), self.k_max)
-        v_end = v + a * dt
-        stops = v_end < 0
-        if stops.any():
-            t_stop = np.where(stops, v / np.where(a < 0, -a, 1.0), dt)
-            s = np.maximum(np.where(stops, 0.5 * v * t_stop, v * dt + 0.5 * a * dt * dt), 0.0)
-        else:
-            s = np.maximum(v * dt + 0.5 * a * dt * dt, 0.0)
-        direction = st[:, 2]
-        if p.lr:
-            direction = direction + np.arcsin(np.clip(kappa * p.lr, -1.0, 1.0))
-        dth = kappa * s
-        chord = s * np.sinc(dth / (2 * np.pi))
-        mid = direction + 0.5 * dth
-        out[:, 0] = st[:, 0] + chord * np.cos(mid)
-        out[:, 1] = st[:, 1] + chord * np.sin(mid)
-        out[:, 2] = st[:, 2] + dth
-        out[:, 3] = np.minimum(np.maximum(v_end, 0.0), p.max_speed)
 
 
 def _actor_frenet(actors: ActorForecast, corridors: CorridorSet, spec: CandidateSpec, target_d: np.ndarray,
@@ -397,7 +422,7 @@ def _actor_frenet(actors: ActorForecast, corridors: CorridorSet, spec: Candidate
     left = right - 1
     w = (np.arange(T + 1) - coarse[left]) / np.maximum(coarse[right] - coarse[left], 1)
     for ci in range(len(corridors)):
-        s_c, _ = corridors.project(ci, xy[:, coarse])
+        s_c, _ = corridors.project_near(ci, xy[:, coarse])
         guess = s_c[..., left] * (1 - w) + s_c[..., right] * w
         s_ci, d_ci = corridors.project_local(np.full(guess.shape, ci), xy, guess, window=2)
         s_all[ci, relevant] = s_ci
