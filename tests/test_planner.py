@@ -221,6 +221,9 @@ def test_simple_terms():
     assert costs.offset_change_cost(np.array([0.5, 0.0, -0.5, np.nan]), same, 0.0).tolist() == [0.5, 0.0, 0.0, 0.0]
     assert costs.offset_change_cost(np.array([0.5, 0.0, -0.5]), np.ones(3, bool), 0.5).tolist() == [0.0, 0.5, 1.0]
     assert costs.offset_change_cost(np.array([0.5]), np.array([True]), None).tolist() == [0.0]
+    # a change not yet confirmed by the previous plan costs (1 + factor) times as much
+    assert costs.offset_change_cost(np.array([0.5, -0.5, 0.0]), np.ones(3, bool), 0.0, 0.5, 4.0).tolist() == [0.5, 2.5, 0.0]
+    assert costs.offset_change_cost(np.array([0.5, 0.0]), np.ones(2, bool), 0.0, None, 4.0).tolist() == [2.5, 0.0]
 
 
 def test_road_geometry_on_a_straight_lane():
@@ -314,3 +317,36 @@ def test_plan_with_scores_reports_every_term():
     assert plan.cost == pytest.approx(sum(plan.cost_terms.values()))
     assert plan.trajectory.shape == (51, 3) and plan.acceleration.shape == (50,)
     assert np.allclose(plan.trajectory[0], [0.0, LANE_W, 0.0]) and plan.speed[0] == 10.0
+
+
+def test_one_frame_obstacle_does_not_make_the_offset_dither():
+    """A-B-A dithering of the in-lane offset: a slightly slower car predicted at the lane's left
+    edge for one frame only (as a fresh, noisy track can be) made the planner nudge right for that
+    frame and come straight back. An offset change must be preferred on two consecutive plans
+    before it is taken; a nudge that stays worthwhile is still taken (one plan later)."""
+    lanes = straight_lanes(1, limit=25.0)
+
+    def inputs(present, t):
+        if not present:
+            return actor_inputs(np.zeros((0, 5)), np.zeros((0, 60, 2)))
+        x = 50.0 + 22.0 * t  # 22 m/s, 50 m ahead of the ego's start, overlapping the left edge
+        now = np.array([[x, 2.0, 4.6, 1.9, 0.0]])
+        return actor_inputs(now, (now[0, :2] + np.c_[22.0 * DT * np.arange(1, 61), np.zeros(60)])[None])
+
+    def offsets(frames_with_car, n=6):
+        planner, ego, out = SamplingPlanner(), EgoState([0.0, 0.0, 0.0], 25.0), []
+        for k in range(n):
+            tracks, preds = inputs(k in frames_with_car, k * DT)
+            plan = planner.plan(ego, lanes, preds, tracks)
+            out.append(plan.label.split("/")[1])
+            ego = EgoState(plan.trajectory[1], plan.speed[1], acceleration=float(plan.acceleration[0]),
+                           time=(k + 1) * DT)
+        return out
+
+    # the car makes a right nudge the cheapest plan (it is then not a leader to follow) ...
+    tracks, preds = inputs(True, 0.0)
+    assert SamplingPlanner().plan(EgoState([0.0, 0.0, 0.0], 25.0), lanes, preds, tracks).label.split("/")[1] == "d-0.5"
+    # ... but seen for one frame only while driving on the centre it changes nothing
+    assert offsets({2}) == ["d+0.0"] * 6
+    # seen for good, the nudge is taken one plan after it first appears, and kept
+    assert offsets(set(range(2, 6))) == ["d+0.0"] * 3 + ["d-0.5"] * 3

@@ -261,14 +261,26 @@ def lane_change_cost(is_current: np.ndarray, is_committed: np.ndarray) -> np.nda
     return np.where(np.asarray(is_current, bool) | np.asarray(is_committed, bool), 0.0, 1.0)
 
 
-def offset_change_cost(offsets: np.ndarray, same_target: np.ndarray, previous_offset: float | None) -> np.ndarray:
+def offset_change_cost(offsets: np.ndarray, same_target: np.ndarray, previous_offset: float | None,
+                       confirmed_offset: float | None = None, unconfirmed_factor: float = 0.0) -> np.ndarray:
     """|target lateral offset - the previous plan's| (m) for candidates on the previous plan's
     target lane: hysteresis against flipping between in-lane nudges (weighted below the lane-centre
     term, so a nudge that is no longer needed is still undone). 0 on other lanes (see
     :func:`lane_change_cost`), for the first plan, and for candidates keeping their present
-    offset (NaN)."""
+    offset (NaN).
+
+    Confirmation: a change to an offset other than ``confirmed_offset`` (the offset the
+    previous plan would have chosen without this surcharge, see
+    :class:`~.planner.SamplingPlanner`) costs ``1 + unconfirmed_factor`` times as much, so a
+    nudge is only taken once it has been the best choice on two consecutive plans: a one-frame
+    blip in the predictions (a fresh, noisy track) does not make the offset go A-B-A."""
     off = np.asarray(offsets, dtype=np.float64)
     if previous_offset is None or not np.isfinite(previous_offset):
         return np.zeros(off.shape)
     change = np.abs(off - previous_offset)
-    return np.where(np.asarray(same_target, bool) & np.isfinite(change), change, 0.0)
+    cost = np.where(np.asarray(same_target, bool) & np.isfinite(change), change, 0.0)
+    if unconfirmed_factor > 0.0:
+        confirmed = confirmed_offset is not None and np.isfinite(confirmed_offset)
+        pending = ~np.isclose(off, confirmed_offset) if confirmed else np.ones(off.shape, bool)
+        cost = np.where(pending, cost * (1.0 + unconfirmed_factor), cost)
+    return cost

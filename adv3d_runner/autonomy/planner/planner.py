@@ -41,6 +41,9 @@ class PlannerConfig:
             lane (brakes to a stop), m.
         exempt_rear_end: ignore collisions and buffer violations with actors that come from
             behind in the same direction, for candidates that keep the current lane.
+        offset_confirm_factor: an in-lane offset change that was not already the (unsurcharged)
+            choice of the previous plan costs this much more in the offset-change term
+            (:func:`.costs.offset_change_cost`): nudges need two consecutive plans to agree.
     """
 
     proposals: ProposalConfig = field(default_factory=ProposalConfig)
@@ -53,6 +56,7 @@ class PlannerConfig:
     default_speed_limit: float = DEFAULT_SPEED_LIMIT
     off_lane_distance: float = 10.0
     exempt_rear_end: bool = True
+    offset_confirm_factor: float = 4.0
 
 
 def forecast_from(predictions: Predictions | None, tracks: Tracks | None, steps: int, dt: float,
@@ -123,9 +127,10 @@ class SamplingPlanner:
         self.reset()
 
     def reset(self) -> None:
-        """Forget the previous plan's target (lane-change and offset hysteresis)."""
+        """Forget the previous plan's target (lane-change and offset hysteresis, offset confirmation)."""
         self._prev_target_ids: frozenset[int] = frozenset()  # lane ids of the previous target corridor
         self._prev_offset: float | None = None
+        self._confirmed_offset: float | None = None  # offset the previous plan wanted before confirmation
 
     def plan(self, ego: EgoState, lanes: Sequence[Any], predictions: Predictions | None = None,
              tracks: Tracks | None = None) -> Plan:
@@ -166,6 +171,13 @@ class SamplingPlanner:
                                    ego.length, ego.width, pc, params)
         table = self.score_candidates(cands, corridors, forecast, ego, limit_now)
         i = table.best
+        # what this plan would have chosen without the confirmation surcharge: a change to that
+        # offset is confirmed for the next plan
+        raw_oc = table.raw["offset_change"]  # > 0 exactly where the plain |change| is > 0
+        plain_oc = costs.offset_change_cost(spec.offset, raw_oc > 0, self._prev_offset)
+        base = table.total - cfg.weights.offset_change * (raw_oc - plain_oc)
+        w = int(np.argmin(base))
+        self._confirmed_offset = None if spec.emergency[w] else float(spec.offset[w])
         self._prev_target_ids = frozenset(corridors.corridors[int(spec.corridor[i])].lane_ids)
         self._prev_offset = None if spec.emergency[i] else float(spec.offset[i])
         traj = cands.poses[i].copy()
@@ -213,7 +225,8 @@ class SamplingPlanner:
             "progress": costs.progress_cost(travelled[:, -1], limit_now * horizon),
             "lane_center": costs.lane_center_cost(dev),
             "lane_change": costs.lane_change_cost(cands.spec.corridor == 0, same),
-            "offset_change": costs.offset_change_cost(cands.spec.offset, same, self._prev_offset),
+            "offset_change": costs.offset_change_cost(cands.spec.offset, same, self._prev_offset,
+                                                      self._confirmed_offset, cfg.offset_confirm_factor),
             "jerk": costs.jerk_cost(cands.accel, ego.acceleration, cands.dt),
             "lat_accel": costs.lateral_accel_cost(speeds[:, :-1], cands.curvature),
         }

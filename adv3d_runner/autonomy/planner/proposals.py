@@ -221,8 +221,6 @@ def rollout_candidates(ego_pose: np.ndarray, ego_speed: float, ego_accel: float,
 
     # actors' Frenet coordinates on each corridor, for the IDM leader
     leader_s, leader_ok, leader_len = _actor_frenet(actors, corridors, spec, target_d, ego_width, config, T)
-    used = leader_ok.any(axis=(0, 2))  # actor-modes that are ever in some candidate's lane
-    leader_s, leader_ok, leader_len = leader_s[:, used], leader_ok[:, used], leader_len[used]
     has_leaders = leader_s.shape[1] > 0
 
     states = np.empty((B, T + 1, 4))
@@ -398,11 +396,12 @@ class _PathQuery:
 
 def _actor_frenet(actors: ActorForecast, corridors: CorridorSet, spec: CandidateSpec, target_d: np.ndarray,
                   ego_width: float, config: ProposalConfig, T: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per candidate, the (N*K) actor-mode arc lengths on its corridor over time and whether the
-    actor-mode is inside the candidate's lane strip (around its target offset).
+    """Per candidate, the actor-mode arc lengths on its corridor over time and whether the
+    actor-mode is inside the candidate's lane strip (around its target offset), for the M of the
+    N * K actor-modes that are ever inside some candidate's strip.
 
     Returns:
-        s (B, M, T + 1), ok (B, M, T + 1) bool, half_length (M,) with M = N * K.
+        s (B, M, T + 1), ok (B, M, T + 1) bool, half_length (M,).
     """
     B = len(spec)
     N = len(actors)
@@ -430,9 +429,15 @@ def _actor_frenet(actors: ActorForecast, corridors: CorridorSet, spec: Candidate
     half_w = np.repeat(0.5 * actors.dims[:, 1], K)
     half_l = np.repeat(0.5 * actors.dims[:, 0], K)
     prob_ok = (actors.probs.reshape(M) >= config.min_mode_prob)
-    s = s_all[spec.corridor]  # (B, M, T+1)
-    d = d_all[spec.corridor]
+    # candidates sharing a corridor and a target offset share their leaders: decide once per
+    # (corridor, offset) group, keep only the actor-modes that are ever in some group's lane
+    key = np.stack([spec.corridor.astype(np.float64), target_d], axis=1)
+    groups, inv = np.unique(key, axis=0, return_inverse=True)
+    inv = inv.reshape(-1)
+    gc = groups[:, 0].astype(np.int64)
     # an actor is in the candidate's lane when its footprint overlaps the ego's lateral band
-    lat = np.abs(d - target_d[:, None, None])
+    lat = np.abs(d_all[gc] - groups[:, 1][:, None, None])  # (G, M, T+1)
     ok = (lat < (0.5 * ego_width + half_w[None, :, None] + config.lane_margin)) & prob_ok[None, :, None]
-    return s, ok, half_l
+    used = ok.any(axis=(0, 2))
+    s = s_all[:, used][gc[inv]]  # (B, M_used, T+1)
+    return s, ok[:, used][inv], half_l[used]
