@@ -52,3 +52,15 @@ def test_atomic_write_gives_a_normal_file_mode(tmp_path):
     os.chmod(target, 0o640)  # a user's own mode is kept on rewrite
     write_json(target, {"a": 2})
     assert target.stat().st_mode & 0o777 == 0o640
+
+
+def test_demo_decodes_vehicles_and_attacks(tmp_path):
+    import trimesh
+
+    out = tmp_path / "demo"
+    assert main(["-q", "demo", "--out", str(out), "--budget", "2", "--seconds", "0.5"]) == 0
+    mesh = trimesh.load(out / "mean_vehicle.glb", force="mesh")
+    assert mesh.is_watertight and len(mesh.faces) > 1000
+    lines = (out / "attack" / "queries.jsonl").read_text().splitlines()
+    assert len(lines) == 2 and all(json.loads(line)["status"] == "ok" for line in lines)
+    assert "Original" in (out / "attack" / "report.md").read_text()
