@@ -223,13 +223,14 @@ def rollout_candidates(ego_pose: np.ndarray, ego_speed: float, ego_accel: float,
     leader_s, leader_ok, leader_len = _actor_frenet(actors, corridors, spec, target_d, ego_width, config, T)
     has_leaders = leader_s.shape[1] > 0
 
-    states = np.empty((B, T + 1, 4))
-    states[:, 0] = [pose[0], pose[1], pose[2], v0]
-    acc = np.zeros((B, T))
-    kap = np.zeros((B, T))
-    s_hist = np.empty((B, T + 1))
-    d_hist = np.full((B, T + 1), np.nan)
-    gap_hist = np.full((B, T + 1), np.inf)
+    # time-major buffers (one contiguous row per step), transposed once at the end
+    states = np.empty((4, T + 1, B))
+    states[:, 0] = np.array([pose[0], pose[1], pose[2], v0])[:, None]
+    acc = np.zeros((T, B))
+    kap = np.zeros((T, B))
+    s_hist = np.empty((T + 1, B))
+    d_hist = np.full((T + 1, B), np.nan)
+    gap_hist = np.full((T + 1, B), np.inf)
     s_cur = s0.copy()
     a_prev = np.full(B, float(ego_accel))
     half_len = 0.5 * ego_length
@@ -241,7 +242,7 @@ def rollout_candidates(ego_pose: np.ndarray, ego_speed: float, ego_accel: float,
     # everything per candidate that does not change over the rollout is gathered once: the loop
     # below runs T times over ~25 candidates, so numpy's per-call overhead dominates its cost
     emergency = np.asarray(spec.emergency, bool)
-    any_emergency = bool(emergency.any())
+    em_rows = np.flatnonzero(emergency)
     path = _PathQuery(corridors, c)
     inv_trans = 1.0 / trans_len
     # the reference path's lateral offset as a function of u (Hermite coefficients per candidate)
@@ -257,29 +258,29 @@ def rollout_candidates(ego_pose: np.ndarray, ego_speed: float, ego_accel: float,
     # the bicycle step (:func:`adv3d_runner.sim.kinematics.step` with a curvature input) is
     # inlined below with its parameter-derived constants computed once
     max_acc, max_dec, max_speed = params.max_accel, params.max_decel, params.max_speed
-    k_max = min(kappa_max, params.max_curvature)
     lr = params.lr
     half_dt2 = 0.5 * dt * dt
-    inv_2pi = 1.0 / (2 * np.pi)
+    two_pi = 2 * np.pi
     if has_leaders:  # time-major copies: one contiguous (B, M) slab per step
         lead_s_t = np.ascontiguousarray(leader_s.transpose(2, 0, 1))
         lead_ok_t = np.ascontiguousarray(leader_ok.transpose(2, 0, 1))
         lead_len_half = leader_len + half_len
-    x, y, yaw, v = (states[:, 0, i].copy() for i in range(4))
+    x, y, yaw, v = (states[i, 0].copy() for i in range(4))
+    # the proposal's own limits are within the vehicle's: the step's clamps would be no-ops
+    clamp_accel = not (-max_dec <= -config.max_decel and config.idm_accel <= max_acc)
     for k in range(T + 1):
         if k % 5 == 0 or k == T:  # exact projection now and then; in between the arc length driven
             s_cur, d_cur = path.project(x, y, s_cur, window=2)
-            d_hist[:, k] = d_cur
-        s_hist[:, k] = s_cur
+            d_hist[k] = d_cur
+        s_hist[k] = s_cur
         # leader: nearest predicted actor ahead in the candidate's corridor at this time
         if has_leaders:
             ls = lead_s_t[k]
-            gaps = ls - lead_len_half
-            gaps -= s_cur[:, None]
-            gaps[~(lead_ok_t[k] & (ls > s_cur[:, None]))] = np.inf
+            sc = s_cur[:, None]
+            gaps = np.where(lead_ok_t[k] & (ls > sc), ls - sc - lead_len_half, np.inf)
             j = gaps.argmin(axis=1)
             gap = gaps[rows, j]
-            gap_hist[:, k] = gap
+            gap_hist[k] = gap
             if k < T:
                 v_lead = np.maximum((lead_s_t[k + 1][rows, j] - ls[rows, j]) / dt, 0.0)
         if k == T:
@@ -300,9 +301,10 @@ def rollout_candidates(ego_pose: np.ndarray, ego_speed: float, ego_accel: float,
         # jerk limit; releasing the brakes may be faster (max_release_jerk) so that a plan that
         # braked hard does not keep the ego decelerating for seconds after the reason is gone
         a = np.minimum(np.maximum(a, a_prev - jerk_dn), a_prev + up_jerk[(a_prev < 0).view(np.int8)])
-        if any_emergency:
-            a[emergency] = -config.max_decel
-        a[(v <= 1e-6) & (a < 0)] = 0.0  # standing still: no braking "stored up"
+        if len(em_rows):
+            a[em_rows] = -config.max_decel
+        if v.min() <= 1e-6:
+            a[(v <= 1e-6) & (a < 0)] = 0.0  # standing still: no braking "stored up"
         # ---- lateral: pure pursuit on the reference path
         s_la = s_cur + np.maximum(la_min, v * la_time)
         u = np.minimum(np.maximum((s_la - s0) * inv_trans, 0.0), 1.0)
@@ -312,9 +314,10 @@ def rollout_candidates(ego_pose: np.ndarray, ego_speed: float, ego_accel: float,
         k_lim = np.minimum(kappa_max, lat_lim / np.maximum(v * v, 1e-6))
         kappa = np.minimum(np.maximum(kappa, -k_lim), k_lim)
         # ---- motion: exact arc of the kinematic bicycle, speed >= 0 (kinematics.step)
-        vc = np.maximum(v, 0.0)
-        a = np.minimum(np.maximum(a, -max_dec), max_acc)
-        kappa_s = np.minimum(np.maximum(kappa, -k_max), k_max)
+        vc = v  # >= 0: the start speed is clamped and every step keeps it so
+        if clamp_accel:
+            a = np.minimum(np.maximum(a, -max_dec), max_acc)
+        kappa_s = kappa  # already within +-kappa_max (the vehicle's steering limit)
         v_end = vc + a * dt
         stops = v_end < 0
         if stops.any():  # a braking vehicle stops when v reaches 0 and stays there
@@ -324,21 +327,26 @@ def rollout_candidates(ego_pose: np.ndarray, ego_speed: float, ego_accel: float,
             s_step = np.maximum(vc * dt + a * half_dt2, 0.0)
         direction = yaw if not lr else yaw + np.arcsin(np.clip(kappa_s * lr, -1.0, 1.0))
         dth = kappa_s * s_step
-        chord = s_step * np.sinc(dth * inv_2pi)
+        # s sin(dth / 2) / (dth / 2), as numpy.sinc computes it (exact and finite at dth = 0)
+        xs = dth / two_pi
+        ys = np.pi * np.where(xs == 0, 1.0e-20, xs)
+        chord = s_step * (np.sin(ys) / ys)
         mid = direction + 0.5 * dth
         x = x + chord * np.cos(mid)
         y = y + chord * np.sin(mid)
         yaw = yaw + dth
         v1 = np.minimum(np.maximum(v_end, 0.0), max_speed)
-        states[:, k + 1, 0], states[:, k + 1, 1], states[:, k + 1, 2], states[:, k + 1, 3] = x, y, yaw, v1
+        states[0, k + 1], states[1, k + 1], states[2, k + 1], states[3, k + 1] = x, y, yaw, v1
         # the acceleration actually applied (speed clamped at 0 when braking to a stop)
         a_applied = (v1 - v) / dt
-        acc[:, k] = a_applied
-        kap[:, k] = kappa
+        acc[k] = a_applied
+        kap[k] = kappa
         a_prev = a_applied
         s_cur = s_cur + 0.5 * (v + v1) * dt  # arc length driven (next guess)
         v = v1
-    return Candidates(spec, states, acc, kap, s_hist, d_hist, gap_hist, dt)
+    return Candidates(spec, np.ascontiguousarray(states.transpose(2, 1, 0)), np.ascontiguousarray(acc.T),
+                      np.ascontiguousarray(kap.T), np.ascontiguousarray(s_hist.T), np.ascontiguousarray(d_hist.T),
+                      np.ascontiguousarray(gap_hist.T), dt)
 
 
 class _PathQuery:
