@@ -379,23 +379,21 @@ class CorridorSet:
             d_out[a:a + chunk] = u[best, 0] * ry[rows, best] - u[best, 1] * rx[rows, best]
         return s_out.reshape(xy.shape[:-1]), d_out.reshape(xy.shape[:-1])
 
-    def project_near(self, c: int, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """:meth:`project` through the nearest corridor point (k-d tree) and a local search of
-        3 segments either side of it: the same result wherever the closest segment is within
-        6 m along the corridor of the closest sample point (always on lane-like curves, for points
-        not much further from the corridor than its curve radius), at a fraction of the cost
-        for many points. c: corridor index; xy (..., 2) -> s, d (...)."""
-        from scipy.spatial import cKDTree
-
-        if not hasattr(self, "_trees"):
-            self._trees: dict[int, Any] = {}
-        tree = self._trees.get(c)
-        if tree is None:
-            tree = self._trees[c] = cKDTree(self.points[c, :int(self.n_points[c])])
+    def project_near(self, c: int, xy: np.ndarray, stride: int = 4) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`project` through the nearest of every ``stride``-th corridor point and a local
+        search of ``stride + 1`` segments either side of it: the same result wherever the
+        closest segment lies within that window of the closest sampled point (always for
+        points not much further from the corridor than its curve radius), at a fraction of the
+        cost for many points. c: corridor index; xy (..., 2) -> s, d (...)."""
         xy = np.asarray(xy, dtype=np.float64)
         q = xy.reshape(-1, 2)
-        _, i = tree.query(q)
-        s, d = self.project_local(np.full(len(q), c), q, i * self.spacing[c] + 1e-9, window=3)
+        k = int(self.n_points[c])
+        idx = np.unique(np.r_[np.arange(0, k, stride), k - 1])
+        sub = self.points[c, idx]
+        dx = q[:, None, 0] - sub[None, :, 0]
+        dy = q[:, None, 1] - sub[None, :, 1]
+        i = idx[np.argmin(dx * dx + dy * dy, axis=1)]
+        s, d = self.project_local(np.full(len(q), c), q, i * self.spacing[c] + 1e-9, window=stride + 1)
         return s.reshape(xy.shape[:-1]), d.reshape(xy.shape[:-1])
 
     def road_excess(self, c: np.ndarray, s: np.ndarray, d: np.ndarray) -> np.ndarray:

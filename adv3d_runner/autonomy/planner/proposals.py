@@ -428,13 +428,34 @@ def _actor_frenet(actors: ActorForecast, corridors: CorridorSet, spec: Candidate
     right = np.clip(np.searchsorted(coarse, np.arange(T + 1)), 1, len(coarse) - 1)
     left = right - 1
     w = (np.arange(T + 1) - coarse[left]) / np.maximum(coarse[right] - coarse[left], 1)
-    for ci in range(len(corridors)):
-        s_c, _ = corridors.project_near(ci, xy[:, coarse])
-        guess = s_c[..., left] * (1 - w) + s_c[..., right] * w
-        s_ci, d_ci = corridors.project_local(np.full(guess.shape, ci), xy, guess, window=2)
-        s_all[ci, relevant] = s_ci
-        d_all[ci, relevant] = d_ci
     half_w = np.repeat(0.5 * actors.dims[:, 1], K)
+    rel_idx = np.flatnonzero(relevant)
+    # A mode whose every step stays clearly outside all of a corridor's lane bands can never lead
+    # there, so its per-step projection on that corridor is skipped. From below, |d| at a step
+    # is |d| interpolated between the coarse steps, less the step's distance from the straight
+    # chord between them, less a margin for the corridor bending under the chord.
+    wl = w[None, :, None]
+    p_l, p_r = xy[:, coarse[left]], xy[:, coarse[right]]
+    off_chord = np.linalg.norm(xy - (p_l * (1 - wl) + p_r * wl), axis=-1)  # (M_rel, T+1)
+    chord2 = np.sum((p_r - p_l) ** 2, axis=-1)
+    band = 0.5 * ego_width + half_w[relevant] + config.lane_margin  # (M_rel,)
+    for ci in range(len(corridors)):
+        on_c = spec.corridor == ci
+        if not on_c.any():
+            continue
+        s_c, d_c = corridors.project_near(ci, xy[:, coarse])
+        reach = float(np.max(np.abs(target_d[on_c])))
+        k_max = float(np.max(np.abs(np.diff(corridors.heading[ci, :int(corridors.n_points[ci]) - 1])),
+                             initial=0.0)) / corridors.spacing[ci]
+        d_lerp = np.abs(d_c[..., left] * (1 - w) + d_c[..., right] * w)
+        low = d_lerp - off_chord - (0.2 + 0.5 * chord2 * k_max + 0.02 * d_lerp)
+        near = np.flatnonzero((low < (band + reach)[:, None]).any(axis=1))
+        if len(near) == 0:
+            continue
+        guess = s_c[near][..., left] * (1 - w) + s_c[near][..., right] * w
+        s_ci, d_ci = corridors.project_local(np.full(guess.shape, ci), xy[near], guess, window=2)
+        s_all[ci, rel_idx[near]] = s_ci
+        d_all[ci, rel_idx[near]] = d_ci
     half_l = np.repeat(0.5 * actors.dims[:, 0], K)
     prob_ok = (actors.probs.reshape(M) >= config.min_mode_prob)
     # candidates sharing a corridor and a target offset share their leaders: decide once per
