@@ -261,10 +261,13 @@ def rollout_candidates(ego_pose: np.ndarray, ego_speed: float, ego_accel: float,
     lr = params.lr
     half_dt2 = 0.5 * dt * dt
     two_pi = 2 * np.pi
-    if has_leaders:  # time-major copies: one contiguous (B, M) slab per step
+    if has_leaders:  # time-major (one contiguous (B, M) slab per step), step-independent parts first
         lead_s_t = np.ascontiguousarray(leader_s.transpose(2, 0, 1))
-        lead_ok_t = np.ascontiguousarray(leader_ok.transpose(2, 0, 1))
-        lead_len_half = leader_len + half_len
+        lead_ok_t = leader_ok.transpose(2, 0, 1)
+        lead_s_ok = np.where(lead_ok_t, lead_s_t, -np.inf)  # actor-modes out of the lane never lead
+        lead_back = lead_s_t - (leader_len + half_len)  # the leader's rear bumper less the ego's half length
+        lead_v = np.maximum((lead_s_t[1:] - lead_s_t[:-1]) / dt, 0.0)  # (T, B, M) leader speeds
+        any_lead = lead_ok_t.any(axis=(1, 2))
     x, y, yaw, v = (states[i, 0].copy() for i in range(4))
     # the proposal's own limits are within the vehicle's: the step's clamps would be no-ops
     clamp_accel = not (-max_dec <= -config.max_decel and config.idm_accel <= max_acc)
@@ -274,15 +277,15 @@ def rollout_candidates(ego_pose: np.ndarray, ego_speed: float, ego_accel: float,
             d_hist[k] = d_cur
         s_hist[k] = s_cur
         # leader: nearest predicted actor ahead in the candidate's corridor at this time
-        if has_leaders:
-            ls = lead_s_t[k]
+        leading = has_leaders and any_lead[k]
+        if leading:
             sc = s_cur[:, None]
-            gaps = np.where(lead_ok_t[k] & (ls > sc), ls - sc - lead_len_half, np.inf)
+            gaps = np.where(lead_s_ok[k] > sc, lead_back[k] - sc, np.inf)
             j = gaps.argmin(axis=1)
             gap = gaps[rows, j]
             gap_hist[k] = gap
             if k < T:
-                v_lead = np.maximum((lead_s_t[k + 1][rows, j] - ls[rows, j]) / dt, 0.0)
+                v_lead = lead_v[k][rows, j]
         if k == T:
             break
         # ---- longitudinal: IDM towards the target speed
@@ -291,7 +294,7 @@ def rollout_candidates(ego_pose: np.ndarray, ego_speed: float, ego_accel: float,
         free = np.where(stop_target, -config.idm_decel * np.minimum(1.0, v),  # stop target: brake comfortably
                         config.idm_accel * (1.0 - r * r))
         a = np.maximum(free, -config.idm_decel)  # above the target: slow down comfortably
-        if has_leaders:
+        if leading:
             finite = gap < np.inf
             if finite.any():
                 s_star = config.idm_gap + np.maximum(0.0, v * config.idm_headway + v * (v - v_lead) / sqrt_ab)
