@@ -396,6 +396,26 @@ class CorridorSet:
         s, d = self.project_local(np.full(len(q), c), q, i * self.spacing[c] + 1e-9, window=stride + 1)
         return s.reshape(xy.shape[:-1]), d.reshape(xy.shape[:-1])
 
+    def heading_on(self, c: int, s: np.ndarray) -> np.ndarray:
+        """:meth:`pose_at` heading on the single corridor ``c`` (an int): (...) -> (...)."""
+        s = np.asarray(s, dtype=np.float64)
+        i = np.clip(np.floor(s / self.spacing[c]).astype(np.int64), 0, int(self.n_points[c]) - 2)
+        return self.heading[c][i]
+
+    def road_excess_on(self, c: int, s: np.ndarray, d: np.ndarray) -> np.ndarray:
+        """:meth:`road_excess` on the single corridor ``c`` (an int), same arithmetic with the
+        corridor's rows gathered once."""
+        s = np.asarray(s, dtype=np.float64)
+        sp = self.spacing[c]
+        i = np.clip(np.floor(s / sp).astype(np.int64), 0, int(self.n_points[c]) - 2)
+        f = np.clip(s / sp - i, 0.0, 1.0)
+        w = self.width[c]
+        half = 0.5 * ((1 - f) * w[i] + f * w[i + 1])
+        lat = np.maximum(np.abs(d) - half, 0.0)
+        if not self.ends[c]:
+            return lat  # = hypot(lat, 0)
+        return np.hypot(lat, np.maximum(s - self.length[c], 0.0))
+
     def road_excess(self, c: np.ndarray, s: np.ndarray, d: np.ndarray) -> np.ndarray:
         """How far (m) a point with Frenet coordinates (s, d) on corridor ``c`` lies outside that
         corridor's lane strip (0 inside). Past a dead end the longitudinal overshoot counts;

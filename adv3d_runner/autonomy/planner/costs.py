@@ -123,11 +123,11 @@ def road_geometry(poses: np.ndarray, travelled: np.ndarray, corridors: CorridorS
         cc = np.full(poses.shape[:2], ci)
         sc, dc = corridors.project_local(cc, poses[..., :2], s_start[ci] + travelled)
         dev[ci] = np.abs(dc)
-        rel = poses[..., 2] - corridors.pose_at(cc, sc)[..., 2]
+        rel = poses[..., 2] - corridors.heading_on(ci, sc)
         cr, sr = np.cos(rel)[..., None], np.sin(rel)[..., None]
         s_k = sc[..., None] + lx * cr - ly * sr
         d_k = dc[..., None] + lx * sr + ly * cr
-        exc[ci] = corridors.road_excess(np.full(s_k.shape, ci), s_k, d_k)
+        exc[ci] = corridors.road_excess_on(ci, s_k, d_k)
     return dev.min(axis=0), exc.min(axis=0).max(axis=-1)
 
 
