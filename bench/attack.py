@@ -1,6 +1,6 @@
 """Attack benchmark: searcher overhead and convergence, and query throughput on a real scene.
 
-    .venv/bin/python bench/attack.py [--quick] [--scene FILE] [--autonomy oracle|A]
+    .venv/bin/python bench/attack.py [--quick] [--scene FILE] [--autonomy oracle|A] [--queries N]
 
 1. Convergence on the synthetic 5-D objective (``synthetic:peak``: a bowl with a narrow peak of
    height 2 at a fixed point), every algorithm at budget 100 over several seeds: best value after
@@ -16,8 +16,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import shutil
 import sys
 import tempfile
@@ -31,6 +29,7 @@ sys.path.insert(0, str(ROOT))
 
 from adv3d_runner.attack.driver import AttackConfig, SYNTHETIC, run_attack  # noqa: E402
 from adv3d_runner.attack.search import make_searcher  # noqa: E402
+from adv3d_runner.machine import machine_info  # noqa: E402
 
 CHECKPOINTS = (10, 25, 50, 100)
 
@@ -92,9 +91,11 @@ def main() -> None:
     ap.add_argument("--scene", default=str(ROOT / "scenes/highway/highway-benchmark-000000.json.gz"))
     ap.add_argument("--autonomy", default="oracle")
     ap.add_argument("--seconds", type=float, default=5.0)
+    ap.add_argument("--queries", type=int, default=None,
+                    help="queries per throughput run (default 8, 4 with --quick; 100 = the issue's target run)")
     args = ap.parse_args()
     seeds = 2 if args.quick else 5
-    nq = 4 if args.quick else 8
+    nq = args.queries or (4 if args.quick else 8)
     t0 = time.time()
     conv = synthetic_convergence(seeds)
     print(f"\nSearch on synthetic:peak (5-D, optimum 2.0), budget 100, mean over {seeds} seeds")
@@ -112,8 +113,7 @@ def main() -> None:
         print(f"{r['workers']:7d} {r['queries_per_min_steady']:12.2f} {r['queries_per_min_end_to_end']:10.2f} "
               f"{r['query_wall_s_mean']:8.2f} {r['extrapolated_100_queries_min']:11.1f}")
     doc = {"format": "adv3d.bench", "topic": "attack", "command": " ".join([Path(sys.executable).name] + sys.argv),
-           "machine": {"platform": platform.platform(), "python": platform.python_version(),
-                       "cpus": os.cpu_count(), "note": "2 cores shared with other jobs"},
+           "machine": machine_info("numpy", "torch", "flaml"),
            "wall_s": time.time() - t0, "synthetic_convergence": conv,
            "throughput": {"scene": Path(args.scene).name, "autonomy": args.autonomy, "seconds": args.seconds,
                           "runs": thr}}
