@@ -234,19 +234,14 @@ class ADV3D_OT_shapes_export(bpy.types.Operator, ExportHelper):
     def execute(self, context):
         shapes = context.scene.adv3d.shapes
         path = Path(self.filepath)
-        if path.suffix.lower() not in {".glb", ".obj", ".ply", ".stl"}:
-            self.report({"ERROR"}, f"{path}: unsupported mesh format (use .glb, .obj, .ply or .stl)")
-            return {"CANCELLED"}
         try:
             import trimesh
-            from adv3d_runner.fileio import atomic_path
+            from adv3d_runner.shapes.mesh_io import write_mesh  # same writer as `adv3d shapes decode`
 
             space = runner.load_space(bpy.path.abspath(shapes.space_path))
             shapes.k = space.k
             vertices, faces = space.decode_arrays(current_unit(shapes))
-            mesh = trimesh.Trimesh(vertices=vertices, faces=faces, process=False)
-            with atomic_path(path) as tmp:
-                mesh.export(tmp, file_type=path.suffix.lower()[1:])
+            write_mesh(trimesh.Trimesh(vertices=vertices, faces=faces, process=False), path)
         except runner.Adv3dError as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}

@@ -361,7 +361,7 @@ def test_nearest_asset_and_export(ctx, data, tmp_path):
     mesh = trimesh.load(out, process=False)
     v, f = space.decode_arrays(space.asset_unit("fx.van"))
     assert len(mesh.faces) == len(f) and mesh.is_watertight
-    with pytest.raises(RuntimeError, match="unsupported"):
+    with pytest.raises(RuntimeError, match="must end in one of"):
         bpy.ops.adv3d.shapes_export(filepath=str(tmp_path / "shape.xyz"))
 
 
