@@ -17,3 +17,14 @@ def repo_root() -> Path:
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(0)
+
+
+@pytest.fixture(scope="module")
+def addon():
+    """The adv3d add-on registered in the ``bpy`` module for one test module (skipped without bpy)."""
+    pytest.importorskip("bpy")
+    import blender_addon
+
+    blender_addon.register()
+    yield blender_addon
+    blender_addon.unregister()

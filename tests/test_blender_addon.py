@@ -110,15 +110,6 @@ def make_scene(path: Path, frames: int = 40) -> Path:
     return path
 
 
-@pytest.fixture(scope="module")
-def addon():
-    import blender_addon
-
-    blender_addon.register()
-    yield blender_addon
-    blender_addon.unregister()
-
-
 @pytest.fixture
 def ctx(addon):
     bpy.ops.wm.read_factory_settings(use_empty=True)

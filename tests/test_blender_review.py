@@ -73,15 +73,6 @@ def write_bundle(root: Path, replay=None) -> tuple[Path, object]:
     return folder / "replay.json.gz", replay
 
 
-@pytest.fixture(scope="module")
-def addon():
-    import blender_addon
-
-    blender_addon.register()
-    yield blender_addon
-    blender_addon.unregister()
-
-
 @pytest.fixture
 def ctx(addon):
     bpy.ops.wm.read_factory_settings(use_empty=True)

@@ -20,7 +20,7 @@ import math
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 import numpy as np
 
@@ -548,6 +548,23 @@ class _V:
                 self.fail(f"{where}[{i}]", "0 or 1", item)
         return np.asarray(value, dtype=bool)
 
+    def objects(self, value: Any, where: str, expected: str, *, non_empty: bool = False) -> Iterator[tuple[str, dict]]:
+        """A JSON list of objects -> yields (json path of the item, item)."""
+        if not isinstance(value, list) or (non_empty and not value):
+            self.fail(where, expected, value if not isinstance(value, list) else "an empty list")
+        for i, item in enumerate(value):
+            w = f"{where}[{i}]"
+            if not isinstance(item, dict):
+                self.fail(w, "an object", type(item).__name__)
+            yield w, item
+
+    def unique(self, value: Any, where: str, seen: set, what: str) -> Any:
+        """Records ``value`` in ``seen``; a repeat is an error naming ``what`` (e.g. "lane id")."""
+        if value in seen:
+            self.fail(where, f"a unique {what}", value)
+        seen.add(value)
+        return value
+
     def points(self, value: Any, where: str, *, min_points: int = 2) -> np.ndarray:
         """A JSON list of [x, y] -> (P, 2) float64."""
         if not isinstance(value, list) or len(value) < min_points:
@@ -626,19 +643,10 @@ def _scene_from_dict(doc: Any, path: str | Path | None) -> Scene:
 
     # map
     mp = v.obj(doc, "map", "$")
-    lanes_doc = v.key(mp, "lanes", "$.map")
-    if not isinstance(lanes_doc, list) or not lanes_doc:
-        v.fail("$.map.lanes", "a non-empty list of lanes", lanes_doc)
     lanes: list[Lane] = []
     seen: set[int] = set()
-    for i, ld in enumerate(lanes_doc):
-        w = f"$.map.lanes[{i}]"
-        if not isinstance(ld, dict):
-            v.fail(w, "an object", type(ld).__name__)
-        lane_id = v.integer(v.key(ld, "id", w), f"{w}.id", lo=0)
-        if lane_id in seen:
-            v.fail(f"{w}.id", "a unique lane id", lane_id)
-        seen.add(lane_id)
+    for w, ld in v.objects(v.key(mp, "lanes", "$.map"), "$.map.lanes", "a non-empty list of lanes", non_empty=True):
+        lane_id = v.unique(v.integer(v.key(ld, "id", w), f"{w}.id", lo=0), f"{w}.id", seen, "lane id")
         centerline = v.points(v.key(ld, "centerline", w), f"{w}.centerline")
         wd = v.key(ld, "width", w)
         if isinstance(wd, list):
@@ -671,20 +679,14 @@ def _scene_from_dict(doc: Any, path: str | Path | None) -> Scene:
     # background
     bd = v.obj(doc, "background", "$")
     barriers = []
-    for i, b in enumerate(bd.get("barriers", [])):
-        w = f"$.background.barriers[{i}]"
-        if not isinstance(b, dict):
-            v.fail(w, "an object", type(b).__name__)
+    for w, b in v.objects(bd.get("barriers", []), "$.background.barriers", "a list of barriers"):
         barriers.append(Barrier(
             kind=v.string(v.key(b, "kind", w), f"{w}.kind", choices=BARRIER_KINDS),
             polyline=v.points(v.key(b, "polyline", w), f"{w}.polyline"),
             height=v.number(b.get("height", 0.8), f"{w}.height", lo=0.0, lo_open=True),
         ))
     meshes = []
-    for i, m in enumerate(bd.get("meshes", [])):
-        w = f"$.background.meshes[{i}]"
-        if not isinstance(m, dict):
-            v.fail(w, "an object", type(m).__name__)
+    for w, m in v.objects(bd.get("meshes", []), "$.background.meshes", "a list of static meshes"):
         meshes.append(StaticMesh(
             file=v.string(v.key(m, "file", w), f"{w}.file"),
             pose=v.array(m.get("pose", [0, 0, 0, 0]), f"{w}.pose", length=4),
@@ -702,19 +704,10 @@ def _scene_from_dict(doc: Any, path: str | Path | None) -> Scene:
 
     # ego
     ed = v.obj(doc, "ego", "$")
-    sensors_doc = ed.get("sensors", [])
-    if not isinstance(sensors_doc, list):
-        v.fail("$.ego.sensors", "a list of LiDARs", sensors_doc)
     sensors = []
     names: set[str] = set()
-    for i, s in enumerate(sensors_doc):
-        w = f"$.ego.sensors[{i}]"
-        if not isinstance(s, dict):
-            v.fail(w, "an object", type(s).__name__)
-        name = v.string(v.key(s, "name", w), f"{w}.name")
-        if name in names:
-            v.fail(f"{w}.name", "a unique sensor name", name)
-        names.add(name)
+    for w, s in v.objects(ed.get("sensors", []), "$.ego.sensors", "a list of LiDARs"):
+        name = v.unique(v.string(v.key(s, "name", w), f"{w}.name"), f"{w}.name", names, "sensor name")
         sensors.append(Lidar(name=name, model=v.string(v.key(s, "model", w), f"{w}.model"),
                              mount=v.array(v.key(s, "mount", w), f"{w}.mount", length=6)))
     ego = Ego(
@@ -725,19 +718,10 @@ def _scene_from_dict(doc: Any, path: str | Path | None) -> Scene:
     )
 
     # actors
-    actors_doc = v.key(doc, "actors", "$")
-    if not isinstance(actors_doc, list):
-        v.fail("$.actors", "a list of actors", type(actors_doc).__name__)
     actors: list[Actor] = []
     ids: set[int] = set()
-    for i, ad in enumerate(actors_doc):
-        w = f"$.actors[{i}]"
-        if not isinstance(ad, dict):
-            v.fail(w, "an object", type(ad).__name__)
-        actor_id = v.integer(v.key(ad, "id", w), f"{w}.id", lo=0)
-        if actor_id in ids:
-            v.fail(f"{w}.id", "a unique actor id", actor_id)
-        ids.add(actor_id)
+    for w, ad in v.objects(v.key(doc, "actors", "$"), "$.actors", "a list of actors"):
+        actor_id = v.unique(v.integer(v.key(ad, "id", w), f"{w}.id", lo=0), f"{w}.id", ids, "actor id")
         actors.append(Actor(
             id=actor_id,
             cls=_load_class(v, v.key(ad, "class", w), f"{w}.class"),
