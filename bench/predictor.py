@@ -38,10 +38,9 @@ def main() -> int:
 
     torch.set_num_threads(1)
     from adv3d_runner.autonomy.baselines import ConstantVelocityPredictor, LaneFollowingPredictor
-    from adv3d_runner.autonomy.interface import Detections
     from adv3d_runner.autonomy.predictor import load_predictor
-    from adv3d_runner.autonomy.tracker import MultiObjectTracker
-    from adv3d_runner.metrics.prediction import match_to_ground_truth, prediction_metrics
+    from adv3d_runner.autonomy.predictor_data import tracked_evaluation_frames
+    from adv3d_runner.metrics.prediction import prediction_metrics
     from adv3d_runner.scene.generate import generate_scene
 
     learned = load_predictor(threads=1)
@@ -54,31 +53,17 @@ def main() -> int:
     for i in range(n_scenes):
         seed = SEED0 + i
         scene = generate_scene(seed, "train")
-        rng = np.random.default_rng(seed)
-        poses, valid = scene.all_actor_poses()
-        dims = scene.actor_dimensions()
-        ego, ego_v = scene.ego_poses(), scene.ego_speeds()
-        tracker = MultiObjectTracker()
-        for f in range(scene.frames - 60):
-            vis = np.flatnonzero(valid[:, f] & (np.hypot(*(poses[:, f, :2] - ego[f, :2]).T) <= 80.0))
-            det = np.c_[poses[vis, f, :2] + rng.normal(0, 0.15, (len(vis), 2)), dims[vis, :2],
-                        poses[vis, f, 2] + rng.normal(0, 0.02, len(vis))]
-            keep = rng.random(len(vis)) >= 0.05
-            tracks = tracker.update(Detections(det[keep], np.full(int(keep.sum()), 0.9)), prior_speed=float(ego_v[f]))
-            if f < 10 or f % 5 or len(tracks) == 0:
-                continue
-            gi = np.flatnonzero(valid[:, f])
-            m = match_to_ground_truth(tracks.boxes, np.c_[poses[gi, f, :2], dims[gi, :2], poses[gi, f, 2]])
-            rows = np.flatnonzero(m >= 0)
-            actor = gi[m[rows]]
+        frames = tracked_evaluation_frames(scene, np.random.default_rng(seed), frames=range(scene.frames - 60),
+                                           every=5, miss=0.05)
+        for _, tracks, rows, future, future_valid in frames:
             tracks_per_frame.append(len(tracks))
             for name, model in models.items():
                 t0 = time.perf_counter()
                 p = model.predict(tracks, scene.lanes)
                 times[name].append(time.perf_counter() - t0)
                 preds[name].append(p.trajectories[rows])
-            gts.append(np.nan_to_num(poses[actor, f + 1:f + 61, :2]))
-            vals.append(valid[actor, f + 1:f + 61])
+            gts.append(future)
+            vals.append(future_valid)
     gt, val = np.concatenate(gts), np.concatenate(vals)
     rows = []
     for name in models:

@@ -10,7 +10,7 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from adv3d_runner.autonomy.baselines import ConstantVelocityPredictor  # noqa: E402
-from adv3d_runner.autonomy.interface import Detections, Tracks  # noqa: E402
+from adv3d_runner.autonomy.interface import Tracks  # noqa: E402
 from adv3d_runner.autonomy.predictor import (CONFIG_NAME, DEFAULT_MODEL_DIR, NUM_FEATURES, WEIGHTS_NAME,  # noqa: E402
                                              LaneIndex, PredictorConfig, agent_features, build_net,
                                              load_predictor, save_predictor)
@@ -208,36 +208,20 @@ def test_cache_roundtrip(tmp_path):
 def test_shipped_model_beats_constant_velocity_on_held_out_scenes(model):
     """End to end in the map frame: noisy detections -> tracker -> predict, on training-split
     scenes whose seeds were used neither for training nor for the training report."""
-    from adv3d_runner.autonomy.tracker import MultiObjectTracker
-    from adv3d_runner.metrics.prediction import match_to_ground_truth, prediction_metrics
+    from adv3d_runner.autonomy.predictor_data import tracked_evaluation_frames
+    from adv3d_runner.metrics.prediction import prediction_metrics
     from adv3d_runner.scene.generate import generate_scene
 
     cv = ConstantVelocityPredictor()
     learned_p, cv_p, gts, vals = [], [], [], []
     for seed in (900_000_001, 900_000_006):
         scene = generate_scene(seed, "train")
-        rng = np.random.default_rng(seed)
-        poses, valid = scene.all_actor_poses()
-        dims = scene.actor_dimensions()
-        ego, ego_v = scene.ego_poses(), scene.ego_speeds()
-        tracker = MultiObjectTracker()
-        for f in range(140):
-            vis = np.flatnonzero(valid[:, f] & (np.hypot(*(poses[:, f, :2] - ego[f, :2]).T) <= 80.0))
-            det = np.c_[poses[vis, f, :2] + rng.normal(0, 0.15, (len(vis), 2)), dims[vis, :2],
-                        poses[vis, f, 2] + rng.normal(0, 0.02, len(vis))]
-            tracks = tracker.update(Detections(det, np.full(len(det), 0.9)), prior_speed=float(ego_v[f]))
-            if f < 10 or f % 10 or len(tracks) == 0:
-                continue
-            gi = np.flatnonzero(valid[:, f])
-            m = match_to_ground_truth(tracks.boxes, np.c_[poses[gi, f, :2], dims[gi, :2], poses[gi, f, 2]])
-            rows = np.flatnonzero(m >= 0)
-            actor = gi[m[rows]]
-            lp = model.predict(tracks, scene.lanes)
-            cp = cv.predict(tracks, scene.lanes)
-            learned_p.append(lp.trajectories[rows])
-            cv_p.append(cp.trajectories[rows])
-            gts.append(np.nan_to_num(poses[actor, f + 1:f + 61, :2]))
-            vals.append(valid[actor, f + 1:f + 61])
+        for _, tracks, rows, future, future_valid in tracked_evaluation_frames(
+                scene, np.random.default_rng(seed), frames=range(140), every=10):
+            learned_p.append(model.predict(tracks, scene.lanes).trajectories[rows])
+            cv_p.append(cv.predict(tracks, scene.lanes).trajectories[rows])
+            gts.append(future)
+            vals.append(future_valid)
     gt, val = np.concatenate(gts), np.concatenate(vals)
     ml = prediction_metrics(np.concatenate(learned_p), gt, val)
     mc = prediction_metrics(np.concatenate(cv_p), gt, val)

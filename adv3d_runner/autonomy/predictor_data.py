@@ -37,7 +37,7 @@ import numpy as np
 
 from ..fileio import atomic_path
 from ..metrics.prediction import displacement_errors, match_to_ground_truth
-from .interface import PREDICTION_STEPS, Detections, Tracks
+from .interface import PREDICTION_STEPS, Detections
 from .predictor import HISTORY, LANE_OFFSETS, NEIGHBOURS, NUM_FEATURES, OFF_LANE, LaneIndex, encode
 
 DATA_VERSION = 1
@@ -166,6 +166,41 @@ def scene_samples(seed: int, scene=None) -> dict[str, np.ndarray]:
     if not chunks:
         return _empty()
     return {k: np.concatenate([c[k] for c in chunks]) for k in ARRAYS}
+
+
+def tracked_evaluation_frames(scene, rng: np.random.Generator, *, frames: range, every: int, first: int = 10,
+                              pos_std: float = 0.15, yaw_std: float = 0.02, miss: float = 0.0):
+    """Noisy detections -> the real tracker, over ``frames`` of ``scene``; for model evaluation
+    (benches, tests) with fixed noise, unlike the per-scene noise draws of :func:`scene_samples`.
+
+    Every ``every``-th frame from ``first`` on with at least one track, yields
+    ``(frame, tracks, rows, future, future_valid)``: ``rows`` (R,) indexes the tracks matched to a
+    ground-truth actor; ``future`` (R, 60, 2) m map frame (NaN -> 0) and ``future_valid`` (R, 60)
+    are that actor's next 60 steps. Detection noise: centre ``pos_std`` m, yaw ``yaw_std`` rad;
+    each visible actor is missed with probability ``miss`` (no draw when 0, so streams stay
+    comparable).
+    """
+    from .tracker import MultiObjectTracker
+
+    poses, valid = scene.all_actor_poses()
+    dims = scene.actor_dimensions()
+    ego, ego_v = scene.ego_poses(), scene.ego_speeds()
+    T = PREDICTION_STEPS
+    tracker = MultiObjectTracker()
+    for f in frames:
+        vis = np.flatnonzero(valid[:, f] & (np.hypot(*(poses[:, f, :2] - ego[f, :2]).T) <= DETECT_RANGE))
+        det = np.c_[poses[vis, f, :2] + rng.normal(0, pos_std, (len(vis), 2)), dims[vis, :2],
+                    poses[vis, f, 2] + rng.normal(0, yaw_std, len(vis))]
+        if miss > 0:
+            det = det[rng.random(len(vis)) >= miss]
+        tracks = tracker.update(Detections(det, np.full(len(det), 0.9)), prior_speed=float(ego_v[f]))
+        if f < first or f % every or len(tracks) == 0:
+            continue
+        gi = np.flatnonzero(valid[:, f])
+        m = match_to_ground_truth(tracks.boxes, np.c_[poses[gi, f, :2], dims[gi, :2], poses[gi, f, 2]])
+        rows = np.flatnonzero(m >= 0)
+        actor = gi[m[rows]]
+        yield f, tracks, rows, np.nan_to_num(poses[actor, f + 1:f + 1 + T, :2]), valid[actor, f + 1:f + 1 + T]
 
 
 def save_samples(path: str | Path, samples: dict[str, np.ndarray]) -> None:
