@@ -2,8 +2,10 @@
 
 Sections: the paper's Table 1 (Original / Adv. open-loop / Adv. closed-loop, every shape
 evaluated in closed loop: AP, recall, minADE, meanADE, planning and driving comfort), as mean
-+- std over scenes; per algorithm the best cost against the number of queries and against wall
-time (table + ``convergence.png``); the best shapes per scene as thumbnails (matplotlib renders
++- std over scenes, and the same metrics as paired per-scene changes against the original; per
+algorithm the best cost against the number of queries and against wall
+time (table + ``convergence.png``) and a head-to-head comparison of algorithms at equal budget
+(wins per scene, Wilcoxon signed-rank test); the best shapes per scene as thumbnails (matplotlib renders
 of the decoded meshes).
 """
 from __future__ import annotations
@@ -95,6 +97,103 @@ def per_scene(runs: list[tuple[str, dict, list, dict]]) -> str:
         out += f"| {sid} | " + " | ".join(table[sid].get(c, "-") for c in cols) + " |\n"
     return out + ("\nClosed-loop objective of the original scene and of each run's best shape (for open-loop "
                   "attacks the open-loop search value in parentheses).\n")
+
+
+# metrics where a lower value is worse for the stack (the others: higher is worse)
+LOWER_IS_WORSE = ("AP", "Recall")
+
+
+def paired_deltas(runs: list[tuple[str, dict, list, dict]]) -> str:
+    """Markdown table: per attack row, the per-scene change against the same scene's original
+    (attacked - original), mean ± std over scenes, and on how many scenes it is worse for the
+    stack. Pairing by scene removes the scene-to-scene spread that dominates Table 1."""
+    originals: dict[str, dict] = {}
+    attacked: dict[str, dict[str, dict]] = {}
+    for _, run, _, summary in runs:
+        for sid, entry in summary.get("scenes", {}).items():
+            if "original" in entry:
+                o = entry["original"]
+                originals.setdefault(sid, {**o["metrics"], "_objective": {"cost": o["cost"]}})
+            for mode, m in entry.get("modes", {}).items():
+                ev = m.get("closed_loop_eval")
+                if ev:
+                    attacked.setdefault(f"Adv. {mode}-loop ({run.get('algo', '?')})", {})[sid] = {
+                        **ev["metrics"], "_objective": {"cost": ev["cost"]}}
+    rows = {name: {sid: m for sid, m in by.items() if sid in originals} for name, by in attacked.items()}
+    rows = {name: by for name, by in rows.items() if by}
+    if not rows:
+        return ""
+    head = "| Δ against original | scenes | " + " | ".join(c for c, _, _ in COLUMNS) + " |\n"
+    head += "|---|---:|" + "---:|" * len(COLUMNS) + "\n"
+    body = ""
+    for name in sorted(rows, key=lambda k: ("closed" in k, k)):
+        by = rows[name]
+        cells = []
+        for col, path, scale in COLUMNS:
+            d = np.array([_get(m, path) - _get(originals[sid], path) for sid, m in by.items()]) * scale
+            d = d[np.isfinite(d)]
+            worse = int(np.sum(d < -1e-9)) if col in LOWER_IS_WORSE else int(np.sum(d > 1e-9))
+            spread = f" ± {d.std():.2g}" if len(d) > 1 else ""
+            cells.append(f"{d.mean():+.3g}{spread} ({worse}/{len(d)})" if len(d) else "-")
+        body += f"| {name} | {len(by)} | " + " | ".join(cells) + " |\n"
+    return head + body + ("\nPer scene: attacked - original, both in closed loop; mean ± std over scenes, in "
+                          "parentheses the number of scenes where the change is worse for the stack (lower AP "
+                          "or recall, higher objective, ADE, acceleration or jerk).\n")
+
+
+def _best_after(records: list[dict]) -> dict[tuple[str, str], np.ndarray]:
+    """(scene, mode) -> best-so-far cost per query index (failed queries count as -inf)."""
+    by: dict[tuple[str, str], list] = {}
+    for r in records:
+        by.setdefault((r["scene"], r["mode"]), []).append(r)
+    out = {}
+    for key, recs in by.items():
+        c = np.array([record_cost(r) for r in sorted(recs, key=lambda r: r["index"])])
+        out[key] = np.fmax.accumulate(np.where(np.isfinite(c), c, -np.inf))
+    return out
+
+
+def head_to_head(runs: list[tuple[str, dict, list, dict]], budgets: Sequence[int] = (11, 25, 50, 100)) -> str:
+    """Markdown table: every pair of algorithms that searched the same scenes in the same mode,
+    compared scene by scene on the best search cost after the same number of queries: mean ±
+    std of the difference, wins / ties / losses and a two-sided Wilcoxon signed-rank p-value."""
+    from scipy.stats import wilcoxon
+
+    curves: dict[tuple[str, str], dict[str, np.ndarray]] = {}   # (algo, mode) -> scene -> curve
+    for _, run, records, _ in runs:
+        for (sid, mode), best in _best_after(records).items():
+            curves.setdefault((run.get("algo", "?"), mode), {})[sid] = best
+    keys = sorted(curves)
+    lines = []
+    for i, a in enumerate(keys):
+        for b in keys[i + 1:]:
+            if a[1] != b[1]:
+                continue
+            shared = sorted(set(curves[a]) & set(curves[b]))
+            if not shared:
+                continue
+            n_max = min(min(len(curves[a][s]), len(curves[b][s])) for s in shared)
+            for n in sorted({q for q in budgets if q <= n_max} | {n_max}):
+                d = np.array([curves[a][s][n - 1] - curves[b][s][n - 1] for s in shared])
+                d = d[np.isfinite(d)]
+                if not len(d):
+                    continue
+                tie = np.abs(d) <= 1e-9
+                wins, losses = int(np.sum(d > 1e-9)), int(np.sum(d < -1e-9))
+                try:
+                    p = f"{wilcoxon(d[~tie]).pvalue:.3g}" if np.sum(~tie) >= 2 else "-"
+                except ValueError:
+                    p = "-"
+                spread = f" ± {d.std():.2g}" if len(d) > 1 else ""
+                lines.append(f"| {a[0]} vs {b[0]} [{a[1]}] | {n} | {len(d)} | {d.mean():+.3g}{spread} | "
+                             f"{wins} / {int(tie.sum())} / {losses} | {p} |")
+    if not lines:
+        return ""
+    return ("| pair [mode] | queries | scenes | Δ best cost (mean ± std) | wins / ties / losses | Wilcoxon p |\n"
+            "|---|---:|---:|---:|---:|---:|\n" + "\n".join(lines) +
+            "\n\nΔ = first algorithm's best search cost minus the second's after the same number of queries, "
+            "per scene (higher = the first found a worse case for the stack); wins count scenes where the "
+            "first is higher.\n")
 
 
 def convergence(runs: list[tuple[str, dict, list, dict]]) -> dict[str, dict]:
@@ -230,6 +329,9 @@ def write_report(run_dirs: Sequence[str | Path], out: str | Path | None = None) 
         lines.append(f"| {root} | {run.get('algo')} | {run.get('mode')} | {run.get('budget')} | {run.get('seed')} | "
                      f"{run.get('objective')} | {run.get('autonomy')} | {', '.join(run.get('scene_ids', []))} |")
     lines += ["", "## Closed-loop evaluation (paper Table 1)", "", table1(runs), ""]
+    deltas = paired_deltas(runs)
+    if deltas:
+        lines += ["### Paired change against the original", "", deltas, ""]
     ps = per_scene(runs)
     if ps:
         lines += ["### Per scene", "", ps, ""]
@@ -247,6 +349,9 @@ def write_report(run_dirs: Sequence[str | Path], out: str | Path | None = None) 
             lines.append(f"| {key} | {len(d['final'])} | {d['queries']} | {d['failed']} | {_cell(d['final'], 1.0)} | "
                          f"{_cell(gain, 1.0)} | {wall:.3g} |")
         lines += ["", f"![convergence]({png.name})", ""]
+        h2h = head_to_head(runs)
+        if h2h:
+            lines += ["### Head to head at equal budget", "", h2h, ""]
     else:
         lines += ["_No queries journalled._", ""]
     thumbs = thumbnails(runs, out_path.parent)
