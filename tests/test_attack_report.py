@@ -75,3 +75,26 @@ def test_head_to_head_failed_queries_and_unshared_modes():
     cells = [c.strip() for c in rows[0].strip("|").split("|")]
     assert cells[2] == "1"                                    # s2: BO never succeeded -> -inf, dropped
     assert cells[3] == "+2"
+
+
+def test_shape_sheet_grid_of_rows_and_columns(tmp_path):
+    import matplotlib.image as mpimg
+    import trimesh
+
+    from adv3d_runner.attack.report import render_shape_sheet
+
+    small = trimesh.creation.box(extents=(3.0, 1.4, 1.0))
+    big = trimesh.creation.box(extents=(5.0, 2.0, 1.6))
+    cells = {("s1", "bo closed"): (small.vertices, small.faces, "small"),
+             ("s1", "random closed"): (big.vertices, big.faces, "big"),
+             ("s2", "bo closed"): (big.vertices, big.faces, "big")}
+    png = tmp_path / "sheet.png"
+    render_shape_sheet(cells, png)
+    img = mpimg.imread(png)
+    assert img.shape[1] > img.shape[0]                   # 2 columns x 2 rows of 2.6 x 1.9 in cells
+    orange = (img[..., 0] > 0.3) & (img[..., 2] < 0.5 * img[..., 0])
+    h, w = img.shape[:2]
+    quadrants = [orange[:h // 2, :w // 2], orange[:h // 2, w // 2:], orange[h // 2:, :w // 2], orange[h // 2:, w // 2:]]
+    filled = [q.mean() for q in quadrants]
+    assert filled[3] < 0.001 < min(filled[:3])            # no shape in the empty cell (s2, random)
+    assert filled[0] < filled[1]                          # one scale: the small box covers fewer pixels

@@ -6,7 +6,7 @@ evaluated in closed loop: AP, recall, minADE, meanADE, planning and driving comf
 algorithm the best cost against the number of queries and against wall
 time (table + ``convergence.png``) and a head-to-head comparison of algorithms at equal budget
 (wins per scene, Wilcoxon signed-rank test); the best shapes per scene as thumbnails (matplotlib renders
-of the decoded meshes).
+of the decoded meshes, plus one grid of all of them at a common scale, `best_shapes.png`).
 """
 from __future__ import annotations
 
@@ -247,35 +247,47 @@ def plot_convergence(curves: dict[str, dict], path: Path) -> None:
     plt.close(fig)
 
 
+def _shaded_triangles(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(F, 3, 3) triangles and (F, 4) RGBA colours, flat-shaded by normal against a fixed light."""
+    v = np.asarray(vertices, dtype=np.float64)
+    tri = v[np.asarray(faces, dtype=np.int64)]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    light = np.array([0.4, -0.6, 0.7]) / np.linalg.norm([0.4, -0.6, 0.7])
+    shade = 0.35 + 0.65 * np.clip(n @ light, 0, 1)
+    return tri, np.c_[0.95 * shade, 0.55 * shade, 0.2 * shade, np.ones_like(shade)]
+
+
+def _draw_mesh(ax, vertices: np.ndarray, faces: np.ndarray, elev: float, azim: float, zoom: float = 1.0,
+               lo: np.ndarray | None = None, hi: np.ndarray | None = None) -> None:
+    """Orthographic flat-shaded view of a mesh on a 3-D axes; ``lo``/``hi`` (3,) fix the box (m)."""
+    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+
+    tri, colors = _shaded_triangles(vertices, faces)
+    v = np.asarray(vertices, dtype=np.float64)
+    lo = v.min(axis=0) if lo is None else lo
+    hi = v.max(axis=0) if hi is None else hi
+    ax.add_collection3d(Poly3DCollection(tri, facecolors=colors, edgecolor="none"))
+    ax.set_xlim(lo[0], hi[0])
+    ax.set_ylim(lo[1], hi[1])
+    ax.set_zlim(lo[2], hi[2])
+    ax.set_box_aspect(tuple(np.maximum(hi - lo, 1e-3)), zoom=zoom)
+    ax.set_proj_type("ortho")
+    ax.view_init(elev=elev, azim=azim)
+    ax.set_axis_off()
+
+
 def render_shape(vertices: np.ndarray, faces: np.ndarray, path: Path, title: str = "") -> None:
     """A side view and a three-quarter view of a mesh (flat shading by normal) to ``path``."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
-    v = np.asarray(vertices, dtype=np.float64)
-    f = np.asarray(faces, dtype=np.int64)
-    tri = v[f]
-    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
-    light = np.array([0.4, -0.6, 0.7]) / np.linalg.norm([0.4, -0.6, 0.7])
-    shade = 0.35 + 0.65 * np.clip(n @ light, 0, 1)
-    colors = np.c_[0.95 * shade, 0.55 * shade, 0.2 * shade, np.ones_like(shade)]
     fig = plt.figure(figsize=(8, 2.8))
-    lo, hi = v.min(axis=0), v.max(axis=0)
-    ext = np.maximum(hi - lo, 1e-3)
     for i, (elev, azim) in enumerate(((0, -90), (25, -50))):
-        ax = fig.add_subplot(1, 2, i + 1, projection="3d")
-        ax.add_collection3d(Poly3DCollection(tri, facecolors=colors, edgecolor="none"))
-        ax.set_xlim(lo[0], hi[0])
-        ax.set_ylim(lo[1], hi[1])
-        ax.set_zlim(lo[2], hi[2])
-        ax.set_box_aspect(tuple(ext), zoom=1.0 if i == 0 else 1.1)
-        ax.set_proj_type("ortho")
-        ax.view_init(elev=elev, azim=azim)
-        ax.set_axis_off()
+        _draw_mesh(fig.add_subplot(1, 2, i + 1, projection="3d"), vertices, faces, elev, azim,
+                   zoom=1.0 if i == 0 else 1.1)
     if title:
         fig.suptitle(title, fontsize=9)
     fig.subplots_adjust(left=0, right=1, bottom=0, top=0.9, wspace=0)
@@ -283,13 +295,51 @@ def render_shape(vertices: np.ndarray, faces: np.ndarray, path: Path, title: str
     plt.close(fig)
 
 
-def thumbnails(runs: list[tuple[str, dict, list, dict]], out_dir: Path) -> list[tuple[str, str]]:
-    """Render the best shape of every scene, mode and attacked actor; (caption, png path)."""
+def render_shape_sheet(cells: dict[tuple[str, str], tuple[np.ndarray, np.ndarray, str]], path: Path) -> None:
+    """One PNG grid: rows = scenes, columns = run/mode; every cell the three-quarter view of a
+    mesh at one common scale (so sizes compare across cells) with its caption.
+
+    Args:
+        cells: (row label, column label) -> (vertices (V, 3) m, faces (F, 3), caption).
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = sorted({r for r, _ in cells})
+    cols = list(dict.fromkeys(c for _, c in cells))
+    allv = np.concatenate([v for v, _, _ in cells.values()])
+    half = (allv.max(axis=0) - allv.min(axis=0)).max() / 2
+    fig = plt.figure(figsize=(2.6 * len(cols), 1.9 * len(rows) + 0.4))
+    for (r, c), (v, f, caption) in cells.items():
+        ax = fig.add_subplot(len(rows), len(cols), rows.index(r) * len(cols) + cols.index(c) + 1, projection="3d")
+        mid = (v.min(axis=0) + v.max(axis=0)) / 2
+        lo, hi = mid - half, mid + half
+        lo[2], hi[2] = v[:, 2].min(), v[:, 2].min() + half
+        _draw_mesh(ax, v, f, 22, -55, zoom=1.5, lo=lo, hi=hi)
+        ax.set_title(caption, fontsize=7, pad=-4)
+    for i, c in enumerate(cols):
+        fig.text((i + 0.5) / len(cols), 1 - 0.15 / fig.get_figheight(), c, ha="center", va="top", fontsize=9,
+                 weight="bold")
+    for j, r in enumerate(rows):
+        fig.text(0.002, 1 - (0.4 + (j + 0.5) * 1.9) / fig.get_figheight(), r.replace("highway-benchmark-", "scene "),
+                 rotation=90, va="center", fontsize=8)
+    fig.subplots_adjust(left=0.02, right=1, bottom=0, top=1 - 0.4 / fig.get_figheight(), wspace=0, hspace=0.1)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def thumbnails(runs: list[tuple[str, dict, list, dict]], out_dir: Path,
+               sheet: Path | None = None) -> list[tuple[str, str]]:
+    """Render the best shape of every scene, mode and attacked actor; (caption, png path).
+    With ``sheet``, also one grid of all of them (rows scenes, columns run/mode/actor) there."""
     from ..errors import Adv3dError
     from ..shapes.shape_space import DEFAULT_SHAPE_SPACE, ShapeSpace
     from .targets import split_query
 
     out = []
+    cells: dict[tuple[str, str], tuple[np.ndarray, np.ndarray, str]] = {}
     spaces: dict = {}
     for root, run, _, summary in runs:
         for sid, entry in summary.get("scenes", {}).items():
@@ -311,6 +361,10 @@ def thumbnails(runs: list[tuple[str, dict, list, dict]], out_dir: Path) -> list[
                     render_shape(v, f, png, f"{sid} [{mode}, {run.get('algo')}] actor {aid}: "
                                              f"{d[0]:.2f} x {d[1]:.2f} x {d[2]:.2f} m")
                     out.append((f"{sid} [{mode}, {run.get('algo')}] actor {aid}, cost {m.get('best_cost'):.4g}", png))
+                    column = f"{run.get('algo')} {mode}" + (f" #{aid}" if len(entry["targets"]) > 1 else "")
+                    cells[(sid, column)] = (v, f, f"{d[0]:.1f} x {d[1]:.1f} x {d[2]:.1f} m, cost {m.get('best_cost'):.3g}")
+    if sheet is not None and cells:
+        render_shape_sheet(cells, sheet)
     return out
 
 
@@ -354,10 +408,13 @@ def write_report(run_dirs: Sequence[str | Path], out: str | Path | None = None) 
             lines += ["### Head to head at equal budget", "", h2h, ""]
     else:
         lines += ["_No queries journalled._", ""]
-    thumbs = thumbnails(runs, out_path.parent)
+    sheet = out_path.parent / "best_shapes.png"
+    thumbs = thumbnails(runs, out_path.parent, sheet=sheet)
     if thumbs:
-        lines += ["## Best shapes", ""]
+        lines += ["## Best shapes", "", "All best shapes at one scale (three-quarter view; search cost under each):", "",
+                  f"![best shapes]({sheet.name})", "", "<details><summary>Each shape, side and three-quarter view</summary>", ""]
         for caption, png in thumbs:
             lines += [f"**{caption}**", "", f"![{caption}]({png.name})", ""]
+        lines += ["</details>", ""]
     atomic_write_text(out_path, "\n".join(lines) + "\n")
     return out_path
