@@ -98,3 +98,22 @@ def test_shape_sheet_grid_of_rows_and_columns(tmp_path):
     filled = [q.mean() for q in quadrants]
     assert filled[3] < 0.001 < min(filled[:3])            # no shape in the empty cell (s2, random)
     assert filled[0] < filled[1]                          # one scale: the small box covers fewer pixels
+
+
+def test_results_doc_tables_match_the_kept_run_summaries(repo_root):
+    """docs/results.md quotes Table 1 and the paired changes of the benchmark runs; the run
+    summaries kept in docs/results/ must still produce exactly those rows."""
+    import json
+
+    from adv3d_runner.attack.report import table1
+
+    runs = []
+    for name in ("bo100", "random100"):
+        folder = repo_root / "docs" / "results" / name
+        runs.append((f"runs/{name}", json.loads((folder / "run.json").read_text()), [],
+                     json.loads((folder / "summary.json").read_text())))
+    doc = (repo_root / "docs" / "results.md").read_text()
+    rows = [ln for ln in (table1(runs) + paired_deltas(runs)).splitlines() if ln.startswith(("| Original", "| Adv."))]
+    assert len(rows) == 4 + 3
+    for row in rows:
+        assert row in doc, row
