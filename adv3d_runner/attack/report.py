@@ -141,15 +141,18 @@ def paired_deltas(runs: list[tuple[str, dict, list, dict]]) -> str:
                           "or recall, higher objective, ADE, acceleration or jerk).\n")
 
 
-def _best_after(records: list[dict]) -> dict[tuple[str, str], np.ndarray]:
-    """(scene, mode) -> best-so-far cost per query index (failed queries count as -inf)."""
+def search_curves(records: list[dict]) -> dict[tuple[str, str], dict[str, np.ndarray]]:
+    """(scene, mode) -> ``cost`` (N,) per query in index order (NaN = failed), ``best`` (N,)
+    best-so-far cost (failed queries count as -inf) and ``wall`` (N,) cumulative query seconds."""
     by: dict[tuple[str, str], list] = {}
     for r in records:
         by.setdefault((r["scene"], r["mode"]), []).append(r)
     out = {}
     for key, recs in by.items():
-        c = np.array([record_cost(r) for r in sorted(recs, key=lambda r: r["index"])])
-        out[key] = np.fmax.accumulate(np.where(np.isfinite(c), c, -np.inf))
+        recs = sorted(recs, key=lambda r: r["index"])
+        c = np.array([record_cost(r) for r in recs])
+        out[key] = {"cost": c, "best": np.fmax.accumulate(np.where(np.isfinite(c), c, -np.inf)),
+                    "wall": np.cumsum([r.get("wall_s", 0.0) for r in recs])}
     return out
 
 
@@ -161,8 +164,8 @@ def head_to_head(runs: list[tuple[str, dict, list, dict]], budgets: Sequence[int
 
     curves: dict[tuple[str, str], dict[str, np.ndarray]] = {}   # (algo, mode) -> scene -> curve
     for _, run, records, _ in runs:
-        for (sid, mode), best in _best_after(records).items():
-            curves.setdefault((run.get("algo", "?"), mode), {})[sid] = best
+        for (sid, mode), curve in search_curves(records).items():
+            curves.setdefault((run.get("algo", "?"), mode), {})[sid] = curve["best"]
     keys = sorted(curves)
     lines = []
     for i, a in enumerate(keys):
@@ -201,14 +204,8 @@ def convergence(runs: list[tuple[str, dict, list, dict]]) -> dict[str, dict]:
     time, averaged over scenes (each scene's curve relative to its first query's cost)."""
     curves: dict[str, dict] = {}
     for _, run, records, _ in runs:
-        by: dict[tuple, list] = {}
-        for r in records:
-            by.setdefault((r["scene"], r["mode"]), []).append(r)
-        for (sid, mode), recs in by.items():
-            recs = sorted(recs, key=lambda r: r["index"])
-            c = np.array([record_cost(r) for r in recs])
-            best = np.fmax.accumulate(np.where(np.isfinite(c), c, -np.inf))
-            wall = np.cumsum([r.get("wall_s", 0.0) for r in recs])
+        for (sid, mode), curve in search_curves(records).items():
+            c, best, wall = curve["cost"], curve["best"], curve["wall"]
             key = f"{run.get('algo', '?')} [{mode}]"
             d = curves.setdefault(key, {"best": [], "wall": [], "final": [], "failed": 0, "queries": 0})
             finite0 = best[np.isfinite(best)]
