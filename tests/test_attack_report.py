@@ -108,12 +108,12 @@ def test_results_doc_tables_match_the_kept_run_summaries(repo_root):
     from adv3d_runner.attack.report import table1
 
     runs = []
-    for name in ("bo100", "random100"):
+    for name in ("bo100", "random100", "bruteforce"):
         folder = repo_root / "docs" / "results" / name
         runs.append((f"runs/{name}", json.loads((folder / "run.json").read_text()), [],
                      json.loads((folder / "summary.json").read_text())))
     doc = (repo_root / "docs" / "results.md").read_text()
     rows = [ln for ln in (table1(runs) + paired_deltas(runs)).splitlines() if ln.startswith(("| Original", "| Adv."))]
-    assert len(rows) == 4 + 3
+    assert len(rows) == 5 + 4
     for row in rows:
         assert row in doc, row
