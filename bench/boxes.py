@@ -19,7 +19,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from adv3d_runner.fileio import write_json  # noqa: E402
-from adv3d_runner.metrics.boxes import box_distance, box_separation, iou_pairwise  # noqa: E402
+from adv3d_runner.geometry.boxes import box_distance, box_separation, iou_pairwise  # noqa: E402
 
 
 def random_boxes(rng, n, spread):

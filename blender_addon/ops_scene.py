@@ -313,7 +313,7 @@ def _tolerance(values: np.ndarray, decimals: int = 3) -> np.ndarray:
 
 def _read_track_edits(obj, track, origin) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
     """Poses from Blender at the track's valid frames and the mask of frames that were edited."""
-    from adv3d_runner.scene.schema import wrap_angle
+    from adv3d_runner.geometry.angles import wrap_angle
 
     frames = (track.start + np.arange(len(track)))[track.valid]
     x = eval_curve(obj, "location", 0, frames)
@@ -357,7 +357,8 @@ def export_scene(bscene):
     Returns:
         (scene, summary) where summary counts edited frames / assets / sensors.
     """
-    from adv3d_runner.scene.schema import Scene, wrap_angle
+    from adv3d_runner.geometry.angles import wrap_angle
+    from adv3d_runner.scene.schema import Scene
 
     props = bscene.adv3d.scene
     text = bpy.data.texts.get(props.text_name) if props.text_name else None

@@ -14,7 +14,7 @@ from adv3d_runner.autonomy.detector import (DEFAULT_MODEL_DIR, BevDetector, Dete
                                             voxelize)
 from adv3d_runner.autonomy.interface import Detections  # noqa: E402
 from adv3d_runner.errors import FileFormatError  # noqa: E402
-from adv3d_runner.metrics.boxes import iou_pairwise  # noqa: E402
+from adv3d_runner.geometry.boxes import iou_pairwise  # noqa: E402
 
 SHIPPED = DEFAULT_MODEL_DIR / "config.json"
 

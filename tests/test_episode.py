@@ -7,7 +7,8 @@ import pytest
 
 from adv3d_runner.errors import ConfigError
 from adv3d_runner.fileio import REPO_ROOT
-from adv3d_runner.metrics.boxes import boxes_overlap, boxes_to_frame
+from adv3d_runner.geometry.boxes import boxes_overlap
+from adv3d_runner.geometry.frames import boxes_to_frame
 from adv3d_runner.scene import load_scene
 from adv3d_runner.sensors.world import LidarWorld, rig_from_scene, world_from_scene
 from adv3d_runner.sim.episode import run_episode

@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from adv3d_runner.sim import kinematics as km
+from adv3d_runner.dynamics import bicycle as km
 
 
 def _fit_circle(xy):

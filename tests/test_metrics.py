@@ -6,7 +6,8 @@ import math
 import numpy as np
 import pytest
 
-from adv3d_runner.metrics import boxes as bx
+from adv3d_runner.geometry import boxes as bx
+from adv3d_runner.geometry import frames as fr
 from adv3d_runner.metrics import comfort as cf
 from adv3d_runner.metrics import detection as det
 from adv3d_runner.metrics import prediction as pred
@@ -122,7 +123,7 @@ def test_box_distance_and_overlap():
 def test_frame_round_trip(rng):
     b = np.c_[rng.uniform(-50, 50, (10, 2)), rng.uniform(1, 5, (10, 2)), rng.uniform(-3, 3, 10)]
     pose = np.array([12.0, -7.0, 2.5])
-    back = bx.boxes_from_frame(bx.boxes_to_frame(b, pose), pose)
+    back = fr.boxes_from_frame(fr.boxes_to_frame(b, pose), pose)
     assert np.allclose(back[:, :4], b[:, :4])
     assert np.allclose(np.cos(back[:, 4] - b[:, 4]), 1.0)
 

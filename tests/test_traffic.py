@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from adv3d_runner.sim.traffic import IDMParams, Traffic, equilibrium_speed, idm_acceleration, integrate
+from adv3d_runner.dynamics.traffic import IDMParams, Traffic, equilibrium_speed, idm_acceleration, integrate
 
 P = IDMParams()
 

@@ -11,7 +11,7 @@ Pipeline (Yang et al., "PIXOR", CVPR 2018, simplified to one stage and a small n
    **box** map per cell: ``(dx/2, dy/2, log l - 1.5, log w - 0.65, cos yaw, sin yaw)``, the
    offset from the cell centre to the box centre (m), the size and heading of the box.
 3. **Decode**: cells scoring above ``score_threshold`` (top ``pre_nms`` by score) each give a
-   box; greedy rotated NMS (BEV IoU from :mod:`adv3d_runner.metrics.boxes`) keeps the best box
+   box; greedy rotated NMS (BEV IoU from :mod:`adv3d_runner.geometry.boxes`) keeps the best box
    of each cluster, refined by the score-weighted mean of the cluster's boxes ("box voting").
 
 Boxes are ``(x, y, length, width, yaw)`` in the **ego frame** (see
@@ -36,7 +36,7 @@ from torch import nn
 
 from ..errors import ConfigError, FileFormatError
 from ..fileio import REPO_ROOT
-from ..metrics.boxes import iou_pairwise
+from ..geometry.boxes import iou_pairwise
 from .interface import Detections
 
 DEFAULT_MODEL_DIR = REPO_ROOT / "assets" / "models" / "detector"

@@ -36,7 +36,7 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
-from ..metrics.boxes import boxes_to_frame
+from ..geometry.frames import boxes_to_frame
 
 DATA_VERSION = 1
 TRAIN_SEED0 = 100_000     # training scenes: TRAIN_SEED0 + [0, N)

@@ -21,7 +21,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from ..metrics.boxes import iou_pairwise
+from ..geometry.boxes import iou_pairwise
 from ..metrics.detection import ROI_AHEAD, average_precision
 from .detector import BevDetector, DetectorConfig, PixorNet, encode_targets, voxelize
 from .detector_data import DEFAULT_MIN_POINTS, FrameSet, split_gt

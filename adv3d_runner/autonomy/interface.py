@@ -7,7 +7,7 @@ Frames: LiDAR points come in the **ego frame** (origin at the ego's footprint ce
 ground, x forward, y left, z up). Every output (detections, tracks, predictions, plan) is in
 the scene's **map frame**; a stack converts with the ego pose (perfect localisation). Units: m,
 s, rad, m/s. Boxes are ``(x, y, length, width, yaw)`` footprints (see
-:mod:`adv3d_runner.metrics.boxes`).
+:mod:`adv3d_runner.geometry.boxes`).
 
 All containers validate their shapes on construction and are numpy-only (the Blender add-on and
 the replay writer can use them without torch).

@@ -15,7 +15,7 @@ from typing import Any, Protocol, Sequence
 
 import numpy as np
 
-from ..metrics.boxes import boxes_from_frame
+from ..geometry.frames import boxes_from_frame
 from .baselines import LaneFollowingPredictor
 from .interface import AutonomyOutputs, Detections, EgoState, Predictions, Tracks
 from .planner import SamplingPlanner

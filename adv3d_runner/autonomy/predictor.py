@@ -42,6 +42,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from ..errors import FileFormatError
+from ..geometry.angles import wrap_angle
 from ..fileio import REPO_ROOT
 from ..scene import lanes as lanegeo
 from .interface import DT, PREDICTION_STEPS, Predictions, Tracks
@@ -218,7 +219,7 @@ class LaneIndex:
             return np.full(n, -1, np.int64), (z, z, z, z, z)
         proj = self.project_all(P[:, :2])
         s, d, head, width, beyond = proj
-        herr = np.abs((P[:, 2:3] - head + np.pi) % (2 * np.pi) - np.pi)
+        herr = np.abs(wrap_angle(P[:, 2:3] - head))
         inside = (np.abs(d) <= 0.5 * width) & (beyond == 0.0)
         key = np.where(inside, 0.0, 1e6) + np.abs(d) + beyond
         key = np.where(herr <= max_heading_error, key, np.inf)

@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from ..geometry.angles import wrap_angle
 from .interface import DT, Detections, Tracks
 
 
@@ -73,7 +74,7 @@ class _Track:
 
 
 def _wrap(a: float) -> float:
-    return (a + np.pi) % (2 * np.pi) - np.pi
+    return float(wrap_angle(a))
 
 
 class MultiObjectTracker:

@@ -26,7 +26,7 @@ from typing import Sequence
 
 import numpy as np
 
-from .boxes import box_distance, boxes_overlap
+from ..geometry.boxes import box_distance, boxes_overlap
 
 DT = 0.1
 _MIN_SPEED = 1e-3  # m/s; below this a positions-only trajectory has no defined heading

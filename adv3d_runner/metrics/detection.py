@@ -21,7 +21,8 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
-from .boxes import as_boxes, boxes_to_frame, iou_pairwise
+from ..geometry.boxes import as_boxes, iou_pairwise
+from ..geometry.frames import boxes_to_frame
 
 IOU_THRESHOLD = 0.5
 # The paper evaluates vehicles within 50 m ahead of the ego ("ROI").

@@ -29,11 +29,12 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ConfigError, FileFormatError
-from ..sim.traffic import IDMParams, Traffic
+from ..dynamics.traffic import IDMParams, Traffic
+from ..geometry.angles import wrap_angle
 from . import lanes as lg
 from .generate import EGO_WHEELBASE
 from .schema import (Actor, Background, Barrier, Ego, Lane, Scene, Source, Track,
-                     default_sensors, wrap_angle)
+                     default_sensors)
 
 DT = 0.1
 LICENCE = "BSD-3-Clause (CommonRoad scenario; see scenes/real/LICENSE.txt)"

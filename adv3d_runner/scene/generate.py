@@ -24,10 +24,11 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ConfigError
-from ..sim.traffic import IDMParams, Traffic, equilibrium_speed
+from ..dynamics.traffic import IDMParams, Traffic, equilibrium_speed
+from ..geometry.angles import wrap_angle
 from . import lanes as lg
 from .schema import (Actor, Background, Barrier, Ego, Lane, Scene, Source, Track,
-                     default_sensors, save_scene, wrap_angle)
+                     default_sensors, save_scene)
 
 GENERATOR = "adv3d-highway-1"
 LAYOUTS = ("straight", "curved", "onramp", "lanedrop")

@@ -26,6 +26,7 @@ import numpy as np
 
 from ..errors import FileFormatError
 from ..fileio import check_header, read_json, write_json
+from ..geometry.angles import wrap_angle
 
 FORMAT = "adv3d-scene"
 VERSION = 1
@@ -54,10 +55,6 @@ def _round(values: np.ndarray | float, decimals: int) -> np.ndarray:
     out = np.round(np.asarray(values, dtype=np.float64), decimals)
     return out + 0.0  # adding +0.0 turns "-0.0" into "0.0" (files never hold -0.0)
 
-
-def wrap_angle(yaw: np.ndarray | float) -> np.ndarray:
-    """Wrap angles to [-pi, pi) (radians)."""
-    return (np.asarray(yaw, dtype=np.float64) + np.pi) % (2 * np.pi) - np.pi
 
 
 # --------------------------------------------------------------------------------------------

@@ -31,6 +31,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..errors import ConfigError
+from ..geometry.angles import wrap_angle
 
 __all__ = ["LidarModel", "MODELS", "get_model", "generic_model", "model_names"]
 
@@ -103,7 +104,7 @@ class LidarModel:
         """
         col_az = np.arange(self.columns) * (2.0 * np.pi / self.columns)
         az = col_az[:, None] + np.asarray(self.azimuth_offsets)[None, :]
-        az = (az + np.pi) % (2.0 * np.pi) - np.pi
+        az = wrap_angle(az)
         el = np.broadcast_to(np.asarray(self.elevations)[None, :], az.shape)
         cos_el = np.cos(el)
         directions = np.stack([cos_el * np.cos(az), cos_el * np.sin(az), np.sin(el)], axis=-1).reshape(-1, 3)

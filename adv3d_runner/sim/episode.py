@@ -29,7 +29,7 @@ import numpy as np
 
 from ..autonomy.interface import PREDICTION_STEPS, AutonomyOutputs, EgoState
 from ..errors import ConfigError
-from ..metrics.boxes import boxes_to_frame
+from ..geometry.frames import boxes_to_frame
 
 #: Stages of :attr:`EpisodeResult.timings` (seconds per frame).
 STAGES = ("lidar", "detector", "tracker", "predictor", "planner", "traffic", "total")
@@ -313,7 +313,7 @@ def _follow(out: AutonomyOutputs, ego: EgoState, k: int, dt: float) -> EgoState:
         curv = float(plan.curvature[0]) if plan.curvature is not None and len(plan.curvature) else 0.0
         pose, speed = plan.trajectory[1], float(plan.speed[1])
     else:
-        from .kinematics import advance_on_trajectory
+        from ..dynamics.bicycle import advance_on_trajectory
 
         pose, speed = advance_on_trajectory(plan.trajectory, plan.speed, dt=dt, plan_dt=plan.dt)
         acc, curv = (speed - ego.speed) / dt, 0.0
@@ -326,7 +326,7 @@ def _extrapolate(plan, t: float, dt: float) -> tuple[np.ndarray, float]:
     traj, v = plan.trajectory, plan.speed
     end = (len(traj) - 1) * plan.dt
     if t <= end:
-        from .kinematics import advance_on_trajectory
+        from ..dynamics.bicycle import advance_on_trajectory
 
         return advance_on_trajectory(traj, v, dt=t, plan_dt=plan.dt)
     last = traj[-1]

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..metrics.boxes import box_corners, iou_pairwise
+from ..geometry.boxes import box_corners, iou_pairwise
 from ..metrics.comfort import collisions, driving_comfort, planning_comfort
 from ..metrics.detection import ROI_AHEAD, evaluate_frames, roi_mask
 from ..metrics.prediction import match_to_ground_truth, prediction_metrics

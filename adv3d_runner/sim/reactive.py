@@ -1,6 +1,6 @@
 """Reactive actors: the scene's vehicles driven by the IDM/MOBIL traffic model around the ego.
 
-:class:`~adv3d_runner.sim.traffic.Traffic` works in road coordinates (arc length ``s`` along one
+:class:`~adv3d_runner.dynamics.traffic.Traffic` works in road coordinates (arc length ``s`` along one
 reference line, integer lane index 0 = rightmost). A scene has a lane *graph* instead (centre
 lines with left/right neighbours and successors). :class:`RoadFrame` maps one onto the other:
 
@@ -28,9 +28,10 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import ConfigError
-from ..metrics.boxes import boxes_overlap
+from ..geometry.angles import wrap_angle
+from ..geometry.boxes import boxes_overlap
 from ..scene import lanes as lanegeo
-from .traffic import Traffic
+from ..dynamics.traffic import Traffic
 
 SETTLE_S = 2.0
 MAX_OFFSET_LANES = 0.75
@@ -74,7 +75,7 @@ class RoadFrame:
                 continue
             s, d, h = lanegeo.project(ref, pts)
             own = lanegeo.heading_at(pts, np.clip(lanegeo.arc_length(pts), 0, lanegeo.length(pts) - 1e-6))
-            if np.median(np.abs((own - h + np.pi) % (2 * np.pi) - np.pi)) > np.pi / 2:
+            if np.median(np.abs(wrap_angle(own - h))) > np.pi / 2:
                 continue  # opposite direction
             if s.max() < 0 or s.min() > total:
                 continue
@@ -134,7 +135,7 @@ class RoadFrame:
     def pose(self, s: np.ndarray, d: np.ndarray, d_rate: np.ndarray) -> np.ndarray:
         """Map poses (N, 3) at road coordinates; ``d_rate`` = dd/ds tilts the heading."""
         p = lanegeo.pose_at(self.ref, s, d)
-        p[..., 2] = (p[..., 2] + np.arctan(d_rate) + np.pi) % (2 * np.pi) - np.pi
+        p[..., 2] = wrap_angle(p[..., 2] + np.arctan(d_rate))
         return p
 
 
@@ -202,7 +203,7 @@ class ReactiveTraffic:
             self.age[i] = 0.0
             self.yaw_residual[i] = 0.0
             model_yaw = self.poses()[i, 2]
-            self.yaw_residual[i] = (pose[2] - model_yaw + np.pi) % (2 * np.pi) - np.pi
+            self.yaw_residual[i] = wrap_angle(pose[2] - model_yaw)
 
     def poses(self) -> np.ndarray:
         """(N, 3) current actor poses (NaN for absent actors)."""
@@ -225,7 +226,7 @@ class ReactiveTraffic:
             good = np.isfinite(d)
             out[live[good]] = r.pose(t.s[j][good], d[good], np.nan_to_num(rate[good]))
             yaw = out[live[good], 2] + fade[good] * self.yaw_residual[live[good]]
-            out[live[good], 2] = (yaw + np.pi) % (2 * np.pi) - np.pi
+            out[live[good], 2] = wrap_angle(yaw)
         rep = np.flatnonzero(self.replay)
         if len(rep) and self.frame < self.log.shape[1]:
             out[rep] = self.log[rep, self.frame]

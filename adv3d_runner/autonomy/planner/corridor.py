@@ -20,6 +20,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from ...geometry.angles import wrap_angle
 from ...scene import lanes as lanegeo
 
 DEFAULT_SPEED_LIMIT = 29.0  # m/s (~65 mph, US highway) when a lane has none
@@ -177,7 +178,7 @@ def locate_many(lanes: Sequence[Any], poses: np.ndarray, max_heading_error: floa
         if len(use) == 0:
             continue
         s, d, h = geo.project(P[use, :2])
-        herr = np.abs((P[use, 2] - h + np.pi) % (2 * np.pi) - np.pi)
+        herr = np.abs(wrap_angle(P[use, 2] - h))
         half = 0.5 * geo.width_at(s)
         beyond = np.maximum(np.maximum(-s, s - geo.length), 0.0)  # distance past the lane's ends
         inside = (np.abs(d) <= half) & (beyond == 0.0)

@@ -12,7 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ...metrics.boxes import box_separation
+from ...geometry.angles import wrap_angle
+from ...geometry.boxes import box_separation
 from .corridor import CorridorSet
 
 
@@ -30,7 +31,7 @@ def clearance(ego_poses: np.ndarray, ego_dims: tuple[float, float], actor_poses:
               actor_dims: np.ndarray, max_distance: float = 5.0) -> np.ndarray:
     """Footprint clearance between each candidate and each actor mode at each time.
 
-    The clearance is the separating-axis gap (:func:`adv3d_runner.metrics.boxes.box_separation`):
+    The clearance is the separating-axis gap (:func:`adv3d_runner.geometry.boxes.box_separation`):
     exact for side-by-side and nose-to-tail boxes, a slight underestimate (conservative) when the
     closest features are two corners; 0 exactly when the footprints overlap or touch.
 
@@ -144,7 +145,7 @@ def from_behind(ego_poses: np.ndarray, actor_poses: np.ndarray, max_heading_diff
         ap = np.concatenate([ap, np.repeat(ap[:, :, -1:], T - ap.shape[2], axis=2)], axis=2)
     e = ego_poses[:, None, None]
     lon = (ap[None, ..., 0] - e[..., 0]) * np.cos(e[..., 2]) + (ap[None, ..., 1] - e[..., 1]) * np.sin(e[..., 2])
-    dh = np.abs((ap[None, ..., 2] - e[..., 2] + np.pi) % (2 * np.pi) - np.pi)
+    dh = np.abs(wrap_angle(ap[None, ..., 2] - e[..., 2]))
     return (lon < 0.0) & (dh < max_heading_diff)
 
 

@@ -15,7 +15,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from ...sim.kinematics import BicycleParams, rollout
+from ...dynamics.bicycle import BicycleParams, rollout
+from ...geometry.angles import wrap_angle
 from ..interface import EgoState, Plan, Predictions, Tracks
 from . import costs
 from .corridor import DEFAULT_SPEED_LIMIT, CorridorSet, build_corridor, lanes_by_id, locate
@@ -181,7 +182,7 @@ class SamplingPlanner:
         self._prev_target_ids = frozenset(corridors.corridors[int(spec.corridor[i])].lane_ids)
         self._prev_offset = None if spec.emergency[i] else float(spec.offset[i])
         traj = cands.poses[i].copy()
-        traj[:, 2] = (traj[:, 2] + np.pi) % (2 * np.pi) - np.pi  # map-frame yaw in [-pi, pi)
+        traj[:, 2] = wrap_angle(traj[:, 2])  # map-frame yaw in [-pi, pi)
         plan = Plan(trajectory=traj, speed=cands.speeds[i].copy(), acceleration=cands.accel[i].copy(),
                     curvature=cands.curvature[i].copy(), dt=dt, cost=float(table.total[i]),
                     cost_terms=table.breakdown(i), label=spec.labels[i])
@@ -240,6 +241,6 @@ class SamplingPlanner:
         states = rollout(state0, acc, curvature=np.zeros((1, T)), dt=pc.dt, params=params)[0]
         a = np.diff(states[:, 3]) / pc.dt
         traj = states[:, :3].copy()
-        traj[:, 2] = (traj[:, 2] + np.pi) % (2 * np.pi) - np.pi
+        traj[:, 2] = wrap_angle(traj[:, 2])
         return Plan(trajectory=traj, speed=states[:, 3], acceleration=a, curvature=np.zeros(T), dt=pc.dt,
                     label="no-lane/stop")

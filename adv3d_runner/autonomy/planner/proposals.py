@@ -21,7 +21,7 @@ then simulated for ``horizon`` s at ``dt`` with all candidates in one vectorised
 * speed: the Intelligent Driver Model (IDM) towards the target speed, following the nearest
   predicted actor ahead in the candidate's corridor (modes with probability >= ``min_mode_prob``
   count), with a jerk limit (not for the emergency stop);
-* motion: :func:`adv3d_runner.sim.kinematics.step` (exact arcs, speed >= 0).
+* motion: :func:`adv3d_runner.dynamics.bicycle.step` (exact arcs, speed >= 0).
 """
 from __future__ import annotations
 
@@ -29,7 +29,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ...sim.kinematics import BicycleParams
+from ...dynamics.bicycle import BicycleParams
+from ...geometry.angles import wrap_angle
 from .corridor import CorridorSet
 
 
@@ -214,7 +215,7 @@ def rollout_candidates(ego_pose: np.ndarray, ego_speed: float, ego_accel: float,
     # start the transition with the ego's present lateral slope (heading relative to the lane):
     # a cubic Hermite from (d0, slope0) to (target, 0), so re-planning does not restart the
     # S-curve with zero slope (which would make every lane change crawl)
-    herr = (pose[2] - corridors.pose_at(c, s0)[:, 2] + np.pi) % (2 * np.pi) - np.pi
+    herr = wrap_angle(pose[2] - corridors.pose_at(c, s0)[:, 2])
     slope0 = np.tan(np.clip(herr, -0.5, 0.5)) * trans_len  # dd/du for u = (s - s0) / trans_len
     span = target_d - d0
     slope0 = np.where(np.abs(span) > 1e-6, np.clip(slope0 / np.where(span == 0, 1, span), -1.0, 3.0) * span, 0.0)
@@ -255,7 +256,7 @@ def rollout_candidates(ego_pose: np.ndarray, ego_speed: float, ego_accel: float,
     kappa_max = params.max_curvature
     jerk_dn = config.max_jerk * dt
     up_jerk = np.array([config.max_jerk * dt, config.max_release_jerk * dt])
-    # the bicycle step (:func:`adv3d_runner.sim.kinematics.step` with a curvature input) is
+    # the bicycle step (:func:`adv3d_runner.dynamics.bicycle.step` with a curvature input) is
     # inlined below with its parameter-derived constants computed once
     max_acc, max_dec, max_speed = params.max_accel, params.max_decel, params.max_speed
     lr = params.lr
@@ -316,7 +317,7 @@ def rollout_candidates(ego_pose: np.ndarray, ego_speed: float, ego_accel: float,
         kappa = 2.0 * (np.cos(yaw) * dy - np.sin(yaw) * dx) / np.maximum(dx * dx + dy * dy, 1e-6)
         k_lim = np.minimum(kappa_max, lat_lim / np.maximum(v * v, 1e-6))
         kappa = np.minimum(np.maximum(kappa, -k_lim), k_lim)
-        # ---- motion: exact arc of the kinematic bicycle, speed >= 0 (kinematics.step)
+        # ---- motion: exact arc of the kinematic bicycle, speed >= 0 (bicycle.step)
         vc = v  # >= 0: the start speed is clamped and every step keeps it so
         if clamp_accel:
             a = np.minimum(np.maximum(a, -max_dec), max_acc)

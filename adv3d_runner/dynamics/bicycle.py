@@ -25,6 +25,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..geometry.angles import wrap_angle
+
 DT = 0.1
 
 
@@ -204,5 +206,5 @@ def advance_on_trajectory(poses: np.ndarray, speeds: np.ndarray, dt: float = DT,
     t = np.arange(len(p)) * plan_dt
     yaw = np.unwrap(p[:, 2])
     pose = np.array([np.interp(dt, t, p[:, 0]), np.interp(dt, t, p[:, 1]), np.interp(dt, t, yaw)])
-    pose[2] = (pose[2] + np.pi) % (2 * np.pi) - np.pi
+    pose[2] = wrap_angle(pose[2])
     return pose, float(np.interp(dt, t, v))

@@ -275,28 +275,3 @@ def box_distance(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         dist = np.where(boxes_overlap(a, b, tol=0.0), 0.0, dist)
         finite = np.isfinite(a).all(-1) & np.isfinite(b).all(-1)
     return np.where(finite, dist, np.inf)
-
-
-def boxes_to_frame(boxes: np.ndarray, pose: np.ndarray) -> np.ndarray:
-    """Express map-frame boxes (..., 5) in the frame of ``pose`` (x, y, yaw) (e.g. the ego)."""
-    b = as_boxes(boxes)
-    x0, y0, yaw0 = (float(v) for v in np.asarray(pose, dtype=np.float64).reshape(3))
-    c, s = np.cos(yaw0), np.sin(yaw0)
-    dx, dy = b[..., 0] - x0, b[..., 1] - y0
-    out = b.copy()
-    out[..., 0] = c * dx + s * dy
-    out[..., 1] = -s * dx + c * dy
-    out[..., 4] = (b[..., 4] - yaw0 + np.pi) % (2 * np.pi) - np.pi
-    return out
-
-
-def boxes_from_frame(boxes: np.ndarray, pose: np.ndarray) -> np.ndarray:
-    """Inverse of :func:`boxes_to_frame`: boxes in the frame of ``pose`` -> map frame."""
-    b = as_boxes(boxes)
-    x0, y0, yaw0 = (float(v) for v in np.asarray(pose, dtype=np.float64).reshape(3))
-    c, s = np.cos(yaw0), np.sin(yaw0)
-    out = b.copy()
-    out[..., 0] = x0 + c * b[..., 0] - s * b[..., 1]
-    out[..., 1] = y0 + s * b[..., 0] + c * b[..., 1]
-    out[..., 4] = (b[..., 4] + yaw0 + np.pi) % (2 * np.pi) - np.pi
-    return out
