@@ -3,7 +3,7 @@
 :class:`LidarWorld` is built from plain arrays (:meth:`LidarWorld.__init__`,
 :meth:`add_actor`) or from a scene file through the scene package (:func:`world_from_scene`).
 Actor meshes live in their local frame (origin at the footprint centre on the ground, +x
-front, per DESIGN.md); per-frame poses are given to
+front, docs/architecture.md "Conventions"); per-frame poses are given to
 :func:`adv3d_runner.sensors.lidar.simulate_frame`, never baked into geometry, so moving an actor
 costs nothing and replacing its shape (:meth:`set_actor_mesh`) builds only the new mesh's BVH.
 Identical meshes share one BVH (cache keyed by content hash).

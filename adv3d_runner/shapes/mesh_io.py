@@ -1,6 +1,6 @@
 """Reading vehicle meshes from artist files and bringing them into the project convention.
 
-Convention (DESIGN.md): metres, right-handed, +x front, +y left, +z up, origin at the centre of
+Convention (docs/architecture.md, "Conventions"): metres, right-handed, +x front, +y left, +z up, origin at the centre of
 the footprint (the x/y bounding box) on the ground (z = 0 is the lowest point, the tyres).
 
 - glb / gltf / obj / ply / stl are read with trimesh; scenes are flattened with their node
