@@ -19,7 +19,7 @@ import time
 import traceback
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -83,6 +83,7 @@ class BestEvaluation:
     replay: str | None = None
 
 
+@runtime_checkable
 class QueryEvaluator(Protocol):
     """What the driver needs from whatever scores queries (must pickle: it goes to workers)."""
 
