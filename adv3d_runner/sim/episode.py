@@ -168,6 +168,44 @@ def default_library():
     return load_library(path)
 
 
+def _episode_frames(scene, seconds: float, closed_loop: bool, start_frame: int) -> int:
+    """T = round(seconds / dt), checked against the scene.
+
+    Raises:
+        ConfigError: no frame, an open-loop episode past the ego log, or a start outside the scene.
+    """
+    T = int(round(seconds / float(scene.dt)))
+    if T < 1:
+        raise ConfigError(f"an episode needs at least one frame (seconds={seconds})")
+    if not closed_loop and start_frame + T > scene.frames:
+        raise ConfigError(f"open loop needs the ego log for frames {start_frame}..{start_frame + T - 1}, "
+                          f"the scene has {scene.frames}")
+    if start_frame < 0 or start_frame >= scene.frames:
+        raise ConfigError(f"start_frame {start_frame} outside the scene's {scene.frames} frames")
+    return T
+
+
+def _substituted_dimensions(scene, ids: np.ndarray, to_world: np.ndarray,
+                            overrides: Mapping[int, ShapeOverride]) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 3) actor L, W, H with the overrides' dimensions, and (N,) bool: substituted.
+
+    Raises:
+        ConfigError: an override names an actor not in the scene (or not in the world), or is
+            not a :class:`ShapeOverride`.
+    """
+    dims = scene.actor_dimensions().copy()
+    adversarial = np.zeros(len(ids), bool)
+    index = {int(a): i for i, a in enumerate(ids)}
+    for aid, spec in overrides.items():
+        if int(aid) not in index or to_world[index[int(aid)]] < 0:
+            raise ConfigError(f"actor_overrides: actor {aid} is not in scene {scene.id}")
+        if not isinstance(spec, ShapeOverride):
+            raise ConfigError(f"actor_overrides[{aid}] must be a ShapeOverride, got {type(spec).__name__}")
+        dims[index[int(aid)]] = spec.dimensions
+        adversarial[index[int(aid)]] = True
+    return dims, adversarial
+
+
 class Episode:
     """One episode, stepped frame by frame: setup (the constructor), :meth:`step`, :meth:`finish`.
 
@@ -191,14 +229,7 @@ class Episode:
         from ..sensors.world import rig_from_scene, world_from_scene
 
         dt = float(scene.dt)
-        T = int(round(seconds / dt))
-        if T < 1:
-            raise ConfigError(f"an episode needs at least one frame (seconds={seconds})")
-        if not closed_loop and start_frame + T > scene.frames:
-            raise ConfigError(f"open loop needs the ego log for frames {start_frame}..{start_frame + T - 1}, "
-                              f"the scene has {scene.frames}")
-        if start_frame < 0 or start_frame >= scene.frames:
-            raise ConfigError(f"start_frame {start_frame} outside the scene's {scene.frames} frames")
+        T = _episode_frames(scene, seconds, closed_loop, start_frame)
         H = PREDICTION_STEPS
         if world is None:
             world = world_from_scene(scene, default_library() if library == "default" else library)
@@ -212,21 +243,12 @@ class Episode:
 
         ids = np.array(scene.actor_ids, dtype=np.int64)
         n = len(ids)
-        dims = scene.actor_dimensions().copy()
-        adversarial = np.zeros(n, bool)
         # world rows <-> scene actors (a caller's world may order or hold actors differently)
         world_ids = list(world.actor_ids)
         row_of = {a: i for i, a in enumerate(world_ids)}
         to_world = np.array([row_of.get(int(a), -1) for a in ids], dtype=np.int64)
         overrides = dict(actor_overrides or {})
-        index = {int(a): i for i, a in enumerate(ids)}
-        for aid, spec in overrides.items():
-            if int(aid) not in index or int(aid) not in row_of:
-                raise ConfigError(f"actor_overrides: actor {aid} is not in scene {scene.id}")
-            if not isinstance(spec, ShapeOverride):
-                raise ConfigError(f"actor_overrides[{aid}] must be a ShapeOverride, got {type(spec).__name__}")
-            dims[index[int(aid)]] = spec.dimensions
-            adversarial[index[int(aid)]] = True
+        dims, adversarial = _substituted_dimensions(scene, ids, to_world, overrides)
         self.ids, self.dims, self.adversarial, self.overrides = ids, dims, adversarial, overrides
         self.n_world, self.to_world, self.have = len(world_ids), to_world, to_world >= 0
         self.label_to_actor = np.full(len(world_ids) + 1, -1, np.int64)
