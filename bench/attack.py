@@ -3,7 +3,8 @@
     .venv/bin/python bench/attack.py [--quick] [--scene FILE] [--autonomy oracle|A] [--queries N]
 
 1. Convergence on the synthetic 5-D objective (``synthetic:peak``: a bowl with a narrow peak of
-   height 2 at a fixed point), every algorithm at budget 100 over several seeds: best value after
+   height 2 at a fixed point; ``tests/attack_synthetic.py``, the tests' analytic stand-in for the
+   episode evaluator), every algorithm at budget 100 over several seeds: best value after
    10/25/50/100 queries and the searcher's own time per query (ask + tell, no simulation).
 2. Throughput on a bundled scene: a closed-loop 5 s BO attack with 1 and 2 local workers;
    queries per minute (steady state from the journal's per-query wall times, and end to end
@@ -27,15 +28,17 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from adv3d_runner.attack.driver import AttackConfig, SYNTHETIC, run_attack  # noqa: E402
+from adv3d_runner.attack.config import AttackConfig  # noqa: E402
+from adv3d_runner.attack.driver import run_attack  # noqa: E402
 from adv3d_runner.attack.search import make_searcher  # noqa: E402
 from adv3d_runner.machine import machine_info  # noqa: E402
+from tests.attack_synthetic import peak  # noqa: E402  (the synthetic objective lives with the tests)
 
 CHECKPOINTS = (10, 25, 50, 100)
 
 
 def synthetic_convergence(seeds: int, budget: int = 100) -> dict:
-    f = SYNTHETIC["peak"]
+    f = peak
     out = {}
     for algo in ("bo", "random", "grid", "blendsearch", "bruteforce"):
         curves, overhead = [], []

@@ -28,7 +28,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from adv3d_runner.attack.driver import SceneContext  # noqa: E402
+from adv3d_runner.attack.config import AttackConfig  # noqa: E402
+from adv3d_runner.attack.evaluator import SceneWorkspace  # noqa: E402
 from adv3d_runner.attack.journal import read_run  # noqa: E402
 from adv3d_runner.fileio import atomic_write_text  # noqa: E402
 from adv3d_runner.machine import machine_info  # noqa: E402
@@ -60,7 +61,7 @@ def metric(record: dict, path: tuple[str, str] | None, scale: float) -> float:
 
 def evaluate_run(run_dir: Path, mode: str, limit: int | None = None) -> list[dict]:
     run, _, summary = read_run(run_dir)
-    cfg = {k: run[k] for k in ("autonomy", "actors", "objective", "seconds", "seed", "reactive", "shape_space")}
+    settings = AttackConfig.from_run_json(run).settings
     rows = []
     for ref, sid in list(zip(run["scenes"], run["scene_ids"]))[:limit]:
         entry = summary.get("scenes", {}).get(sid, {})
@@ -69,15 +70,14 @@ def evaluate_run(run_dir: Path, mode: str, limit: int | None = None) -> list[dic
             print(f"  {sid}: no {mode} result in {run_dir}, skipped")
             continue
         t0 = time.perf_counter()
-        ctx = SceneContext(str(ROOT / ref) if not Path(ref).is_absolute() else ref, cfg)
+        ctx = SceneWorkspace(str(ROOT / ref) if not Path(ref).is_absolute() else ref, settings)
         best = np.asarray(m["best_unit"], dtype=np.float64).reshape(len(entry["targets"]), -1)
         row = {"scene": sid, "run": str(run_dir), "original": entry["original"],
                "recorded_best": m["closed_loop_eval"], "units": {}, "variants": {}}
         for name, units in variant_units(ctx.space, best).items():
             record, _ = ctx.evaluate(units.reshape(-1), closed_loop=True)
             row["units"][name] = units.tolist()
-            row["variants"][name] = {"cost": record["cost"], "metrics": record["metrics"],
-                                     "dimensions": record.get("dimensions")}
+            row["variants"][name] = {"cost": record.cost, "metrics": record.metrics, "dimensions": record.dimensions}
         row["best_reproduced"] = bool(np.isclose(row["variants"]["best"]["cost"], m["closed_loop_eval"]["cost"],
                                                  rtol=0, atol=1e-9))
         rows.append(row)

@@ -1,12 +1,17 @@
-"""Attack driver and run journal: resume after a crash, determinism, failed queries, CLI."""
+"""Attack driver and run journal: resume after a crash, determinism, failed queries, CLI.
+
+Most tests drive the machinery with the analytic :class:`attack_synthetic.SyntheticEvaluator`
+(no simulator); the real-scene tests use the production episode evaluator."""
 from __future__ import annotations
 
 import json
 
 import numpy as np
 import pytest
+from attack_synthetic import SyntheticEvaluator
 
-from adv3d_runner.attack.driver import AttackConfig, run_attack
+from adv3d_runner.attack.config import AttackConfig
+from adv3d_runner.attack.driver import run_attack as _run_attack
 from adv3d_runner.attack.journal import Journal, query_record, read_run, strip_times
 from adv3d_runner.errors import ConfigError, FileFormatError
 
@@ -15,6 +20,12 @@ def cfg(**kw):
     base = dict(scenes=["synthetic:peak"], algo="bo", budget=24, batch=2, n_initial=6, seed=5)
     base.update(kw)
     return AttackConfig(**base)
+
+
+def run_attack(config, out, **kw):
+    """``run_attack`` with the synthetic evaluator unless told otherwise."""
+    kw.setdefault("evaluator", SyntheticEvaluator)
+    return _run_attack(config, out, **kw)
 
 
 def lines(path):
@@ -70,17 +81,17 @@ def test_resume_after_crash_does_not_redo_queries(tmp_path, algo):
         fh.write(done[-1][: len(done[-1]) // 2])
     calls = []
 
-    def counting(task):
-        from adv3d_runner.attack.driver import evaluate_task
-        calls.append(task["unit"])
-        return evaluate_task(task)
+    class Counting(SyntheticEvaluator):
+        def evaluate(self, query):
+            calls.append(query.unit.tolist())
+            return super().evaluate(query)
 
-    run_attack(cfg(algo=algo), crashed, show_progress=False, evaluate=counting)
+    run_attack(cfg(algo=algo), crashed, show_progress=False, evaluator=Counting)
     assert len(calls) == 24 - 10  # only the queries that were not in the journal
     assert strip_times(lines(crashed)) == strip_times(lines(full))
     # a second resume of a finished run evaluates nothing
     calls.clear()
-    run_attack(cfg(algo=algo), crashed, show_progress=False, evaluate=counting)
+    run_attack(cfg(algo=algo), crashed, show_progress=False, evaluator=Counting)
     assert calls == []
     assert len(lines(crashed)) == 24
 
@@ -123,17 +134,34 @@ def test_journal_nonfinite_cost_written_as_null(tmp_path):
     assert rec["cost"] is None and rec["status"] == "error"
 
 
-def test_cli_attack_and_report(tmp_path, capsys):
+def test_cli_attack_and_report(tmp_path, repo_root):
     from adv3d_runner.cli import main
 
+    scene = repo_root / "scenes" / "highway" / "highway-benchmark-000000.json.gz"
+    if not scene.exists():
+        pytest.skip("no bundled scenes")
     out = tmp_path / "run"
-    assert main(["-q", "attack", "synthetic:peak", "--algo", "random", "--budget", "8", "--out", str(out)]) == 0
-    assert len(lines(out)) == 8
+    assert main(["-q", "attack", str(scene), "--algo", "random", "--budget", "2", "--seconds", "0.3",
+                 "--autonomy", "oracle", "--out", str(out)]) == 0
+    assert len(lines(out)) == 2
+    run = json.loads((out / "run.json").read_text())
+    assert run["scenes"] == [str(scene)] and run["autonomy"] == "oracle" and run["seconds"] == 0.3
+    assert AttackConfig.from_run_json(run) == AttackConfig([str(scene)], algo="random", budget=2, seconds=0.3,
+                                                          autonomy="oracle")
     assert main(["-q", "report", str(out)]) == 0
     text = (out / "report.md").read_text()
-    assert "synthetic:peak" in text and "random" in text
+    assert "highway-benchmark-000000" in text and "random" in text
     assert (out / "convergence.png").exists()
-    assert main(["-q", "attack", "synthetic:peak", "--budget", "0", "--out", str(tmp_path / "z")]) == 1
+    assert main(["-q", "attack", str(scene), "--budget", "0", "--out", str(tmp_path / "z")]) == 1
+
+
+def test_report_of_a_run_without_closed_loop_evaluations(tmp_path):
+    from adv3d_runner.attack.report import write_report
+
+    run_attack(cfg(algo="random", budget=8), tmp_path / "run", show_progress=False)
+    text = write_report([tmp_path / "run"]).read_text()
+    assert "synthetic:peak" in text and "No closed-loop evaluations" in text
+    assert not list((tmp_path / "run").glob("thumb_*.png"))  # nothing was simulated: no shapes to show
 
 
 @pytest.mark.slow
@@ -159,7 +187,7 @@ def test_real_scene_short_attack_bundle(tmp_path, repo_root, monkeypatch):
     scene = repo_root / "scenes" / "highway" / "highway-benchmark-000000.json.gz"
     if not scene.exists():
         pytest.skip("no bundled scenes")
-    from adv3d_runner.attack import driver
+    from adv3d_runner.attack import evaluator
     from adv3d_runner.errors import EmptySurfaceError
     from adv3d_runner.shapes.shape_space import ShapeSpace
     from adv3d_runner.sim.replay import load_replay
@@ -174,9 +202,9 @@ def test_real_scene_short_attack_bundle(tmp_path, repo_root, monkeypatch):
         return real(self, z, scales)
 
     monkeypatch.setattr(ShapeSpace, "decode_latent", flaky)
-    monkeypatch.setattr(driver, "_CONTEXTS", {})
+    monkeypatch.setattr(evaluator, "_WORKSPACES", {})
     c = AttackConfig([str(scene)], algo="random", budget=3, seconds=1.0, autonomy="oracle", seed=1)
-    summary = run_attack(c, tmp_path / "run", show_progress=False)
+    summary = _run_attack(c, tmp_path / "run", show_progress=False)
     recs = lines(tmp_path / "run")
     assert [r["status"] for r in recs] == ["ok", "invalid", "ok"]
     ok = recs[0]
@@ -192,17 +220,14 @@ def test_real_scene_short_attack_bundle(tmp_path, repo_root, monkeypatch):
     assert rp.n_frames == 10 and any(a.adversarial for a in rp.actors)
 
 
-def test_scene_without_targets_is_skipped(tmp_path, monkeypatch):
-    from adv3d_runner.attack import driver
+def test_scene_without_targets_is_skipped(tmp_path):
+    class NoTargets(SyntheticEvaluator):
+        def targets(self, ref):
+            if ref == "synthetic:empty":
+                raise ConfigError("no actor in front of the ego")
+            return super().targets(ref)
 
-    real = driver.scene_targets
-
-    def no_targets(ref, c):
-        if ref == "synthetic:peak" and c["seed"] == 11:
-            raise ConfigError("no actor in front of the ego")
-        return real(ref, c)
-
-    monkeypatch.setattr(driver, "scene_targets", no_targets)
-    s = run_attack(cfg(seed=11, budget=4), tmp_path / "s", show_progress=False)
-    assert "skipped" in s["scenes"]["synthetic:peak"]
-    assert not (tmp_path / "s" / "queries.jsonl").exists() or lines(tmp_path / "s") == []
+    s = run_attack(cfg(scenes=["synthetic:empty", "synthetic:peak"], budget=4), tmp_path / "s",
+                   show_progress=False, evaluator=NoTargets)
+    assert "skipped" in s["scenes"]["synthetic:empty"]
+    assert {r["scene"] for r in lines(tmp_path / "s")} == {"synthetic:peak"}  # the next scene still ran

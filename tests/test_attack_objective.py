@@ -108,11 +108,14 @@ def test_decode_query_dimensions_follow_shape():
     u[space.k + 1] = 0.0   # actor 0: length scale 0.8
     u[space.dim + space.k + 1] = 1.0  # actor 1: length scale 1.3
     ov, info = decode_query(space, u, [7, 9])
-    assert set(ov) == {7, 9}
-    d7, d9 = ov[7][2], ov[9][2]
+    from adv3d_runner.sim.episode import ShapeOverride
+
+    assert set(ov) == {7, 9} and all(isinstance(o, ShapeOverride) for o in ov.values())
+    d7, d9 = ov[7].dimensions, ov[9].dimensions
     assert d9[0] / d7[0] == pytest.approx(1.3 / 0.8, rel=0.05)
     assert info["dimensions"][0] == pytest.approx(list(d7))
-    assert np.min(ov[7][0][:, 2]) == pytest.approx(0.0, abs=1e-6)
+    assert np.min(ov[7].vertices[:, 2]) == pytest.approx(0.0, abs=1e-6)
+    assert ov[7].faces.dtype == np.int64 and ov[7].faces.max() < len(ov[7].vertices)
 
 
 def test_select_targets_in_front_nearest_first(repo_root):

@@ -11,8 +11,9 @@ from adv3d_runner.geometry.boxes import boxes_overlap
 from adv3d_runner.geometry.frames import boxes_to_frame
 from adv3d_runner.scene import load_scene
 from adv3d_runner.sensors.world import LidarWorld, rig_from_scene, world_from_scene
-from adv3d_runner.sim.episode import run_episode
+from adv3d_runner.sim.episode import Episode, ShapeOverride, run_episode
 from adv3d_runner.sim.evaluate import episode_metrics
+from adv3d_runner.sim.recorders import STAGES
 from adv3d_runner.sim.stacks import OracleDetector, make_stack
 
 
@@ -111,7 +112,7 @@ def test_substituted_mesh_changes_points_and_ground_truth_box(free):
     dims = np.array([9.0, 2.6, 3.2])
     v, f = _box_mesh(*dims)
     adv = run_episode(scene, make_stack("oracle"), seconds=0.3, world=world, rig=rig, lidar_noise=False,
-                      actor_overrides={aid: (v, f, dims)})
+                      actor_overrides={aid: ShapeOverride(v, f, dims)})
     assert adv.adversarial[i] and adv.adversarial.sum() == 1
     np.testing.assert_array_equal(adv.actor_dimensions[i], dims)
     assert adv.gt_boxes(0)[i, 2] == 9.0 and adv.gt_boxes(0)[i, 3] == 2.6
@@ -127,17 +128,90 @@ def test_substituted_mesh_changes_points_and_ground_truth_box(free):
 
 def test_bad_overrides_and_missing_models(free):
     scene, world, rig = free
+    tri = (np.zeros((3, 3)), np.array([[0, 1, 2]]), np.ones(3))
     with pytest.raises(ConfigError):
         run_episode(scene, make_stack("oracle"), seconds=0.1, world=world, rig=rig,
-                    actor_overrides={99999: (np.zeros((3, 3)), np.array([[0, 1, 2]]), np.ones(3))})
+                    actor_overrides={99999: ShapeOverride(*tri)})
     aid = scene.actors[0].id
-    with pytest.raises(ConfigError):
-        run_episode(scene, make_stack("oracle"), seconds=0.1, world=world, rig=rig,
-                    actor_overrides={aid: (np.zeros((3, 3)), np.array([[0, 1, 5]]), np.ones(3))})
+    with pytest.raises(ConfigError, match="ShapeOverride"):  # the positional tuple is gone
+        run_episode(scene, make_stack("oracle"), seconds=0.1, world=world, rig=rig, actor_overrides={aid: tri})
     with pytest.raises(ConfigError):
         make_stack("B")
     with pytest.raises(ConfigError):
         run_episode(scene, make_stack("oracle"), seconds=30.0, closed_loop=False, world=world, rig=rig)
+
+
+@pytest.mark.parametrize("bad", [
+    dict(faces=np.array([[0, 1, 5]])),                       # face index past the vertices
+    dict(faces=np.array([[0, -1, 2]])),                      # negative face index
+    dict(dimensions=np.array([4.0, 0.0, 1.5])),              # a zero extent
+    dict(dimensions=np.array([4.0, 2.0])),                   # not (3,)
+    dict(vertices=np.array([[0.0, 0, 0], [1, 0, 0], [0, np.nan, 0]])),
+    dict(vertices=np.zeros((3, 2))),                         # not (V, 3)
+])
+def test_shape_override_is_checked_once_in_its_constructor(bad):
+    good = dict(vertices=np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]]), faces=np.array([[0, 1, 2]]),
+                dimensions=np.array([4.0, 2.0, 1.5]))
+    ov = ShapeOverride(**good)
+    assert ov.vertices.dtype == np.float64 and ov.faces.dtype == np.int64 and ov.dimensions.shape == (3,)
+    assert not ov.vertices.flags.writeable  # frozen all the way down: a copy the caller cannot change
+    good["vertices"][0, 0] = 7.0
+    assert ov.vertices[0, 0] == 0.0
+    with pytest.raises(ConfigError):
+        ShapeOverride(**{**good, **bad})
+
+
+class _Counting:
+    """A recorder that keeps what the episode hands it."""
+
+    def __init__(self):
+        self.frames, self.results = [], []
+
+    def on_frame(self, episode, frame):
+        self.frames.append((frame.index, frame.ego.pose.copy(), frame.actor_points.copy(), frame.outputs))
+
+    def on_finish(self, episode, result):
+        self.results.append(result)
+
+
+def test_episode_steps_equal_run_episode_and_recorders_see_every_frame(free):
+    scene, world, rig = free
+    aid = scene.actors[0].id
+    v, f = _box_mesh(6.0, 2.4, 2.0)
+    shape = {aid: ShapeOverride(v, f, np.array([6.0, 2.4, 2.0]))}
+    plain = run_episode(scene, make_stack("oracle"), seconds=0.4, world=world, rig=rig, seed=5)
+    ref = run_episode(scene, make_stack("oracle"), seconds=0.4, world=world, rig=rig, seed=5,
+                      actor_overrides=shape, record_points=True)
+    rec = _Counting()
+    ep = Episode(scene, make_stack("oracle"), seconds=0.4, world=world, rig=rig, seed=5, actor_overrides=shape,
+                 recorders=[rec])
+    assert ep.frames == 4 and not ep.done
+    with pytest.raises(RuntimeError):
+        ep.finish()  # not before the last frame
+    frames = [ep.step() for _ in range(ep.frames)]
+    assert ep.done
+    with pytest.raises(RuntimeError):
+        ep.step()
+    result = ep.finish()
+    assert [k for k, *_ in rec.frames] == [0, 1, 2, 3] and rec.results == [result]
+    assert [fr.index for fr in frames] == [0, 1, 2, 3]
+    np.testing.assert_array_equal(result.ego_poses, ref.ego_poses)
+    np.testing.assert_array_equal(result.actor_poses, ref.actor_poses)
+    np.testing.assert_array_equal(result.actor_points, ref.actor_points)
+    np.testing.assert_array_equal(np.stack([p for _, p, _, _ in rec.frames]), ref.ego_poses)
+    np.testing.assert_array_equal(np.stack([c for _, _, c, _ in rec.frames]), ref.actor_points)
+    # without a timing or point recorder there are no timings and no points
+    assert result.points is None and result.timings == {}
+    assert len(ref.points) == 4 and set(ref.timings) == set(STAGES)
+    assert all(len(t) == 4 and (t >= 0).all() for t in ref.timings.values())
+    assert (ref.timings["total"] > 0).all()
+    # stopped early, close() gives the world its benign mesh back; so does finish()
+    early = Episode(scene, make_stack("oracle"), seconds=0.4, world=world, rig=rig, seed=5, actor_overrides=shape)
+    early.step()
+    early.close()
+    again = run_episode(scene, make_stack("oracle"), seconds=0.4, world=world, rig=rig, seed=5)
+    np.testing.assert_array_equal(again.actor_points, plain.actor_points)
+    assert not np.array_equal(plain.actor_points, ref.actor_points)  # the override did change the returns
 
 
 def test_oracle_detector_needs_points_and_returns():

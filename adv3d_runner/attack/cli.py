@@ -5,7 +5,7 @@ import argparse
 
 
 def register(subparsers) -> None:
-    from .driver import MODES
+    from .config import MODES
     from .search import ALGORITHMS
 
     p = subparsers.add_parser(
@@ -13,7 +13,7 @@ def register(subparsers) -> None:
         description="Search the shape space for the actor shapes that hurt the autonomy stack most "
                     "(maximising the objective of paper Eq. 3-5). Results go to the run bundle OUT; "
                     "running the same command again resumes a killed run without redoing queries.")
-    p.add_argument("scenes", nargs="+", metavar="SCENE", help="scene files (.json/.json.gz), or synthetic:peak")
+    p.add_argument("scenes", nargs="+", metavar="SCENE", help="scene files (.json/.json.gz)")
     p.add_argument("--algo", choices=ALGORITHMS, default="bo", help="search algorithm (default bo)")
     p.add_argument("--budget", type=int, default=100, help="queries per scene and mode (default 100)")
     p.add_argument("--actors", type=int, default=1, help="attack the m closest actors in front of the ego (default 1)")
@@ -47,11 +47,12 @@ def register(subparsers) -> None:
 def _attack(args: argparse.Namespace) -> int:
     from ..errors import ConfigError
     from ..progress import is_quiet, status
-    from .driver import AttackConfig, run_attack
+    from .config import AttackConfig
+    from .driver import run_attack
 
     if args.workers < 1:
         raise ConfigError(f"--workers must be >= 1, got {args.workers}")
-    cfg = AttackConfig(scenes=list(args.scenes), algo=args.algo, budget=args.budget, actors=args.actors,
+    cfg = AttackConfig(scenes=tuple(args.scenes), algo=args.algo, budget=args.budget, actors=args.actors,
                        mode=args.mode, seconds=args.seconds, seed=args.seed, objective=args.objective,
                        autonomy=args.autonomy, reactive=args.reactive, batch=args.workers,
                        n_initial=args.n_initial, shape_space=args.shape_space)

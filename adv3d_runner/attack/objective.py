@@ -17,7 +17,8 @@ planning only, M4 = detection + prediction, M5 = detection + planning.
 
 The functions here are pure: per-frame terms from plain arrays (hand-made in tests), and
 :func:`episode_objective` that pulls those arrays from an ``EpisodeResult`` with the same
-ground-truth rules as the episode metrics (``adv3d_runner.sim.evaluate``).
+ground-truth rules as the episode metrics (``adv3d_runner.sim.evaluate``), from the same
+:class:`~adv3d_runner.sim.evaluate.EpisodeEvaluation` when the caller passes it.
 """
 from __future__ import annotations
 
@@ -158,11 +159,21 @@ def combine(tp: np.ndarray, fp: np.ndarray, pred: np.ndarray, plan: np.ndarray,
                           float(plan.sum()), int(max(len(tp), len(pred), len(plan))))
 
 
-def episode_objective(result, weights: ObjectiveWeights = ABLATIONS["M0"]) -> ObjectiveValue:
-    """The objective of an :class:`~adv3d_runner.sim.episode.EpisodeResult` (all frames)."""
-    from ..sim.evaluate import detection_frames, prediction_pairs
+def episode_objective(result, weights: ObjectiveWeights = ABLATIONS["M0"], evaluation=None) -> ObjectiveValue:
+    """The objective of an :class:`~adv3d_runner.sim.episode.EpisodeResult` (all frames).
 
-    tp, fp = detection_terms(detection_frames(result), weights.iou_threshold)
-    pred = prediction_terms(prediction_pairs(result)) if weights.pred > 0 else np.zeros(result.frames)
+    ``evaluation``: the episode's :class:`~adv3d_runner.sim.evaluate.EpisodeEvaluation` (its
+    detection frames and prediction pairs) when the caller already has it, e.g. to share it
+    with ``episode_metrics``; computed here otherwise.
+    """
+    from ..sim.evaluate import MIN_GT_POINTS, episode_evaluation
+
+    if evaluation is None:
+        evaluation = episode_evaluation(result)
+    elif evaluation.min_gt_points != MIN_GT_POINTS:
+        raise ValueError(f"the objective uses min_gt_points={MIN_GT_POINTS}, the evaluation has "
+                         f"{evaluation.min_gt_points}")
+    tp, fp = detection_terms(evaluation.detection, weights.iou_threshold)
+    pred = prediction_terms(evaluation.prediction) if weights.pred > 0 else np.zeros(result.frames)
     plan = planning_terms(result.plans(), result.dt)
     return combine(tp, fp, pred, plan, weights)

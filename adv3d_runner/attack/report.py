@@ -56,7 +56,7 @@ def table1(runs: list[tuple[str, dict, list, dict]]) -> str:
                 if ev:
                     rows.setdefault(f"Adv. {mode}-loop ({algo})", []).append({**ev["metrics"], "_objective": {"cost": ev["cost"]}})
     if not rows:
-        return "_No closed-loop evaluations in these runs (synthetic scenes have no autonomy metrics)._\n"
+        return "_No closed-loop evaluations in these runs._\n"
     head = "| | scenes | " + " | ".join(c for c, _, _ in COLUMNS) + " |\n"
     head += "|---|---:|" + "---:|" * len(COLUMNS) + "\n"
     order = sorted(rows, key=lambda k: (k != "Original", "closed" in k, k))
@@ -336,21 +336,18 @@ def thumbnails(runs: list[tuple[str, dict, list, dict]], out_dir: Path,
     """Render the best shape of every scene, mode and attacked actor; (caption, png path).
     With ``sheet``, also one grid of all of them (rows scenes, columns run/mode/actor) there."""
     from ..errors import Adv3dError
-    from ..shapes.shape_space import DEFAULT_SHAPE_SPACE, ShapeSpace
+    from .config import AttackConfig
     from .targets import split_query
 
     out = []
     cells: dict[tuple[str, str], tuple[np.ndarray, np.ndarray, str]] = {}
-    spaces: dict = {}
     for root, run, _, summary in runs:
         for sid, entry in summary.get("scenes", {}).items():
-            if sid.startswith("synthetic:"):
-                continue
             for mode, m in entry.get("modes", {}).items():
-                if not m.get("best_unit"):
+                # no closed-loop evaluation: the evaluator simulated nothing (no shape to show)
+                if not m.get("best_unit") or not m.get("closed_loop_eval"):
                     continue
-                sp_path = run.get("shape_space") or str(DEFAULT_SHAPE_SPACE)
-                space = spaces.get(sp_path) or spaces.setdefault(sp_path, ShapeSpace.load(sp_path))
+                space = AttackConfig.from_run_json(run).settings.load_shape_space()
                 U = split_query(np.asarray(m["best_unit"]).reshape(-1), len(entry["targets"]), space.dim)
                 for aid, u in zip(entry["targets"], U):
                     png = out_dir / f"thumb_{Path(root).name}_{sid}_{mode}_actor{aid}.png"

@@ -13,6 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import ConfigError, EmptySurfaceError
+from ..sim.episode import ShapeOverride
 
 
 def select_targets(scene, m: int = 1, start_frame: int = 0, max_distance: float = 80.0) -> list[int]:
@@ -58,14 +59,14 @@ def mesh_dimensions(vertices: np.ndarray) -> np.ndarray:
     return v.max(axis=0) - v.min(axis=0)
 
 
-def decode_query(space, u: np.ndarray, actor_ids: list[int]) -> tuple[dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]], dict]:
+def decode_query(space, u: np.ndarray, actor_ids: list[int]) -> tuple[dict[int, ShapeOverride], dict]:
     """Decode a query into episode overrides.
 
     Args:
         space: a :class:`~adv3d_runner.shapes.shape_space.ShapeSpace`.
         u: (m * (K + 2),) unit vector(s). actor_ids: the m target ids.
     Returns:
-        overrides {actor id: (vertices (V, 3), faces (F, 3), dimensions (3,))} for
+        overrides {actor id: :class:`~adv3d_runner.sim.episode.ShapeOverride`} for
         ``run_episode``, and info {"latent": m x K, "scales": m x 2, "dimensions": m x 3}.
     Raises:
         EmptySurfaceError: some latent decodes to no surface (the query is invalid).
@@ -80,7 +81,7 @@ def decode_query(space, u: np.ndarray, actor_ids: list[int]) -> tuple[dict[int, 
         d = mesh_dimensions(v)
         if np.any(d <= 1e-3):
             raise EmptySurfaceError(f"actor {aid}: decoded mesh is degenerate (extents {d.tolist()})")
-        overrides[int(aid)] = (v, f, d)
+        overrides[int(aid)] = ShapeOverride(v, f, d)
         latents.append([float(x) for x in z])
         scales.append([float(x) for x in sc])
         dims.append([float(x) for x in d])

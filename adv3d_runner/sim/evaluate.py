@@ -18,9 +18,13 @@
   **progress** (path length, m).
 
 :func:`detection_frames` and :func:`prediction_pairs` give the per-frame inputs the attack
-objective (paper Eq. 4-5) needs, with the same ground-truth rules.
+objective (paper Eq. 4-5) needs, with the same ground-truth rules. Both are computed once per
+episode into an :class:`EpisodeEvaluation` (:func:`episode_evaluation`) that the metrics and
+the objective (``attack.objective.episode_objective``) share.
 """
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -88,6 +92,28 @@ def prediction_pairs(result, ahead: float = ROI_AHEAD, max_distance: float = 3.0
     return out
 
 
+@dataclass(frozen=True, eq=False)
+class EpisodeEvaluation:
+    """The per-frame inputs of the episode metrics and the attack objective, computed once.
+
+    Attributes:
+        detection: T tuples (gt boxes (G, 5), detected boxes (D, 5), scores (D,))
+            (:func:`detection_frames`).
+        prediction: T tuples (predictions (M, K, H, 2), true futures (M, H, 2), valid (M, H))
+            (:func:`prediction_pairs`).
+        min_gt_points: the visibility rule ``detection`` was made with.
+    """
+
+    detection: list[tuple[np.ndarray, np.ndarray, np.ndarray]]
+    prediction: list[tuple[np.ndarray, np.ndarray, np.ndarray]]
+    min_gt_points: int = MIN_GT_POINTS
+
+
+def episode_evaluation(result, min_gt_points: int = MIN_GT_POINTS) -> EpisodeEvaluation:
+    """Detection frames and prediction pairs of an episode, once (see :class:`EpisodeEvaluation`)."""
+    return EpisodeEvaluation(detection_frames(result, min_gt_points), prediction_pairs(result), int(min_gt_points))
+
+
 def off_road_distance(lanes, boxes: np.ndarray) -> np.ndarray:
     """(T,) largest distance (m) of a footprint corner outside every lane strip, per box (T, 5)."""
     corners = box_corners(np.asarray(boxes, float).reshape(-1, 5)).reshape(-1, 2)  # (T*4, 2)
@@ -107,11 +133,20 @@ def _f(x) -> float | None:
     return x if np.isfinite(x) else None
 
 
-def episode_metrics(result, lanes, min_gt_points: int = MIN_GT_POINTS) -> dict:
-    """The metrics document of one episode (JSON-ready; see module docstring)."""
-    frames = detection_frames(result, min_gt_points)
+def episode_metrics(result, lanes, min_gt_points: int = MIN_GT_POINTS,
+                    evaluation: EpisodeEvaluation | None = None) -> dict:
+    """The metrics document of one episode (JSON-ready; see module docstring).
+
+    ``evaluation``: the episode's :class:`EpisodeEvaluation` when the caller already has it
+    (made with the same ``min_gt_points``); computed here otherwise.
+    """
+    if evaluation is None:
+        evaluation = episode_evaluation(result, min_gt_points)
+    elif evaluation.min_gt_points != int(min_gt_points):
+        raise ValueError(f"evaluation made with min_gt_points={evaluation.min_gt_points}, not {min_gt_points}")
+    frames = evaluation.detection
     det = evaluate_frames([g for g, _, _ in frames], [d for _, d, _ in frames], [s for _, _, s in frames])
-    pairs = prediction_pairs(result)
+    pairs = evaluation.prediction
     K = max((p.shape[1] for p, _, _ in pairs if len(p)), default=3)
     H = max((p.shape[2] for p, _, _ in pairs if len(p)), default=60)
     pred = np.concatenate([p for p, _, _ in pairs if len(p)] or [np.zeros((0, K, H, 2))])

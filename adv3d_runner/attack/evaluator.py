@@ -1,0 +1,284 @@
+"""What scores a query: the :class:`QueryEvaluator` interface the driver talks to, and its
+production implementation :class:`EpisodeEvaluator` (decode the shapes, run the episode, score
+it with paper Eq. 3-5 and measure it with the episode metrics).
+
+A query (:class:`Query`) is a scene, the unit vector(s) of the attacked actors' shapes and
+closed or open loop; its :class:`QueryResult` holds the journal fields. An evaluator raises
+for a query that fails (:class:`~adv3d_runner.errors.InvalidQueryError` for a shape without a
+surface, anything else for an error); :func:`run_query`, which the driver's executors call in
+the workers, turns that into a result with status ``invalid`` / ``error`` and never raises.
+
+Evaluators cross process boundaries (local worker processes, Ray tasks), so they hold only
+small settings and are pickled with every task; the heavy per-scene state (the scene, its LiDAR
+world, the stack) lives in a per-process cache (:func:`workspace_for`), built on a worker's first
+query of a scene and reused for the next ones.
+"""
+from __future__ import annotations
+
+import time
+import traceback
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
+
+import numpy as np
+
+from ..errors import InvalidQueryError
+from .config import QuerySettings
+
+if TYPE_CHECKING:  # pragma: no cover - annotations only
+    from ..sim.episode import EpisodeResult
+
+
+@dataclass(frozen=True, eq=False)
+class Query:
+    """One query: score these shapes on this scene.
+
+    Attributes:
+        scene: the scene reference as given to the attack (a file path).
+        unit: (m * (K + 2),) float64 unit vectors of the m attacked actors, in [0, 1].
+        closed_loop: the ego drives with the stack (True) or replays its log (False).
+    """
+
+    scene: str
+    unit: np.ndarray
+    closed_loop: bool = True
+
+
+@dataclass
+class QueryResult:
+    """The outcome of a query: the fields of its journal line (docs/formats.md).
+
+    Attributes:
+        cost: the objective (None when the query failed). components: its unweighted frame
+            sums per term. metrics: the episode metrics (without format, version and timings).
+        latent, scales, dimensions: per attacked actor (m x K, m x 2, m x 3), None if not decoded.
+        status: ``ok``, ``invalid`` (no surface) or ``error``. error: the message, or None.
+        wall_s: seconds the evaluation took (not a result: it differs between runs).
+    """
+
+    cost: float | None = None
+    components: dict = field(default_factory=dict)
+    metrics: dict = field(default_factory=dict)
+    latent: list | None = None
+    scales: list | None = None
+    dimensions: list | None = None
+    status: str = "ok"
+    error: str | None = None
+    wall_s: float = 0.0
+
+    def evaluation(self) -> dict[str, Any]:
+        """``{"cost", "components", "metrics"}``, as summary.json stores a closed-loop evaluation."""
+        return {"cost": self.cost, "components": self.components, "metrics": self.metrics}
+
+
+@dataclass(frozen=True)
+class BestEvaluation:
+    """The closed-loop evaluation of a scene's best shape (and of the original scene), with the
+    files written for it (names relative to the folder it was given)."""
+
+    closed_loop: dict[str, Any]
+    original: dict[str, Any] | None = None
+    meshes: dict[int, str] = field(default_factory=dict)
+    replay: str | None = None
+
+
+@runtime_checkable
+class QueryEvaluator(Protocol):
+    """What the driver needs from whatever scores queries (must pickle: it goes to workers)."""
+
+    def scene_id(self, ref: str) -> str:
+        """The id of the scene ``ref`` (journal and summary key)."""
+
+    def targets(self, ref: str) -> tuple[list[int], int]:
+        """(attacked actor ids, query dimension) of a scene. Raises ConfigError when the scene
+        has nothing to attack (the driver skips it)."""
+
+    def candidates(self, ref: str, targets: list[int]) -> np.ndarray:
+        """(C, dim) unit vectors that brute-force search enumerates."""
+
+    def evaluate(self, query: Query) -> QueryResult:
+        """Score one query. Raises InvalidQueryError (invalid shape) or any other exception
+        (error); :func:`run_query` turns both into a failed result."""
+
+    def versions(self) -> dict[str, Any]:
+        """What the results depend on beyond the config (file hashes, model fingerprints)."""
+
+    def evaluate_best(self, ref: str, targets: list[int], unit: np.ndarray, out: Path, *, original: bool,
+                      metadata: dict[str, Any]) -> BestEvaluation | None:
+        """Evaluate the best shape in closed loop (and the original scene when ``original``),
+        writing its files into ``out``; None when this evaluator has nothing to add."""
+
+
+def run_query(evaluator: QueryEvaluator, query: Query) -> QueryResult:
+    """Evaluate one query (runs in a worker). Never raises: failures come back as a status
+    (``invalid`` for an InvalidQueryError, ``error`` for any other exception or a non-finite
+    objective), with a null cost."""
+    t0 = time.perf_counter()
+    try:
+        out = evaluator.evaluate(query)
+        if out.cost is None or not np.isfinite(out.cost):
+            out = replace(out, status="error", error=f"non-finite objective {out.cost}", cost=None)
+    except InvalidQueryError as exc:
+        out = QueryResult(status="invalid", error=f"{type(exc).__name__}: {exc}")
+    except Exception as exc:  # noqa: BLE001 - a query must never stop the run
+        tb = traceback.format_exception_only(type(exc), exc)[-1].strip()
+        out = QueryResult(status="error", error=tb[:500])
+    return replace(out, wall_s=time.perf_counter() - t0)
+
+
+# ============================================================================ episodes
+
+class SceneWorkspace:
+    """What one process needs to evaluate queries on a scene: the scene, its LiDAR world (built
+    once), the autonomy stack, the shape space, the targets and the objective weights."""
+
+    def __init__(self, scene_path: str, settings: QuerySettings):
+        from ..scene.schema import load_scene
+        from ..sensors.world import world_from_scene
+        from ..sim.episode import default_library
+        from ..sim.stacks import make_stack
+        from .targets import select_targets
+
+        self.settings = settings
+        self.scene = load_scene(scene_path)
+        self.space = settings.load_shape_space()
+        self.world = world_from_scene(self.scene, default_library(), scene_dir=Path(scene_path).parent)
+        self.stack = make_stack(settings.autonomy)
+        self.targets = select_targets(self.scene, settings.actors)
+        self.weights = settings.weights
+
+    def episode(self, overrides: dict | None, closed_loop: bool, record_points: bool = False) -> "EpisodeResult":
+        from ..sim.episode import run_episode
+
+        s = self.settings
+        return run_episode(self.scene, self.stack, seconds=s.seconds, closed_loop=closed_loop, reactive=s.reactive,
+                           world=self.world, actor_overrides=overrides, seed=s.seed, record_points=record_points)
+
+    def evaluate(self, u: np.ndarray | None, closed_loop: bool,
+                 record_points: bool = False) -> tuple[QueryResult, "EpisodeResult"]:
+        """(the query's result, the episode). ``u`` None = the original scene.
+
+        The episode's detection frames and prediction pairs are computed once
+        (``sim.evaluate.episode_evaluation``) for both the objective and the metrics.
+        """
+        from ..sim.evaluate import episode_evaluation, episode_metrics
+        from .objective import episode_objective
+        from .targets import decode_query
+
+        info: dict[str, Any] = {}
+        overrides = None
+        if u is not None:
+            overrides, info = decode_query(self.space, u, self.targets)
+        result = self.episode(overrides, closed_loop, record_points)
+        evaluation = episode_evaluation(result)
+        obj = episode_objective(result, self.weights, evaluation)
+        metrics = episode_metrics(result, self.scene.lanes, evaluation=evaluation)
+        for k in ("format", "version", "ms_per_frame", "fps"):  # timing is not a result
+            metrics.pop(k, None)
+        return QueryResult(cost=obj.total, components=obj.components(), metrics=metrics, **info), result
+
+
+_WORKSPACES: dict[tuple[str, QuerySettings], SceneWorkspace] = {}
+
+
+def workspace_for(scene_ref: str, settings: QuerySettings) -> SceneWorkspace:
+    """This process's context of a scene (built on first use; one scene at a time)."""
+    key = (scene_ref, settings)
+    if key not in _WORKSPACES:
+        _WORKSPACES.clear()  # one scene at a time per worker keeps memory flat
+        _WORKSPACES[key] = SceneWorkspace(scene_ref, settings)
+    return _WORKSPACES[key]
+
+
+class EpisodeEvaluator:
+    """The production :class:`QueryEvaluator`: decode the query's shapes into
+    :class:`~adv3d_runner.sim.episode.ShapeOverride` s, run the closed- or open-loop episode
+    with the run's stack, score it (paper Eq. 3-5) and measure it (episode metrics)."""
+
+    def __init__(self, settings: QuerySettings):
+        self.settings = settings
+
+    def scene_id(self, ref: str) -> str:
+        from ..scene.schema import load_scene
+
+        return load_scene(ref).id
+
+    def targets(self, ref: str) -> tuple[list[int], int]:
+        from ..scene.schema import load_scene
+        from .targets import select_targets
+
+        space = self.settings.load_shape_space()
+        ids = select_targets(load_scene(ref), self.settings.actors)
+        return ids, space.dim * len(ids)
+
+    def candidates(self, ref: str, targets: list[int]) -> np.ndarray:
+        """Unit vectors of the shape space's library assets (scales 1): every actor takes the
+        same asset (M candidates) for m = 1; for m > 1 the M^m combinations in a seeded order."""
+        import itertools
+
+        space = self.settings.load_shape_space()
+        units = np.array([space.asset_unit(a) for a in space.asset_ids])
+        n_actors = len(targets)
+        if n_actors == 1:
+            return units
+        combos = np.array(list(itertools.islice(itertools.product(range(len(units)), repeat=n_actors), 100_000)))
+        combos = combos[np.random.default_rng(self.settings.seed).permutation(len(combos))]
+        return units[combos].reshape(len(combos), -1)
+
+    def evaluate(self, query: Query) -> QueryResult:
+        result, _ = workspace_for(query.scene, self.settings).evaluate(query.unit, query.closed_loop)
+        return result
+
+    def versions(self) -> dict[str, Any]:
+        v: dict[str, Any] = {"shape_space": self.settings.load_shape_space().content_hash}
+        if self.settings.autonomy == "A":
+            v["models"] = model_fingerprints()
+        return v
+
+    def evaluate_best(self, ref: str, targets: list[int], unit: np.ndarray, out: Path, *, original: bool,
+                      metadata: dict[str, Any]) -> BestEvaluation:
+        """Closed-loop episodes of the original scene (when ``original``) and of the best shape;
+        writes ``actor<ID>.glb`` per attacked actor and ``replay.json.gz`` (with the LiDAR
+        points) of the best shape's episode into ``out``."""
+        import trimesh
+
+        from ..shapes.mesh_io import write_mesh
+        from ..sim.replay import replay_from_episode, save_replay
+        from .targets import decode_query
+
+        ctx = workspace_for(ref, self.settings)
+        first = ctx.evaluate(None, closed_loop=True)[0].evaluation() if original else None
+        u = np.asarray(unit, dtype=np.float64).reshape(-1)
+        best, result = ctx.evaluate(u, closed_loop=True, record_points=True)
+        out.mkdir(parents=True, exist_ok=True)
+        overrides, _ = decode_query(ctx.space, u, targets)
+        meshes = {}
+        for aid, shape in overrides.items():
+            name = f"actor{aid}.glb"
+            write_mesh(trimesh.Trimesh(vertices=shape.vertices, faces=shape.faces, process=False), out / name)
+            meshes[aid] = name
+        replay = replay_from_episode(result, autonomy=self.settings.autonomy, scene_file=str(ref), meshes=meshes,
+                                     metadata=metadata)
+        save_replay(replay, out / "replay.json.gz")
+        return BestEvaluation(closed_loop=best.evaluation(), original=first, meshes=meshes, replay="replay.json.gz")
+
+
+def model_fingerprints() -> dict[str, str]:
+    """sha256 (first 16 hex digits) of every file under assets/models/{detector,predictor}: a
+    run's results depend on the weights, which may be retrained between runs."""
+    import hashlib
+
+    from ..fileio import REPO_ROOT
+
+    out = {}
+    for sub in ("detector", "predictor"):
+        d = REPO_ROOT / "assets" / "models" / sub
+        if not d.is_dir():
+            continue
+        h = hashlib.sha256()
+        for f in sorted(p for p in d.rglob("*") if p.is_file() and p.suffix in (".pt", ".json", ".safetensors")):
+            h.update(f.relative_to(d).as_posix().encode())
+            h.update(f.read_bytes())
+        out[sub] = h.hexdigest()[:16]
+    return out

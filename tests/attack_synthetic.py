@@ -1,0 +1,69 @@
+"""A cheap analytic stand-in for the episode evaluator, for tests (and ``bench/attack.py``) of
+the attack machinery without the simulator.
+
+Scenes named ``synthetic:NAME`` are analytic objectives over the unit cube (:data:`FUNCTIONS`),
+with an invalid region: u[0] above :data:`INVALID` is an "empty surface" (status ``invalid``),
+u[1] above it a "simulation error" (status ``error``). :class:`SyntheticEvaluator` implements
+:class:`~adv3d_runner.attack.evaluator.QueryEvaluator`; pass the class as
+``run_attack(..., evaluator=SyntheticEvaluator)``. It pickles by reference (this module), so
+spawned worker processes, which inherit ``sys.path``, can run it too.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from adv3d_runner.attack.config import QuerySettings
+from adv3d_runner.attack.evaluator import BestEvaluation, Query, QueryResult
+from adv3d_runner.errors import ConfigError, EmptySurfaceError
+
+PER_ACTOR = 5  # K + 2 for the paper's K = 3, as the shipped shape space
+INVALID = 0.95
+
+
+def peak(u: np.ndarray) -> float:
+    """5-D: a smooth bowl with a narrow peak (height 2, width 0.05) at a fixed point."""
+    c = np.array([0.73, 0.21, 0.58, 0.87, 0.34])
+    d2 = float(np.sum((u[:5] - c) ** 2))
+    return -d2 + 2.0 * np.exp(-d2 / (2 * 0.05**2))
+
+
+FUNCTIONS: dict[str, Callable[[np.ndarray], float]] = {"peak": peak}
+
+
+class SyntheticEvaluator:
+    """:class:`~adv3d_runner.attack.evaluator.QueryEvaluator` over ``synthetic:NAME`` scenes."""
+
+    def __init__(self, settings: QuerySettings):
+        self.settings = settings
+
+    def scene_id(self, ref: str) -> str:
+        return ref
+
+    def targets(self, ref: str) -> tuple[list[int], int]:
+        ids = list(range(self.settings.actors))
+        return ids, PER_ACTOR * len(ids)
+
+    def candidates(self, ref: str, targets: list[int]) -> np.ndarray:
+        return np.random.default_rng(self.settings.seed).random((50, PER_ACTOR * len(targets)))
+
+    def evaluate(self, query: Query) -> QueryResult:
+        name = query.scene.split(":", 1)[1] if query.scene.startswith("synthetic:") else query.scene
+        if name not in FUNCTIONS:
+            raise ConfigError(f"unknown synthetic scene {name!r}; choose one of {', '.join(FUNCTIONS)}")
+        u = query.unit
+        if u[0] > INVALID:
+            raise EmptySurfaceError("synthetic: no surface")
+        if u[1] > INVALID:
+            raise RuntimeError("synthetic: simulation error")
+        v = FUNCTIONS[name](u)
+        return QueryResult(cost=v, components={"synthetic": v}, metrics={})
+
+    def versions(self) -> dict[str, Any]:
+        return {}
+
+    def evaluate_best(self, ref: str, targets: list[int], unit: np.ndarray, out: Path, *, original: bool,
+                      metadata: dict[str, Any]) -> BestEvaluation | None:
+        return None  # nothing to simulate, no files
