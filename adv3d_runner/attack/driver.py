@@ -115,7 +115,7 @@ class SceneContext:
         from ..scene.schema import load_scene
         from ..shapes.shape_space import DEFAULT_SHAPE_SPACE, ShapeSpace
         from ..sim.episode import default_library
-        from ..sim.stacks import make_stack
+        from ..autonomy.stacks import make_stack
         from ..sensors.world import world_from_scene
         from .targets import select_targets
 

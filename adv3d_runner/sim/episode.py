@@ -9,7 +9,9 @@ Per frame k (time k dt from ``start_frame``):
    ego (``reactive=True``, :mod:`.reactive`);
 3. one LiDAR frame from the scene's rig at the ego pose (:func:`~adv3d_runner.sensors.lidar.simulate_frame`
    on a :class:`~adv3d_runner.sensors.world.LidarWorld` built once, never per frame);
-4. ``stack.step(points, ego_state, lanes)``; the outputs are recorded.
+4. ``stack.observe_ground_truth(boxes_ego, n_points)``, then ``stack.step(points, ego_state)``
+   (the stack got the scene's lane map once, from ``stack.reset(SceneContext)``); the outputs
+   are recorded.
 
 Shapes can be substituted (the attack): ``actor_overrides = {actor_id: (vertices, faces,
 dimensions)}`` replaces the actor's mesh in the world for this episode only (one BVH built per
@@ -27,7 +29,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from ..autonomy.interface import PREDICTION_STEPS, AutonomyOutputs, EgoState
+from ..autonomy.interface import PREDICTION_STEPS, AutonomyOutputs, EgoState, SceneContext
 from ..errors import ConfigError
 from ..metrics.boxes import boxes_to_frame
 
@@ -229,14 +231,12 @@ def run_episode(scene, stack, *, seconds: float = 5.0, closed_loop: bool = True,
     outputs: list[AutonomyOutputs] = []
     points_log: list[np.ndarray] | None = [] if record_points else None
     timings = {s: np.zeros(T) for s in STAGES}
-    detector = getattr(stack, "detector", None)
-    observe = getattr(detector, "observe", None)
     world_poses = np.full((len(world_ids), 3), np.nan)
     have = to_world >= 0
 
     for aid, (v, f, _) in overrides.items():
         world.set_actor_mesh(int(aid), np.asarray(v, np.float64).reshape(-1, 3), np.asarray(f, np.int64).reshape(-1, 3))
-    stack.reset()
+    stack.reset(SceneContext.from_scene(scene))
     steps = range(T)
     if progress:
         from ..progress import progress as bar
@@ -259,10 +259,9 @@ def run_episode(scene, stack, *, seconds: float = 5.0, closed_loop: bool = True,
             counts = np.where(have, counts_world[np.maximum(to_world, 0)], 0)
             actor_points[k] = counts
             n_points[k] = len(frame.points)
-            if observe is not None:
-                gt = np.c_[poses_k[:, :2], dims[:, :2], poses_k[:, 2]]
-                observe(boxes_to_frame(gt, ego.pose), counts)
-            out = stack.step(frame.points, ego, scene.lanes)
+            gt = np.c_[poses_k[:, :2], dims[:, :2], poses_k[:, 2]]
+            stack.observe_ground_truth(boxes_to_frame(gt, ego.pose), counts)
+            out = stack.step(frame.points, ego)
             outputs.append(out)
             for name in ("detector", "tracker", "predictor", "planner"):
                 timings[name][k] = float(out.timings.get(name, 0.0))

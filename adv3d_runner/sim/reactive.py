@@ -30,6 +30,7 @@ import numpy as np
 from ..errors import ConfigError
 from ..metrics.boxes import boxes_overlap
 from ..scene import lanes as lanegeo
+from ..scene.lanemap import LaneMap
 from .traffic import Traffic
 
 SETTLE_S = 2.0
@@ -46,10 +47,8 @@ class RoadFrame:
     """
 
     def __init__(self, lanes, ego_pose: np.ndarray):
-        from ..autonomy.planner.corridor import locate
-
         by_id = {int(lane.id): lane for lane in lanes}
-        lane_id, _, _ = locate(lanes, ego_pose)
+        lane_id, _, _ = LaneMap(lanes).locate(ego_pose)
         if lane_id is None:
             raise ConfigError("--reactive: the ego is not on any lane of the scene")
         preds: dict[int, int] = {}

@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from ...metrics.boxes import box_separation
-from .corridor import CorridorSet
+from ...scene.corridor import CorridorSet
 
 
 # ------------------------------------------------------------------ geometry helpers
