@@ -4,9 +4,9 @@ Per episode the loop calls, in this order (nuPlan's ``initialize()`` pattern: th
 over once, never per frame):
 
 1. ``AutonomyStack.reset(context)`` with a :class:`SceneContext`: the scene's
-   :class:`~adv3d_runner.scene.lanemap.LaneMap` (built once per scene), dt and scene id. The
-   stack forgets every state of the previous episode and passes the map to whatever reads it
-   (planner, predictor).
+   :class:`~adv3d_runner.scene.lanemap.LaneMap` (built from the scene's lanes when the episode
+   starts; every stage reads this one object), dt and scene id. The stack forgets every state
+   of the previous episode and passes the map to whatever reads it (planner, predictor).
 2. Per frame (10 Hz): ``observe_ground_truth(boxes_ego, n_points)`` (the simulator's ground
    truth of the coming frame; a no-op for every stack except those with an oracle detector),
    then ``step(points, ego_state) -> AutonomyOutputs``.
