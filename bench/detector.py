@@ -12,7 +12,7 @@ Pinned to ONE core (torch 1 thread, OMP 1 thread), as the detector runs inside t
     (made with ``adv3d train detector --resolution R --out ...``; not trained by this script).
     Each is evaluated on the same held-out training-split scenes (seeds 900000 + [0, M)):
     AP / recall at BEV IoU 0.5, vehicles 0-50 m ahead and |y| <= 20 m with >= 5 LiDAR returns
-    (``adv3d_runner.autonomy.detector_train.evaluate_detector``, detections above 0.05), and
+    (``adv3d_runner.training.detector_train.evaluate_detector``, detections above 0.05), and
     timed per frame at the model's operating score threshold: CPU time (``time.thread_time``)
     of the whole ``detect`` call and of its steps (median over the frames).
 (b) The shipped model on bundled benchmark scenes (evaluation only, never trained on):
@@ -42,8 +42,8 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from adv3d_runner.autonomy.detector import DEFAULT_MODEL_DIR, BevDetector, load_detector, model_info  # noqa: E402
-from adv3d_runner.autonomy.detector_data import VAL_SEED0, FrameSet, make_frames, simulate_scene_frames  # noqa: E402
-from adv3d_runner.autonomy.detector_train import EVAL_THRESHOLD, evaluate_detector, machine_info  # noqa: E402
+from adv3d_runner.training.detector_data import VAL_SEED0, FrameSet, make_frames, simulate_scene_frames  # noqa: E402
+from adv3d_runner.training.detector_train import EVAL_THRESHOLD, evaluate_detector, machine_info  # noqa: E402
 from adv3d_runner.fileio import write_json  # noqa: E402
 from adv3d_runner.progress import set_quiet  # noqa: E402
 

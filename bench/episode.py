@@ -39,7 +39,7 @@ from adv3d_runner.scene import load_scene  # noqa: E402
 from adv3d_runner.sensors.world import world_from_scene  # noqa: E402
 from adv3d_runner.sim.episode import default_library, run_episode  # noqa: E402
 from adv3d_runner.sim.evaluate import episode_metrics  # noqa: E402
-from adv3d_runner.sim.stacks import make_stack  # noqa: E402
+from adv3d_runner.autonomy.stacks import make_stack  # noqa: E402
 
 CLOCK = time.thread_time
 STAGES = ("lidar", "detector", "tracker", "predictor", "planner")

@@ -33,6 +33,7 @@ from adv3d_runner.autonomy.planner import SamplingPlanner  # noqa: E402
 from adv3d_runner.fileio import write_json  # noqa: E402
 from adv3d_runner.metrics.comfort import collisions, driving_comfort, planning_comfort  # noqa: E402
 from adv3d_runner.scene import lanes as lanegeo  # noqa: E402
+from adv3d_runner.scene.lanemap import LaneMap  # noqa: E402
 from adv3d_runner.scene.schema import load_scene  # noqa: E402
 
 DT = 0.1
@@ -89,8 +90,11 @@ def run_scene(path: Path, seconds: float, predictor: str) -> dict:
     ego_log = scene.ego_poses()
     L, W = float(scene.ego.dimensions[0]), float(scene.ego.dimensions[1])
     ego = EgoState(ego_log[0], float(scene.ego_speeds()[0]), length=L, width=W, wheelbase=scene.ego.wheelbase)
+    lane_map = LaneMap.from_scene(scene)
     planner = SamplingPlanner()
     tracker, lfp = MultiObjectTracker(), LaneFollowingPredictor()
+    planner.reset(lane_map)
+    lfp.reset(lane_map)
     rng = np.random.default_rng(0)
     steps = int(round(seconds / DT))
     ego_boxes, act_boxes, act_valid, plans, ms = [], [], [], [], []
@@ -100,11 +104,11 @@ def run_scene(path: Path, seconds: float, predictor: str) -> dict:
             noisy = np.c_[poses[idx, k, :2] + rng.normal(0, 0.2, (len(idx), 2)), dims[idx, :2],
                           poses[idx, k, 2] + rng.normal(0, 0.03, len(idx))]
             tracks = tracker.update(Detections(noisy, np.full(len(idx), 0.9)), prior_speed=ego.speed)
-            preds = lfp.predict(tracks, scene.lanes)
+            preds = lfp.predict(tracks)
         else:
             tracks, preds = oracle_inputs(poses, valid, dims, k, predictor)
         t0 = time.process_time()
-        plan = planner.plan(ego, scene.lanes, preds, tracks)
+        plan = planner.plan(ego, preds, tracks)
         ms.append(1000 * (time.process_time() - t0))
         ego_boxes.append(ego.box)
         ab = np.c_[np.nan_to_num(poses[:, k, :2]), dims[:, :2], np.nan_to_num(poses[:, k, 2])]

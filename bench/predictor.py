@@ -39,9 +39,10 @@ def main() -> int:
     torch.set_num_threads(1)
     from adv3d_runner.autonomy.baselines import ConstantVelocityPredictor, LaneFollowingPredictor
     from adv3d_runner.autonomy.predictor import load_predictor
-    from adv3d_runner.autonomy.predictor_data import tracked_evaluation_frames
     from adv3d_runner.metrics.prediction import prediction_metrics
     from adv3d_runner.scene.generate import generate_scene
+    from adv3d_runner.scene.lanemap import LaneMap
+    from adv3d_runner.training.predictor_data import tracked_evaluation_frames
 
     learned = load_predictor(threads=1)
     models = {"constant_velocity": ConstantVelocityPredictor(), "lane_following": LaneFollowingPredictor(),
@@ -53,13 +54,16 @@ def main() -> int:
     for i in range(n_scenes):
         seed = SEED0 + i
         scene = generate_scene(seed, "train")
+        lane_map = LaneMap.from_scene(scene)
+        for model in models.values():
+            model.reset(lane_map)
         frames = tracked_evaluation_frames(scene, np.random.default_rng(seed), frames=range(scene.frames - 60),
                                            every=5, miss=0.05)
         for _, tracks, rows, future, future_valid in frames:
             tracks_per_frame.append(len(tracks))
             for name, model in models.items():
                 t0 = time.perf_counter()
-                p = model.predict(tracks, scene.lanes)
+                p = model.predict(tracks)
                 times[name].append(time.perf_counter() - t0)
                 preds[name].append(p.trajectories[rows])
             gts.append(future)

@@ -43,7 +43,7 @@ def _run(job: tuple[str, str, float]) -> dict:
     from adv3d_runner.sensors.world import world_from_scene
     from adv3d_runner.sim.episode import default_library, run_episode
     from adv3d_runner.sim.evaluate import episode_metrics
-    from adv3d_runner.sim.stacks import make_stack
+    from adv3d_runner.autonomy.stacks import make_stack
 
     if _STACK is None:
         _STACK = make_stack(autonomy)
@@ -84,7 +84,7 @@ def main() -> int:
     paths = sorted((ROOT / "scenes" / "highway").glob("highway-benchmark-*.json*"))
     if args.quick:
         paths = paths[::10]
-    from adv3d_runner.sim.stacks import make_stack
+    from adv3d_runner.autonomy.stacks import make_stack
 
     make_stack(args.autonomy)  # fail early (e.g. no weights) before starting workers
     jobs = [(str(p), args.autonomy, args.seconds) for p in paths]

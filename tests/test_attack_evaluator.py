@@ -119,7 +119,7 @@ def test_objective_and_metrics_share_one_episode_evaluation(repo_root):
     from adv3d_runner.sensors.world import rig_from_scene, world_from_scene
     from adv3d_runner.sim.episode import run_episode
     from adv3d_runner.sim.evaluate import EpisodeEvaluation, episode_evaluation, episode_metrics
-    from adv3d_runner.sim.stacks import make_stack
+    from adv3d_runner.autonomy.stacks import make_stack
 
     scene = load_scene(repo_root / "scenes/highway/highway-benchmark-000000.json.gz")
     rig = rig_from_scene(scene, model="generic-32", columns=512)

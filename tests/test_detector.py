@@ -154,7 +154,7 @@ def test_pickled_weights_are_refused(tmp_path):
 
 
 def test_data_generation_deterministic(tmp_path):
-    from adv3d_runner.autonomy.detector_data import TRAIN_SEED0, make_frames
+    from adv3d_runner.training.detector_data import TRAIN_SEED0, make_frames
 
     a = make_frames([TRAIN_SEED0 + 3], 2, library=None, cache_dir=tmp_path / "c1")
     b = make_frames([TRAIN_SEED0 + 3], 2, library=None, cache_dir=tmp_path / "c2")

@@ -13,8 +13,11 @@ from adv3d_runner.scene import load_scene
 from adv3d_runner.sensors.world import LidarWorld, rig_from_scene, world_from_scene
 from adv3d_runner.sim.episode import Episode, ShapeOverride, run_episode
 from adv3d_runner.sim.evaluate import episode_metrics
+from adv3d_runner.autonomy.baselines import LaneFollowingPredictor
+from adv3d_runner.autonomy.modular import ModularStack
+from adv3d_runner.autonomy.oracle import OracleDetector
+from adv3d_runner.autonomy.stacks import make_stack
 from adv3d_runner.sim.recorders import STAGES
-from adv3d_runner.sim.stacks import OracleDetector, make_stack
 
 
 @pytest.fixture(scope="module")
@@ -216,10 +219,47 @@ def test_episode_steps_equal_run_episode_and_recorders_see_every_frame(free):
 
 def test_oracle_detector_needs_points_and_returns():
     det = OracleDetector(min_points=5)
-    det.observe(np.array([[10.0, 0, 4.5, 1.9, 0], [20.0, 3, 4.5, 1.9, 0], [np.nan] * 5]), np.array([50, 2, 100]))
+    det.observe_ground_truth(np.array([[10.0, 0, 4.5, 1.9, 0], [20.0, 3, 4.5, 1.9, 0], [np.nan] * 5]),
+                             np.array([50, 2, 100]))
     out = det.detect(np.ones((10, 4)))
     assert len(out) == 1 and out.boxes[0, 0] == 10.0 and out.scores[0] == 1.0
     assert len(det.detect(np.zeros((0, 4)))) == 0
+
+
+class RecordingStack(ModularStack):
+    """The oracle stack, recording what the episode loop hands it through the stack interface."""
+
+    def __init__(self):
+        super().__init__(OracleDetector(), LaneFollowingPredictor())
+        self.calls = []
+
+    def reset(self, context):
+        self.calls.append(("reset", context))
+        super().reset(context)
+
+    def observe_ground_truth(self, boxes_ego, n_points):
+        self.calls.append(("ground_truth", np.array(boxes_ego), np.array(n_points)))
+        super().observe_ground_truth(boxes_ego, n_points)
+
+    def step(self, points, ego_state):
+        self.calls.append(("step", ego_state.pose.copy()))
+        return super().step(points, ego_state)
+
+
+def test_episode_hands_the_scene_context_once_and_ground_truth_every_frame(free):
+    scene, world, rig = free
+    stack = RecordingStack()
+    r = run_episode(scene, stack, seconds=0.3, world=world, rig=rig)
+    assert [c[0] for c in stack.calls] == ["reset"] + ["ground_truth", "step"] * 3
+    ctx = stack.calls[0][1]
+    assert ctx.scene_id == scene.id and ctx.dt == scene.dt and ctx.lane_map.lanes == tuple(scene.lanes)
+    # one lane map for the episode, read by the predictor and the planner
+    assert stack.predictor.lane_map is ctx.lane_map and stack.planner.lane_map is ctx.lane_map
+    for k, (_, boxes, counts) in enumerate(c for c in stack.calls if c[0] == "ground_truth"):
+        assert np.array_equal(counts, r.actor_points[k])  # every actor's returns of that frame
+        ok = np.isfinite(r.gt_boxes(k)).all(axis=1)
+        assert np.allclose(boxes[ok], boxes_to_frame(r.gt_boxes(k)[ok], r.ego_poses[k]))  # in the ego frame
+    assert sum(len(o.detections) for o in r.outputs) > 0  # the oracle detected through the hook
 
 
 def test_short_oracle_episode_has_sane_metrics(free):

@@ -10,9 +10,10 @@ import pytest
 from adv3d_runner.autonomy.interface import EgoState, Predictions, Tracks
 from adv3d_runner.autonomy.planner import SamplingPlanner, forecast_from
 from adv3d_runner.autonomy.planner import costs
-from adv3d_runner.autonomy.planner.corridor import CorridorSet, build_corridor, locate
 from adv3d_runner.autonomy.planner.scorer import CostWeights, score
 from adv3d_runner.metrics.comfort import collisions
+from adv3d_runner.scene.corridor import CorridorSet, build_corridor
+from adv3d_runner.scene.lanemap import LaneMap
 from adv3d_runner.scene.schema import Lane
 
 DT = 0.1
@@ -28,6 +29,13 @@ def straight_lanes(n_lanes=2, x0=-100.0, x1=600.0, limit=25.0):
     return lanes
 
 
+def planner_on(lanes, planner=None):
+    """A planner reset onto the lane map of ``lanes`` (a new one unless given)."""
+    planner = planner or SamplingPlanner()
+    planner.reset(LaneMap(lanes))
+    return planner
+
+
 def actor_inputs(boxes_now, future_xy):
     """Tracks and single-mode predictions from ground truth. boxes_now (N, 5), future_xy (N, 60, 2)."""
     N = len(boxes_now)
@@ -40,14 +48,14 @@ def actor_inputs(boxes_now, future_xy):
 def closed_loop(lanes, ego, actor_fn, seconds, planner=None):
     """Re-plan every step; actor_fn(t) -> (N, 5) boxes. Returns ego boxes (T, 5), actor boxes
     (T, N, 5), speeds (T,), plans."""
-    planner = planner or SamplingPlanner()
+    planner = planner_on(lanes, planner)
     ego_boxes, act_boxes, speeds, plans = [], [], [], []
     for k in range(int(round(seconds / DT))):
         t = k * DT
         now = actor_fn(t)
         fut = np.stack([actor_fn(t + (h + 1) * DT)[:, :2] for h in range(60)], axis=1) if len(now) else np.zeros((0, 60, 2))
         tracks, preds = actor_inputs(now, fut)
-        plan = planner.plan(ego, lanes, preds, tracks)
+        plan = planner.plan(ego, preds, tracks)
         ego_boxes.append(ego.box)
         act_boxes.append(now)
         speeds.append(ego.speed)
@@ -67,7 +75,7 @@ def stopped_at(*xy):
 def test_free_road_makes_progress_towards_the_speed_limit():
     lanes = straight_lanes(1, limit=25.0)
     ego = EgoState([0.0, 0.0, 0.0], 15.0)
-    plan = SamplingPlanner().plan(ego, lanes)
+    plan = planner_on(lanes).plan(ego)
     assert plan.speed[-1] > 17.0 and np.all(np.diff(plan.speed) >= -1e-9)
     assert plan.cost_terms["collision"] == 0.0
     ego_boxes, _, speeds, _ = closed_loop(lanes, ego, stopped_at(), 12.0)
@@ -79,7 +87,7 @@ def test_stopped_car_ahead_brakes_and_does_not_collide():
     lanes = straight_lanes(1)
     ego = EgoState([0.0, 0.0, 0.0], 15.0)
     actor = stopped_at((70.0, 0.0))
-    plan = SamplingPlanner().plan(ego, lanes, *reversed(actor_inputs(actor(0.0), np.repeat(actor(0.0)[:, None, :2], 60, 1))))
+    plan = planner_on(lanes).plan(ego, *reversed(actor_inputs(actor(0.0), np.repeat(actor(0.0)[:, None, :2], 60, 1))))
     assert plan.speed[-1] < 15.0  # already slowing down in the first plan
     ego_boxes, act_boxes, speeds, _ = closed_loop(lanes, ego, actor, 14.0)
     rep = collisions(ego_boxes, act_boxes)
@@ -135,9 +143,9 @@ def test_curved_road_is_followed_on_the_lane():
 
 
 def test_no_lane_means_stop():
-    plan = SamplingPlanner().plan(EgoState([0.0, 0.0, 0.0], 10.0), [])
+    plan = planner_on([]).plan(EgoState([0.0, 0.0, 0.0], 10.0))
     assert plan.label == "no-lane/stop" and plan.speed[-1] < 10.0 and np.all(np.isfinite(plan.trajectory))
-    far = SamplingPlanner().plan(EgoState([0.0, 500.0, 0.0], 10.0), straight_lanes(1))
+    far = planner_on(straight_lanes(1)).plan(EgoState([0.0, 500.0, 0.0], 10.0))
     assert far.label == "no-lane/stop"
 
 
@@ -261,7 +269,7 @@ def test_corridor_chains_successors_and_local_projection_matches_global(rng):
     s_g, d_g = cs.project(0, xy)
     s_l, d_l = cs.project_local(np.zeros(50, int), xy, s_g + rng.uniform(-3, 3, 50))
     assert np.allclose(s_l, s_g, atol=1e-6) and np.allclose(d_l, d_g, atol=1e-6)
-    assert locate([a, b], np.array([60.0, 2.0, 0.2]))[0] == 1
+    assert LaneMap([a, b]).locate(np.array([60.0, 2.0, 0.2]))[0] == 1
 
 
 def test_forecast_joins_tracks_and_derives_yaw():
@@ -310,8 +318,8 @@ def test_driving_west_across_the_yaw_wrap():
 def test_plan_with_scores_reports_every_term():
     from adv3d_runner.autonomy.planner.scorer import TERMS
 
-    planner = SamplingPlanner()
-    plan, cands, table = planner.plan_with_scores(EgoState([0.0, LANE_W, 0.0], 10.0), straight_lanes(3))  # middle lane
+    planner = planner_on(straight_lanes(3))
+    plan, cands, table = planner.plan_with_scores(EgoState([0.0, LANE_W, 0.0], 10.0))  # middle lane
     assert set(plan.cost_terms) == set(TERMS) == set(table.raw)
     assert len(cands) == len(table.total) == 3 * 5 + 2 * 5 + 1  # offsets x speeds per lane + emergency stop
     assert plan.cost == pytest.approx(sum(plan.cost_terms.values()))
@@ -334,10 +342,10 @@ def test_one_frame_obstacle_does_not_make_the_offset_dither():
         return actor_inputs(now, (now[0, :2] + np.c_[22.0 * DT * np.arange(1, 61), np.zeros(60)])[None])
 
     def offsets(frames_with_car, n=6):
-        planner, ego, out = SamplingPlanner(), EgoState([0.0, 0.0, 0.0], 25.0), []
+        planner, ego, out = planner_on(lanes), EgoState([0.0, 0.0, 0.0], 25.0), []
         for k in range(n):
             tracks, preds = inputs(k in frames_with_car, k * DT)
-            plan = planner.plan(ego, lanes, preds, tracks)
+            plan = planner.plan(ego, preds, tracks)
             out.append(plan.label.split("/")[1])
             ego = EgoState(plan.trajectory[1], plan.speed[1], acceleration=float(plan.acceleration[0]),
                            time=(k + 1) * DT)
@@ -345,7 +353,7 @@ def test_one_frame_obstacle_does_not_make_the_offset_dither():
 
     # the car makes a right nudge the cheapest plan (it is then not a leader to follow) ...
     tracks, preds = inputs(True, 0.0)
-    assert SamplingPlanner().plan(EgoState([0.0, 0.0, 0.0], 25.0), lanes, preds, tracks).label.split("/")[1] == "d-0.5"
+    assert planner_on(lanes).plan(EgoState([0.0, 0.0, 0.0], 25.0), preds, tracks).label.split("/")[1] == "d-0.5"
     # ... but seen for one frame only while driving on the centre it changes nothing
     assert offsets({2}) == ["d+0.0"] * 6
     # seen for good, the nudge is taken one plan after it first appears, and kept

@@ -12,9 +12,10 @@ torch = pytest.importorskip("torch")
 from adv3d_runner.autonomy.baselines import ConstantVelocityPredictor  # noqa: E402
 from adv3d_runner.autonomy.interface import Tracks  # noqa: E402
 from adv3d_runner.autonomy.predictor import (CONFIG_NAME, DEFAULT_MODEL_DIR, NUM_FEATURES, WEIGHTS_NAME,  # noqa: E402
-                                             LaneIndex, PredictorConfig, agent_features, build_net,
+                                             PredictorConfig, agent_features, build_net, lane_index,
                                              load_predictor, save_predictor)
 from adv3d_runner.errors import FileFormatError  # noqa: E402
+from adv3d_runner.scene.lanemap import LaneMap  # noqa: E402
 
 HAS_MODEL = (DEFAULT_MODEL_DIR / WEIGHTS_NAME).is_file()
 needs_model = pytest.mark.skipif(not HAS_MODEL, reason="no shipped predictor (run `adv3d train predictor`)")
@@ -23,6 +24,12 @@ needs_model = pytest.mark.skipif(not HAS_MODEL, reason="no shipped predictor (ru
 @pytest.fixture(scope="module")
 def model():
     return load_predictor()
+
+
+def predict_on(model, tracks, lanes):
+    """``model`` reset onto the lane map of ``lanes``, then its predictions for ``tracks``."""
+    model.reset(LaneMap(lanes))
+    return model.predict(tracks)
 
 
 def straight_lanes(heading: float, origin=(1000.0, -500.0), width: float = 3.7, length: float = 600.0):
@@ -65,7 +72,7 @@ def test_weights_load_weights_only():
 def test_straight_lane_constant_speed_is_predicted_along_the_lane(model, heading):
     lanes, d, nrm = straight_lanes(heading)
     tracks, p0 = straight_track(d, nrm, speed=25.0)
-    out = model.predict(tracks, lanes)
+    out = predict_on(model, tracks, lanes)
     assert out.trajectories.shape == (1, model.num_modes, 60, 2)
     assert out.probabilities.shape == (1, model.num_modes)
     assert out.track_ids.tolist() == [7]
@@ -87,11 +94,11 @@ def test_probabilities_sum_to_one_and_batch_equals_single(model):
     both = Tracks(ids=[1, 2], boxes=np.r_[t1.boxes, t2.boxes + [[10.0, 0, 0, 0, 0]]],
                   velocities=np.r_[t1.velocities, t2.velocities], scores=[0.9, 0.9], misses=[0, 0],
                   history=np.r_[t1.history, t2.history], history_valid=np.r_[t1.history_valid, t2.history_valid])
-    out = model.predict(both, lanes)
+    out = predict_on(model, both, lanes)
     assert np.allclose(out.probabilities.sum(axis=1), 1.0)
     assert np.all(out.probabilities >= 0)
     assert np.all(np.isfinite(out.trajectories))
-    single = model.predict(t1, lanes)
+    single = predict_on(model, t1, lanes)
     assert single.trajectories.shape[0] == 1
     assert np.all(np.isfinite(single.trajectories))
 
@@ -100,7 +107,7 @@ def test_probabilities_sum_to_one_and_batch_equals_single(model):
 def test_empty_tracks_give_empty_predictions(model):
     lanes, _, _ = straight_lanes(0.0)
     for ln in (lanes, []):
-        out = model.predict(Tracks(), ln)
+        out = predict_on(model, Tracks(), ln)
         assert len(out) == 0
         assert out.trajectories.shape == (0, model.num_modes, 60, 2)
         assert out.probabilities.shape == (0, model.num_modes)
@@ -111,17 +118,17 @@ def test_short_invalid_history_and_no_lanes(model):
     lanes, d, nrm = straight_lanes(1.2)
     tracks, p0 = straight_track(d, nrm, 22.0, n_hist=1)
     tracks.history[0, :9] = np.nan  # garbage where the history is flagged invalid
-    out = model.predict(tracks, lanes)
+    out = predict_on(model, tracks, lanes)
     assert np.all(np.isfinite(out.trajectories)) and np.allclose(out.probabilities.sum(1), 1.0)
     # no map at all: still finite, and the best mode still goes roughly straight ahead
-    out2 = model.predict(tracks, [])
+    out2 = predict_on(model, tracks, [])
     assert np.all(np.isfinite(out2.trajectories))
     truth = p0 + 22.0 * 6.0 * d
     assert np.linalg.norm(out2.trajectories[0, :, -1] - truth, axis=-1).min() < 15.0
     # a history array shorter than the model's (H = 3) is accepted too
     short = Tracks(ids=[3], boxes=tracks.boxes, velocities=tracks.velocities, scores=[0.5], misses=[2],
                    history=tracks.history[:, -3:], history_valid=np.ones((1, 3), bool))
-    assert np.all(np.isfinite(model.predict(short, lanes).trajectories))
+    assert np.all(np.isfinite(predict_on(model, short, lanes).trajectories))
 
 
 @needs_model
@@ -131,8 +138,8 @@ def test_non_finite_track_does_not_spoil_the_others(model):
     bad = Tracks(ids=[1, 2], boxes=np.r_[t.boxes, [[np.nan, 0, 4, 2, 0]]], velocities=np.r_[t.velocities, [[np.nan, 0]]],
                  scores=[0.9, 0.9], misses=[0, 0], history=np.r_[t.history, t.history],
                  history_valid=np.r_[t.history_valid, t.history_valid])
-    out = model.predict(bad, lanes)
-    ref = model.predict(t, lanes)
+    out = predict_on(model, bad, lanes)
+    ref = predict_on(model, t, lanes)
     assert np.allclose(out.trajectories[0], ref.trajectories[0], atol=1e-4)
     assert np.allclose(out.probabilities.sum(1), 1.0)
 
@@ -145,10 +152,10 @@ def test_save_load_roundtrip_and_bad_files(tmp_path):
     p = load_predictor(tmp_path / "m")
     lanes, d, nrm = straight_lanes(0.4)
     t, _ = straight_track(d, nrm, 20.0)
-    a = p.predict(t, lanes)
+    a = predict_on(p, t, lanes)
     with torch.inference_mode():
         from adv3d_runner.autonomy.predictor import encode, to_map_frame
-        f, prior = encode(t, lanes)
+        f, prior = encode(t, LaneMap(lanes))
         traj, _ = net.eval()(torch.from_numpy(f), torch.from_numpy(prior))
     assert np.allclose(a.trajectories, to_map_frame(traj.numpy().astype(float), t.boxes), atol=1e-4)
     with pytest.raises(FileFormatError):
@@ -162,15 +169,16 @@ def test_save_load_roundtrip_and_bad_files(tmp_path):
 
 
 def test_features_shape_and_lane_index_matches_planner_locate():
-    from adv3d_runner.autonomy.planner.corridor import locate_many
     from adv3d_runner.scene.generate import generate_scene
 
     scene = generate_scene(100_002, "train")  # on-ramp layout
     poses, valid = scene.all_actor_poses()
     P = poses[valid[:, 40], 40]
-    idx = LaneIndex(scene.lanes)
+    lane_map = LaneMap.from_scene(scene)
+    idx = lane_index(lane_map)
+    assert lane_index(lane_map) is idx  # built once per map, shared by every reader
     row, (s, dd, _, _, _) = idx.locate(P)
-    ids, s_ref, d_ref = locate_many(scene.lanes, P)
+    ids, s_ref, d_ref = lane_map.locate_many(P)
     assert np.array_equal(np.where(row >= 0, idx.ids[np.maximum(row, 0)], -1), ids)
     ok = row >= 0
     assert np.allclose(s[ok, row[ok]], s_ref[ok]) and np.allclose(dd[ok, row[ok]], d_ref[ok])
@@ -178,12 +186,12 @@ def test_features_shape_and_lane_index_matches_planner_locate():
     tr = Tracks(ids=np.arange(n), boxes=np.c_[P[:, :2], np.full(n, 4.5), np.full(n, 1.8), P[:, 2]],
                 velocities=np.zeros((n, 2)), scores=np.ones(n), misses=np.zeros(n),
                 history=np.repeat(P[:, None], 10, 1), history_valid=np.ones((n, 10), bool))
-    f = agent_features(tr, scene.lanes, idx)
+    f = agent_features(tr, lane_map)
     assert f.shape == (n, NUM_FEATURES) and f.dtype == np.float32 and np.all(np.isfinite(f))
 
 
 def test_data_generation_is_deterministic():
-    from adv3d_runner.autonomy.predictor_data import ARRAYS, scene_samples
+    from adv3d_runner.training.predictor_data import ARRAYS, scene_samples
 
     a = scene_samples(100_003)
     b = scene_samples(100_003)
@@ -195,7 +203,7 @@ def test_data_generation_is_deterministic():
 
 
 def test_cache_roundtrip(tmp_path):
-    from adv3d_runner.autonomy.predictor_data import ARRAYS, load_samples, save_samples, scene_samples
+    from adv3d_runner.training.predictor_data import ARRAYS, load_samples, save_samples, scene_samples
 
     a = scene_samples(100_007)
     save_samples(tmp_path / "x.npz", a)
@@ -208,7 +216,7 @@ def test_cache_roundtrip(tmp_path):
 def test_shipped_model_beats_constant_velocity_on_held_out_scenes(model):
     """End to end in the map frame: noisy detections -> tracker -> predict, on training-split
     scenes whose seeds were used neither for training nor for the training report."""
-    from adv3d_runner.autonomy.predictor_data import tracked_evaluation_frames
+    from adv3d_runner.training.predictor_data import tracked_evaluation_frames
     from adv3d_runner.metrics.prediction import prediction_metrics
     from adv3d_runner.scene.generate import generate_scene
 
@@ -216,10 +224,11 @@ def test_shipped_model_beats_constant_velocity_on_held_out_scenes(model):
     learned_p, cv_p, gts, vals = [], [], [], []
     for seed in (900_000_001, 900_000_006):
         scene = generate_scene(seed, "train")
+        model.reset(LaneMap.from_scene(scene))
         for _, tracks, rows, future, future_valid in tracked_evaluation_frames(
                 scene, np.random.default_rng(seed), frames=range(140), every=10):
-            learned_p.append(model.predict(tracks, scene.lanes).trajectories[rows])
-            cv_p.append(cv.predict(tracks, scene.lanes).trajectories[rows])
+            learned_p.append(model.predict(tracks).trajectories[rows])
+            cv_p.append(cv.predict(tracks).trajectories[rows])
             gts.append(future)
             vals.append(future_valid)
     gt, val = np.concatenate(gts), np.concatenate(vals)

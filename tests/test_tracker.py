@@ -144,6 +144,7 @@ def test_prior_speed_for_new_tracks():
 
 def test_lane_following_predictor_keeps_the_lane():
     from adv3d_runner.autonomy.baselines import LaneFollowingPredictor
+    from adv3d_runner.scene.lanemap import LaneMap
     from adv3d_runner.scene.schema import Lane
 
     R = 200.0
@@ -159,7 +160,9 @@ def test_lane_following_predictor_keeps_the_lane():
     tracks = Tracks(np.array([3, 4]), np.array([[*xy, 4.5, 1.9, yaw], [0.0, -40.0, 4.5, 1.9, 0.0]]),
                     np.array([[20 * np.cos(yaw), 20 * np.sin(yaw)], [10.0, 0.0]]), np.ones(2), np.zeros(2, np.int64),
                     np.zeros((2, 1, 3)), np.ones((2, 1), bool))
-    pred = LaneFollowingPredictor().predict(tracks, [lane, far])
+    lfp = LaneFollowingPredictor()
+    lfp.reset(LaneMap([lane, far]))
+    pred = lfp.predict(tracks)
     assert pred.trajectories.shape == (2, 3, 60, 2) and np.all(np.isfinite(pred.trajectories))
     radial = np.hypot(pred.trajectories[0, :, :, 0], pred.trajectories[0, :, :, 1] - R)
     assert np.allclose(radial, R - 0.5, atol=0.05)  # stays 0.5 m left of the centre line (inside the curve)
@@ -170,7 +173,7 @@ def test_lane_following_predictor_keeps_the_lane():
 
 
 def test_modular_stack_runs_the_chain_in_the_map_frame():
-    from adv3d_runner.autonomy.interface import AutonomyStack
+    from adv3d_runner.autonomy.interface import AutonomyStack, SceneContext
     from adv3d_runner.autonomy.modular import ModularStack
     from adv3d_runner.scene.schema import Lane
 
@@ -186,17 +189,22 @@ def test_modular_stack_runs_the_chain_in_the_map_frame():
     lanes = [Lane(0, np.c_[xs, np.full_like(xs, 10.0)], 3.7, speed_limit=25.0)]
     stack = ModularStack(OracleDetector())
     assert isinstance(stack, AutonomyStack)
+    with pytest.raises(RuntimeError, match="reset"):  # no lane map yet
+        stack.step(np.ones((10, 4)), EgoState([100.0, 10.0, 0.0], 20.0))
+    context = SceneContext.from_lanes(lanes)
+    stack.reset(context)
     ego = EgoState([100.0, 10.0, 0.0], 20.0)
     pts = np.ones((10, 4))
     for k in range(3):
         seen_from = ego.pose.copy()
-        out = stack.step(pts, ego, lanes)
+        stack.observe_ground_truth(np.zeros((0, 5)), np.zeros(0, np.int64))  # ignored: not an oracle
+        out = stack.step(pts, ego)
         ego = EgoState(out.plan.trajectory[1], out.plan.speed[1], acceleration=float(out.plan.acceleration[0]))
     assert out.detections.boxes[0, :2] == pytest.approx(seen_from[:2] + [30.0, 0.0], abs=1e-6)  # map frame
     assert len(out.tracks) == 1 and out.predictions.trajectories.shape == (1, 3, 60, 2)
     assert set(out.timings) == {"detector", "tracker", "predictor", "planner"}
     assert out.plan.cost_terms["collision"] == 0.0
-    empty = stack.step(np.zeros((0, 4)), ego, lanes)  # a frame without points
+    empty = stack.step(np.zeros((0, 4)), ego)  # a frame without points
     assert len(empty.detections) == 0 and len(empty.tracks) == 1 and empty.tracks.misses[0] == 1
-    stack.reset()
-    assert len(stack.step(np.zeros((0, 4)), ego, lanes).tracks) == 0
+    stack.reset(context)
+    assert len(stack.step(np.zeros((0, 4)), ego).tracks) == 0

@@ -130,20 +130,23 @@ def run_query(evaluator: QueryEvaluator, query: Query) -> QueryResult:
 # ============================================================================ episodes
 
 class SceneWorkspace:
-    """What one process needs to evaluate queries on a scene: the scene, its LiDAR world (built
-    once), the autonomy stack, the shape space, the targets and the objective weights."""
+    """What one process needs to evaluate queries on a scene: the scene, its LiDAR world and its
+    lane map (each built once), the autonomy stack, the shape space, the targets and the
+    objective weights."""
 
     def __init__(self, scene_path: str, settings: QuerySettings):
+        from ..autonomy.interface import SceneContext
+        from ..autonomy.stacks import make_stack
         from ..scene.schema import load_scene
         from ..sensors.world import world_from_scene
         from ..sim.episode import default_library
-        from ..sim.stacks import make_stack
         from .targets import select_targets
 
         self.settings = settings
         self.scene = load_scene(scene_path)
         self.space = settings.load_shape_space()
         self.world = world_from_scene(self.scene, default_library(), scene_dir=Path(scene_path).parent)
+        self.context = SceneContext.from_scene(self.scene)
         self.stack = make_stack(settings.autonomy)
         self.targets = select_targets(self.scene, settings.actors)
         self.weights = settings.weights
@@ -153,7 +156,8 @@ class SceneWorkspace:
 
         s = self.settings
         return run_episode(self.scene, self.stack, seconds=s.seconds, closed_loop=closed_loop, reactive=s.reactive,
-                           world=self.world, actor_overrides=overrides, seed=s.seed, record_points=record_points)
+                           world=self.world, actor_overrides=overrides, seed=s.seed, record_points=record_points,
+                           context=self.context)
 
     def evaluate(self, u: np.ndarray | None, closed_loop: bool,
                  record_points: bool = False) -> tuple[QueryResult, "EpisodeResult"]:

@@ -6,14 +6,17 @@ reference a learned predictor must beat (issue 4: "minADE over 6 s beats a const
 baseline"), and lets the episode loop run before any model is trained.
 :class:`LaneFollowingPredictor` follows the lane graph instead (a stronger non-learned
 baseline, and a sensible fallback for the planner).
+
+Every predictor takes the scene's :class:`~adv3d_runner.scene.lanemap.LaneMap` once per
+episode through ``reset(lane_map)`` and then predicts with ``predict(tracks)``.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Any
+from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..scene.lanemap import LaneMap
 from .interface import DT, PREDICTION_STEPS, Predictions, Tracks
 
 
@@ -40,9 +43,12 @@ class ConstantVelocityPredictor:
         if len(self.speed_factors) != len(self.probabilities) or not self.speed_factors:
             raise ValueError("need one probability per speed factor")
 
-    def predict(self, tracks: Tracks, lanes=None) -> Predictions:
-        """(N,) tracks -> Predictions with trajectories (N, K, steps, 2) at t + dt .. t + steps dt.
-        ``lanes`` is ignored (accepted so every predictor has the same signature)."""
+    def reset(self, lane_map: LaneMap | None = None) -> None:
+        """Nothing to do: constant velocity ignores the lanes (kept so every predictor has the
+        same interface)."""
+
+    def predict(self, tracks: Tracks) -> Predictions:
+        """(N,) tracks -> Predictions with trajectories (N, K, steps, 2) at t + dt .. t + steps dt."""
         n = len(tracks)
         f = np.asarray(self.speed_factors, dtype=np.float64)
         p = np.asarray(self.probabilities, dtype=np.float64)
@@ -62,7 +68,7 @@ class ConstantVelocityPredictor:
 
 
 
-@dataclass(frozen=True)
+@dataclass
 class LaneFollowingPredictor:
     """Lane-following extrapolation: each track keeps its lane (through successors), its lateral
     offset in the lane and its speed along its heading; K modes scale that speed.
@@ -72,9 +78,13 @@ class LaneFollowingPredictor:
     a small heading error does not turn into a lane intrusion seconds later, which is what a
     planner downstream needs from a non-learned predictor on highways.
 
+    Each lane's whole-lane corridor comes from the lane map
+    (:meth:`~adv3d_runner.scene.lanemap.LaneMap.lane_corridor`, built once per map).
+
     Attributes:
         speed_factors, probabilities, steps, dt: as :class:`ConstantVelocityPredictor`.
         max_off_lane: m outside the nearest lane strip beyond which a track is not lane-bound.
+        lane_map: the map given to :meth:`reset` (None before).
     """
 
     speed_factors: tuple[float, ...] = (1.0, 0.8, 1.15)
@@ -82,28 +92,35 @@ class LaneFollowingPredictor:
     steps: int = PREDICTION_STEPS
     dt: float = DT
     max_off_lane: float = 1.0
+    lane_map: LaneMap | None = field(default=None, init=False, repr=False, compare=False)
 
-    def predict(self, tracks: Tracks, lanes) -> Predictions:
-        """(N,) tracks and the scene's lanes -> Predictions (N, K, steps, 2)."""
-        from .planner.corridor import CorridorSet, build_corridor, lanes_by_id, locate_many
+    def reset(self, lane_map: LaneMap) -> None:
+        """Predict on ``lane_map`` until the next reset."""
+        self.lane_map = lane_map
 
+    def predict(self, tracks: Tracks) -> Predictions:
+        """(N,) tracks -> Predictions (N, K, steps, 2) along the lanes of the map given to
+        :meth:`reset`."""
+        lanes = self.lane_map
+        if lanes is None:
+            raise RuntimeError("LaneFollowingPredictor.reset(lane_map) must be called before predict")
         cv = ConstantVelocityPredictor(self.speed_factors, self.probabilities, self.steps, self.dt, along_heading=True)
         out = cv.predict(tracks)
         n = len(tracks)
         if n == 0 or not len(lanes):
             return out
-        by_id = lanes_by_id(lanes)
         f = np.asarray(self.speed_factors, dtype=np.float64)
         t = np.arange(1, self.steps + 1) * self.dt
         boxes = np.asarray(tracks.boxes, dtype=np.float64)
         vel = np.nan_to_num(np.asarray(tracks.velocities, dtype=np.float64))
         ok = np.all(np.isfinite(boxes), axis=1)
         lane_ids = np.full(n, -1, np.int64)
-        lane_ids[ok], _, d = locate_many(lanes, boxes[ok][:, [0, 1, 4]])
+        lane_ids[ok], _, d = lanes.locate_many(boxes[ok][:, [0, 1, 4]])
         reach = float(f.max()) * self.steps * self.dt
         for lid in np.unique(lane_ids[lane_ids >= 0]):
             rows = np.flatnonzero(lane_ids == lid)
-            cs = _lane_corridor(by_id, int(lid), reach, build_corridor, CorridorSet)
+            # the whole lane, then reach m (the fastest mode's travel) + a 10 m margin of successors
+            cs = lanes.lane_corridor(int(lid), lanes.lane_length(int(lid)) + reach + 10.0)
             s0, d0 = cs.project(0, boxes[rows, :2])
             half = 0.5 * cs.width_at(np.zeros(len(rows), int), s0)
             lane_bound = np.abs(d0) - half <= self.max_off_lane  # the rest keep constant velocity
@@ -113,34 +130,3 @@ class LaneFollowingPredictor:
             xy = cs.pose_at(np.zeros(s.shape, int), s, np.broadcast_to(d0[:, None, None], s.shape))[..., :2]
             out.trajectories[rows[lane_bound]] = xy[lane_bound]
         return out
-
-
-_CORRIDOR_CACHE: dict[tuple[int, float], tuple[list, list, Any]] = {}
-
-
-def _lane_corridor(by_id: dict, lane_id: int, reach: float, build_corridor, CorridorSet):
-    """The whole lane plus ``reach`` m of successors as a CorridorSet, cached across calls (the
-    map is static within a scene): the entry is reused while the chain's lanes are the same
-    objects with the same centre lines."""
-    lane = by_id[lane_id]
-    key = (id(lane), reach)
-    hit = _CORRIDOR_CACHE.get(key)
-    if hit is not None:
-        chain, raws, cs = hit
-        same = chain[0] is lane and all(by_id.get(int(obj.id)) is obj for obj in chain)
-        if same and all(np.array_equal(np.asarray(o.centerline), r) for o, r in zip(chain, raws)):
-            return cs
-    cor = build_corridor(by_id, lane_id, np.asarray(lane.centerline, dtype=np.float64)[0], behind=0.0,
-                         ahead=_lane_length(lane) + reach + 10.0)
-    cs = CorridorSet([cor])
-    if len(_CORRIDOR_CACHE) > 2048:
-        _CORRIDOR_CACHE.clear()
-    chain = [by_id[i] for i in cor.lane_ids]
-    _CORRIDOR_CACHE[key] = (chain, [np.array(o.centerline, dtype=np.float64) for o in chain], cs)
-    return cs
-
-
-def _lane_length(lane) -> float:
-    from ..scene import lanes as lanegeo
-
-    return lanegeo.length(np.asarray(lane.centerline, dtype=np.float64))

@@ -1,7 +1,15 @@
 """The one interface every autonomy stack under test implements, and the data it exchanges.
 
-``AutonomyStack.step(points, ego_state, lane_map) -> AutonomyOutputs`` is called once per frame
-(10 Hz) by the episode loop; ``reset()`` starts a new episode (clears tracker state).
+Per episode the loop calls, in this order (nuPlan's ``initialize()`` pattern: the map is handed
+over once, never per frame):
+
+1. ``AutonomyStack.reset(context)`` with a :class:`SceneContext`: the scene's
+   :class:`~adv3d_runner.scene.lanemap.LaneMap` (built from the scene's lanes when the episode
+   starts; every stage reads this one object), dt and scene id. The stack forgets every state
+   of the previous episode and passes the map to whatever reads it (planner, predictor).
+2. Per frame (10 Hz): ``observe_ground_truth(boxes_ego, n_points)`` (the simulator's ground
+   truth of the coming frame; a no-op for every stack except those with an oracle detector),
+   then ``step(points, ego_state) -> AutonomyOutputs``.
 
 Frames: LiDAR points come in the **ego frame** (origin at the ego's footprint centre on the
 ground, x forward, y left, z up). Every output (detections, tracks, predictions, plan) is in
@@ -18,6 +26,8 @@ from dataclasses import dataclass, field
 from typing import Any, Iterator, Protocol, Sequence, runtime_checkable
 
 import numpy as np
+
+from ..scene.lanemap import LaneMap
 
 DT = 0.1
 PREDICTION_STEPS = 60  # 6 s at 10 Hz (paper appendix)
@@ -236,22 +246,58 @@ class AutonomyOutputs:
     timings: dict[str, float] = field(default_factory=dict)
 
 
+@dataclass(frozen=True)
+class SceneContext:
+    """What a stack learns about the scene once per episode (``AutonomyStack.reset``).
+
+    Attributes:
+        lane_map: the scene's lanes with their prepared geometry (built once per scene; every
+            stage of the stack reads this one object).
+        dt: s between frames.
+        scene_id: the scene's id ("" when unknown).
+    """
+
+    lane_map: LaneMap
+    dt: float = DT
+    scene_id: str = ""
+
+    @classmethod
+    def from_scene(cls, scene: Any) -> "SceneContext":
+        """The context of a loaded :class:`~adv3d_runner.scene.schema.Scene`."""
+        return cls(LaneMap.from_scene(scene), float(scene.dt), str(scene.id))
+
+    @classmethod
+    def from_lanes(cls, lanes: Sequence[Any], dt: float = DT, scene_id: str = "") -> "SceneContext":
+        """A context from bare lanes (tests, benchmarks without a scene file)."""
+        return cls(LaneMap(lanes), float(dt), scene_id)
+
+
 @runtime_checkable
 class AutonomyStack(Protocol):
     """A LiDAR autonomy stack under test (closed loop, 10 Hz)."""
 
-    def reset(self) -> None:
-        """Forget all state (tracks, histories) before a new episode."""
+    def reset(self, context: SceneContext) -> None:
+        """Start an episode in the scene ``context`` describes: forget all state (tracks,
+        histories, plan hysteresis) and take the scene's lane map for the whole episode."""
 
-    def step(self, points: np.ndarray, ego_state: EgoState, lane_map: Sequence[Any]) -> AutonomyOutputs:
+    def observe_ground_truth(self, boxes_ego: np.ndarray, n_points: np.ndarray) -> None:
+        """The simulator's ground truth of the coming frame, given before each :meth:`step`.
+
+        Only an oracle-perception stack uses it (its detector returns these boxes instead of
+        detecting); every other stack must accept the call and ignore it.
+
+        Args:
+            boxes_ego: (N, 5) x, y, length, width, yaw of every scene actor in the **ego**
+                frame (NaN rows for actors absent this frame).
+            n_points: (N,) int, LiDAR returns on each actor in this frame.
+        """
+
+    def step(self, points: np.ndarray, ego_state: EgoState) -> AutonomyOutputs:
         """Process one frame.
 
         Args:
             points: (P, 3) or (P, 4) float32/64 LiDAR points x, y, z (m) [, intensity] in the
                 ego frame; P may be 0.
             ego_state: the ego's current state in the map frame.
-            lane_map: the scene's lanes (``adv3d_runner.scene.schema.Lane`` objects or anything
-                with the same attributes: id, centerline (P, 2), width (P,), left, right,
-                successors, speed_limit).
         """
         ...

@@ -1,23 +1,26 @@
 """A modular stack (detector -> tracker -> predictor -> planner) behind :class:`AutonomyStack`.
 
-Autonomy-A is this class with the learned BEV detector and the learned predictor plugged in;
-until they exist, any object with the right method works (e.g. an oracle detector in tests, or
-:class:`~.baselines.LaneFollowingPredictor`).
+Autonomy-A is this class with the learned BEV detector and the learned predictor plugged in
+(:func:`~.stacks.make_stack`); any object with the right methods works (e.g. the oracle detector
+of :mod:`.oracle`, or :class:`~.baselines.LaneFollowingPredictor`).
 
-Per frame: the detector turns ego-frame points into ego-frame boxes; they are moved into the
-map frame with the ego pose (perfect localisation), tracked, predicted and planned on. Each
-stage's wall time is reported in ``AutonomyOutputs.timings`` (seconds).
+Per episode, :meth:`ModularStack.reset` hands the scene's lane map to the predictor and the
+planner (they keep no lane geometry of their own). Per frame: the detector turns ego-frame points
+into ego-frame boxes; they are moved into the map frame with the ego pose (perfect
+localisation), tracked, predicted and planned on. Each stage's wall time is reported in
+``AutonomyOutputs.timings`` (seconds).
 """
 from __future__ import annotations
 
 import time
-from typing import Any, Protocol, Sequence
+from typing import Protocol
 
 import numpy as np
 
 from ..geometry.frames import boxes_from_frame
+from ..scene.lanemap import LaneMap
 from .baselines import LaneFollowingPredictor
-from .interface import AutonomyOutputs, Detections, EgoState, Predictions, Tracks
+from .interface import AutonomyOutputs, Detections, EgoState, Predictions, SceneContext, Tracks
 from .planner import SamplingPlanner
 from .tracker import MultiObjectTracker
 
@@ -28,9 +31,22 @@ class Detector(Protocol):
         ...
 
 
+class GroundTruthDetector(Detector, Protocol):
+    """A detector that also takes the simulator's ground truth (the oracle). Optional: the stack
+    forwards ``observe_ground_truth`` only to detectors that have it."""
+
+    def observe_ground_truth(self, boxes_ego: np.ndarray, n_points: np.ndarray) -> None:
+        """(N, 5) ego-frame boxes (NaN rows: absent actors) and (N,) LiDAR returns per actor."""
+        ...
+
+
 class Predictor(Protocol):
-    def predict(self, tracks: Tracks, lanes: Sequence[Any]) -> Predictions:
-        """Map-frame tracks (+ the lane map) -> multi-modal predictions in the map frame."""
+    def reset(self, lane_map: LaneMap) -> None:
+        """Take the scene's lane map for the coming episode."""
+        ...
+
+    def predict(self, tracks: Tracks) -> Predictions:
+        """Map-frame tracks -> multi-modal predictions in the map frame."""
         ...
 
 
@@ -38,8 +54,9 @@ class ModularStack:
     """Detector -> :class:`MultiObjectTracker` -> predictor -> :class:`SamplingPlanner`.
 
     Args:
-        detector: object with ``detect(points) -> Detections`` (ego frame).
-        predictor: object with ``predict(tracks, lanes) -> Predictions``
+        detector: object with ``detect(points) -> Detections`` (ego frame), and optionally
+            ``observe_ground_truth(boxes_ego, n_points)`` (:class:`GroundTruthDetector`).
+        predictor: object with ``reset(lane_map)`` and ``predict(tracks) -> Predictions``
             (default :class:`LaneFollowingPredictor`).
         tracker, planner: defaults are built with their default configs.
         prior_speed: start new tracks at the ego's speed (see ``MultiObjectTracker.update``).
@@ -53,12 +70,25 @@ class ModularStack:
         self.tracker = tracker if tracker is not None else MultiObjectTracker()
         self.planner = planner if planner is not None else SamplingPlanner()
         self.prior_speed = prior_speed
+        self.context: SceneContext | None = None
 
-    def reset(self) -> None:
+    def reset(self, context: SceneContext) -> None:
+        """New episode in ``context``'s scene: clear the tracks and the plan hysteresis, and hand
+        the lane map to the predictor and the planner."""
+        self.context = context
         self.tracker.reset()
-        self.planner.reset()
+        self.predictor.reset(context.lane_map)
+        self.planner.reset(context.lane_map)
 
-    def step(self, points: np.ndarray, ego_state: EgoState, lane_map: Sequence[Any]) -> AutonomyOutputs:
+    def observe_ground_truth(self, boxes_ego: np.ndarray, n_points: np.ndarray) -> None:
+        """Forwarded to the detector when it takes ground truth (the oracle); ignored otherwise."""
+        observe = getattr(self.detector, "observe_ground_truth", None)
+        if observe is not None:
+            observe(boxes_ego, n_points)
+
+    def step(self, points: np.ndarray, ego_state: EgoState) -> AutonomyOutputs:
+        if self.context is None:
+            raise RuntimeError("ModularStack.reset(context) must be called before step")
         timings = {}
         t0 = time.perf_counter()
         pts = np.asarray(points)
@@ -68,9 +98,9 @@ class ModularStack:
         t1 = time.perf_counter()
         tracks = self.tracker.update(dets, prior_speed=ego_state.speed if self.prior_speed else None)
         t2 = time.perf_counter()
-        preds = self.predictor.predict(tracks, lane_map)
+        preds = self.predictor.predict(tracks)
         t3 = time.perf_counter()
-        plan = self.planner.plan(ego_state, lane_map, preds, tracks)
+        plan = self.planner.plan(ego_state, preds, tracks)
         t4 = time.perf_counter()
         timings.update(detector=t1 - t0, tracker=t2 - t1, predictor=t3 - t2, planner=t4 - t3)
         return AutonomyOutputs(dets, tracks, preds, plan, timings)

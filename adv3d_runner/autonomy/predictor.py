@@ -1,6 +1,7 @@
 """Learned multi-modal trajectory predictor (Autonomy-A's prediction stage).
 
-``LearnedPredictor.predict(tracks, lanes) -> Predictions``: for every confirmed track, K modes
+``LearnedPredictor.reset(lane_map)`` once per episode, then ``predict(tracks) -> Predictions``:
+for every confirmed track, K modes
 of its future centre positions over 6 s at 10 Hz (60 steps) with mode probabilities, in the
 map frame. The paper's stack predicts "per-timestep endpoints" from the lane graph and the
 detections (appendix "LiDAR-Based Autonomy Details"); this is a small agent-centric version
@@ -20,11 +21,13 @@ network because highway lane graphs are tiny):
   along the lane chain; straight for tracks off the lanes), in the agent frame.
 * **Network** (:class:`PredictorNet`): MLP 3 x 256 (LayerNorm, ReLU) -> K x 60 x 2 residuals
   on top of the prior, plus K mode logits.
-* **Training** (``adv3d train predictor``, :mod:`.predictor_cli`): winner-takes-all on the
-  average displacement of the best mode + cross-entropy of the mode logits towards it.
+* **Training** (``adv3d train predictor``, :mod:`adv3d_runner.training.predictor_train`):
+  winner-takes-all on the average displacement of the best mode + cross-entropy of the mode
+  logits towards it.
 
 Inference batches every track in one forward pass; lane geometry is indexed once per lane map
-(:class:`LaneIndex`, cached by a fingerprint of the map), so a frame with 20 tracks costs
+(:class:`~adv3d_runner.scene.lanemap.LaneIndex`, kept by the scene's
+:class:`~adv3d_runner.scene.lanemap.LaneMap`), so a frame with 20 tracks costs
 about 2-3 ms on one core (features ~1.3 ms, network ~0.3 ms). Tracks with short or invalid history, non-finite states,
 and frames with no lanes are handled (their features are zero with validity flags 0).
 
@@ -33,18 +36,15 @@ Weights are a plain ``state_dict`` (``torch.load(weights_only=True)``) next to a
 """
 from __future__ import annotations
 
-import hashlib
 import json
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, Sequence
 
 import numpy as np
 
 from ..errors import FileFormatError
-from ..geometry.angles import wrap_angle
 from ..fileio import REPO_ROOT
-from ..scene import lanes as lanegeo
+from ..scene.lanemap import LaneIndex, LaneMap
 from .interface import DT, PREDICTION_STEPS, Predictions, Tracks
 
 DEFAULT_MODEL_DIR = REPO_ROOT / "assets" / "models" / "predictor"
@@ -59,7 +59,7 @@ NEIGHBOURS = 6                                        # nearest other tracks
 NEIGHBOUR_RANGE = 80.0                                # m
 CHAIN_STEP = 2.0                                      # m, resampling of the lane chains
 CHAIN_AHEAD = float(LANE_OFFSETS[-1]) + 20.0          # m chained past a lane's end
-DEFAULT_SPEED_LIMIT = 29.0                            # m/s when a lane has none
+DEFAULT_SPEED_LIMIT = 29.0                            # m/s when a lane has none (feature "limit")
 OFF_LANE = 1.0                                        # m outside a lane strip still lane-bound (prior)
 
 # feature block sizes (kept in one place so the layout is documented and checked)
@@ -68,223 +68,6 @@ _AGENT_F = 8
 _LANE_F = 1 + 3 * len(LANE_OFFSETS) + 3               # exists, (x, y, valid) per point, width, d, limit
 _NEIGH_F = NEIGHBOURS * 5
 NUM_FEATURES = _HIST_F + _AGENT_F + 3 * _LANE_F + _NEIGH_F
-
-
-# --------------------------------------------------------------------------- lane index
-class LaneIndex:
-    """Lane geometry prepared once per lane map for vectorised queries.
-
-    * Every lane's cleaned centre line, padded into ``(L, Smax)`` segment arrays, for one
-      batched projection of many positions onto every lane (``project_all``).
-    * Every lane chained through its first successors from its start to ``CHAIN_AHEAD`` m past
-      its end, resampled every ``CHAIN_STEP`` m and padded into ``(L, Cmax, 2)`` (``sample``);
-      ``chain_len`` and ``dead_end`` say where a chain really stops.
-
-    Args:
-        lanes: objects with ``id``, ``centerline`` (P, 2), ``width`` (P,) or scalar, ``left``,
-            ``right``, ``successors``, ``speed_limit`` (the scene's ``Lane``).
-    """
-
-    def __init__(self, lanes: Sequence[Any]):
-        self.ids = np.array([int(lane.id) for lane in lanes], np.int64)
-        L = len(self.ids)
-        self.row = {int(i): r for r, i in enumerate(self.ids)}
-        by_id = {int(lane.id): lane for lane in lanes}
-        cls = [lanegeo.clean_polyline(np.asarray(lane.centerline, np.float64).reshape(-1, 2)) for lane in lanes]
-        widths = [_lane_widths(lane) for lane in lanes]
-        smax = max([max(len(c) - 1, 1) for c in cls], default=1)
-        self.seg_a = np.zeros((L, smax, 2))
-        self.seg_u = np.zeros((L, smax, 2))
-        self.seg_u[..., 0] = 1.0
-        self.seg_len = np.zeros((L, smax))
-        self.seg_s = np.zeros((L, smax))
-        self.seg_w0 = np.zeros((L, smax))
-        self.seg_w1 = np.zeros((L, smax))
-        self.seg_ok = np.zeros((L, smax), bool)
-        self.n_seg = np.ones(L, np.int64)
-        self.length = np.zeros(L)
-        for r, (c, w) in enumerate(zip(cls, widths)):
-            if len(c) < 2:
-                self.seg_a[r, 0] = c[0]
-                self.seg_ok[r, 0] = True
-                self.seg_w0[r, 0] = self.seg_w1[r, 0] = w[0]
-                continue
-            d = np.diff(c, axis=0)
-            ln = np.hypot(d[:, 0], d[:, 1])
-            n = len(ln)
-            self.n_seg[r] = n
-            self.seg_a[r, :n] = c[:-1]
-            self.seg_u[r, :n] = d / ln[:, None]
-            self.seg_len[r, :n] = ln
-            self.seg_s[r, :n] = np.concatenate([[0.0], np.cumsum(ln)[:-1]])
-            self.seg_w0[r, :n] = w[:-1]
-            self.seg_w1[r, :n] = w[1:]
-            self.seg_ok[r, :n] = True
-            self.length[r] = float(ln.sum())
-        self.left = np.array([self.row.get(_opt_int(lane.left), -1) for lane in lanes], np.int64)
-        self.right = np.array([self.row.get(_opt_int(lane.right), -1) for lane in lanes], np.int64)
-        self.limit = np.array([float(lane.speed_limit) if getattr(lane, "speed_limit", None) is not None
-                               else DEFAULT_SPEED_LIMIT for lane in lanes])
-        # projection bounds: interior segments clamp to [0, len]; the end segments extend
-        self._lo = np.zeros_like(self.seg_len)
-        self._hi = self.seg_len.copy()
-        if L:
-            self._lo[:, 0] = -np.inf
-            self._hi[np.arange(L), self.n_seg - 1] = np.inf
-        chains = [self._chain(by_id, int(lane.id)) for lane in lanes]
-        cmax = max([len(p) for p, _ in chains], default=2)
-        self.chain = np.zeros((L, cmax, 2))
-        self.chain_len = np.zeros(L)
-        self.dead_end = np.zeros(L, bool)
-        for r, (pts, dead) in enumerate(chains):
-            self.chain[r, :len(pts)] = pts
-            self.chain[r, len(pts):] = pts[-1]
-            self.chain_len[r] = CHAIN_STEP * (len(pts) - 1)
-            self.dead_end[r] = dead
-
-    def __len__(self) -> int:
-        return len(self.ids)
-
-    @staticmethod
-    def _chain(by_id: dict[int, Any], start: int) -> tuple[np.ndarray, bool]:
-        """Uniformly resampled chain from ``start``'s first point through first successors,
-        ``CHAIN_AHEAD`` m past the start lane's end (or to a dead end). Returns points (C, 2)
-        with C >= 2 (exactly ``CHAIN_STEP`` apart except at a too-short end) and whether the
-        chain stops at a dead end before that."""
-        first = lanegeo.clean_polyline(np.asarray(by_id[start].centerline, np.float64).reshape(-1, 2))
-        need = lanegeo.length(first) + CHAIN_AHEAD
-        parts, seen, total, dead = [first], {start}, lanegeo.length(first), False
-        cur = start
-        while total < need:
-            succ = [int(s) for s in (getattr(by_id[cur], "successors", None) or []) if int(s) in by_id and int(s) not in seen]
-            if not succ:
-                dead = True
-                break
-            cur = succ[0]
-            seen.add(cur)
-            nxt = lanegeo.clean_polyline(np.asarray(by_id[cur].centerline, np.float64).reshape(-1, 2))
-            parts.append(nxt)
-            total += lanegeo.length(nxt)
-        raw = lanegeo.clean_polyline(np.concatenate(parts))
-        total = lanegeo.length(raw)
-        end = min(total, need)
-        n = max(1, int(np.floor(end / CHAIN_STEP + 1e-9)))
-        s = np.arange(n + 1) * CHAIN_STEP
-        pts = lanegeo.point_at(raw, s)
-        return pts, dead
-
-    def project_all(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Project (N, 2) positions onto every lane.
-
-        Returns (each (N, L)): s along the lane (extrapolated before its start / past its end),
-        d lateral offset (left +), heading of the closest segment, width there, and the distance
-        past the lane's ends (0 inside its length).
-        """
-        q = np.asarray(xy, np.float64).reshape(-1, 2)
-        rows = np.arange(len(self.ids))
-        # squared distance to the foot on each segment without building (N, L, S, 2) feet:
-        # |r - tc u|^2 = |r|^2 - 2 tc t + tc^2 for unit u, with t = r.u and tc = clip(t)
-        rx = q[:, 0, None, None] - self.seg_a[None, ..., 0]                  # (N, L, S)
-        ry = q[:, 1, None, None] - self.seg_a[None, ..., 1]
-        t = rx * self.seg_u[None, ..., 0] + ry * self.seg_u[None, ..., 1]
-        tc = np.clip(t, self._lo[None], self._hi[None])
-        dist2 = rx * rx + ry * ry + tc * (tc - 2.0 * t)
-        dist2[:, ~self.seg_ok] = np.inf
-        best = np.argmin(dist2, axis=2)                                       # (N, L)
-        take = lambda a: np.take_along_axis(a, best[..., None], axis=2)[..., 0]  # noqa: E731
-        tb = take(tc)
-        u = self.seg_u[rows[None, :], best]                                   # (N, L, 2)
-        r = np.stack([take(rx), take(ry)], axis=-1)                           # (N, L, 2)
-        s = self.seg_s[rows[None, :], best] + tb
-        d = u[..., 0] * r[..., 1] - u[..., 1] * r[..., 0]
-        head = np.arctan2(u[..., 1], u[..., 0])
-        seg_len = self.seg_len[rows[None, :], best]
-        frac = np.clip(tb / np.maximum(seg_len, 1e-9), 0.0, 1.0)
-        width = self.seg_w0[rows[None, :], best] * (1 - frac) + self.seg_w1[rows[None, :], best] * frac
-        beyond = np.maximum(np.maximum(-s, s - self.length[None]), 0.0)
-        return s, d, head, width, beyond
-
-    def locate(self, poses: np.ndarray, max_heading_error: float = np.pi / 2):
-        """The lane each pose (N, 3) is on (same rule as the planner's ``corridor.locate``: the
-        lane strip containing it with the smallest |d| among lanes heading within 90 degrees;
-        else the nearest such lane).
-
-        Returns:
-            row (N,) int64 index into the lanes (-1: none), and the full ``project_all`` arrays.
-        """
-        P = np.asarray(poses, np.float64).reshape(-1, 3)
-        n = len(P)
-        if n == 0 or len(self.ids) == 0:
-            z = np.zeros((n, len(self.ids)))
-            return np.full(n, -1, np.int64), (z, z, z, z, z)
-        proj = self.project_all(P[:, :2])
-        s, d, head, width, beyond = proj
-        herr = np.abs(wrap_angle(P[:, 2:3] - head))
-        inside = (np.abs(d) <= 0.5 * width) & (beyond == 0.0)
-        key = np.where(inside, 0.0, 1e6) + np.abs(d) + beyond
-        key = np.where(herr <= max_heading_error, key, np.inf)
-        row = np.argmin(key, axis=1)
-        row = np.where(np.isfinite(key[np.arange(n), row]), row, -1)
-        return row.astype(np.int64), proj
-
-    def sample(self, rows: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Chain points of lane ``rows`` (N,) at arc lengths ``s`` (N, M) from the lane's start.
-
-        Returns points (N, M, 2) (extrapolated before the start along the first segment) and
-        validity (N, M): False past a dead end (and for ``rows`` = -1).
-        """
-        rows = np.asarray(rows, np.int64)
-        ok_row = rows >= 0
-        r = np.where(ok_row, rows, 0)
-        if len(self.ids) == 0:
-            return np.zeros(s.shape + (2,)), np.zeros(s.shape, bool)
-        cmax = self.chain.shape[1]
-        u = s / CHAIN_STEP
-        i = np.clip(np.floor(u).astype(np.int64), 0, cmax - 2)
-        f = u - i                                                            # extrapolates at the ends
-        a = self.chain[r[:, None], i]
-        b = self.chain[r[:, None], i + 1]
-        pts = a + f[..., None] * (b - a)
-        # past the chain's last real point: extrapolate along its last segment (chains that were
-        # cut at CHAIN_AHEAD are never queried that far; dead ends are flagged invalid)
-        clen = self.chain_len[r][:, None]
-        last = np.maximum(np.round(clen / CHAIN_STEP).astype(np.int64), 1)
-        past = s > clen
-        if np.any(past):
-            pa = self.chain[r[:, None], last - 1]
-            pb = self.chain[r[:, None], last]
-            seg = pb - pa
-            seg_n = seg / np.maximum(np.linalg.norm(seg, axis=-1, keepdims=True), 1e-9)
-            ext = pb + (s - clen)[..., None] * seg_n
-            pts = np.where(past[..., None], np.broadcast_to(ext, pts.shape), pts)
-        valid = ok_row[:, None] & ~(past & self.dead_end[r][:, None])
-        return pts, valid
-
-
-def _opt_int(v: Any) -> int:
-    return -10 ** 12 if v is None else int(v)
-
-
-def _lane_widths(lane: Any) -> np.ndarray:
-    """Per cleaned-point widths of a lane (scalar widths broadcast)."""
-    raw = np.asarray(lane.centerline, np.float64).reshape(-1, 2)
-    w = np.asarray(lane.width, np.float64).reshape(-1)
-    keep = lanegeo._kept_indices(raw)
-    if w.size == 1:
-        return np.full(len(keep), float(w[0]))
-    return w[keep]
-
-
-def lane_fingerprint(lanes: Sequence[Any]) -> str:
-    """Cheap identity of a lane map (ids, point counts, end points, widths, links)."""
-    h = hashlib.sha1()
-    for lane in lanes:
-        c = np.asarray(lane.centerline, np.float64).reshape(-1, 2)
-        w = np.asarray(lane.width, np.float64).reshape(-1)
-        h.update(np.array([lane.id, len(c), *c[0], *c[-1], float(c.sum()), float(w.sum()),
-                           _opt_int(lane.left), _opt_int(lane.right)], np.float64).tobytes())
-        h.update(np.asarray(list(getattr(lane, "successors", []) or []), np.int64).tobytes())
-    return h.hexdigest()
 
 
 # --------------------------------------------------------------------------- features
@@ -326,20 +109,26 @@ def sanitize_tracks(tracks: Tracks) -> tuple[np.ndarray, np.ndarray, np.ndarray,
     return boxes, vel, hist, hv, ok
 
 
-def agent_features(tracks: Tracks, lanes: Sequence[Any], index: LaneIndex | None = None) -> np.ndarray:
+def lane_index(lane_map: LaneMap) -> LaneIndex:
+    """The map's :class:`LaneIndex` at this predictor's chain resolution (``CHAIN_STEP``,
+    ``CHAIN_AHEAD``); the map builds it once and keeps it."""
+    return lane_map.index(CHAIN_STEP, CHAIN_AHEAD, DEFAULT_SPEED_LIMIT)
+
+
+def agent_features(tracks: Tracks, lane_map: LaneMap) -> np.ndarray:
     """Agent-centric features of every track (see the module docstring for the layout).
 
     Args:
         tracks: N tracks (map frame).
-        lanes: the lane map (may be empty); ``index`` a prebuilt :class:`LaneIndex` of it.
+        lane_map: the scene's lane map (may be empty).
     Returns:
         (N, NUM_FEATURES) float32, finite.
     """
-    return encode(tracks, lanes, index)[0]
+    return encode(tracks, lane_map)[0]
 
 
-def encode(tracks: Tracks, lanes: Sequence[Any], index: LaneIndex | None = None,
-           steps: int = PREDICTION_STEPS, dt: float = DT) -> tuple[np.ndarray, np.ndarray]:
+def encode(tracks: Tracks, lane_map: LaneMap, steps: int = PREDICTION_STEPS,
+           dt: float = DT) -> tuple[np.ndarray, np.ndarray]:
     """Features (N, NUM_FEATURES) float32 and the lane-following prior (N, steps, 2) float32
     (agent frame, m) that the network refines.
 
@@ -373,8 +162,8 @@ def encode(tracks: Tracks, lanes: Sequence[Any], index: LaneIndex | None = None,
                         ok.astype(np.float64)], axis=1)
 
     lane_f = np.zeros((n, 3, _LANE_F))
-    if len(lanes):
-        index = index if index is not None else LaneIndex(lanes)
+    if len(lane_map):
+        index = lane_index(lane_map)
         poses = np.stack([x0, y0, yaw], axis=1)
         row, (ps, pd, _, pw, _) = index.locate(poses)
         row = np.where(ok, row, -1)
@@ -486,7 +275,8 @@ def build_net(config: PredictorConfig):
 
 
 class LearnedPredictor:
-    """Tracks + lanes -> multi-modal predictions with a trained :class:`PredictorNet`.
+    """Tracks -> multi-modal predictions with a trained :class:`PredictorNet`, on the lane map
+    given to :meth:`reset`.
 
     Args:
         net: the torch module; config: its :class:`PredictorConfig`.
@@ -499,21 +289,16 @@ class LearnedPredictor:
         self.net = net.eval()
         self.config = config
         self.threads = threads
-        self._index: LaneIndex | None = None
-        self._index_key: tuple[int, str] | None = None
+        self.lane_map: LaneMap | None = None
         self._torch = torch
 
     @property
     def num_modes(self) -> int:
         return self.config.num_modes
 
-    def lane_index(self, lanes: Sequence[Any]) -> LaneIndex:
-        """The cached :class:`LaneIndex` of ``lanes`` (rebuilt when the map changes)."""
-        key = (len(lanes), lane_fingerprint(lanes))
-        if self._index is None or self._index_key != key:
-            self._index = LaneIndex(lanes)
-            self._index_key = key
-        return self._index
+    def reset(self, lane_map: LaneMap) -> None:
+        """Predict on ``lane_map`` until the next reset."""
+        self.lane_map = lane_map
 
     def predict_local(self, feats: np.ndarray, prior: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Network on precomputed features (N, F) and priors (N, T, 2) -> agent-frame
@@ -527,16 +312,16 @@ class LearnedPredictor:
             probs = torch.softmax(logits, dim=-1)
         return traj.numpy().astype(np.float64), probs.numpy().astype(np.float64)
 
-    def predict(self, tracks: Tracks, lanes: Sequence[Any] = ()) -> Predictions:
+    def predict(self, tracks: Tracks) -> Predictions:
         """(N,) tracks -> Predictions (N, K, 60, 2) in the map frame, rows of probabilities
         summing to 1. All tracks go through the network in one batch."""
+        if self.lane_map is None:
+            raise RuntimeError("LearnedPredictor.reset(lane_map) must be called before predict")
         n = len(tracks)
         K, T = self.config.num_modes, self.config.steps
         if n == 0:
             return Predictions(np.zeros(0, np.int64), np.zeros((0, K, T, 2)), np.zeros((0, K)), self.config.dt)
-        lanes = list(lanes) if lanes is not None else []
-        index = self.lane_index(lanes) if lanes else None
-        feats, prior = encode(tracks, lanes, index, T, self.config.dt)
+        feats, prior = encode(tracks, self.lane_map, T, self.config.dt)
         local, probs = self.predict_local(feats, prior)
         boxes = np.asarray(tracks.boxes, np.float64).reshape(n, 5)
         traj = to_map_frame(local, np.nan_to_num(boxes))

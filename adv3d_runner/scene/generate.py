@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ConfigError
-from ..dynamics.traffic import IDMParams, Traffic, equilibrium_speed
+from ..dynamics.traffic import Traffic, equilibrium_speed
 from ..geometry.angles import wrap_angle
 from . import lanes as lg
 from .schema import (Actor, Background, Barrier, Ego, Lane, Scene, Source, Track,

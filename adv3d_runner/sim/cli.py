@@ -31,6 +31,7 @@ def register(subparsers) -> None:
 
 
 def _simulate(args) -> int:
+    from ..autonomy.stacks import make_stack
     from ..errors import ConfigError
     from ..fileio import write_json
     from ..progress import is_quiet, status
@@ -39,7 +40,6 @@ def _simulate(args) -> int:
     from .episode import default_library, run_episode
     from .evaluate import episode_metrics
     from .replay import replay_from_episode, save_replay
-    from .stacks import make_stack
 
     if args.seconds <= 0:
         raise ConfigError(f"--seconds must be positive, got {args.seconds}")

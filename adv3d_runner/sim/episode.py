@@ -9,7 +9,9 @@ Per frame k (time k dt from ``start_frame``):
    ego (``reactive=True``, :mod:`.reactive`);
 3. one LiDAR frame from the scene's rig at the ego pose (:func:`~adv3d_runner.sensors.lidar.simulate_frame`
    on a :class:`~adv3d_runner.sensors.world.LidarWorld` built once, never per frame);
-4. ``stack.step(points, ego_state, lanes)``; the outputs are recorded.
+4. ``stack.observe_ground_truth(boxes_ego, n_points)``, then ``stack.step(points, ego_state)``
+   (the stack got the scene's lane map once, from ``stack.reset(SceneContext)``); the outputs
+   are recorded.
 
 The loop is an :class:`Episode` in three parts: setup (its constructor: checks, log windows,
 traffic model, substituted meshes, ``stack.reset``), :meth:`Episode.step` (one frame) and
@@ -34,7 +36,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from ..autonomy.interface import PREDICTION_STEPS, AutonomyOutputs, EgoState
+from ..autonomy.interface import PREDICTION_STEPS, AutonomyOutputs, EgoState, SceneContext
 from ..errors import ConfigError
 from ..geometry.frames import boxes_to_frame
 from .recorders import STAGES, EpisodeFrame, PointRecorder, Recorder, TimingRecorder
@@ -225,7 +227,8 @@ class Episode:
     def __init__(self, scene, stack, *, seconds: float = 5.0, closed_loop: bool = True, reactive: bool = False,
                  world=None, rig=None, library: Any = "default",
                  actor_overrides: Mapping[int, ShapeOverride] | None = None, seed: int = 0,
-                 start_frame: int = 0, lidar_noise: bool = True, recorders: Sequence[Recorder] = ()):
+                 start_frame: int = 0, lidar_noise: bool = True, recorders: Sequence[Recorder] = (),
+                 context: SceneContext | None = None):
         from ..sensors.world import rig_from_scene, world_from_scene
 
         dt = float(scene.dt)
@@ -278,16 +281,13 @@ class Episode:
         self.n_points = np.zeros(T, np.int64)
         self.actor_points = np.zeros((T, n), np.int64)
         self.outputs: list[AutonomyOutputs] = []
-        detector = getattr(stack, "detector", None)
-        observe = getattr(detector, "observe", None)
-        self._observe = observe
         self._world_poses = np.full((len(world_ids), 3), np.nan)
 
         self._meshes_set = True
         try:
             for aid, spec in overrides.items():
                 world.set_actor_mesh(int(aid), spec.vertices, spec.faces)
-            stack.reset()
+            stack.reset(context if context is not None else SceneContext.from_scene(scene))
         except BaseException:  # a failed setup must not leave the adversarial meshes in the world
             self.close()
             raise
@@ -313,8 +313,7 @@ class Episode:
 
         if self.done:
             raise RuntimeError(f"the episode already has its {self.frames} frames")
-        k, scene, stack, dims, ego = self.k, self.scene, self.stack, self.dims, self.ego
-        observe = self._observe
+        k, stack, dims, ego = self.k, self.stack, self.dims, self.ego
         t_start = time.perf_counter()
         if not self.closed_loop and k > 0:
             ego = self._ego_from_log(k)
@@ -330,10 +329,9 @@ class Episode:
         counts = np.where(have, counts_world[np.maximum(to_world, 0)], 0)
         self.actor_points[k] = counts
         self.n_points[k] = len(frame.points)
-        if observe is not None:
-            gt = np.c_[poses_k[:, :2], dims[:, :2], poses_k[:, 2]]
-            observe(boxes_to_frame(gt, ego.pose), counts)
-        out = stack.step(frame.points, ego, scene.lanes)
+        gt = np.c_[poses_k[:, :2], dims[:, :2], poses_k[:, 2]]
+        stack.observe_ground_truth(boxes_to_frame(gt, ego.pose), counts)
+        out = stack.step(frame.points, ego)
         self.outputs.append(out)
         self.ego_poses[k], self.ego_speeds[k], self.ego_accels[k] = ego.pose, ego.speed, ego.acceleration
         t2 = time.perf_counter()
@@ -392,7 +390,7 @@ def run_episode(scene, stack, *, seconds: float = 5.0, closed_loop: bool = True,
                 world=None, rig=None, library: Any = "default",
                 actor_overrides: Mapping[int, ShapeOverride] | None = None,
                 seed: int = 0, start_frame: int = 0, record_points: bool = False, progress: bool = False,
-                lidar_noise: bool = True) -> EpisodeResult:
+                lidar_noise: bool = True, context: SceneContext | None = None) -> EpisodeResult:
     """Run one episode of ``seconds`` at the scene's dt (10 Hz): :class:`Episode` setup, steps
     and finish, with a :class:`~adv3d_runner.sim.recorders.TimingRecorder` (and a
     :class:`~adv3d_runner.sim.recorders.PointRecorder` when ``record_points``).
@@ -414,6 +412,9 @@ def run_episode(scene, stack, *, seconds: float = 5.0, closed_loop: bool = True,
         record_points: keep every frame's points (for replay files).
         progress: show a progress bar.
         lidar_noise: False = ideal LiDAR (no range noise, no ray drop).
+        context: the scene's :class:`~adv3d_runner.autonomy.interface.SceneContext` (its lane
+            map) for ``stack.reset``; built from ``scene`` when None. Pass one to reuse the lane
+            map across episodes of the same scene (an attack builds it once per scene).
 
     Raises:
         ConfigError: the scene is too short for an open-loop episode, or an override names an
@@ -424,7 +425,8 @@ def run_episode(scene, stack, *, seconds: float = 5.0, closed_loop: bool = True,
         recorders.append(PointRecorder())
     episode = Episode(scene, stack, seconds=seconds, closed_loop=closed_loop, reactive=reactive, world=world,
                       rig=rig, library=library, actor_overrides=actor_overrides, seed=seed,
-                      start_frame=start_frame, lidar_noise=lidar_noise, recorders=recorders)
+                      start_frame=start_frame, lidar_noise=lidar_noise, recorders=recorders,
+                      context=context)
     steps = range(episode.frames)
     if progress:
         from ..progress import progress as bar

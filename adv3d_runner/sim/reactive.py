@@ -32,6 +32,7 @@ from ..geometry.angles import wrap_angle
 from ..geometry.boxes import boxes_overlap
 from ..scene import lanes as lanegeo
 from ..dynamics.traffic import Traffic
+from ..scene.lanemap import LaneMap
 
 SETTLE_S = 2.0
 MAX_OFFSET_LANES = 0.75
@@ -47,10 +48,8 @@ class RoadFrame:
     """
 
     def __init__(self, lanes, ego_pose: np.ndarray):
-        from ..autonomy.planner.corridor import locate
-
         by_id = {int(lane.id): lane for lane in lanes}
-        lane_id, _, _ = locate(lanes, ego_pose)
+        lane_id, _, _ = LaneMap(lanes).locate(ego_pose)
         if lane_id is None:
             raise ConfigError("--reactive: the ego is not on any lane of the scene")
         preds: dict[int, int] = {}

@@ -1,6 +1,8 @@
 """Sampling-based lane-relative planner (nuPlan PDM-Closed style): proposals + named costs.
 
-* :mod:`.corridor`  current / left / right lane chains as stacked, uniformly sampled arrays
+* corridors       current / left / right lane chains as stacked, uniformly sampled arrays,
+  built every frame from the scene's lane map (:mod:`adv3d_runner.scene.corridor`,
+  :class:`adv3d_runner.scene.lanemap.LaneMap`, handed over by ``reset(lane_map)``)
 * :mod:`.proposals` candidates = lanes x lateral offsets x target speeds, rolled out on the
   kinematic bicycle (pure pursuit + IDM)
 * :mod:`.costs`     named, separately testable cost terms

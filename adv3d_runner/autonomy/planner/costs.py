@@ -14,7 +14,7 @@ import numpy as np
 
 from ...geometry.angles import wrap_angle
 from ...geometry.boxes import box_separation
-from .corridor import CorridorSet
+from ...scene.corridor import CorridorSet
 
 
 # ------------------------------------------------------------------ geometry helpers

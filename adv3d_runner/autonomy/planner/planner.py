@@ -1,6 +1,8 @@
 """The sampling planner: corridors -> candidates -> named costs -> the cheapest plan.
 
-``SamplingPlanner.plan(ego_state, lanes, predictions, tracks)`` returns a
+``SamplingPlanner.reset(lane_map)`` hands the planner the scene's
+:class:`~adv3d_runner.scene.lanemap.LaneMap` once per episode (nuPlan's ``initialize``);
+``SamplingPlanner.plan(ego_state, predictions, tracks)`` then returns a
 :class:`~adv3d_runner.autonomy.interface.Plan` whose ``cost_terms`` hold the weighted breakdown
 of the chosen candidate; :meth:`SamplingPlanner.plan_with_scores` also returns every
 candidate and its :class:`~.scorer.ScoreTable` (for debugging, tests and the replay file).
@@ -11,15 +13,14 @@ stop along its heading: there is no road to plan on.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Sequence
-
 import numpy as np
 
 from ...dynamics.bicycle import BicycleParams, rollout
 from ...geometry.angles import wrap_angle
+from ...scene.corridor import DEFAULT_SPEED_LIMIT, CorridorSet
+from ...scene.lanemap import LaneMap
 from ..interface import EgoState, Plan, Predictions, Tracks
 from . import costs
-from .corridor import DEFAULT_SPEED_LIMIT, CorridorSet, build_corridor, lanes_by_id, locate
 from .proposals import ActorForecast, Candidates, ProposalConfig, make_specs, rollout_candidates
 from .scorer import CostWeights, ScoreTable, score
 
@@ -120,34 +121,43 @@ def _yaw_from_motion(xy: np.ndarray, yaw0: np.ndarray, min_step: float = 0.05) -
 
 
 class SamplingPlanner:
-    """Lane-relative sampling planner (see package docstring)."""
+    """Lane-relative sampling planner (see package docstring). Call :meth:`reset` with the
+    scene's lane map before the first :meth:`plan` of an episode."""
 
     def __init__(self, config: PlannerConfig = PlannerConfig(), params: BicycleParams | None = None):
         self.config = config
         self.params = params
-        self.reset()
+        self.lane_map: LaneMap | None = None
+        self._forget()
 
-    def reset(self) -> None:
-        """Forget the previous plan's target (lane-change and offset hysteresis, offset confirmation)."""
+    def reset(self, lane_map: LaneMap) -> None:
+        """Start an episode on ``lane_map`` (kept until the next reset) and forget the previous
+        plan's target (lane-change and offset hysteresis, offset confirmation)."""
+        self.lane_map = lane_map
+        self._forget()
+
+    def _forget(self) -> None:
         self._prev_target_ids: frozenset[int] = frozenset()  # lane ids of the previous target corridor
         self._prev_offset: float | None = None
         self._confirmed_offset: float | None = None  # offset the previous plan wanted before confirmation
 
-    def plan(self, ego: EgoState, lanes: Sequence[Any], predictions: Predictions | None = None,
-             tracks: Tracks | None = None) -> Plan:
+    def plan(self, ego: EgoState, predictions: Predictions | None = None, tracks: Tracks | None = None) -> Plan:
         """The cheapest candidate as a :class:`Plan` (``cost_terms`` = its weighted breakdown)."""
-        return self.plan_with_scores(ego, lanes, predictions, tracks)[0]
+        return self.plan_with_scores(ego, predictions, tracks)[0]
 
-    def plan_with_scores(self, ego: EgoState, lanes: Sequence[Any], predictions: Predictions | None = None,
+    def plan_with_scores(self, ego: EgoState, predictions: Predictions | None = None,
                          tracks: Tracks | None = None) -> tuple[Plan, Candidates | None, ScoreTable | None]:
+        lanes = self.lane_map
+        if lanes is None:
+            raise RuntimeError("SamplingPlanner.reset(lane_map) must be called before planning")
         cfg = self.config
         pc = cfg.proposals
         params = self.params or BicycleParams(wheelbase=ego.wheelbase)
         T, dt = pc.steps, pc.dt
         forecast = forecast_from(predictions, tracks, T, dt, ego.pose[:2], cfg.actor_range)
 
-        lane_id, _, d_lane = locate(lanes, ego.pose) if len(lanes) else (None, 0.0, 0.0)
-        by_id = lanes_by_id(lanes)
+        lane_id, _, d_lane = lanes.locate(ego.pose) if len(lanes) else (None, 0.0, 0.0)
+        by_id = lanes.by_id
         if lane_id is not None:
             half = 0.5 * float(np.max(np.asarray(by_id[lane_id].width, dtype=np.float64)))
             if abs(d_lane) - half > cfg.off_lane_distance:
@@ -164,7 +174,7 @@ class SamplingPlanner:
             if nid is not None and int(nid) in by_id:
                 chain_ids.append(int(nid))
                 names.append(f"{side}{int(nid)}")
-        corridors = CorridorSet([build_corridor(by_id, lid, ego.pose[:2], cfg.corridor_behind, ahead,
+        corridors = CorridorSet([lanes.corridor(lid, ego.pose[:2], cfg.corridor_behind, ahead,
                                                 default_speed_limit=cfg.default_speed_limit) for lid in chain_ids])
         limit_now = float(corridors.limit_at(np.array(0), np.array(cfg.corridor_behind)))
         spec = make_specs(corridors, names, limit_now, pc, current_index=0)

@@ -4,7 +4,7 @@ into a trajectory of the kinematic bicycle by a closed-loop rollout.
 A candidate is (corridor, lateral offset, target speed):
 
 * corridor: the ego's current lane, its left and its right neighbour (when they exist), each
-  chained through successors (:mod:`.corridor`);
+  chained through successors (:mod:`adv3d_runner.scene.corridor`);
 * lateral offset: metres left of that lane's centre (nudges within the current lane; the
   neighbours are driven on their centre);
 * target speed: a fraction of the speed limit; 0 means "come to a stop comfortably".
@@ -31,7 +31,7 @@ import numpy as np
 
 from ...dynamics.bicycle import BicycleParams
 from ...geometry.angles import wrap_angle
-from .corridor import CorridorSet
+from ...scene.corridor import CorridorSet
 
 
 @dataclass(frozen=True)

@@ -7,17 +7,18 @@ Per scene (``generate_scene(seed, "train")``, seeds >= 100 000, never the benchm
    noise (centre ``pos_std``, yaw ``yaw_std``, size 3 %). The noise levels are drawn per scene
    (``NOISE_RANGES``) so the model sees clean and noisy perception alike. Occlusion is not
    modelled (the misses stand in for it).
-2. **The real tracker** (:class:`~.tracker.MultiObjectTracker`, default config, ego speed as the
-   prior speed like :class:`~.modular.ModularStack`) runs on them frame by frame, so histories,
+2. **The real tracker** (:class:`~adv3d_runner.autonomy.tracker.MultiObjectTracker`, default
+   config, ego speed as the prior speed like :class:`~adv3d_runner.autonomy.modular.ModularStack`) runs on them frame by frame, so histories,
    Kalman velocities, young tracks and coasting tracks look exactly as at run time.
 3. Every ``FRAME_STRIDE``-th frame, each confirmed track is matched to a ground-truth actor
    (Hungarian on centre distance, ``metrics.prediction.match_to_ground_truth``, <= 3 m) and
    becomes a sample if that actor has at least ``MIN_FUTURE`` valid future frames: features
-   and lane-following prior (:func:`~.predictor.encode`, computed with all tracks of the
+   and lane-following prior (:func:`~adv3d_runner.autonomy.predictor.encode` on the scene's
+   :class:`~adv3d_runner.scene.lanemap.LaneMap`, computed with all tracks of the
    frame, as at run time), and the actor's true future (60 steps, agent frame,
    with validity; actors leave the scene at 100 m from the ego or at the recording's end).
-4. Both baselines (:class:`~.baselines.ConstantVelocityPredictor`,
-   :class:`~.baselines.LaneFollowingPredictor`) predict the same tracks in the map frame; their
+4. Both baselines (:class:`~adv3d_runner.autonomy.baselines.ConstantVelocityPredictor`,
+   :class:`~adv3d_runner.autonomy.baselines.LaneFollowingPredictor`) predict the same tracks in the map frame; their
    per-sample ADE/FDE are stored so reports compare all models on identical samples.
 
 Everything is deterministic for a scene seed (``SeedSequence([DATA_TAG, seed])``). Each scene's
@@ -35,10 +36,11 @@ from typing import Sequence
 
 import numpy as np
 
+from ..autonomy.interface import PREDICTION_STEPS, Detections
+from ..autonomy.predictor import HISTORY, LANE_OFFSETS, NEIGHBOURS, NUM_FEATURES, OFF_LANE, encode
 from ..fileio import atomic_path
 from ..metrics.prediction import displacement_errors, match_to_ground_truth
-from .interface import PREDICTION_STEPS, Detections
-from .predictor import HISTORY, LANE_OFFSETS, NEIGHBOURS, NUM_FEATURES, OFF_LANE, LaneIndex, encode
+from ..scene.lanemap import LaneMap
 
 DATA_VERSION = 1
 DATA_TAG = 0x9D1C7               # SeedSequence namespace of the perception noise
@@ -99,9 +101,9 @@ def scene_samples(seed: int, scene=None) -> dict[str, np.ndarray]:
         float32 agent frame, future_valid (M, 60), boxes (M, 5) map frame, frame (M,), seed
         (M,), ``<baseline>_metrics`` (M, 6).
     """
+    from ..autonomy.baselines import ConstantVelocityPredictor, LaneFollowingPredictor
+    from ..autonomy.tracker import MultiObjectTracker
     from ..scene.generate import generate_scene
-    from .baselines import ConstantVelocityPredictor, LaneFollowingPredictor
-    from .tracker import MultiObjectTracker
 
     if scene is None:
         scene = generate_scene(int(seed), "train")
@@ -112,10 +114,11 @@ def scene_samples(seed: int, scene=None) -> dict[str, np.ndarray]:
     ego = scene.ego_poses()
     ego_v = scene.ego_speeds()
     F, T = scene.frames, PREDICTION_STEPS
-    lanes = scene.lanes
-    index = LaneIndex(lanes)
+    lane_map = LaneMap.from_scene(scene)
     tracker = MultiObjectTracker()
     cv, lf = ConstantVelocityPredictor(), LaneFollowingPredictor()
+    cv.reset(lane_map)
+    lf.reset(lane_map)
     # future positions per actor and frame, padded with NaN past the recording
     pad = np.concatenate([poses[..., :2], np.full((len(poses), T, 2), np.nan)], axis=1)
     vpad = np.concatenate([valid, np.zeros((len(poses), T), bool)], axis=1)
@@ -147,7 +150,7 @@ def scene_samples(seed: int, scene=None) -> dict[str, np.ndarray]:
         rows, fut, fval = rows[enough], fut[enough], fval[enough]
         if len(rows) == 0:
             continue
-        feats, prior = encode(tracks, lanes, index)
+        feats, prior = encode(tracks, lane_map)
         feats, prior = feats[rows], prior[rows]
         boxes = tracks.boxes[rows]
         c, s = np.cos(boxes[:, 4]), np.sin(boxes[:, 4])
@@ -159,7 +162,7 @@ def scene_samples(seed: int, scene=None) -> dict[str, np.ndarray]:
                  "future_valid": fval, "boxes": boxes, "frame": np.full(len(rows), f, np.int32),
                  "seed": np.full(len(rows), int(seed), np.int64)}
         for name, model in zip(BASELINES, (cv, lf)):
-            p = model.predict(tracks, lanes)
+            p = model.predict(tracks)
             chunk[f"{name}_metrics"] = per_sample_metrics(p.trajectories[rows], p.probabilities[rows],
                                                           np.nan_to_num(fut), fval)
         chunks.append(chunk)
@@ -180,7 +183,7 @@ def tracked_evaluation_frames(scene, rng: np.random.Generator, *, frames: range,
     each visible actor is missed with probability ``miss`` (no draw when 0, so streams stay
     comparable).
     """
-    from .tracker import MultiObjectTracker
+    from ..autonomy.tracker import MultiObjectTracker
 
     poses, valid = scene.all_actor_poses()
     dims = scene.actor_dimensions()

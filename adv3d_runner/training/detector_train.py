@@ -21,11 +21,11 @@ from typing import Callable
 import numpy as np
 import torch
 
+from ..autonomy.detector import BevDetector, DetectorConfig, PixorNet, encode_targets, voxelize
+from ..autonomy.interface import Detections
 from ..geometry.boxes import iou_pairwise
 from ..metrics.detection import ROI_AHEAD, average_precision
-from .detector import BevDetector, DetectorConfig, PixorNet, encode_targets, voxelize
 from .detector_data import DEFAULT_MIN_POINTS, FrameSet, split_gt
-from .interface import Detections
 
 ROI_LATERAL = 20.0
 IGNORE_IOU = 0.3

@@ -1,21 +1,19 @@
-"""``adv3d train predictor``: make data from training-split scenes, train the learned predictor,
-evaluate it against the baselines on held-out training-split scenes, and write the model and
-its report.
+"""Training of the learned predictor (``adv3d train predictor``, parsed in :mod:`.cli`): make
+data from training-split scenes (:mod:`.predictor_data`), train
+:class:`~adv3d_runner.autonomy.predictor.PredictorNet`, evaluate it against the baselines on
+held-out training-split scenes, and write the model and its report.
 
 Seeds: training scenes ``seed .. seed + scenes - 1`` (``--seed`` >= 100 000, the generator's
 training split); held-out scenes ``seed + HELD_OUT_OFFSET ..`` (same split, disjoint seeds).
 The benchmark scenes (``scenes/highway/``) are never used.
 
 Outputs in ``--out`` (default ``assets/models/predictor``): ``weights.pt`` + ``config.json``
-(:func:`~.predictor.load_predictor`), ``training_report.json`` (loss curves, held-out metrics of
+(:func:`~adv3d_runner.autonomy.predictor.load_predictor`), ``training_report.json`` (loss curves, held-out metrics of
 the model and both baselines, times, the exact command) and ``loss_curves.png``.
 """
 from __future__ import annotations
 
-import argparse
 import platform
-import shlex
-import sys
 import time
 from pathlib import Path
 
@@ -24,51 +22,6 @@ import numpy as np
 HELD_OUT_OFFSET = 500_000_000
 REPORT_FORMAT = "adv3d-predictor-training-report"
 REPORT_VERSION = 1
-
-
-def add_train_predictor(train_subparsers) -> None:
-    """Add ``predictor`` to the ``adv3d train`` subcommand group."""
-    from .predictor import DEFAULT_MODEL_DIR
-
-    p = train_subparsers.add_parser(
-        "predictor", help="train the learned multi-modal trajectory predictor",
-        description="Generate training-split scenes, run noisy detections through the tracker, train the "
-                    "predictor (winner-takes-all over K modes) and report held-out minADE against the "
-                    "constant-velocity and lane-following baselines.")
-    p.add_argument("--scenes", type=int, default=None, help="training scenes (default 240; 8 with --quick)")
-    p.add_argument("--val-scenes", type=int, default=None, help="held-out scenes (default 40; 3 with --quick)")
-    p.add_argument("--epochs", type=int, default=None, help="epochs (default 20; 2 with --quick)")
-    p.add_argument("--seed", type=int, default=100_000, help="first training scene seed (>= 100000) and torch seed")
-    p.add_argument("--modes", type=int, default=6, help="number of modes K (>= 3)")
-    p.add_argument("--batch", type=int, default=512)
-    p.add_argument("--lr", type=float, default=2e-3)
-    p.add_argument("--threads", type=int, default=1,
-                   help="torch threads for training (1: on a shared 2-core machine 2 threads were 70x slower)")
-    p.add_argument("--time-limit", type=float, default=40.0,
-                   help="minutes: stop after the epoch that passes this (data included)")
-    p.add_argument("--cache", default=None, help="data cache root (default $ADV3D_CACHE or ~/.cache/adv3d)")
-    p.add_argument("--no-cache", action="store_true", help="do not read or write the sample cache")
-    p.add_argument("--out", default=str(DEFAULT_MODEL_DIR), help="output folder")
-    p.add_argument("--quick", action="store_true", help="tiny run for smoke tests (few scenes, 2 epochs)")
-    p.set_defaults(func=_handler)
-
-
-def _handler(args: argparse.Namespace) -> int:
-    from ..errors import ConfigError
-
-    scenes = args.scenes if args.scenes is not None else (8 if args.quick else 240)
-    val = args.val_scenes if args.val_scenes is not None else (3 if args.quick else 40)
-    epochs = args.epochs if args.epochs is not None else (2 if args.quick else 20)
-    if scenes < 1 or val < 1 or epochs < 1:
-        raise ConfigError("--scenes, --val-scenes and --epochs must be >= 1")
-    if args.modes < 3:
-        raise ConfigError("--modes must be >= 3 (the issue asks for a multi-modal predictor)")
-    command = ("adv3d " + " ".join(shlex.quote(a) for a in sys.argv[1:])) if sys.argv and "adv3d" in sys.argv[0] \
-        else ""  # called in-process (tests): train_predictor spells out the arguments
-    train_predictor(scenes=scenes, val_scenes=val, epochs=epochs, seed=args.seed, modes=args.modes,
-                    batch=args.batch, lr=args.lr, threads=args.threads, cache=args.cache,
-                    use_cache=not args.no_cache, out=args.out, command=command, time_limit_min=args.time_limit)
-    return 0
 
 
 def _wta_losses(torch, traj, logits, fut, fval):
@@ -98,7 +51,7 @@ def train_predictor(scenes: int = 240, val_scenes: int = 40, epochs: int = 20, s
     from ..fileio import write_json
     from ..progress import progress, status
     from ..scene.generate import check_split
-    from .predictor import (DEFAULT_MODEL_DIR, NUM_FEATURES, PredictorConfig, _HIST_F, _AGENT_F, _LANE_F,
+    from ..autonomy.predictor import (DEFAULT_MODEL_DIR, NUM_FEATURES, PredictorConfig, _HIST_F, _AGENT_F, _LANE_F,
                             build_net, save_predictor)
     from .predictor_data import BASELINES, METRIC_COLUMNS, build_dataset, data_key, per_sample_metrics
 

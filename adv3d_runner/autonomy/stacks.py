@@ -8,22 +8,19 @@
 * ``make_stack("A-lanefollow")``: the learned detector with the lane-following predictor
   baseline (to tell detector problems from predictor problems).
 * ``make_stack("oracle")``: the same tracker and planner, but the detector is
-  :class:`OracleDetector` (the ground-truth boxes of the actors the LiDAR actually hit) and the
-  predictor is :class:`~adv3d_runner.autonomy.baselines.LaneFollowingPredictor`. Needs no
-  torch and no weights; used by tests, benchmarks and when the models are not trained yet.
-
-The oracle needs the ground truth of the frame, which a detector never sees through
-``detect(points)``. The episode loop therefore calls ``detector.observe(boxes_ego, n_points)``
-before each ``stack.step`` on any detector that has an ``observe`` method.
+  :class:`~.oracle.OracleDetector` (the ground-truth boxes of the actors the LiDAR actually hit)
+  and the predictor is :class:`~.baselines.LaneFollowingPredictor`. Needs no torch and no
+  weights; used by tests, benchmarks and when the models are not trained yet. It gets the
+  frame's ground truth through ``AutonomyStack.observe_ground_truth``, which the episode loop
+  calls on every stack before each ``step`` (:class:`~.modular.ModularStack` forwards it to a
+  detector that takes it).
 """
 from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
-
-from ..autonomy.interface import Detections
 from ..errors import ConfigError
+from .oracle import OracleDetector
 
 AUTONOMY_CHOICES = ("A", "oracle", "A-lanefollow")
 
@@ -32,41 +29,6 @@ AUTONOMY_CHOICES = ("A", "oracle", "A-lanefollow")
 #: false positives became tracks in the ego's lane and the planner braked for them
 #: (bench/sanity.py, docs/episode.md); the gate keeps that from coming back.
 TRACK_MIN_SCORE = 0.5
-
-
-class OracleDetector:
-    """Ground-truth boxes of the actors hit by at least ``min_points`` LiDAR returns.
-
-    Scores grow with the number of returns (0.5 at ``min_points``, 1.0 from 50 returns), so a
-    shape that reflects fewer rays gets a lower confidence, as it would from a real detector.
-
-    Args:
-        min_points: returns an actor needs to be detected.
-        max_range: m, actors whose centre is farther from the ego are not detected.
-    """
-
-    def __init__(self, min_points: int = 5, max_range: float = 100.0):
-        self.min_points = int(min_points)
-        self.max_range = float(max_range)
-        self._boxes = np.zeros((0, 5))
-        self._counts = np.zeros(0, np.int64)
-
-    def observe(self, boxes_ego: np.ndarray, n_points: np.ndarray) -> None:
-        """Ground truth of the coming frame: (N, 5) boxes in the ego frame (NaN rows for absent
-        actors) and (N,) returns per actor."""
-        self._boxes = np.asarray(boxes_ego, dtype=np.float64).reshape(-1, 5)
-        self._counts = np.asarray(n_points, dtype=np.int64).reshape(-1)
-
-    def detect(self, points: np.ndarray) -> Detections:
-        """Boxes in the ego frame; nothing when the frame has no points."""
-        if len(points) == 0 or len(self._boxes) == 0:
-            return Detections()
-        b = self._boxes
-        ok = np.isfinite(b).all(axis=1) & (self._counts >= self.min_points)
-        ok &= np.hypot(np.nan_to_num(b[:, 0], nan=np.inf), np.nan_to_num(b[:, 1], nan=np.inf)) <= self.max_range
-        n = self._counts[ok].astype(np.float64)
-        scores = np.clip(0.5 + 0.5 * (n - self.min_points) / max(50.0 - self.min_points, 1.0), 0.5, 1.0)
-        return Detections(b[ok], scores)
 
 
 def make_stack(autonomy: str = "A", *, detector_options: dict | None = None,
@@ -83,20 +45,20 @@ def make_stack(autonomy: str = "A", *, detector_options: dict | None = None,
     Raises:
         ConfigError: unknown name, or Autonomy-A's models or weights are not available.
     """
-    from ..autonomy.modular import ModularStack
+    from .modular import ModularStack
 
     if autonomy == "oracle":
-        from ..autonomy.baselines import LaneFollowingPredictor
+        from .baselines import LaneFollowingPredictor
 
         return ModularStack(OracleDetector(), LaneFollowingPredictor())
     if autonomy not in ("A", "A-lanefollow"):
         raise ConfigError(f"unknown autonomy {autonomy!r}; choose one of {', '.join(AUTONOMY_CHOICES)}")
-    from ..autonomy.tracker import MultiObjectTracker, TrackerConfig
+    from .tracker import MultiObjectTracker, TrackerConfig
 
     detector = _load("detector", "load_detector", detector_options or {})
     tracker = MultiObjectTracker(TrackerConfig(min_score=float(track_min_score)))
     if autonomy == "A-lanefollow":
-        from ..autonomy.baselines import LaneFollowingPredictor
+        from .baselines import LaneFollowingPredictor
 
         return ModularStack(detector, LaneFollowingPredictor(), tracker=tracker)
     predictor = _load("predictor", "load_predictor", {})

@@ -1,6 +1,8 @@
-"""Lane corridors for the planner: the ego's current lane and its left/right neighbours, each
-chained through successors and resampled uniformly, stacked into padded arrays so candidate
-paths on different lanes are handled in one vectorised pass.
+"""Lane corridors: a lane chained through its successors and resampled uniformly, and several
+corridors stacked into padded arrays so candidate paths on different lanes are handled in one
+vectorised pass. The planner builds the ego's current / left / right corridors every frame; the
+lane-following baseline reads one whole-lane corridor per lane (kept by
+:class:`~adv3d_runner.scene.lanemap.LaneMap`, which owns every lane structure of a scene).
 
 Lane input is the scene's lane type (:class:`adv3d_runner.scene.schema.Lane`) or anything with
 the same attributes: ``id``, ``centerline`` (P, 2) m in driving direction, ``width`` (P,) or
@@ -20,8 +22,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from ...geometry.angles import wrap_angle
-from ...scene import lanes as lanegeo
+from . import lanes as lanegeo
 
 DEFAULT_SPEED_LIMIT = 29.0  # m/s (~65 mph, US highway) when a lane has none
 
@@ -70,17 +71,10 @@ class LaneGeometry:
         return np.interp(np.clip(s, 0.0, self.length), self.cum, self.width)
 
 
-_GEOMETRY_CACHE: dict[int, tuple[Any, np.ndarray, LaneGeometry]] = {}
-_GEOMETRY_CACHE_MAX = 4096
-
-
 def lane_geometry(lane: Any) -> LaneGeometry:
-    """The :class:`LaneGeometry` of a lane object, cached by identity (and checked against its
-    current centre line, so a lane edited in place is re-prepared)."""
+    """The :class:`LaneGeometry` of a lane object (a :class:`~.lanemap.LaneMap` prepares every
+    lane of a scene once)."""
     raw = np.asarray(lane.centerline, dtype=np.float64).reshape(-1, 2)
-    hit = _GEOMETRY_CACHE.get(id(lane))
-    if hit is not None and hit[0] is lane and hit[1].shape == raw.shape and np.array_equal(hit[1], raw):
-        return hit[2]
     pts = lanegeo.clean_polyline(raw)
     width = _lane_width(lane)
     keep = np.concatenate([[True], np.linalg.norm(np.diff(raw, axis=0), axis=1) > lanegeo.EPS])
@@ -93,9 +87,6 @@ def lane_geometry(lane: Any) -> LaneGeometry:
         seg = np.hypot(d[:, 0], d[:, 1])
         cum = lanegeo.arc_length(pts)
         geo = LaneGeometry(pts, cum, d / seg[:, None], seg, width, pts.min(axis=0), pts.max(axis=0), float(cum[-1]))
-    if len(_GEOMETRY_CACHE) >= _GEOMETRY_CACHE_MAX:
-        _GEOMETRY_CACHE.clear()
-    _GEOMETRY_CACHE[id(lane)] = (lane, raw.copy(), geo)
     return geo
 
 
@@ -139,58 +130,6 @@ def _lane_width(lane: Any) -> np.ndarray:
     w = np.asarray(lane.width, dtype=np.float64).reshape(-1)
     n = len(np.asarray(lane.centerline).reshape(-1, 2))
     return np.full(n, float(w[0])) if w.size == 1 else w
-
-
-def locate(lanes: Sequence[Any], pose: np.ndarray, max_heading_error: float = np.pi / 2) -> tuple[int | None, float, float]:
-    """The lane the pose is on: the lane whose strip contains the point with the smallest |d|,
-    among lanes heading within ``max_heading_error`` of the pose; if no strip contains it, the
-    nearest such lane by |d| (plus the distance past the lane's ends). Returns (lane id, or None
-    if no lane has a compatible heading, s, d)."""
-    ids, s, d = locate_many(lanes, np.asarray(pose, dtype=np.float64).reshape(1, 3), max_heading_error)
-    if ids[0] < 0:
-        return None, 0.0, 0.0
-    return int(ids[0]), float(s[0]), float(d[0])
-
-
-def locate_many(lanes: Sequence[Any], poses: np.ndarray, max_heading_error: float = np.pi / 2,
-                max_gap: float = 50.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`locate` for many poses (N, 3) at once (one projection call per lane).
-
-    Lanes whose bounding box is more than ``max_gap`` m further from a pose than the nearest
-    lane's box are not considered for it (they cannot be the lane it is on).
-    Returns:
-        lane ids (N,) int64 (-1: none), s (N,), d (N,).
-    """
-    P = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
-    n = len(P)
-    best_key = np.full((n, 2), np.inf)
-    out_id = np.full(n, -1, np.int64)
-    out_s = np.zeros(n)
-    out_d = np.zeros(n)
-    if n == 0 or not len(lanes):
-        return out_id, out_s, out_d
-    geos = [lane_geometry(lane) for lane in lanes]
-    gaps = np.stack([np.hypot(np.maximum(np.maximum(g.lo[0] - P[:, 0], P[:, 0] - g.hi[0]), 0.0),
-                              np.maximum(np.maximum(g.lo[1] - P[:, 1], P[:, 1] - g.hi[1]), 0.0)) for g in geos])
-    nearest = gaps.min(axis=0)
-    for lane, geo, gap in zip(lanes, geos, gaps):
-        use = np.flatnonzero(gap <= nearest + max_gap)
-        if len(use) == 0:
-            continue
-        s, d, h = geo.project(P[use, :2])
-        herr = np.abs(wrap_angle(P[use, 2] - h))
-        half = 0.5 * geo.width_at(s)
-        beyond = np.maximum(np.maximum(-s, s - geo.length), 0.0)  # distance past the lane's ends
-        inside = (np.abs(d) <= half) & (beyond == 0.0)
-        key = np.stack([np.where(inside, 0.0, 1.0), np.abs(d) + beyond], axis=1)
-        key[herr > max_heading_error] = np.inf
-        better = (key[:, 0] < best_key[use, 0]) | ((key[:, 0] == best_key[use, 0]) & (key[:, 1] < best_key[use, 1]))
-        rows = use[better]
-        best_key[rows] = key[better]
-        out_id[rows] = int(lane.id)
-        out_s[rows] = s[better]
-        out_d[rows] = d[better]
-    return out_id, out_s, out_d
 
 
 def _chain(by_id: dict[int, Any], start: int, need: float) -> tuple[list[int], bool]:
