@@ -238,12 +238,16 @@ def _kdtree(points: np.ndarray):
 def _nn_distances(a: np.ndarray, b: np.ndarray, tree_b=None) -> np.ndarray:
     """(len(a),) distance from each point of ``a`` to its nearest point of ``b``, metres.
 
-    ``tree_b``: a prebuilt ``_kdtree(b)``; without scipy a brute force in blocks (~30 ms for
-    1000 x 1000 points).
+    ``tree_b``: a prebuilt ``_kdtree(b)``; without scipy, ``_nn_distances_numpy``.
     """
     tree_b = tree_b if tree_b is not None else _kdtree(b)
-    if tree_b is not None:
-        return tree_b.query(a)[0]
+    if tree_b is None:
+        return _nn_distances_numpy(a, b)
+    return tree_b.query(a)[0]
+
+
+def _nn_distances_numpy(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """numpy-only ``_nn_distances`` (Blender): brute force in blocks, ~30 ms for 1000 x 1000."""
     out = np.empty(len(a))
     bb = (b * b).sum(axis=1)
     for s in range(0, len(a), 256):
@@ -405,19 +409,8 @@ def _kept_inside(field: np.ndarray) -> np.ndarray:
     inside = field < 0
     try:
         from scipy.ndimage import label
-    except ImportError:  # Blender: graph components of face-adjacent inside nodes
-        idx = np.full(field.shape, -1, dtype=np.int64)
-        idx[inside] = np.arange(int(inside.sum()))
-        pairs = []
-        for ax in range(3):
-            lo = [slice(None)] * 3
-            hi = [slice(None)] * 3
-            lo[ax], hi[ax] = slice(0, -1), slice(1, None)
-            both = inside[tuple(lo)] & inside[tuple(hi)]
-            pairs.append(np.stack([idx[tuple(lo)][both], idx[tuple(hi)][both]], axis=1))
-        n, lab = connected_vertex_parts(int(inside.sum()), np.concatenate(pairs))
-        labels = np.zeros(field.shape, dtype=np.int64)
-        labels[inside] = lab + 1
+    except ImportError:
+        labels, n = _label_numpy(inside)
     else:
         labels, n = label(inside)
     size = np.bincount(labels.ravel(), minlength=n + 1)
@@ -425,6 +418,23 @@ def _kept_inside(field: np.ndarray) -> np.ndarray:
     keep = size >= MIN_PART_FRACTION * size.max()
     keep[0] = False
     return keep[labels]
+
+
+def _label_numpy(inside: np.ndarray) -> tuple[np.ndarray, int]:
+    """numpy-only ``scipy.ndimage.label`` (face adjacency; labels 1..n, 0 outside) for Blender."""
+    idx = np.full(inside.shape, -1, dtype=np.int64)
+    idx[inside] = np.arange(int(inside.sum()))
+    pairs = []
+    for ax in range(3):
+        lo = [slice(None)] * 3
+        hi = [slice(None)] * 3
+        lo[ax], hi[ax] = slice(0, -1), slice(1, None)
+        both = inside[tuple(lo)] & inside[tuple(hi)]
+        pairs.append(np.stack([idx[tuple(lo)][both], idx[tuple(hi)][both]], axis=1))
+    n, lab = connected_vertex_parts(int(inside.sum()), np.concatenate(pairs))
+    labels = np.zeros(inside.shape, dtype=np.int64)
+    labels[inside] = lab + 1
+    return labels, int(n)
 
 
 def wall_thickness(field: np.ndarray, grid: GridSpec, scales: Sequence[float] = (1.0, 1.0),
