@@ -1,4 +1,5 @@
-"""``adv3d shapes build | decode | info``: build, sample and inspect the PCA shape space."""
+"""``adv3d shapes build | decode | info | realism | realism-reference``: build, sample and inspect the
+PCA shape space, and measure how realistic a shape is (docs/realism.md)."""
 from __future__ import annotations
 
 import argparse
@@ -29,6 +30,23 @@ def register(subparsers) -> None:
     i = sub.add_parser("info", help="print a shape space's grid, components, latent bounds and assets")
     i.add_argument("--space", type=Path, default=None, help="shape space .npz (default: the bundled one)")
     i.set_defaults(func=_info)
+
+    r = sub.add_parser("realism", help="realism figures of a shape: JSD, nearest vehicle, Mahalanobis, "
+                                       "artefacts, dimensions (docs/realism.md)")
+    r.add_argument("--u", required=True, help="comma-separated unit vector, as for decode")
+    r.add_argument("--class", dest="vehicle_class", default=None,
+                   help="vehicle class for the dimension check (default: the nearest library model's)")
+    r.add_argument("--space", type=Path, default=None, help="shape space .npz (default: the bundled one)")
+    r.add_argument("--json", action="store_true", help="print the report as JSON")
+    r.set_defaults(func=_realism)
+
+    rr = sub.add_parser("realism-reference",
+                        help="recompute the realism reference (BEV histogram of the CAD models, leave-one-out figures)")
+    rr.add_argument("--library", type=Path, default=None, help="library.json (default: the bundled library)")
+    rr.add_argument("--space", type=Path, default=None, help="shape space .npz (default: the bundled one)")
+    rr.add_argument("--out", type=Path, default=None,
+                    help="output .npz (default assets/shape_space/realism_reference.npz)")
+    rr.set_defaults(func=_realism_reference)
 
     p.set_defaults(func=lambda args: (p.print_help(), 2)[1])
 
@@ -90,6 +108,80 @@ def _decode(args: argparse.Namespace) -> int:
     status(f"decoded z={[round(float(x), 4) for x in z]} width/length scale={[round(float(x), 3) for x in scales]}: "
            f"{len(mesh.vertices)} vertices, {len(mesh.faces)} faces, {ext[0]:.2f} x {ext[1]:.2f} x {ext[2]:.2f} m "
            f"(nearest library asset {space.nearest_asset(u)}) -> {args.out}")
+    return 0
+
+
+def _parse_unit(text: str) -> list[float]:
+    from ..errors import ConfigError
+
+    try:
+        return [float(x) for x in text.split(",") if x.strip() != ""]
+    except ValueError:
+        raise ConfigError(f"--u must be comma-separated numbers, got {text!r}") from None
+
+
+def _realism(args: argparse.Namespace) -> int:
+    import json
+    import time
+
+    from .realism import DIMENSION_RANGES, default_reference, realism_report
+
+    from ..errors import ConfigError
+
+    if args.vehicle_class is not None and args.vehicle_class not in DIMENSION_RANGES:
+        raise ConfigError(f"--class must be one of {', '.join(DIMENSION_RANGES)}, got {args.vehicle_class!r}")
+    space = _load_space(args.space)
+    u = _parse_unit(args.u)
+    space.check_unit(u)
+    ref = default_reference(space)
+    t0 = time.perf_counter()
+    rep = realism_report(space, u, ref, vehicle_class=args.vehicle_class)
+    dt = time.perf_counter() - t0
+    if args.json:
+        print(json.dumps(rep, indent=1))
+        return 0
+    lim = rep["limits"]
+    flag = {k: ("  <- unrealistic" if k in rep["flags"] else "") for k in lim}
+    dims = rep["dimensions_m"]
+    lines = [
+        f"shape        u={[round(x, 4) for x in u]}  {dims[0]:.2f} x {dims[1]:.2f} x {dims[2]:.2f} m",
+        f"JSD          {rep['jsd']:.3f} (library leave-one-out max {lim['jsd']:.3f}){flag['jsd']}",
+        f"nearest      {rep['nearest_asset']} at {rep['nearest_chamfer_m']:.3f} m Chamfer "
+        f"(library max {lim['nearest_chamfer_m']:.3f}){flag['nearest_chamfer_m']}; "
+        f"nearest latent {rep['nearest_latent_asset']} at {rep['nearest_latent_distance']:.3f}",
+        f"Mahalanobis  {rep['mahalanobis']:.2f} (library leave-one-out max {lim['mahalanobis']:.2f}){flag['mahalanobis']}",
+        f"parts        {rep['parts_before_cleanup']} before clean-up ({rep['floating_parts']} floating, "
+        f"{rep['cavities']} cavities), {rep['parts_after_cleanup']} after; clean-up drops "
+        f"{rep['dropped_volume_fraction'] * 100:.3f} % of the volume; floating "
+        f"{rep['floating_volume_fraction'] * 100:.3f} %{flag['floating_volume_fraction']}",
+        f"genus        {rep['genus']} (robust {rep['genus_robust']}){flag['genus_robust']}",
+        f"thinnest     {rep['thinnest_wall_m']:.3f} m wall ({rep['thin_wall_fraction'] * 100:.1f} % of the surface "
+        f"thinner than {lim['thinnest_wall_m']:.3f} m){flag['thinnest_wall_m']}",
+        f"dimensions   class {rep['dimension_class']}: excess L/W/H "
+        + "/".join(f"{x * 100:.0f} %" for x in rep["dimension_excess"])
+        + f"; plausible as {', '.join(rep['plausible_classes']) or 'no class'}{flag['dimension_excess']}",
+        f"verdict      {'realistic' if rep['realistic'] else 'unrealistic: ' + ', '.join(rep['flags'])}"
+        f"  ({dt * 1000:.0f} ms)",
+    ]
+    print("\n".join(lines))
+    return 0
+
+
+def _realism_reference(args: argparse.Namespace) -> int:
+    import time
+
+    from ..progress import is_quiet, status
+    from .library import DEFAULT_LIBRARY, load_library
+    from .realism import DEFAULT_REFERENCE, build_reference
+
+    space = _load_space(args.space)
+    library = load_library(args.library or DEFAULT_LIBRARY)
+    t0 = time.perf_counter()
+    ref = build_reference(library, space, progress=not is_quiet())
+    out = ref.save(args.out or DEFAULT_REFERENCE)
+    status(f"realism reference over {len(ref.asset_ids)} CAD models in {time.perf_counter() - t0:.1f} s -> {out}; "
+           f"leave-one-out JSD {ref.jsd_loo.min():.3f}-{ref.jsd_loo.max():.3f}, "
+           f"Chamfer max {ref.chamfer_limit_m:.3f} m, Mahalanobis max {ref.mahalanobis_limit:.2f}")
     return 0
 
 

@@ -1,0 +1,855 @@
+"""How realistic a decoded vehicle shape is (issue 14): the paper's JSD and six other measures.
+
+Every measure is a flat function on arrays; ``realism_report`` gathers them for one shape of
+the shape space as a plain JSON-able dict (what an attack journal carries). Definitions,
+choices and the figures of the library itself are in docs/realism.md.
+
+Measures
+--------
+``jsd``
+    The paper's realism score (appendix, "Realism Evaluation for Generated Shapes"): 1000
+    points sampled uniformly on the shape's surface, their bird's-eye-view 2-D histogram at
+    100 x 100, against the histogram of all CAD models of the asset set (the library's
+    shape-space vehicles). The value is what the cited code (LiDARGen, Zyrianov et al. 2022,
+    ``metrics/histogram/jsd.py``) reports as JSD: ``scipy.spatial.distance.jensenshannon`` of
+    the two normalised histograms, i.e. the square root of the Jensen-Shannon divergence in
+    nats, in [0, sqrt(ln 2) = 0.833]. Normalisation: metric, not unit size (see ``bev_histogram``).
+nearest library vehicle
+    Symmetric Chamfer distance in metres (mean of the two directed mean nearest-neighbour
+    distances) between the shape's surface sample and each library CAD model's; the nearest
+    model and its distance. Also the Euclidean latent distance to the nearest library latent.
+latent Mahalanobis distance
+    Of the latent ``z`` against the library latents, with a shrunk covariance.
+artefacts
+    Closed parts of the raw marching-cubes surface (before the decoder's clean-up), floating
+    parts and the share of volume the clean-up drops; the genus of the cleaned closed surface
+    (Euler characteristic) and a noise-robust genus; the thinnest wall (inward ray thickness).
+dimensions
+    Bounding-box (L, W, H) against real ranges per vehicle class (``DIMENSION_RANGES``, cited).
+
+"Realistic" limits: JSD, Chamfer and Mahalanobis are compared with the library's own
+leave-one-out maximum (stored in the reference file), the artefact measures with fixed rules
+tied to the grid (``FLOATING_VOLUME_TOL``, robust genus 0, ``thinnest_wall_m`` >= one voxel),
+the dimensions with the cited table.
+
+Reference file (``assets/shape_space/realism_reference.npz``, rebuilt by
+``adv3d shapes realism-reference``): the reference histogram, the per-model Chamfer samples
+and the leave-one-out figures, written deterministically (fixed member order and zip
+timestamps; no pickle) and tied to the shape space by its content hash.
+
+This module needs numpy and scikit-image only (scipy speeds up nearest neighbours and
+labelling when present), like decoding, so the Blender add-on can call it.
+"""
+from __future__ import annotations
+
+import io
+import json
+import zipfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from ..errors import ConfigError, FileFormatError
+from ..fileio import REPO_ROOT, atomic_write_bytes
+from .decode import MIN_PART_FRACTION, connected_vertex_parts, extract_surface
+from .sdf import GridSpec
+
+# ----------------------------------------------------------------------------- constants
+
+#: Points sampled on a shape's surface for the JSD (the paper: 1000).
+N_POINTS = 1000
+#: Bins per axis of the bird's-eye-view histogram (the paper: 100 x 100).
+BEV_BINS = 100
+#: Edge of the square BEV window in metres, centred on the footprint centre. Decoded shapes
+#: never exceed 1.3 x the 6.05 m grid cube = 7.9 m, so 8 m covers every shape the space can
+#: produce; bins are 8 cm.
+BEV_WINDOW_M = 8.0
+#: Surface points per CAD model in the reference histogram. Each model weighs the same; 10x the
+#: query's sample so the reference is smooth and the JSD noise comes from the query alone.
+REFERENCE_POINTS_PER_MODEL = 10_000
+#: Points per model kept for the Chamfer distance (the first ones of the reference sample).
+CHAMFER_POINTS = 1000
+#: Seed of the reference samples (model i draws from ``default_rng([REFERENCE_SEED, i])``).
+REFERENCE_SEED = 20231
+#: Shrinkage of the latent covariance toward (trace / K) * I: keeps it invertible with K=3
+#: latents over ~18 assets or rank-deficient spaces, and tempers sampling noise.
+COVARIANCE_SHRINKAGE = 0.1
+#: Floating parts (closed parts other than the largest, before clean-up) holding more than
+#: this share of the volume count as an artefact. PCA crumbs hold ~0.03 %; a visible loose
+#: piece (a 0.3 m cube beside a car) holds ~0.3 %.
+FLOATING_VOLUME_TOL = 1e-3
+#: Level offset, in voxels, of the two extra surfaces the robust genus looks at: a tunnel or a
+#: handle thinner than this appears at one level only (marching-cubes pinches at grid scale).
+GENUS_OFFSET_VOXELS = 0.5
+#: Wall thickness statistic: the percentile of the inward-ray thickness over surface samples
+#: ("the thinnest wall covering at least 2 % of the surface"); the minimum itself is set by
+#: grazing rays at sharp edges and is always about one ray step.
+WALL_PERCENTILE = 2.0
+#: Surface samples for the wall thickness, ray step and longest ray (metres). Walls thicker
+#: than the longest ray are reported at that length (only thin walls matter here).
+WALL_SAMPLES = 1000
+WALL_STEP_M = 0.02
+WALL_MAX_M = 1.5
+
+DEFAULT_REFERENCE: Path = REPO_ROOT / "assets" / "shape_space" / "realism_reference.npz"
+REFERENCE_FORMAT = "adv3d.realism_reference"
+REFERENCE_VERSION = 1
+_ZIP_DATE = (1980, 1, 1, 0, 0, 0)
+_MEMBERS = ("meta", "histogram", "points", "asset_ids")
+
+# ----------------------------------------------------------------------------- real dimensions
+
+#: Real (length, width, height) ranges in metres per vehicle class, each (low, high). Widths
+#: are body widths without mirrors. Sources (docs/realism.md has the full table):
+#:
+#: * legal limits: EU Council Directive 96/53/EC, Annex I (width 2.55 m, 2.60 m for
+#:   conditioned bodies; height 4.00 m; rigid motor vehicle 12.00 m; bus 13.5 m with two
+#:   axles, 15 m with more, articulated 18.75 m); US 23 CFR 658.15 (width 102 in = 2.59 m);
+#:   Japanese kei car category (3.40 x 1.48 x 2.00 m), the smallest highway-legal cars;
+#: * smallest and largest production examples per class, from the manufacturers' published
+#:   dimensions (named in docs/realism.md, e.g. Smart Fortwo 2.69 m long, Lotus Elise 1.12 m
+#:   high, Chevrolet Suburban 5.73 x 2.06 m, Mercedes-Benz Sprinter 7.37 m).
+DIMENSION_RANGES: dict[str, tuple[tuple[float, float], tuple[float, float], tuple[float, float]]] = {
+    "sedan": ((4.0, 5.4), (1.65, 1.97), (1.35, 1.60)),
+    "hatchback": ((2.5, 4.5), (1.47, 1.85), (1.38, 1.80)),
+    "sports": ((3.7, 4.9), (1.70, 2.05), (1.05, 1.40)),
+    "suv": ((3.4, 5.8), (1.60, 2.10), (1.55, 2.00)),
+    "van": ((4.2, 7.4), (1.70, 2.10), (1.70, 3.10)),
+    "pickup": ((4.8, 6.8), (1.75, 2.45), (1.65, 2.10)),
+    "truck": ((4.7, 12.0), (1.69, 2.55), (2.00, 4.00)),
+    "bus": ((6.5, 18.75), (2.00, 2.55), (2.60, 4.00)),
+    "ambulance": ((5.2, 7.7), (1.90, 2.55), (2.30, 3.20)),
+    "fire_truck": ((6.5, 12.0), (2.20, 2.60), (2.70, 4.00)),
+    "garbage_truck": ((6.5, 12.0), (2.30, 2.60), (3.00, 4.00)),
+    "police": ((4.4, 5.4), (1.70, 2.05), (1.40, 2.00)),
+    "taxi": ((4.2, 5.4), (1.69, 2.05), (1.40, 1.90)),
+}
+
+
+# ----------------------------------------------------------------------------- sampling, JSD
+
+
+def sample_surface(vertices: np.ndarray, faces: np.ndarray, n: int = N_POINTS, seed: Any = 0) -> np.ndarray:
+    """Points uniformly distributed over a triangle mesh's surface (area-weighted), seeded.
+
+    Args:
+        vertices: (V, 3) float, metres.
+        faces: (F, 3) int.
+        n: number of points.
+        seed: anything ``numpy.random.default_rng`` takes; the same seed, mesh and ``n`` give
+            the same points.
+    Returns:
+        (n, 3) float64 points, metres.
+    Raises:
+        ConfigError: the mesh has no area.
+    """
+    v = np.asarray(vertices, dtype=np.float64)
+    tri = v[np.asarray(faces, dtype=np.int64)]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    cum = np.cumsum(area)
+    if len(cum) == 0 or not cum[-1] > 0:
+        raise ConfigError("cannot sample the surface of a mesh with zero area")
+    rng = np.random.default_rng(seed)
+    pick = np.minimum(np.searchsorted(cum, rng.random(n) * cum[-1], side="right"), len(cum) - 1)
+    r = rng.random((n, 2))
+    s = np.sqrt(r[:, 0])  # uniform in the triangle (Osada et al. 2002)
+    w = np.stack([1.0 - s, s * (1.0 - r[:, 1]), s * r[:, 1]], axis=1)
+    return np.einsum("nk,nkd->nd", w, tri[pick])
+
+
+def footprint_centred(points: np.ndarray, vertices: np.ndarray | None = None) -> np.ndarray:
+    """Points shifted so the x/y bounding-box centre of ``vertices`` (default: the points) is 0.
+
+    Decoded and library meshes already have their footprint centre at the origin (the vehicle
+    convention), so this is a no-op for them; it makes the BEV histogram independent of where
+    an arbitrary mesh was modelled.
+    """
+    p = np.array(points, dtype=np.float64)
+    ref = p if vertices is None else np.asarray(vertices, dtype=np.float64)
+    p[:, :2] -= 0.5 * (ref[:, :2].min(axis=0) + ref[:, :2].max(axis=0))
+    return p
+
+
+def bev_histogram(points: np.ndarray, bins: int = BEV_BINS, window_m: float = BEV_WINDOW_M) -> np.ndarray:
+    """Bird's-eye-view 2-D histogram of points in the vehicle frame.
+
+    Normalisation (why metric): the window is a fixed square of ``window_m`` metres centred on
+    the footprint centre, +x (length) along the first axis, and shapes keep their metric size.
+    Size is what separates a 3.0 x 1.3 m blob or a 7.4 m flatbed from a sedan, and it is what the
+    attack exploits; scaled to unit size, all three would fill the same bins. Points outside the
+    window count in the nearest border bin, so no mass is dropped (none of the shape space's
+    shapes reach the border).
+
+    Args:
+        points: (n, 3) or (n, 2) metres.
+        bins: bins per axis.
+        window_m: window edge in metres.
+    Returns:
+        (bins, bins) int64 counts; ``[i, j]`` counts x in bin i and y in bin j.
+    """
+    p = np.asarray(points, dtype=np.float64)
+    width = window_m / bins
+    ij = np.floor((p[:, :2] + 0.5 * window_m) / width).astype(np.int64)
+    np.clip(ij, 0, bins - 1, out=ij)
+    return np.bincount(ij[:, 0] * bins + ij[:, 1], minlength=bins * bins).reshape(bins, bins)
+
+
+def jsd(p: np.ndarray, q: np.ndarray) -> float:
+    """Jensen-Shannon distance of two histograms, as the paper's cited code computes "JSD".
+
+    Both are normalised to sum 1; ``sqrt((KL(p || m) + KL(q || m)) / 2)`` with ``m = (p + q) / 2``
+    and natural logarithms: the value of ``scipy.spatial.distance.jensenshannon(p, q)``, which
+    LiDARGen's ``jsd_2d`` returns. 0 for equal histograms, sqrt(ln 2) = 0.833 for disjoint ones.
+    The divergence itself (nats) is the square of this value.
+
+    Args:
+        p, q: histograms of the same shape, non-negative, each with a positive sum.
+    """
+    a = np.asarray(p, dtype=np.float64).ravel()
+    b = np.asarray(q, dtype=np.float64).ravel()
+    if a.shape != b.shape or a.sum() <= 0 or b.sum() <= 0 or (a < 0).any() or (b < 0).any():
+        raise ConfigError("jsd needs two non-negative histograms of the same shape with positive sums")
+    a = a / a.sum()
+    b = b / b.sum()
+    m = 0.5 * (a + b)
+    div = 0.5 * (_kl_terms(a, m) + _kl_terms(b, m))
+    return float(np.sqrt(max(div, 0.0)))
+
+
+def _kl_terms(a: np.ndarray, m: np.ndarray) -> float:
+    nz = a > 0  # where a > 0, m >= a / 2 > 0
+    return float(np.sum(a[nz] * np.log(a[nz] / m[nz])))
+
+
+# ----------------------------------------------------------------------------- nearest vehicle
+
+
+def _kdtree(points: np.ndarray):
+    """A scipy ``cKDTree`` of the points, or None without scipy (Blender)."""
+    try:
+        from scipy.spatial import cKDTree
+    except ImportError:
+        return None
+    return cKDTree(points)
+
+
+def _nn_distances(a: np.ndarray, b: np.ndarray, tree_b=None) -> np.ndarray:
+    """(len(a),) distance from each point of ``a`` to its nearest point of ``b``, metres.
+
+    ``tree_b``: a prebuilt ``_kdtree(b)``; without scipy, ``_nn_distances_numpy``.
+    """
+    tree_b = tree_b if tree_b is not None else _kdtree(b)
+    if tree_b is None:
+        return _nn_distances_numpy(a, b)
+    return tree_b.query(a)[0]
+
+
+def _nn_distances_numpy(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """numpy-only ``_nn_distances`` (Blender): brute force in blocks, ~30 ms for 1000 x 1000."""
+    out = np.empty(len(a))
+    bb = (b * b).sum(axis=1)
+    for s in range(0, len(a), 256):
+        blk = a[s:s + 256]
+        d2 = (blk * blk).sum(axis=1)[:, None] + bb[None, :] - 2.0 * blk @ b.T
+        out[s:s + 256] = np.sqrt(np.maximum(d2.min(axis=1), 0.0))
+    return out
+
+
+def chamfer_distance(a: np.ndarray, b: np.ndarray, tree_a=None, tree_b=None) -> float:
+    """Symmetric Chamfer distance between two point samples, metres.
+
+    ``(mean_a min_b |a - b| + mean_b min_a |a - b|) / 2`` (not squared, so it reads as a mean
+    surface gap).
+
+    Args:
+        a: (n, 3) points. b: (m, 3) points.
+        tree_a, tree_b: optional prebuilt ``_kdtree`` of ``a`` / ``b`` (reused across calls).
+    """
+    a = np.asarray(a, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    return float(0.5 * (_nn_distances(a, b, tree_b).mean() + _nn_distances(b, a, tree_a).mean()))
+
+
+def regularised_covariance(latents: np.ndarray, shrinkage: float = COVARIANCE_SHRINKAGE) -> np.ndarray:
+    """Shrunk sample covariance ``(1 - a) S + a (tr S / K) I`` of (M, K) latents; (K, K)."""
+    x = np.asarray(latents, dtype=np.float64)
+    k = x.shape[1]
+    s = np.cov(x, rowvar=False, ddof=1).reshape(k, k) if len(x) > 1 else np.zeros((k, k))
+    scale = np.trace(s) / k if np.trace(s) > 0 else 1.0
+    return (1.0 - shrinkage) * s + shrinkage * scale * np.eye(k)
+
+
+def latent_mahalanobis(z: np.ndarray, latents: np.ndarray, shrinkage: float = COVARIANCE_SHRINKAGE) -> float:
+    """Mahalanobis distance of a latent against the library's latents (unitless, in std devs).
+
+    Args:
+        z: (K,) latent.
+        latents: (M, K) latents of the library assets.
+        shrinkage: see ``regularised_covariance``.
+    """
+    x = np.asarray(latents, dtype=np.float64)
+    d = np.asarray(z, dtype=np.float64).reshape(-1) - x.mean(axis=0)
+    cov = regularised_covariance(x, shrinkage)
+    return float(np.sqrt(max(float(d @ np.linalg.solve(cov, d)), 0.0)))
+
+
+def leave_one_out_mahalanobis(latents: np.ndarray, shrinkage: float = COVARIANCE_SHRINKAGE) -> np.ndarray:
+    """(M,) Mahalanobis distance of each library latent against the other M - 1."""
+    x = np.asarray(latents, dtype=np.float64)
+    return np.array([latent_mahalanobis(x[i], np.delete(x, i, axis=0), shrinkage) for i in range(len(x))])
+
+
+# ----------------------------------------------------------------------------- artefacts
+
+
+def _edge_keys(faces: np.ndarray, n_vertices: int) -> np.ndarray:
+    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    e.sort(axis=1)
+    return e[:, 0] * np.int64(n_vertices) + e[:, 1]
+
+
+def mesh_genus(vertices: np.ndarray, faces: np.ndarray) -> int:
+    """Total genus of a closed triangle surface from its Euler characteristic.
+
+    ``chi = V - E + F`` over the referenced vertices, unique edges and faces; with ``c``
+    connected parts, ``genus = c - chi / 2`` (0 for sphere-like parts, 1 per handle or
+    through-hole).
+
+    Args:
+        vertices: (V, 3). faces: (F, 3) int, a closed surface.
+    """
+    f = np.asarray(faces, dtype=np.int64)
+    nv = len(vertices)
+    used = np.unique(f)
+    n_edges = len(np.unique(_edge_keys(f, nv)))
+    chi = len(used) - n_edges + len(f)
+    parts, _ = connected_vertex_parts(nv, np.concatenate([f[:, :2], f[:, 1:]]))
+    parts -= nv - len(used)  # unreferenced vertices are parts of their own
+    return int((2 * parts - chi) // 2)
+
+
+def surface_parts(field: np.ndarray, grid: GridSpec, scales: Sequence[float] = (1.0, 1.0)) -> dict:
+    """Closed parts of the raw marching-cubes surface and what the decoder's clean-up drops.
+
+    Runs ``extract_surface`` without clean-up and applies the decoder's rule
+    (``decode.MIN_PART_FRACTION``: parts under 1 % of the largest part's volume and cavities go).
+
+    Args:
+        field: (N, N, N) SDF on ``grid`` (unit-cube units, negative inside).
+        grid: its grid. scales: (width, length) scales.
+    Returns:
+        ``parts_before_cleanup`` (closed surface parts), ``cavities`` (parts of negative volume),
+        ``floating_parts`` (positive parts other than the largest), ``parts_after_cleanup``,
+        ``dropped_volume_fraction`` (|volume| of the dropped parts over the solid volume),
+        ``floating_volume_fraction`` (volume of the floating parts, kept or dropped, over the
+        solid volume), ``volume_m3`` (solid volume before clean-up).
+    """
+    v, f = extract_surface(field, grid, (float(scales[0]), float(scales[1])), min_part_fraction=0.0)
+    n_parts, label = connected_vertex_parts(len(v), np.concatenate([f[:, :2], f[:, 1:]]))
+    face_part = label[f[:, 0]]
+    tri = v[f]
+    vol = np.bincount(face_part, weights=np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])),
+                      minlength=n_parts) / 6.0
+    keep = vol >= MIN_PART_FRACTION * vol.max()
+    solid = float(vol[vol > 0].sum())
+    positive = np.flatnonzero(vol > 0)
+    floating = positive[positive != int(np.argmax(vol))]
+    return {
+        "parts_before_cleanup": int(n_parts),
+        "cavities": int(np.sum(vol < 0)),
+        "floating_parts": int(len(floating)),
+        "parts_after_cleanup": int(keep.sum()),
+        "dropped_volume_fraction": float(np.abs(vol[~keep]).sum() / solid),
+        "floating_volume_fraction": float(vol[floating].sum() / solid),
+        "volume_m3": solid,
+    }
+
+
+def robust_genus(field: np.ndarray, grid: GridSpec, scales: Sequence[float] = (1.0, 1.0),
+                 offset_voxels: float = GENUS_OFFSET_VOXELS,
+                 surface: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[int, int]:
+    """Genus of the cleaned decoded surface, and the genus that survives small level offsets.
+
+    A handle or tunnel narrower than about a voxel (a marching-cubes pinch) shows at one level
+    only; a real through-hole shows at the zero level and at +- ``offset_voxels``. The robust
+    genus is the smallest of the three.
+
+    Args:
+        field, grid, scales: as ``surface_parts``.
+        offset_voxels: the level offset in voxels.
+        surface: the cleaned zero-level mesh ``extract_surface(field, grid, scales)`` when the
+            caller has it already (saves one marching cubes).
+    Returns:
+        (genus at the zero level, robust genus).
+    """
+    sc = (float(scales[0]), float(scales[1]))
+    delta = np.float32(offset_voxels * grid.voxel)
+    f = np.asarray(field, dtype=np.float32)
+    zero = mesh_genus(*(surface if surface is not None else extract_surface(f, grid, sc)))
+    return zero, min([zero] + [mesh_genus(*extract_surface(f + d, grid, sc)) for d in (-delta, delta)])
+
+
+def _trilinear(vol: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Trilinear interpolation of an (N, N, N) volume at (n, 3) index coordinates (clamped)."""
+    n = vol.shape[0]
+    q = np.clip(p, 0.0, n - 1.0)
+    i0 = np.minimum(np.floor(q).astype(np.int64), n - 2)
+    t = q - i0
+    flat = vol.ravel()
+    base = (i0[:, 0] * n + i0[:, 1]) * n + i0[:, 2]
+    out = np.zeros(len(p))
+    for dx in (0, 1):
+        wx = t[:, 0] if dx else 1.0 - t[:, 0]
+        for dy in (0, 1):
+            wy = t[:, 1] if dy else 1.0 - t[:, 1]
+            for dz in (0, 1):
+                wz = t[:, 2] if dz else 1.0 - t[:, 2]
+                out += wx * wy * wz * flat[base + (dx * n + dy) * n + dz]
+    return out
+
+
+def _kept_inside(field: np.ndarray) -> np.ndarray:
+    """(N, N, N) bool: inside nodes of the parts the decoder keeps (by node count, same 1 % rule)."""
+    inside = field < 0
+    try:
+        from scipy.ndimage import label
+    except ImportError:
+        labels, n = _label_numpy(inside)
+    else:
+        labels, n = label(inside)
+    size = np.bincount(labels.ravel(), minlength=n + 1)
+    size[0] = 0
+    keep = size >= MIN_PART_FRACTION * size.max()
+    keep[0] = False
+    return keep[labels]
+
+
+def _label_numpy(inside: np.ndarray) -> tuple[np.ndarray, int]:
+    """numpy-only ``scipy.ndimage.label`` (face adjacency; labels 1..n, 0 outside) for Blender."""
+    idx = np.full(inside.shape, -1, dtype=np.int64)
+    idx[inside] = np.arange(int(inside.sum()))
+    pairs = []
+    for ax in range(3):
+        lo = [slice(None)] * 3
+        hi = [slice(None)] * 3
+        lo[ax], hi[ax] = slice(0, -1), slice(1, None)
+        both = inside[tuple(lo)] & inside[tuple(hi)]
+        pairs.append(np.stack([idx[tuple(lo)][both], idx[tuple(hi)][both]], axis=1))
+    n, lab = connected_vertex_parts(int(inside.sum()), np.concatenate(pairs))
+    labels = np.zeros(inside.shape, dtype=np.int64)
+    labels[inside] = lab + 1
+    return labels, int(n)
+
+
+def wall_thickness(field: np.ndarray, grid: GridSpec, scales: Sequence[float] = (1.0, 1.0),
+                   n: int = WALL_SAMPLES, seed: Any = 0, step_m: float = WALL_STEP_M,
+                   max_m: float = WALL_MAX_M) -> np.ndarray:
+    """Wall thickness at surface samples: distance along the inward normal to where the ray leaves.
+
+    Why rays (the "shape diameter" of Shapira et al. 2008, the usual wall-thickness check
+    before 3-D printing) rather than twice the SDF along its medial ridge: the ridge meets the
+    surface at every convex edge, so its minimum is ~0 on any box; a ray along the inward
+    normal crosses the whole part there and is short only where the part is really thin.
+
+    Surface samples are the zero crossings of the field on grid edges of the parts the decoder
+    keeps (about uniform on the surface: the density varies by at most sqrt(3) with the normal).
+    The normal is the field's gradient; rays march in metric steps through the trilinear field,
+    with the width/length scales applied, until the field turns positive.
+
+    Args:
+        field: (N, N, N) SDF on ``grid``. grid: its grid. scales: (width, length).
+        n: number of samples (all crossings if fewer). seed: sample choice.
+        step_m, max_m: ray step and longest ray in metres.
+    Returns:
+        (n,) float64 thickness in metres (``max_m`` where the ray is still inside).
+    """
+    f = np.asarray(field, dtype=np.float64)
+    kept = _kept_inside(f)
+    pts = []
+    for ax in range(3):
+        lo = [slice(None)] * 3
+        hi = [slice(None)] * 3
+        lo[ax], hi[ax] = slice(0, -1), slice(1, None)
+        fa, fb = f[tuple(lo)], f[tuple(hi)]
+        cross = ((fa < 0) != (fb < 0)) & (kept[tuple(lo)] | kept[tuple(hi)])
+        at = np.argwhere(cross).astype(np.float64)
+        at[:, ax] += fa[cross] / (fa[cross] - fb[cross])
+        pts.append(at)
+    p = np.concatenate(pts)
+    if len(p) == 0:
+        return np.zeros(0)
+    if len(p) > n:
+        p = p[np.sort(np.random.default_rng(seed).choice(len(p), n, replace=False))]
+    # Metres per index step along x (length), y (width), z.
+    m = grid.voxel * grid.extent_m * np.array([float(scales[1]), float(scales[0]), 1.0])
+    grad = np.stack([_trilinear(f, p + 0.5 * e) - _trilinear(f, p - 0.5 * e) for e in np.eye(3)], axis=1) / m
+    norm = np.linalg.norm(grad, axis=1, keepdims=True)
+    inward = -grad / np.where(norm > 0, norm, 1.0)
+    ts = np.arange(1, int(round(max_m / step_m)) + 1) * step_m
+    ray = p[:, None, :] + ts[None, :, None] * (inward / m)[:, None, :]
+    flat = ray.reshape(-1, 3)
+    inside_grid = np.all((flat >= 0) & (flat <= f.shape[0] - 1), axis=1)
+    val = np.ones(len(flat))  # outside the grid is outside the shape
+    val[inside_grid] = _trilinear(f, flat[inside_grid])
+    out = (val > 0).reshape(len(p), len(ts))
+    first = np.where(out.any(axis=1), out.argmax(axis=1), len(ts) - 1)
+    return ts[first]
+
+
+def thinnest_wall(thickness: np.ndarray, percentile: float = WALL_PERCENTILE) -> float:
+    """The ``percentile`` of the wall thickness samples, metres (the thinnest wall covering that
+    share of the surface)."""
+    t = np.asarray(thickness, dtype=np.float64)
+    return float(np.percentile(t, percentile)) if len(t) else 0.0
+
+
+# ----------------------------------------------------------------------------- dimensions
+
+
+def mesh_dimensions(vertices: np.ndarray) -> np.ndarray:
+    """(3,) bounding-box (length, width, height) of vertices in the vehicle frame, metres."""
+    v = np.asarray(vertices, dtype=np.float64)
+    return v.max(axis=0) - v.min(axis=0)
+
+
+def dimension_excess(dims: Sequence[float], vehicle_class: str) -> np.ndarray:
+    """(3,) relative amount by which (L, W, H) leaves the class's real range (0 inside).
+
+    Below the range: ``(low - d) / low``; above: ``(d - high) / high``.
+
+    Raises:
+        ConfigError: a class without a range in ``DIMENSION_RANGES``.
+    """
+    if vehicle_class not in DIMENSION_RANGES:
+        raise ConfigError(f"no real dimension range for class {vehicle_class!r} "
+                          f"(known: {', '.join(DIMENSION_RANGES)})")
+    d = np.asarray(dims, dtype=np.float64).reshape(3)
+    rng = np.asarray(DIMENSION_RANGES[vehicle_class], dtype=np.float64)
+    lo, hi = rng[:, 0], rng[:, 1]
+    return np.maximum(np.maximum((lo - d) / lo, (d - hi) / hi), 0.0)
+
+
+def plausible_classes(dims: Sequence[float]) -> list[str]:
+    """Classes whose real (L, W, H) ranges all contain ``dims``, in ``DIMENSION_RANGES`` order."""
+    return [c for c in DIMENSION_RANGES if not dimension_excess(dims, c).any()]
+
+
+# ----------------------------------------------------------------------------- reference
+
+
+@dataclass
+class RealismReference:
+    """What the measures compare a shape against: the asset set's CAD models and the library's
+    own leave-one-out figures.
+
+    Attributes:
+        histogram: (BEV_BINS, BEV_BINS) int64 summed counts of ``points_per_model`` surface
+            points of every CAD model (the paper's "histogram of all CAD models").
+        points: (M, CHAMFER_POINTS, 3) float32 surface points per CAD model (metres).
+        asset_ids: the M shape-space asset ids, in shape-space order.
+        asset_classes: their vehicle classes.
+        jsd_loo: (M,) JSD of each model's 1000-point sample against the histogram of the others.
+        chamfer_loo: (M,) Chamfer distance (m) of each asset's decoded latent to the nearest
+            *other* CAD model.
+        mahalanobis_loo: (M,) Mahalanobis distance of each latent against the other latents.
+        meta: parameters and provenance (bins, window_m, points_per_model, seed,
+            shape_space_hash, library_fingerprint).
+    """
+
+    histogram: np.ndarray
+    points: np.ndarray
+    asset_ids: list[str]
+    asset_classes: list[str]
+    jsd_loo: np.ndarray
+    chamfer_loo: np.ndarray
+    mahalanobis_loo: np.ndarray
+    meta: dict = field(default_factory=dict)
+    source: Path | None = None
+    _trees: list | None = field(default=None, init=False, repr=False, compare=False)
+
+    def chamfer_distances(self, points: np.ndarray) -> np.ndarray:
+        """(M,) symmetric Chamfer distance (m) of a (n, 3) sample to every CAD model's points."""
+        ref = self.points.astype(np.float64)
+        if self._trees is None:
+            self._trees = [_kdtree(p) for p in ref]
+        q = np.asarray(points, dtype=np.float64)
+        tq = _kdtree(q)
+        return np.array([chamfer_distance(q, ref[j], tq, self._trees[j]) for j in range(len(ref))])
+
+    @property
+    def jsd_limit(self) -> float:
+        """Largest leave-one-out JSD of the library: a shape scoring above is less like the
+        asset set than any of its own members."""
+        return float(self.jsd_loo.max())
+
+    @property
+    def chamfer_limit_m(self) -> float:
+        return float(self.chamfer_loo.max())
+
+    @property
+    def mahalanobis_limit(self) -> float:
+        return float(self.mahalanobis_loo.max())
+
+    def _meta(self) -> dict:
+        meta = dict(self.meta)
+        meta.update({
+            "format": REFERENCE_FORMAT,
+            "version": REFERENCE_VERSION,
+            "asset_classes": list(self.asset_classes),
+            "jsd_loo": [float(x) for x in self.jsd_loo],
+            "chamfer_loo": [float(x) for x in self.chamfer_loo],
+            "mahalanobis_loo": [float(x) for x in self.mahalanobis_loo],
+        })
+        return meta
+
+    def to_bytes(self) -> bytes:
+        """The exact bytes of the ``.npz`` file (deterministic: fixed order and timestamps)."""
+        members = {
+            "meta": np.asarray(json.dumps(self._meta(), indent=1, sort_keys=True, allow_nan=False)),
+            "histogram": np.ascontiguousarray(self.histogram, dtype=np.int64),
+            "points": np.ascontiguousarray(self.points, dtype=np.float32),
+            "asset_ids": np.asarray(self.asset_ids, dtype=f"<U{max([1] + [len(a) for a in self.asset_ids])}"),
+        }
+        buf = io.BytesIO()
+        with zipfile.ZipFile(buf, "w") as zf:
+            for name in _MEMBERS:
+                npy = io.BytesIO()
+                np.lib.format.write_array(npy, members[name], allow_pickle=False)
+                info = zipfile.ZipInfo(f"{name}.npy", date_time=_ZIP_DATE)
+                info.compress_type = zipfile.ZIP_DEFLATED
+                info.external_attr = 0o644 << 16
+                info.create_system = 3
+                zf.writestr(info, npy.getvalue(), compresslevel=6)
+        return buf.getvalue()
+
+    def save(self, path: str | Path = DEFAULT_REFERENCE) -> Path:
+        """Write the ``.npz`` atomically; returns the path."""
+        path = Path(path)
+        atomic_write_bytes(path, self.to_bytes())
+        return path
+
+    def matches(self, space) -> bool:
+        """Whether this reference was built for ``space`` (same content hash)."""
+        return self.meta.get("shape_space_hash") == space.content_hash
+
+
+def build_reference(library, space, progress: bool = False) -> RealismReference:
+    """Compute the reference from the library's CAD meshes and the shape space (~2 s).
+
+    Args:
+        library: the ``VehicleLibrary`` the space was built from.
+        space: the ``ShapeSpace``; its asset ids name the CAD models.
+    """
+    from .library import load_asset_mesh
+
+    ids = list(space.asset_ids)
+    m = len(ids)
+    if m < 2:
+        raise ConfigError("the realism reference needs at least two shape-space assets (leave-one-out)")
+    items = list(enumerate(ids))
+    if progress:
+        from ..progress import progress as bar
+
+        items = bar(items, desc="realism reference", unit="asset")
+    hists = np.zeros((m, BEV_BINS, BEV_BINS), dtype=np.int64)
+    points = np.zeros((m, CHAMFER_POINTS, 3), dtype=np.float32)
+    own = []  # each CAD model's 1000-point query sample (seed 0, as a query)
+    for i, aid in items:
+        mesh = load_asset_mesh(library, aid)
+        v, f = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64)
+        ref = footprint_centred(sample_surface(v, f, REFERENCE_POINTS_PER_MODEL, [REFERENCE_SEED, i]), v)
+        hists[i] = bev_histogram(ref)
+        points[i] = ref[:CHAMFER_POINTS]
+        own.append(footprint_centred(sample_surface(v, f, N_POINTS, 0), v))
+    total = hists.sum(axis=0)
+    jsd_loo = np.array([jsd(bev_histogram(own[i]), total - hists[i]) for i in range(m)])
+    classes = [library.get(a).vehicle_class for a in ids]
+    meta = {
+        "bins": BEV_BINS,
+        "window_m": BEV_WINDOW_M,
+        "points_per_model": REFERENCE_POINTS_PER_MODEL,
+        "query_points": N_POINTS,
+        "seed": REFERENCE_SEED,
+        "covariance_shrinkage": COVARIANCE_SHRINKAGE,
+        "shape_space_hash": space.content_hash,
+        "library_fingerprint": space.build.get("library_fingerprint", ""),
+    }
+    ref = RealismReference(histogram=total, points=points, asset_ids=ids, asset_classes=classes,
+                           jsd_loo=jsd_loo, chamfer_loo=np.zeros(m),
+                           mahalanobis_loo=leave_one_out_mahalanobis(space.latents), meta=meta)
+    for i in range(m):  # each library vehicle as the shape space decodes it, against the other models
+        v, f = space.decode_latent(space.latents[i])
+        d = ref.chamfer_distances(footprint_centred(sample_surface(v, f, N_POINTS, 0), v))
+        ref.chamfer_loo[i] = np.delete(d, i).min()
+    return ref
+
+
+def load_reference(path: str | Path = DEFAULT_REFERENCE) -> RealismReference:
+    """Load and validate a reference file.
+
+    Raises:
+        FileFormatError: missing or corrupt file, or a field not matching the contract.
+    """
+    path = Path(path)
+
+    def fail(where: str, expected: str, got: object) -> None:
+        raise FileFormatError(path, where, expected, got)
+
+    if not path.exists():
+        fail("$", "an existing realism reference .npz (build it with `adv3d shapes realism-reference`)",
+             "file not found")
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            members = {name: npz[name] for name in npz.files}
+    except (zipfile.BadZipFile, OSError, ValueError, EOFError) as exc:
+        fail("$", "a .npz (zip of .npy arrays)", f"{type(exc).__name__}: {exc}")
+    for name in _MEMBERS:
+        if name not in members:
+            fail(f"$.{name}", f"array member {name}.npy", sorted(members))
+    try:
+        meta = json.loads(str(members["meta"]))
+    except json.JSONDecodeError as exc:
+        fail("$.meta", "JSON", str(exc))
+    if not isinstance(meta, dict) or meta.get("format") != REFERENCE_FORMAT:
+        fail("$.meta.format", f'"{REFERENCE_FORMAT}"', meta.get("format") if isinstance(meta, dict) else meta)
+    if meta.get("version") != REFERENCE_VERSION:
+        fail("$.meta.version", str(REFERENCE_VERSION), meta.get("version"))
+    if meta.get("bins") != BEV_BINS or meta.get("window_m") != BEV_WINDOW_M:
+        fail("$.meta.bins", f"bins {BEV_BINS} and window_m {BEV_WINDOW_M} (this code's histogram)",
+             f"{meta.get('bins')}, {meta.get('window_m')}")
+    ids = members["asset_ids"]
+    if ids.dtype.kind != "U" or ids.ndim != 1 or len(ids) < 2:
+        fail("$.asset_ids", "a 1-d unicode array of at least 2 ids", f"{ids.dtype} {ids.shape}")
+    m = len(ids)
+    hist, pts = members["histogram"], members["points"]
+    if hist.dtype != np.int64 or hist.shape != (BEV_BINS, BEV_BINS) or (hist < 0).any():
+        fail("$.histogram", f"non-negative int64 counts of shape ({BEV_BINS}, {BEV_BINS})", f"{hist.dtype} {hist.shape}")
+    if pts.dtype != np.float32 or pts.shape != (m, CHAMFER_POINTS, 3) or not np.isfinite(pts).all():
+        fail("$.points", f"finite float32 of shape ({m}, {CHAMFER_POINTS}, 3)", f"{pts.dtype} {pts.shape}")
+    loo = {}
+    for key in ("jsd_loo", "chamfer_loo", "mahalanobis_loo"):
+        val = meta.get(key)
+        arr = np.asarray(val, dtype=np.float64) if isinstance(val, list) and all(
+            isinstance(x, (int, float)) and not isinstance(x, bool) for x in val) else None
+        if arr is None or arr.shape != (m,) or not np.isfinite(arr).all() or (arr < 0).any():
+            fail(f"$.meta.{key}", f"a list of {m} finite non-negative numbers", val)
+        loo[key] = arr
+    classes = meta.get("asset_classes")
+    if not isinstance(classes, list) or len(classes) != m or not all(isinstance(c, str) for c in classes):
+        fail("$.meta.asset_classes", f"a list of {m} class names", classes)
+    keep = {k: v for k, v in meta.items() if k not in ("format", "version", "asset_classes", *loo)}
+    return RealismReference(histogram=hist, points=pts, asset_ids=[str(x) for x in ids], asset_classes=classes,
+                            meta=keep, source=path, **loo)
+
+
+_CACHE: dict[str, RealismReference] = {}
+
+
+def default_reference(space) -> RealismReference:
+    """The reference for ``space``: the shipped file when it was built for this space, else one
+    computed from the bundled library (once per process).
+
+    Raises:
+        ConfigError: the space is not the shipped one and its assets are not in the bundled library.
+    """
+    key = space.content_hash
+    if key not in _CACHE:
+        ref = load_reference(DEFAULT_REFERENCE) if DEFAULT_REFERENCE.exists() else None
+        if ref is None or not ref.matches(space):
+            from .library import load_library
+
+            try:
+                ref = build_reference(load_library(), space)
+            except KeyError as exc:
+                raise ConfigError(f"no realism reference for this shape space: {exc}") from None
+        _CACHE[key] = ref
+    return _CACHE[key]
+
+
+# ----------------------------------------------------------------------------- report
+
+
+def shape_surface_measures(vertices: np.ndarray, faces: np.ndarray, reference: RealismReference,
+                           vehicle_class: str | None = None, seed: Any = 0) -> dict:
+    """The measures any metric vehicle mesh has: JSD, nearest CAD model, dimensions.
+
+    Args:
+        vertices: (V, 3) metres, vehicle frame (+x front, z up). faces: (F, 3).
+        reference: what to compare against.
+        vehicle_class: class whose real dimensions apply; default the nearest CAD model's class.
+        seed: surface sample seed.
+    """
+    v = np.asarray(vertices, dtype=np.float64)
+    pts = footprint_centred(sample_surface(v, faces, N_POINTS, seed), v)
+    dists = reference.chamfer_distances(pts)
+    near = int(np.argmin(dists))
+    dims = mesh_dimensions(v)
+    cls = vehicle_class or reference.asset_classes[near]
+    excess = dimension_excess(dims, cls)
+    return {
+        "jsd": jsd(bev_histogram(pts), reference.histogram),
+        "nearest_asset": reference.asset_ids[near],
+        "nearest_chamfer_m": float(dists[near]),
+        "dimensions_m": [float(x) for x in dims],
+        "dimension_class": cls,
+        "dimension_excess": [float(x) for x in excess],
+        "plausible_classes": plausible_classes(dims),
+    }
+
+
+def latent_realism_report(space, z: Any, scales: Sequence[float] = (1.0, 1.0),
+                          reference: RealismReference | None = None, vehicle_class: str | None = None,
+                          seed: Any = 0) -> dict:
+    """Every realism figure of the shape ``(z, scales)`` of ``space`` (any finite z).
+
+    Returns:
+        a JSON-able dict: the figures (see docs/realism.md), the limits they are checked
+        against, ``flags`` (names of the failed checks) and ``realistic`` (no flag).
+    Raises:
+        EmptySurfaceError: the latent decodes to no surface.
+    """
+    ref = reference if reference is not None else default_reference(space)
+    z = np.asarray(z, dtype=np.float64).reshape(-1)
+    sc = (float(scales[0]), float(scales[1]))
+    field_ = space.decode_sdf(z)
+    v, f = space.decode_latent(z, sc)
+    report = shape_surface_measures(v, f, ref, vehicle_class, seed)
+    latent_d = np.linalg.norm(space.latents - z[None, :], axis=1)
+    report["nearest_latent_asset"] = space.asset_ids[int(np.argmin(latent_d))]
+    report["nearest_latent_distance"] = float(latent_d.min())
+    report["mahalanobis"] = latent_mahalanobis(z, space.latents)
+    report.update(surface_parts(field_, space.grid, sc))
+    report["genus"], report["genus_robust"] = robust_genus(field_, space.grid, sc, surface=(v, f))
+    thick = wall_thickness(field_, space.grid, sc, seed=seed)
+    voxel_m = space.grid.voxel * space.grid.extent_m
+    report["thinnest_wall_m"] = thinnest_wall(thick)
+    report["thin_wall_fraction"] = float(np.mean(thick < voxel_m)) if len(thick) else 0.0
+    limits = {"jsd": ref.jsd_limit, "nearest_chamfer_m": ref.chamfer_limit_m, "mahalanobis": ref.mahalanobis_limit,
+              "floating_volume_fraction": FLOATING_VOLUME_TOL, "genus_robust": 0, "thinnest_wall_m": voxel_m,
+              "dimension_excess": 0.0}
+    checks = {
+        "jsd": report["jsd"] <= limits["jsd"],
+        "nearest_chamfer_m": report["nearest_chamfer_m"] <= limits["nearest_chamfer_m"],
+        "mahalanobis": report["mahalanobis"] <= limits["mahalanobis"],
+        "floating_volume_fraction": report["floating_volume_fraction"] <= FLOATING_VOLUME_TOL,
+        "genus_robust": report["genus_robust"] == 0,
+        "thinnest_wall_m": report["thinnest_wall_m"] >= voxel_m,
+        "dimension_excess": max(report["dimension_excess"]) == 0.0,
+    }
+    report["limits"] = limits
+    report["flags"] = [k for k, ok in checks.items() if not ok]
+    report["realistic"] = not report["flags"]
+    return report
+
+
+def realism_report(space, u: Any, reference: RealismReference | None = None,
+                   vehicle_class: str | None = None, seed: Any = 0) -> dict:
+    """Every realism figure of the unit vector ``u`` of ``space`` (see ``latent_realism_report``).
+
+    Costs ~0.1-0.2 s per shape on one core (bench/realism.py measures it): four marching cubes
+    (the surface, the raw surface, two level offsets), 1000 rays, 18 Chamfer distances.
+    """
+    z, scales = space.unit_to_latent(u)
+    return latent_realism_report(space, z, scales, reference, vehicle_class, seed)
