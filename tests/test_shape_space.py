@@ -423,18 +423,3 @@ def test_decode_drops_crumbs_and_cavities():
     parts = clean.split(only_watertight=False)
     assert len(parts) == 2 and all(part.volume > 0 for part in parts)
     assert clean.is_watertight and clean.volume > raw.volume  # the cavity no longer subtracts
-
-
-def test_connected_parts_numpy_fallback_matches_scipy():
-    # Blender has no scipy: the add-on's decode takes the numpy path, which must agree.
-    from adv3d_runner.shapes.decode import _connected_vertex_parts_numpy, connected_vertex_parts
-
-    rng = np.random.default_rng(3)
-    n = 400
-    edges = rng.integers(0, n, size=(300, 2))  # sparse random graph: many parts and singletons
-    n_ref, ref = connected_vertex_parts(n, edges)
-    n_np, got = _connected_vertex_parts_numpy(n, edges)
-    assert n_np == n_ref > 10
-    # same partition up to label numbering
-    pairs = np.unique(np.stack([ref, got], axis=1), axis=0)
-    assert len(pairs) == n_ref
