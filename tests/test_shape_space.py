@@ -196,6 +196,21 @@ def test_fit_pca_rejects_bad_k():
         fit_pca(np.zeros((0, 8)), 1)
 
 
+def test_fit_pca_is_the_svd_of_the_centred_data_with_fixed_signs():
+    # fit_pca works through the small Gram matrix (its bits are pinned by the shipped shape
+    # space); the result is the plain SVD's up to rounding, with the documented sign rule
+    x = np.random.default_rng(5).standard_normal((7, 300)).astype(np.float32)
+    mean, comps, var, ratio, rank = fit_pca(x, 4)
+    xc = x.astype(np.float64) - x.astype(np.float64).mean(axis=0)
+    _, s, vt = np.linalg.svd(xc, full_matrices=False)
+    assert rank == 4 and np.allclose(mean, x.mean(axis=0, dtype=np.float64), rtol=0, atol=1e-12)
+    assert np.allclose(var, s[:4] ** 2 / 6, rtol=1e-12, atol=0)
+    assert np.allclose(ratio, s[:4] ** 2 / np.sum(s ** 2), rtol=1e-12, atol=0)
+    signs = np.sign(vt[np.arange(4), np.argmax(np.abs(vt[:4]), axis=1)])
+    assert np.allclose(comps, vt[:4] * signs[:, None], rtol=0, atol=1e-12)
+    assert np.all(comps[np.arange(4), np.argmax(np.abs(comps), axis=1)] > 0)
+
+
 # ------------------------------------------------------------------------------- decoding
 
 
