@@ -145,7 +145,7 @@ def _manifold_pairs(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     # trimesh keeps edges used by exactly two faces, i.e. manifold edges
     pairs, edges = face_adjacency(faces, return_edges=True)
     # trimesh orders pairs by a row hash; the walk in orient_faces visits neighbours in this
-    # order, which decides the outcome on a patch that cannot be oriented: sort by edge
+    # order, which can decide the outcome on a patch that cannot be oriented: sort by edge
     order = np.lexsort((edges[:, 1], edges[:, 0]))
     pairs, edges = pairs[order], edges[order]
 
