@@ -1,14 +1,16 @@
 """Signed distance volume -> metric vehicle mesh (the hot path of every attack query).
 
 Marching cubes runs on the volume padded by one layer of a positive ("outside") value, so the
-surface is closed even where a shape touches the grid border. Numpy + scikit-image only: the
-Blender add-on calls this in-process for live latent sliders.
+surface is closed even where a shape touches the grid border. Numpy + scikit-image only (scipy
+for part labels where it is installed, see ``cleaning.connected_vertex_parts``): the Blender
+add-on calls this in-process for live latent sliders.
 """
 from __future__ import annotations
 
 import numpy as np
 
 from ..errors import EmptySurfaceError
+from .cleaning import connected_vertex_parts
 from .sdf import GridSpec
 
 #: Field values closer to zero than this fraction of a voxel are pushed to +-it before marching
@@ -22,50 +24,6 @@ _ZERO_NUDGE = 1e-3
 #: crumbs near the latent-box corners (over half of random queries have one, with ~0.03 % of the
 #: volume); a LiDAR sees them as stray points in the air.
 MIN_PART_FRACTION = 0.01
-
-
-def connected_vertex_parts(n_vertices: int, edges: np.ndarray) -> tuple[int, np.ndarray]:
-    """Connected components of a mesh's vertex graph.
-
-    Args:
-        n_vertices: V.
-        edges: (E, 2) vertex index pairs.
-    Returns:
-        the number of parts and a (V,) part label per vertex (0..parts-1).
-
-    scipy's sparse graph routine is used when it can be imported (~1 ms); Blender ships without
-    scipy, so the add-on falls back to a numpy min-label propagation (same labels up to
-    numbering, ~10x slower but still within a slider update).
-    """
-    try:
-        from scipy.sparse import coo_matrix
-        from scipy.sparse.csgraph import connected_components
-    except ImportError:
-        return _connected_vertex_parts_numpy(n_vertices, edges)
-    graph = coo_matrix((np.ones(len(edges), dtype=np.int8), (edges[:, 0], edges[:, 1])),
-                       shape=(n_vertices, n_vertices))
-    return connected_components(graph, directed=False)
-
-
-def _connected_vertex_parts_numpy(n_vertices: int, edges: np.ndarray) -> tuple[int, np.ndarray]:
-    """numpy-only ``connected_vertex_parts``: hook roots to the smaller label, then pointer-jump."""
-    label = np.arange(n_vertices)
-    a, b = edges[:, 0], edges[:, 1]
-    while True:
-        la, lb = label[a], label[b]
-        low = np.minimum(la, lb)
-        new = label.copy()
-        np.minimum.at(new, la, low)
-        np.minimum.at(new, lb, low)
-        while True:
-            jumped = new[new]
-            if np.array_equal(jumped, new):
-                break
-            new = jumped
-        if np.array_equal(new, label):
-            roots, parts = np.unique(label, return_inverse=True)
-            return len(roots), parts
-        label = new
 
 
 def _drop_small_parts(v: np.ndarray, f: np.ndarray, min_fraction: float) -> tuple[np.ndarray, np.ndarray]:

@@ -7,8 +7,9 @@ inside/outside test therefore must not rely on a watertight, consistently orient
 Methods (``METHODS``):
 
 ``winding`` (default)
-    1. orient faces consistently inside each edge-connected patch (``igl.bfs_orient``) and each
-       patch outward (``igl.orient_outward``), so flipped faces do not cancel;
+    1. orient faces consistently inside each edge-connected patch and each patch outward,
+       open ones too (``cleaning.orient_faces`` rule ``"outward"``: ``igl.bfs_orient`` then
+       ``igl.orient_outward``), so flipped faces do not cancel;
     2. sign from the generalised winding number (``igl.fast_winding_number``): inside where
        w > 0.5. Interior parts and overlapping parts only raise w (1 -> 2), open bodies give a
        fractional w that is still > 0.5 in a mostly closed cabin;
@@ -49,6 +50,7 @@ from typing import Iterable, Sequence
 import numpy as np
 
 from ..errors import Adv3dError, ConfigError
+from .cleaning import orient_faces
 
 METHODS = ("winding", "floodfill", "rayvote")
 DEFAULT_METHOD = "winding"
@@ -145,6 +147,8 @@ def clean_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     Returns:
         (F', 3) int64 faces.
     """
+    # kept hand-written: area relative to the mesh's size, which trimesh's absolute-height
+    # nondegenerate_faces is not; library meshes are already cleaned, user meshes may not be
     f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
     keep = (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])
     f = f[keep]
@@ -153,26 +157,6 @@ def clean_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     area2 = np.einsum("ij,ij->i", cross, cross)
     scale = max(float(np.ptp(v, axis=0).max()), 1e-12) if len(v) else 1.0
     return f[area2 > (1e-14 * scale * scale) ** 2]
-
-
-def orient_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Consistent orientation per edge-connected patch, each patch pointing outward.
-
-    Args:
-        vertices: (V, 3) float64.
-        faces: (F, 3) int64.
-    Returns:
-        (F, 3) int64 re-oriented faces (same triangles, some with reversed winding).
-    """
-    if len(faces) == 0:
-        return faces
-    import igl
-
-    ff, comp = igl.bfs_orient(np.ascontiguousarray(faces, dtype=np.int64))
-    ff, _flipped = igl.orient_outward(
-        np.ascontiguousarray(vertices, dtype=np.float64), ff, comp.reshape(-1, 1).astype(np.int64)
-    )
-    return ff
 
 
 def winding_numbers(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -367,7 +351,7 @@ def sdf_volume(vertices_m: np.ndarray, faces: np.ndarray, grid: GridSpec, method
     eps = 1e-4  # probe offset for boundary faces: 0.5 mm at a 5.5 m cube, thinner than any panel
 
     if method == "winding":
-        fo = orient_faces(v, f)
+        fo, _ = orient_faces(v, f, rule="outward")
 
         def inside_fn(p: np.ndarray) -> np.ndarray:
             return winding_numbers(v, fo, p) > 0.5
