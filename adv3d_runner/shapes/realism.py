@@ -53,7 +53,8 @@ import numpy as np
 
 from ..errors import ConfigError, FileFormatError
 from ..fileio import REPO_ROOT, atomic_write_bytes
-from .decode import MIN_PART_FRACTION, connected_vertex_parts, extract_surface
+from .cleaning import connected_vertex_parts
+from .decode import MIN_PART_FRACTION, extract_surface
 from .sdf import GridSpec
 
 # ----------------------------------------------------------------------------- constants
