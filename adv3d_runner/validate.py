@@ -343,12 +343,11 @@ class Arrays:
     def fail(self, name: str, expected: str, got: Any = None) -> NoReturn:
         raise FileFormatError(self.file, f"$.{name}" if name else "$", expected, got)
 
-    def require(self, names: Iterable[str], expected: str = "an array (missing)") -> None:
-        """Every member of ``names`` is present; the first absent one fails with ``expected``
-        (got: the members present)."""
+    def require(self, names: Iterable[str]) -> None:
+        """Every member of ``names`` is present (got: the members there are)."""
         for name in names:
             if name not in self.members:
-                self.fail(name, expected, f"members {sorted(self.members)}")
+                self.fail(name, f"array member {name}.npy", f"members {sorted(self.members)}")
 
     def array(self, name: str, *, dtype=None, kind: str | None = None,
               shape: Sequence[int | str | None] | None = None, ndim: int | None = None,
@@ -363,18 +362,18 @@ class Arrays:
                or (want_ndim is not None and a.ndim != want_ndim)
                or (shape is not None and any(isinstance(s, int) and s != n for s, n in zip(shape, a.shape))))
         if bad:
-            what = dt.name if dt is not None else {"U": "unicode", "i": "integer", "f": "float"}.get(kind or "", "")
-            form = f"of shape {shape_text(shape)}" if shape is not None else (f"{ndim}-d" if ndim is not None else "")
-            self.fail(name, " ".join(x for x in (what, "array", form) if x), f"{a.dtype} {a.shape}")
+            parts = [f"{ndim}-d" if shape is None and ndim is not None else "",
+                     dt.name if dt is not None else {"U": "unicode", "i": "integer", "f": "float"}.get(kind or "", ""),
+                     "array", f"of shape {shape_text(shape)}" if shape is not None else ""]
+            self.fail(name, " ".join(p for p in parts if p), f"{a.dtype} {a.shape}")
         if finite and a.dtype.kind == "f" and not np.all(np.isfinite(a)):
             self.fail(name, "finite values", "NaN or inf")
         return a
 
     def text(self, name: str) -> str:
         """A 0-d unicode member (``np.array("...")``) as ``str``."""
-        a = self.members.get(name)
-        if a is None:
-            self.fail(name, "an array (missing)", f"members {sorted(self.members)}")
+        self.require([name])
+        a = self.members[name]
         if a.dtype.kind != "U" or a.ndim != 0:
             self.fail(name, "a 0-d unicode array", f"{a.dtype} {a.shape}")
         return str(a)
@@ -406,19 +405,20 @@ class Arrays:
         return Node(doc, f"$.{name}", self.file)
 
 
-def read_npz(path: str | Path, what: str) -> Arrays:
+def read_npz(path: str | Path, what: str, hint: str = "") -> Arrays:
     """Every member of an ``.npz`` file, loaded without pickle.
 
     Args:
         path: the file.
         what: what the file is, for errors (``"shape-space .npz file"``).
+        hint: appended when the file does not exist (how to make one).
     Raises:
         FileFormatError: missing file, not a zip of ``.npy`` arrays, or a member that would
             need pickle.
     """
     path = Path(path)
     if not path.exists():
-        raise FileFormatError(path, "$", f"an existing {what}", "file not found")
+        raise FileFormatError(path, "$", f"an existing {what}{hint}", "file not found")
     expected = f"a {what} (zip of .npy arrays, no pickled objects)"
     try:
         loaded = np.load(path, allow_pickle=False)
