@@ -54,14 +54,15 @@ def unknown_classes(names) -> list[str]:
     return [n for n in names if n not in VEHICLE_CLASSES]
 
 
-def plausibility_warning(vehicle_class: str, dims: tuple[float, float, float]) -> str | None:
+def plausibility_warning(vehicle_class: str, dims: tuple[float, float, float],
+                         hint: str = "consider --dimensions") -> str | None:
     """A warning when dimensions are more than 30 % off the class's typical size (None when
-    plausible or the class has no typical size)."""
+    plausible or the class has no typical size); ``hint`` says what to do about it."""
     typical = TYPICAL_DIMENSIONS.get(vehicle_class)
     if typical is None:
         return None
     off = [d / t for d, t in zip(dims, typical)]
     if any(r < 0.7 or r > 1.3 for r in off):
         return (f"{vehicle_class} of {dims[0]:.2f} x {dims[1]:.2f} x {dims[2]:.2f} m is far from the typical "
-                f"{typical[0]} x {typical[1]} x {typical[2]} m; consider --dimensions")
+                f"{typical[0]} x {typical[1]} x {typical[2]} m; {hint}")
     return None

@@ -23,8 +23,8 @@ from bpy.props import (
 # sized for the largest K we support and the panel shows only the first K entries.
 MAX_LATENT = 16
 
-VEHICLE_CLASSES = ("sedan", "hatchback", "sports", "suv", "van", "pickup", "truck", "bus", "ambulance",
-                   "fire_truck", "garbage_truck", "police", "taxi", "other")
+# The class menu: the one class list of the runner (pure Python, instant to import).
+from adv3d_runner.vehicle_classes import VEHICLE_CLASSES  # noqa: E402
 
 FORWARD_AXES = [
     ("X", "+X", "The model's front points along +X (adv3d convention)"),

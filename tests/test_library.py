@@ -12,7 +12,8 @@ from adv3d_runner.cli import main
 from adv3d_runner.errors import FileFormatError
 from adv3d_runner.shapes.library import (DEFAULT_LIBRARY, VehicleAsset, VehicleLibrary, load_asset_mesh,
                                          load_library, save_library)
-from adv3d_runner.shapes.library_cli import TYPICAL_DIMENSIONS, check_library
+from adv3d_runner.shapes.library_cli import check_library
+from adv3d_runner.vehicle_classes import TYPICAL_DIMENSIONS
 
 # Every road vehicle of the three source packs (race cars are recorded as excluded).
 EXPECTED_SOURCES = {

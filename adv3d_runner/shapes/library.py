@@ -18,13 +18,15 @@ from __future__ import annotations
 
 import copy
 import re
+import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
+from ..errors import ConfigError, MeshImportError
 from ..fileio import REPO_ROOT, write_json
 from ..validate import Node, check_header
-from ..vehicle_classes import CLASS_PATTERN, class_examples
+from ..vehicle_classes import CLASS_PATTERN, class_examples, is_class_name
 
 FORMAT = "adv3d-vehicle-library"
 VERSION = 1
@@ -34,6 +36,8 @@ _ID_RE = re.compile(r"^[a-z0-9][a-z0-9_.-]*$")
 _ASSET_KEYS = ("id", "file", "class", "dimensions", "in_shape_space", "triangle_count",
                "source", "licence", "curation", "cleaning")
 _EXCLUDED_KEYS = ("pack", "file", "reason")
+#: Licence text files looked for beside an imported mesh, in this order.
+LICENCE_NAMES = ("License.txt", "LICENSE.txt", "LICENSE", "Licence.txt", "LICENCE", "license.txt")
 
 
 @dataclass(frozen=True)
@@ -207,6 +211,12 @@ def load_library(path: str | Path = DEFAULT_LIBRARY) -> VehicleLibrary:
     return library_from_json(Node.load(path), path.parent, path)
 
 
+def load_or_new_library(path: str | Path) -> VehicleLibrary:
+    """The library at ``path``, or a new empty one rooted in its folder if there is no file."""
+    path = Path(path)
+    return load_library(path) if path.exists() else VehicleLibrary(root=path.parent)
+
+
 def save_library(library: VehicleLibrary, path: str | Path | None = None) -> Path:
     """Write the library atomically (validated first, so a bad library never reaches disk).
 
@@ -234,3 +244,115 @@ def load_asset_mesh(library: VehicleLibrary, asset_id: str):
     from .mesh_io import read_library_mesh  # trimesh import kept out of module import
 
     return read_library_mesh(library.path_of(asset_id))
+
+
+# ----------------------------------------------------------------------------- adding assets
+
+#: ``read(path) -> (mesh in the convention frame, curation record, cleaning report)``: how a
+#: vehicle file becomes a mesh (``mesh_io.import_vehicle`` for the CLI, Blender's importers
+#: followed by ``mesh_io.convert_vehicle`` in the add-on).
+MeshReader = Callable[[Path], tuple[Any, dict, dict]]
+
+
+def slug(text: str) -> str:
+    """File-name-safe lower-case id part: ``"SportsCar2"`` -> ``"sportscar2"``."""
+    s = re.sub(r"[^a-z0-9._-]+", "-", text.lower()).strip("-.")
+    if not s:
+        raise ConfigError(f"cannot make an id from {text!r}; give an asset id")
+    return s
+
+
+def find_licence(folder: Path) -> Path | None:
+    """The licence text beside a source file (one of :data:`LICENCE_NAMES`), or None."""
+    for name in LICENCE_NAMES:
+        if (folder / name).is_file():
+            return folder / name
+    return None
+
+
+def licence_name_from_text(text: str) -> str | None:
+    """The SPDX name of a licence text we can recognise (CC0, CC-BY 4.0), or None."""
+    t = text.lower()
+    if "cc0" in t or "creative commons zero" in t or "publicdomain/zero" in t:
+        return "CC0-1.0"
+    if "creativecommons.org/licenses/by/4.0" in t:
+        return "CC-BY-4.0"
+    return None
+
+
+def add_asset(library: VehicleLibrary, library_path: str | Path, source: str | Path, vehicle_class: str,
+              read: MeshReader, *, asset_id: str | None = None, pack: str | None = None,
+              licence_file: str | Path | None = None, licence_name: str | None = None, author: str = "",
+              url: str = "", note: str = "", in_shape_space: bool = True) -> VehicleAsset:
+    """Add one vehicle file to ``library`` (or replace the asset with the same id) and save it.
+
+    The one import pipeline behind ``adv3d assets import`` and the add-on's *Import vehicle*:
+    everything that can be refused (class, file, licence) is checked before the mesh is read;
+    the mesh is written to ``<pack>/<name>.glb`` beside ``library_path``; dimensions and
+    triangle count come from the stored file (float32 in glb); the licence text is copied to
+    ``<pack>/``; the library is saved atomically (after each asset, so a failure later keeps
+    earlier work).
+
+    Args:
+        library: the library to add to (modified in place; its ``root`` is the mesh folder).
+        library_path: where to save it (``library.json``).
+        source: the vehicle file.
+        vehicle_class: a lower-case class name (``adv3d_runner.vehicle_classes``).
+        read: turns ``source`` into (mesh, curation record, cleaning report); see
+            :data:`MeshReader`.
+        asset_id: default ``<pack>.<file stem>`` (slugged).
+        pack: source pack folder name; default the source file's folder name.
+        licence_file: licence text; default one of :data:`LICENCE_NAMES` beside ``source``.
+        licence_name: SPDX name; default read from the licence text.
+        author, url: credited in the ``source`` record.
+        note: why the asset was curated this way (``curation.note``).
+        in_shape_space: include the asset in the PCA shape space.
+
+    Returns:
+        the stored :class:`VehicleAsset`.
+
+    Raises:
+        ConfigError: bad class or id, no licence file, unknown licence. MeshImportError: the
+            file is missing or cannot be read as a mesh. FileFormatError: the library would
+            not validate (nothing is written then).
+    """
+    from .mesh_io import mesh_dimensions, read_library_mesh, write_library_glb
+
+    source = Path(source)
+    if not is_class_name(vehicle_class):
+        raise ConfigError(f"the class must be a lower-case name such as sedan or suv (got {vehicle_class!r})")
+    if not source.is_file():
+        raise MeshImportError(f"{source}: no such file")
+    pack = slug(pack or source.parent.name)
+    asset_id = asset_id or f"{pack}.{slug(source.stem)}"
+    if not _ID_RE.match(asset_id):
+        raise ConfigError(f"asset id {asset_id!r}: use lower-case [a-z0-9_.-], starting with a letter or digit")
+    licence_src = Path(licence_file) if licence_file else find_licence(source.parent)
+    if licence_src is None or not licence_src.is_file():
+        raise ConfigError(f"{source}: no licence file beside it; give the licence file (licences travel with meshes)")
+    licence_name = licence_name or licence_name_from_text(licence_src.read_text(errors="replace"))
+    if not licence_name:
+        raise ConfigError(f"{licence_src}: cannot tell the licence from its text; give its name (e.g. CC0-1.0)")
+
+    mesh, curation, report = read(source)
+    rel_file = f"{pack}/{asset_id.split('.', 1)[-1] if asset_id.startswith(pack + '.') else asset_id}.glb"
+    target = library.root / rel_file
+    write_library_glb(mesh, target)
+    stored = read_library_mesh(target)  # dimensions from what is on disk (float32 in glb)
+    lic_rel = f"{pack}/{licence_src.name}"
+    if (library.root / lic_rel).resolve() != licence_src.resolve():
+        (library.root / pack).mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(licence_src, library.root / lic_rel)
+    if note:
+        curation["note"] = note
+    asset = VehicleAsset(
+        id=asset_id, file=rel_file, vehicle_class=vehicle_class,
+        dimensions=tuple(round(v, 4) for v in mesh_dimensions(stored)),
+        source={"pack": pack, "file": source.name, "author": author, "url": url},
+        licence={"name": licence_name, "file": lic_rel},
+        triangle_count=int(len(stored.faces)), cleaning=report, curation=curation,
+        in_shape_space=in_shape_space,
+    )
+    library.put(asset)
+    save_library(library, library_path)
+    return asset

@@ -447,8 +447,12 @@ def library_sdfs(
     truncation: float = DEFAULT_TRUNCATION,
     progress: bool = True,
     mesh_loader: Callable | None = None,
+    on_progress: Callable[[int, int], None] | None = None,
 ) -> tuple[GridSpec, list, np.ndarray]:
     """SDF volumes of every shape-space asset on the common grid.
+
+    ``progress`` shows a terminal bar; ``on_progress(done, total)``, when given, is called
+    instead before each asset and once at the end (the Blender add-on's progress bar).
 
     Returns:
         grid, the assets (``library.shape_space_assets()`` order), sdfs (M, N, N, N) float32,
@@ -472,15 +476,19 @@ def library_sdfs(
     grid = grid_for_dimensions(dims, resolution, truncation)
     sdfs = np.empty((len(assets), resolution, resolution, resolution), dtype=np.float32)
     items = list(zip(assets, meshes))
-    if progress:
+    if progress and on_progress is None:
         from ..progress import progress as bar
 
         items = bar(items, desc=f"SDF {resolution}^3 ({method})", unit="asset")
     for i, (a, mesh) in enumerate(items):
+        if on_progress is not None:
+            on_progress(i, len(assets))
         try:
             sdfs[i] = sdf_volume(mesh.vertices, mesh.faces, grid, method)
         except Adv3dError as exc:
             raise Adv3dError(f"asset {a.id}: {exc}") from None
+    if on_progress is not None:
+        on_progress(len(assets), len(assets))
     return grid, assets, sdfs, library_fingerprint(assets, meshes)
 
 
@@ -492,6 +500,7 @@ def build_shape_space(
     truncation: float = DEFAULT_TRUNCATION,
     progress: bool = True,
     mesh_loader: Callable | None = None,
+    on_progress: Callable[[int, int], None] | None = None,
 ) -> ShapeSpace:
     """Build the shape space over ``library.shape_space_assets()``.
 
@@ -503,8 +512,10 @@ def build_shape_space(
         truncation: SDF clamp, unit-cube units.
         progress: show a progress bar per asset.
         mesh_loader: ``(library, asset_id) -> trimesh.Trimesh``; default ``load_asset_mesh``.
+        on_progress: ``(done, total)`` called per asset instead of the terminal bar.
     """
-    grid, assets, sdfs, fingerprint = library_sdfs(library, resolution, method, truncation, progress, mesh_loader)
+    grid, assets, sdfs, fingerprint = library_sdfs(library, resolution, method, truncation, progress, mesh_loader,
+                                                   on_progress)
     build = {"assets": len(assets), "classes": sorted({a.vehicle_class for a in assets}),
              "library_fingerprint": fingerprint}
     return shape_space_from_sdfs(sdfs, [a.id for a in assets], grid, k, method, build)
