@@ -25,7 +25,7 @@ import numpy as np
 
 from ..fileio import read_json, write_json
 from ..validate import Node, check_header
-from ..vehicle_classes import CLASS_PATTERN, VEHICLE_CLASSES, class_examples
+from ..vehicle_classes import CLASS_PATTERN, class_examples
 
 FORMAT = "adv3d-scene"
 VERSION = 1
@@ -33,8 +33,7 @@ SUPPORTED_VERSIONS = (1,)
 
 SOURCE_KINDS = ("generated", "commonroad", "blender")
 # Actor classes: any lower-case identifier (``CLASS_PATTERN``); the known ones are the one list
-# in ``adv3d_runner.vehicle_classes`` (shared with the vehicle library and the add-on).
-ACTOR_CLASSES = VEHICLE_CLASSES
+# ``adv3d_runner.vehicle_classes.VEHICLE_CLASSES`` (shared with the vehicle library and the add-on).
 BARRIER_KINDS = ("concrete", "guardrail")
 SURFACE_KINDS_FOR_MESHES = ("asphalt", "concrete", "metal", "ground", "vegetation")
 
