@@ -66,13 +66,23 @@ class Node:
         present: False for an optional field that is absent (``value`` is then the default).
     """
 
-    __slots__ = ("value", "path", "file", "present")
+    __slots__ = ("value", "file", "present", "_path", "_parent", "_key")
 
-    def __init__(self, value: Any, path: str = "$", file: str | Path | None = None, present: bool = True):
+    def __init__(self, value: Any, path: str | None = "$", file: str | Path | None = None, present: bool = True):
         self.value = value
-        self.path = path
         self.file = file
         self.present = present
+        self._path = path
+        self._parent: Node | None = None
+        self._key: str | int | None = None
+
+    @property
+    def path(self) -> str:
+        """The JSON path, built on first use (most nodes are never named in an error)."""
+        if self._path is None:
+            key = self._key
+            self._path = f"{self._parent.path}[{key}]" if isinstance(key, int) else f"{self._parent.path}.{key}"
+        return self._path
 
     @classmethod
     def load(cls, file: str | Path) -> "Node":
@@ -91,7 +101,10 @@ class Node:
     # ------------------------------------------------------------------ navigation
     def child(self, key: str | int, value: Any = None) -> "Node":
         """A node for ``value`` at ``self.path.key`` / ``self.path[key]`` (no checks)."""
-        return Node(value, f"{self.path}[{key}]" if isinstance(key, int) else f"{self.path}.{key}", self.file)
+        node = Node(value, None, self.file)
+        node._parent = self
+        node._key = key
+        return node
 
     def __getitem__(self, key: str | int) -> "Node":
         """A required field of an object (``str`` key) or an item of a list (``int``)."""
