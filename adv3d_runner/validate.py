@@ -25,7 +25,7 @@ from __future__ import annotations
 import json
 import math
 import zipfile
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Any, Iterable, NoReturn, Sequence
 
 import numpy as np
@@ -35,8 +35,6 @@ from .fileio import read_json
 
 #: What a missing required field expects (one wording for every contract).
 MISSING = "a value (field is missing)"
-
-_ABSENT = object()  # marks a field that is not in the file (distinct from JSON null)
 
 
 def describe(value: Any) -> Any:
@@ -130,9 +128,6 @@ class Node:
     def __contains__(self, key: str) -> bool:
         return isinstance(self.value, dict) and key in self.value
 
-    def keys(self) -> list[str]:
-        return list(self.object())
-
     # ------------------------------------------------------------------ containers
     def object(self, expected: str = "an object") -> dict:
         """The value as a JSON object (``dict``)."""
@@ -185,9 +180,9 @@ class Node:
         if not math.isfinite(v):
             self.fail("a finite number", v)
         if lo is not None and (v < lo or (lo_open and v == lo)):
-            self.fail(expected or f"a number {'>' if lo_open else '>='} {lo}", describe(v))
+            self.fail(expected or f"a number {'>' if lo_open else '>='} {lo}", v)
         if hi is not None and v > hi:
-            self.fail(expected or f"a number <= {hi}", describe(v))
+            self.fail(expected or f"a number <= {hi}", v)
         return float(v)
 
     def integer(self, *, lo: int | None = None, hi: int | None = None, expected: str | None = None) -> int:
@@ -300,8 +295,6 @@ class Node:
 
     def rel_path(self, *, inside: str = "the folder of the file") -> str:
         """A relative POSIX path that stays inside a folder (no ``..``, not absolute, no ``\\``)."""
-        from pathlib import PurePosixPath
-
         v = self.value
         if not isinstance(v, str) or not v:
             self.fail("a relative file path (string)", v)
@@ -311,24 +304,21 @@ class Node:
         return v
 
 
-def check_header(doc: Node | Any, fmt: str, supported_versions: Sequence[int] | None,
-                 file: str | Path | None = None) -> int | None:
+def check_header(doc: Node | Any, fmt: str, supported_versions: Sequence[int],
+                 file: str | Path | None = None) -> int:
     """Check the ``format`` / ``version`` header every contract file carries.
 
     Args:
         doc: the document as a :class:`Node` (or a raw value, with ``file`` to name).
         fmt: the expected ``format`` string.
-        supported_versions: versions this code reads; None skips the version check (files
-            whose version was never checked before).
+        supported_versions: versions this code reads.
     Returns:
-        the file's version (None when not checked).
+        the file's version.
     """
     node = doc if isinstance(doc, Node) else Node(doc, "$", file)
     obj = node.object("a JSON object")
     if obj.get("format") != fmt:
         node.child("format").fail(f'"{fmt}"', obj.get("format"))
-    if supported_versions is None:
-        return None
     version = obj.get("version")
     if isinstance(version, bool) or version not in supported_versions:
         node.child("version").fail(f"one of {list(supported_versions)}", version)
