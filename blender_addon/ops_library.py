@@ -16,7 +16,7 @@ import numpy as np
 from bpy.props import EnumProperty, FloatProperty, StringProperty
 from bpy_extras.io_utils import ImportHelper
 
-from adv3d_runner.vehicle_classes import VEHICLE_CLASSES
+from adv3d_runner.vehicle_classes import VEHICLE_CLASSES, plausibility_warning
 
 from . import meshdata, runner
 
@@ -376,11 +376,10 @@ class ADV3D_OT_library_import(bpy.types.Operator, ImportHelper):
         except runner.Adv3dError as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
-        from adv3d_runner.vehicle_classes import plausibility_warning
-
         L, W, H = asset.dimensions
         self.report({"INFO"}, f"{asset.id}: {L:.2f} x {W:.2f} x {H:.2f} m, {asset.triangle_count} triangles")
-        warning = plausibility_warning(asset.vehicle_class, asset.dimensions, hint="consider Real length or Set real size")
+        warning = plausibility_warning(asset.vehicle_class, asset.dimensions,
+                                       hint="consider Real length or Set real size")
         if warning:
             self.report({"WARNING"}, warning)
         return {"FINISHED"}

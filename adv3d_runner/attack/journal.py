@@ -173,7 +173,9 @@ class Journal:
 
     def read_summary(self) -> dict:
         path = self.root / "summary.json"
-        return _read_doc(path, SUMMARY_FORMAT) if path.exists() else {"format": SUMMARY_FORMAT, "version": VERSION, "scenes": {}}
+        if not path.exists():
+            return {"format": SUMMARY_FORMAT, "version": VERSION, "scenes": {}}
+        return _read_doc(path, SUMMARY_FORMAT)
 
 
 def _read_doc(path: Path, fmt: str) -> dict:

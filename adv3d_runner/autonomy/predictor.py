@@ -594,7 +594,8 @@ def load_predictor(path: str | Path = DEFAULT_MODEL_DIR, threads: int | None = 1
         raw.child("num_features").fail(str(NUM_FEATURES), config.num_features)
     feats = doc.get("features", {})
     layout = feats.object()
-    if list(layout.get("lane_offsets_m", LANE_OFFSETS.tolist())) != LANE_OFFSETS.tolist() or layout.get("history", HISTORY) != HISTORY:
+    if (list(layout.get("lane_offsets_m", LANE_OFFSETS.tolist())) != LANE_OFFSETS.tolist()
+            or layout.get("history", HISTORY) != HISTORY):
         feats.fail("the feature layout of this code version", layout)
     w_path = path / doc.get("weights", WEIGHTS_NAME).string()
     if not w_path.is_file():

@@ -479,7 +479,8 @@ def _load_track(t: Node, frames: int, *, full: bool) -> Track:
     if start + n > frames:
         t["x"].fail(f"at most {frames - start} values (start {start} + length <= frames {frames})", f"{n} items")
     if full and (start != 0 or n != frames):
-        t["x"].fail(f"{frames} values starting at frame 0 (the ego track covers every frame)", f"start {start}, {n} items")
+        t["x"].fail(f"{frames} values starting at frame 0 (the ego track covers every frame)",
+                    f"start {start}, {n} items")
     y = t["y"].numbers(length=n)
     yaw = t["yaw"].numbers(length=n)
     bad = np.flatnonzero((yaw < -math.pi - 1e-3) | (yaw > math.pi + 1e-3))
