@@ -93,19 +93,3 @@ def read_json(path: str | Path) -> Any:
         return json.loads(raw.decode("utf-8"))
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise FileFormatError(path, "$", "valid UTF-8 JSON", str(exc)) from None
-
-
-def check_header(doc: Any, path: str | Path | None, fmt: str, supported_versions: tuple[int, ...]) -> int:
-    """Check the ``format`` / ``version`` header every contract file carries.
-
-    Returns:
-        the file's version.
-    """
-    if not isinstance(doc, dict):
-        raise FileFormatError(path, "$", "a JSON object", type(doc).__name__)
-    if doc.get("format") != fmt:
-        raise FileFormatError(path, "$.format", f'"{fmt}"', doc.get("format"))
-    version = doc.get("version")
-    if version not in supported_versions:
-        raise FileFormatError(path, "$.version", f"one of {list(supported_versions)}", version)
-    return int(version)

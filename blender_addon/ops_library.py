@@ -16,8 +16,9 @@ import numpy as np
 from bpy.props import EnumProperty, FloatProperty, StringProperty
 from bpy_extras.io_utils import ImportHelper
 
+from adv3d_runner.vehicle_classes import VEHICLE_CLASSES, plausibility_warning
+
 from . import meshdata, runner
-from .props import VEHICLE_CLASSES
 
 ASSET_COLLECTION = "Adv3D Library"
 
@@ -277,78 +278,54 @@ def _remove_objects(objects) -> None:
             bpy.data.meshes.remove(data)
 
 
+def blender_reader(forward: str, length: float):
+    """A ``MeshReader`` for ``add_asset``: the file through Blender's own importer, then the
+    runner's conversion and cleaning (``mesh_io.convert_vehicle``), so an asset added here is
+    stored exactly like one added by ``adv3d assets import``.
+
+    Args:
+        forward: the panel's front axis (``"X"``, ``"NEG_Y"``, ...).
+        length: real length in m to scale to (uniformly); 0 keeps the file's size.
+    """
+    import trimesh
+    from adv3d_runner.shapes.mesh_io import convert_vehicle
+
+    def read(path: Path):
+        objects = _import_objects(path)
+        try:
+            vertices, faces = objects_arrays(objects)
+        finally:
+            _remove_objects(objects)
+        raw = trimesh.Trimesh(vertices=vertices, faces=faces, process=False)
+        # Blender's importers already brought the model to Z up and metres.
+        return convert_vehicle(raw, "blender", path.suffix.lower()[1:], up="+z", forward=_FORWARD[forward],
+                               unit="m", length=length if length > 0 else None)
+
+    return read
+
+
 def import_vehicle_file(lib_props, path: Path, vehicle_class: str, forward: str, length: float,
                         licence_name: str = "", licence_file: str = "", asset_id: str = "", pack: str = ""):
-    """Import one vehicle file through Blender into the library (mesh written, library saved).
-
-    The mesh goes through the runner's own conversion and cleaning
-    (``mesh_io.to_convention``, ``cleaning.clean_mesh``), so an asset added here is stored
-    exactly like one added by ``adv3d assets import``.
+    """Import one vehicle file through Blender into the library (``add_asset``: mesh written,
+    library saved) and show the library with the new asset active.
 
     Returns:
         the new ``VehicleAsset``.
     """
-    import shutil
-
-    import trimesh
     from adv3d_runner.errors import ConfigError
-    from adv3d_runner.shapes.cleaning import clean_mesh
-    from adv3d_runner.shapes.library import VehicleAsset, VehicleLibrary, load_library, save_library
-    from adv3d_runner.shapes.library_cli import find_licence, licence_name_from_text, slug
-    from adv3d_runner.shapes.mesh_io import (
-        mesh_dimensions, read_library_mesh, scale_to_dimensions, to_convention, write_library_glb)
+    from adv3d_runner.shapes.library import add_asset, load_or_new_library
 
-    lib_path = Path(bpy.path.abspath(lib_props.path))
     if not lib_props.path:
         raise ConfigError("set the library file (library.json) first")
-    library = load_library(lib_path) if lib_path.exists() else VehicleLibrary(root=lib_path.parent)
+    lib_path = Path(bpy.path.abspath(lib_props.path))
+    library = load_or_new_library(lib_path)
     if path.suffix.lower() not in IMPORT_SUFFIXES:
         raise _mesh_error(f"{path}: unsupported file type (use {', '.join(IMPORT_SUFFIXES)})")
-    if not path.is_file():
-        raise _mesh_error(f"{path}: no such file")
-    lic_src = Path(licence_file) if licence_file else find_licence(path.parent)
-    if lic_src is None or not lic_src.is_file():
-        raise ConfigError(f"{path}: no licence file beside it; choose one (licences travel with meshes)")
-    lic_name = licence_name or licence_name_from_text(lic_src.read_text(errors="replace"))
-    if not lic_name:
-        raise ConfigError(f"{lic_src}: cannot tell the licence from its text; enter its name")
-
-    objects = _import_objects(path)
-    try:
-        vertices, faces = objects_arrays(objects)
-    finally:
-        _remove_objects(objects)
-    raw = trimesh.Trimesh(vertices=vertices, faces=faces, process=False)
-    # Blender's importers already brought the model to Z up and metres.
-    mesh, curation = to_convention(raw, up="+z", forward=_FORWARD[forward], unit="m")
-    curation = {"reader": "blender", "file_format": path.suffix.lower()[1:], **curation,
-                "size_after_unit_conversion": [round(v, 4) for v in mesh_dimensions(mesh)]}
-    mesh, report = clean_mesh(mesh)
-    if length > 0:
-        size = np.array(mesh_dimensions(mesh))
-        mesh, scaled = scale_to_dimensions(mesh, tuple(size * (length / size[0])))
-        curation.update(scaled)
-        curation["scaled_to_length"] = float(length)
-    pack = slug(pack or path.parent.name)
-    asset_id = asset_id or f"{pack}.{slug(path.stem)}"
-    rel_file = f"{pack}/{slug(path.stem)}.glb"
-    target = library.root / rel_file
-    write_library_glb(mesh, target)
-    stored = read_library_mesh(target)
-    lic_rel = f"{pack}/{lic_src.name}"
-    if (library.root / lic_rel).resolve() != lic_src.resolve():
-        (library.root / pack).mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(lic_src, library.root / lic_rel)
-    asset = VehicleAsset(
-        id=asset_id, file=rel_file, vehicle_class=vehicle_class,
-        dimensions=tuple(round(v, 4) for v in mesh_dimensions(stored)),
-        source={"pack": pack, "file": path.name}, licence={"name": lic_name, "file": lic_rel},
-        triangle_count=int(len(stored.faces)), cleaning=report, curation=curation, in_shape_space=True,
-    )
-    library.put(asset)
-    save_library(library, lib_path)
+    asset = add_asset(library, lib_path, path, vehicle_class, blender_reader(forward, length),
+                      asset_id=asset_id or None, pack=pack or None, licence_file=licence_file or None,
+                      licence_name=licence_name or None)
     fill_props(lib_props, library)
-    lib_props.active_index = library.ids().index(asset_id)
+    lib_props.active_index = library.ids().index(asset.id)
     return asset
 
 
@@ -401,6 +378,10 @@ class ADV3D_OT_library_import(bpy.types.Operator, ImportHelper):
             return {"CANCELLED"}
         L, W, H = asset.dimensions
         self.report({"INFO"}, f"{asset.id}: {L:.2f} x {W:.2f} x {H:.2f} m, {asset.triangle_count} triangles")
+        warning = plausibility_warning(asset.vehicle_class, asset.dimensions,
+                                       hint="consider Real length or Set real size")
+        if warning:
+            self.report({"WARNING"}, warning)
         return {"FINISHED"}
 
 

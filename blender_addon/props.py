@@ -18,13 +18,13 @@ from bpy.props import (
     StringProperty,
 )
 
+# The class menus use the runner's one class list (pure Python, instant to import).
+from adv3d_runner.vehicle_classes import VEHICLE_CLASSES
+
 # Room for the latent sliders: K shape dimensions (the paper uses K = 3); the width and length
 # scales have their own properties. A vector property has a fixed size at registration, so it is
 # sized for the largest K we support and the panel shows only the first K entries.
 MAX_LATENT = 16
-
-VEHICLE_CLASSES = ("sedan", "hatchback", "sports", "suv", "van", "pickup", "truck", "bus", "ambulance",
-                   "fire_truck", "garbage_truck", "police", "taxi", "other")
 
 FORWARD_AXES = [
     ("X", "+X", "The model's front points along +X (adv3d convention)"),

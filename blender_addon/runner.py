@@ -54,32 +54,10 @@ def unit_vector(latent: np.ndarray | list[float], k: int, width_scale: float, le
 
 def build_space(library, options: dict, callback) -> Any:
     """``build_shape_space(library, **options)`` reporting per-asset progress to
-    ``callback(done, total)`` (the Blender progress bar) instead of a terminal bar.
-
-    The runner's builder takes ``progress: bool`` and wraps its per-asset loop in
-    ``adv3d_runner.progress.progress``; that function is swapped for the duration of the call.
-    """
-    import adv3d_runner.progress as runner_progress
+    ``callback(done, total)`` (the Blender progress bar) instead of a terminal bar."""
     from adv3d_runner.shapes.shape_space import build_shape_space
 
-    original = runner_progress.progress
-
-    def report(iterable, desc, total=None, unit="it"):
-        items = list(iterable)
-
-        def gen():
-            for i, item in enumerate(items):
-                callback(i, len(items))
-                yield item
-            callback(len(items), len(items))
-
-        return gen()
-
-    runner_progress.progress = report
-    try:
-        return build_shape_space(library, progress=True, **options)
-    finally:
-        runner_progress.progress = original
+    return build_shape_space(library, progress=False, on_progress=callback, **options)
 
 
 def save_space(space, path: str | os.PathLike) -> Path:

@@ -12,7 +12,8 @@ from adv3d_runner.cli import main
 from adv3d_runner.errors import FileFormatError
 from adv3d_runner.shapes.library import (DEFAULT_LIBRARY, VehicleAsset, VehicleLibrary, load_asset_mesh,
                                          load_library, save_library)
-from adv3d_runner.shapes.library_cli import TYPICAL_DIMENSIONS, check_library
+from adv3d_runner.shapes.library_cli import check_library
+from adv3d_runner.vehicle_classes import TYPICAL_DIMENSIONS
 
 # Every road vehicle of the three source packs (race cars are recorded as excluded).
 EXPECTED_SOURCES = {
@@ -263,3 +264,57 @@ def test_build_script_reproduces_the_shipped_library_byte_for_byte(repo_root, tm
     assert built_files == shipped_files
     for rel in shipped_files:
         assert (tmp_path / rel).read_bytes() == (DEFAULT_LIBRARY.parent / rel).read_bytes(), rel
+
+
+# ----------------------------------------------------------------------------- add_asset (CLI and add-on)
+
+def test_add_asset_checks_before_reading_and_stores_like_the_cli(tmp_path):
+    from adv3d_runner.errors import ConfigError, MeshImportError
+    from adv3d_runner.shapes.library import add_asset, load_or_new_library
+    from adv3d_runner.shapes.mesh_io import import_vehicle
+
+    src = tmp_path / "src" / "Toy Pack"
+    src.mkdir(parents=True)
+    _write_car_cm(src / "ToyCar.obj")
+    reads = []
+
+    def read(path):
+        reads.append(path)
+        return import_vehicle(path, up="+z", forward="+x")
+
+    lib_path = tmp_path / "lib" / "library.json"
+    library = load_or_new_library(lib_path)
+    with pytest.raises(ConfigError, match="licence"):
+        add_asset(library, lib_path, src / "ToyCar.obj", "sedan", read)
+    (src / "LICENSE.txt").write_text("CC0 1.0 Universal\n")
+    with pytest.raises(ConfigError, match="class"):
+        add_asset(library, lib_path, src / "ToyCar.obj", "Sedan!", read)
+    with pytest.raises(ConfigError, match="asset id"):
+        add_asset(library, lib_path, src / "ToyCar.obj", "sedan", read, asset_id="Bad Id")
+    with pytest.raises(MeshImportError, match="nothing.obj"):
+        add_asset(library, lib_path, src / "nothing.obj", "sedan", read)
+    assert reads == [] and not lib_path.exists()  # refused before any work, nothing written
+
+    asset = add_asset(library, lib_path, src / "ToyCar.obj", "sedan", read, note="why", author="me")
+    assert reads == [src / "ToyCar.obj"]
+    assert (asset.id, asset.file) == ("toy-pack.toycar", "toy-pack/toycar.glb")
+    assert asset.source == {"pack": "toy-pack", "file": "ToyCar.obj", "author": "me", "url": ""}
+    assert asset.licence == {"name": "CC0-1.0", "file": "toy-pack/LICENSE.txt"}
+    assert asset.curation["note"] == "why" and asset.in_shape_space
+    assert load_library(lib_path).assets == [asset]
+    assert load_asset_mesh(load_library(lib_path), asset.id).extents == pytest.approx(asset.dimensions, abs=1e-4)
+
+    # a second id from the same file gets its own mesh file; the same id replaces in place
+    other = add_asset(library, lib_path, src / "ToyCar.obj", "hatchback", read, asset_id="toy-pack.small",
+                      in_shape_space=False)
+    assert other.file == "toy-pack/small.glb" and (lib_path.parent / other.file).is_file()
+    again = add_asset(library, lib_path, src / "ToyCar.obj", "suv", read)
+    assert load_library(lib_path).ids() == ["toy-pack.toycar", "toy-pack.small"]
+    assert load_library(lib_path).get("toy-pack.toycar") == again
+
+    # the CLI runs the same pipeline: same record, same bytes
+    cli_lib = tmp_path / "cli" / "library.json"
+    assert main(["-q", "assets", "import", str(src / "ToyCar.obj"), "--class", "sedan", "--library", str(cli_lib),
+                 "--up=+z", "--forward=+x", "--note", "why", "--author", "me"]) == 0
+    assert load_library(cli_lib).assets == [asset]
+    assert (cli_lib.parent / asset.file).read_bytes() == (tmp_path / "lib" / asset.file).read_bytes()

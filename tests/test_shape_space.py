@@ -139,6 +139,18 @@ def test_common_scale_is_from_shape_space_assets(space, library):
     assert "bus" not in sp.asset_ids
 
 
+def test_build_reports_progress_through_the_callback(library):
+    """``on_progress(done, total)`` before each asset and at the end (the add-on's progress bar);
+    the space is the same as without it."""
+    calls = []
+    sp = build_shape_space(library, resolution=16, k=2, progress=True, mesh_loader=loader,
+                           on_progress=lambda done, total: calls.append((done, total)))
+    n = len(library.shape_space_assets())
+    assert calls == [(i, n) for i in range(n + 1)]
+    plain = build_shape_space(library, resolution=16, k=2, progress=False, mesh_loader=loader)
+    assert sp.to_bytes() == plain.to_bytes()
+
+
 def test_rebuild_is_byte_identical(library, tmp_path):
     a = build_shape_space(library, resolution=RES, k=3, progress=False, mesh_loader=loader)
     b = build_shape_space(library, resolution=RES, k=3, progress=False, mesh_loader=loader)

@@ -30,7 +30,8 @@ from typing import Any, Iterable
 import numpy as np
 
 from ..errors import ConfigError, FileFormatError
-from ..fileio import read_json, write_json
+from ..fileio import write_json
+from ..validate import Node, check_header
 
 RUN_FORMAT = "adv3d.attack_run"
 SUMMARY_FORMAT = "adv3d.attack_summary"
@@ -108,9 +109,7 @@ class Journal:
         run_path = self.root / "run.json"
         doc = _clean({"format": RUN_FORMAT, "version": VERSION, **config})
         if run_path.exists():
-            old = read_json(run_path)
-            if not isinstance(old, dict) or old.get("format") != RUN_FORMAT:
-                raise FileFormatError(run_path, "$.format", RUN_FORMAT, old.get("format") if isinstance(old, dict) else old)
+            old = _read_doc(run_path, RUN_FORMAT)
             diff = sorted(k for k in set(old) | set(doc)
                           if k not in RESUME_FREE_KEYS and k != "versions" and old.get(k) != doc.get(k))
             if diff:
@@ -174,7 +173,16 @@ class Journal:
 
     def read_summary(self) -> dict:
         path = self.root / "summary.json"
-        return read_json(path) if path.exists() else {"format": SUMMARY_FORMAT, "version": VERSION, "scenes": {}}
+        if not path.exists():
+            return {"format": SUMMARY_FORMAT, "version": VERSION, "scenes": {}}
+        return _read_doc(path, SUMMARY_FORMAT)
+
+
+def _read_doc(path: Path, fmt: str) -> dict:
+    """A run-bundle JSON file (run.json, summary.json) with its format/version header checked."""
+    doc = Node.load(path)
+    check_header(doc, fmt, (VERSION,))
+    return doc.value
 
 
 def read_run(root: str | Path) -> tuple[dict, list[dict], dict]:
@@ -183,9 +191,7 @@ def read_run(root: str | Path) -> tuple[dict, list[dict], dict]:
     run_path = root / "run.json"
     if not run_path.exists():
         raise ConfigError(f"{root} is not an attack run folder (no run.json)")
-    run = read_json(run_path)
-    if not isinstance(run, dict) or run.get("format") != RUN_FORMAT:
-        raise FileFormatError(run_path, "$.format", RUN_FORMAT, run.get("format") if isinstance(run, dict) else run)
+    run = _read_doc(run_path, RUN_FORMAT)
     j = Journal(root)
     j.load(repair=False)
     return run, j.records, j.read_summary()

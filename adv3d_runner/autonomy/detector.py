@@ -26,7 +26,7 @@ from __future__ import annotations
 import json
 import math
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -37,6 +37,7 @@ from torch import nn
 from ..errors import ConfigError, FileFormatError
 from ..fileio import REPO_ROOT
 from ..geometry.boxes import iou_pairwise
+from ..validate import Node, check_header
 from .interface import Detections
 
 DEFAULT_MODEL_DIR = REPO_ROOT / "assets" / "models" / "detector"
@@ -119,15 +120,15 @@ class DetectorConfig:
         return {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}
 
     @classmethod
-    def from_dict(cls, d: dict, path: str | Path | None = None) -> "DetectorConfig":
-        known = {f for f in cls.__dataclass_fields__}
-        unknown = sorted(set(d) - known)
-        if unknown:
-            raise FileFormatError(path, f"$.detector.{unknown[0]}", f"one of {sorted(known)}", unknown[0])
+    def from_dict(cls, d: dict | Node, path: str | Path | None = None) -> "DetectorConfig":
+        """Build from the ``detector`` object of a model's config.json (unknown keys refused)."""
+        node = d if isinstance(d, Node) else Node(d, "$.detector", path)
+        node.object("an object of detector parameters")
+        node.check_keys(cls.__dataclass_fields__)
         try:
-            return cls(**d)
+            return cls(**node.value)
         except (TypeError, ValueError) as exc:
-            raise FileFormatError(path, "$.detector", "valid detector parameters", str(exc)) from None
+            node.fail("valid detector parameters", str(exc))
 
 
 # ----------------------------------------------------------------------------- numpy parts
@@ -468,21 +469,17 @@ def load_detector(path: str | Path = DEFAULT_MODEL_DIR, threads: int | None = 1,
         FileFormatError: missing/invalid config, or weights that are not a plain tensor
             state_dict (anything needing pickle is refused by ``weights_only=True``).
     """
-    from ..fileio import check_header, read_json
-
     path = Path(path)
     cfg_path = path / CONFIG_NAME if path.is_dir() else path
     if not cfg_path.is_file():
         raise FileFormatError(cfg_path, "$", "a detector config.json (train one with `adv3d train detector`)",
                               "no such file")
-    doc = read_json(cfg_path)
-    check_header(doc, cfg_path, CONFIG_FORMAT, (CONFIG_VERSION,))
-    if not isinstance(doc.get("detector"), dict):
-        raise FileFormatError(cfg_path, "$.detector", "an object of detector parameters", type(doc.get("detector")).__name__)
-    params = dict(doc["detector"])
-    params.update(overrides)
-    cfg = DetectorConfig.from_dict(params, cfg_path)
-    weights = cfg_path.parent / str(doc.get("weights", WEIGHTS_NAME))
+    doc = Node.load(cfg_path)
+    check_header(doc, CONFIG_FORMAT, (CONFIG_VERSION,))
+    params = doc["detector"]
+    params = Node({**params.object("an object of detector parameters"), **overrides}, params.path, cfg_path)
+    cfg = DetectorConfig.from_dict(params)
+    weights = cfg_path.parent / doc.get("weights", WEIGHTS_NAME).string()
     net = PixorNet(cfg)
     try:
         state = torch.load(weights, map_location="cpu", weights_only=True)

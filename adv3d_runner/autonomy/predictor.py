@@ -36,7 +36,6 @@ Weights are a plain ``state_dict`` (``torch.load(weights_only=True)``) next to a
 """
 from __future__ import annotations
 
-import json
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -45,6 +44,7 @@ import numpy as np
 from ..errors import FileFormatError
 from ..fileio import REPO_ROOT
 from ..scene.lanemap import LaneIndex, LaneMap
+from ..validate import Node, check_header
 from .interface import DT, PREDICTION_STEPS, Predictions, Tracks
 
 DEFAULT_MODEL_DIR = REPO_ROOT / "assets" / "models" / "predictor"
@@ -368,24 +368,21 @@ def load_predictor(path: str | Path = DEFAULT_MODEL_DIR, threads: int | None = 1
     cfg_path = path / CONFIG_NAME
     if not cfg_path.is_file():
         raise FileFormatError(str(cfg_path), "$", "a predictor config.json (train one with `adv3d train predictor`)", "no file")
-    doc = json.loads(cfg_path.read_text())
-    if not isinstance(doc, dict) or doc.get("format") != MODEL_FORMAT:
-        raise FileFormatError(str(cfg_path), "$.format", repr(MODEL_FORMAT), doc.get("format") if isinstance(doc, dict) else type(doc).__name__)
-    if doc.get("version") != MODEL_VERSION:
-        raise FileFormatError(str(cfg_path), "$.version", str(MODEL_VERSION), doc.get("version"))
-    raw = doc.get("config")
-    if not isinstance(raw, dict):
-        raise FileFormatError(str(cfg_path), "$.config", "an object", type(raw).__name__)
+    doc = Node.load(cfg_path)
+    check_header(doc, MODEL_FORMAT, (MODEL_VERSION,))
+    raw = doc["config"]
     try:
-        config = PredictorConfig(**raw)
+        config = PredictorConfig(**raw.object())
     except TypeError as exc:
-        raise FileFormatError(str(cfg_path), "$.config", "PredictorConfig fields", str(exc)) from exc
+        raw.fail("PredictorConfig fields", str(exc))
     if config.num_features != NUM_FEATURES:
-        raise FileFormatError(str(cfg_path), "$.config.num_features", str(NUM_FEATURES), config.num_features)
+        raw.child("num_features").fail(str(NUM_FEATURES), config.num_features)
     feats = doc.get("features", {})
-    if list(feats.get("lane_offsets_m", LANE_OFFSETS.tolist())) != LANE_OFFSETS.tolist() or feats.get("history", HISTORY) != HISTORY:
-        raise FileFormatError(str(cfg_path), "$.features", "the feature layout of this code version", feats)
-    w_path = path / str(doc.get("weights", WEIGHTS_NAME))
+    layout = feats.object()
+    if (list(layout.get("lane_offsets_m", LANE_OFFSETS.tolist())) != LANE_OFFSETS.tolist()
+            or layout.get("history", HISTORY) != HISTORY):
+        feats.fail("the feature layout of this code version", layout)
+    w_path = path / doc.get("weights", WEIGHTS_NAME).string()
     if not w_path.is_file():
         raise FileFormatError(str(w_path), "$", "predictor weights", "no file")
     try:

@@ -15,7 +15,6 @@ with the car's front along Blender +X. :func:`read_library_mesh` undoes that.
 """
 from __future__ import annotations
 
-import io
 import subprocess
 import sys
 import tempfile
@@ -368,11 +367,33 @@ def import_vehicle(path: str | Path, up: str | None = None, forward: str | None 
     Returns:
         (mesh in the convention frame, curation record, cleaning report).
     """
+    mesh, info = read_mesh(path)
+    return convert_vehicle(mesh, info["reader"], info["format"][1:], up=up, forward=forward, unit=unit,
+                           native_up=info["native_up"], dimensions=dimensions, clean=clean)
+
+
+def convert_vehicle(mesh, reader: str, file_format: str, *, up: str | None = None, forward: str | None = None,
+                    unit: str = "auto", native_up: str | None = None,
+                    dimensions: tuple[float, float, float] | None = None, length: float | None = None,
+                    clean: bool = True) -> tuple[Any, dict, dict]:
+    """Convert a mesh as read from a file (by trimesh, or by Blender in the add-on) into the
+    convention frame, clean it and (optionally) scale it: the one recipe behind every import.
+
+    Args:
+        mesh: ``trimesh.Trimesh`` in its file frame.
+        reader, file_format: recorded in the curation record (``"trimesh"``, ``"glb"``).
+        up, forward, unit, native_up: see :func:`to_convention`.
+        dimensions: (L, W, H) m to scale to, anisotropically (records ``size_before_scaling``,
+            ``scale_factors``).
+        length: m to scale to uniformly, after cleaning (records ``scaled_to_length`` too).
+
+    Returns:
+        (mesh in the convention frame, curation record, cleaning report).
+    """
     from .cleaning import clean_mesh
 
-    mesh, info = read_mesh(path)
-    converted, record = to_convention(mesh, up=up, forward=forward, unit=unit, native_up=info["native_up"])
-    curation: dict = {"reader": info["reader"], "file_format": info["format"][1:], **record,
+    converted, record = to_convention(mesh, up=up, forward=forward, unit=unit, native_up=native_up)
+    curation: dict = {"reader": reader, "file_format": file_format, **record,
                       "size_after_unit_conversion": [round(v, 4) for v in mesh_dimensions(converted)]}
     report: dict = {}
     if clean:
@@ -380,6 +401,11 @@ def import_vehicle(path: str | Path, up: str | None = None, forward: str | None 
     if dimensions is not None:
         converted, scaled = scale_to_dimensions(converted, dimensions)
         curation.update(scaled)
+    if length is not None:
+        size = np.array(mesh_dimensions(converted))
+        converted, scaled = scale_to_dimensions(converted, tuple(size * (length / size[0])))
+        curation.update(scaled)
+        curation["scaled_to_length"] = float(length)
     return converted, curation, report
 
 

@@ -51,8 +51,10 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from ..errors import ConfigError, FileFormatError
+from ..errors import ConfigError
 from ..fileio import REPO_ROOT, atomic_write_bytes
+from ..validate import check_header, read_npz
+from ..vehicle_classes import DIMENSION_RANGES
 from .cleaning import connected_vertex_parts
 from .decode import MIN_PART_FRACTION, extract_surface
 from .sdf import GridSpec
@@ -102,31 +104,7 @@ _MEMBERS = ("meta", "histogram", "points", "asset_ids")
 
 # ----------------------------------------------------------------------------- real dimensions
 
-#: Real (length, width, height) ranges in metres per vehicle class, each (low, high). Widths
-#: are body widths without mirrors. Sources (docs/realism.md has the full table):
-#:
-#: * legal limits: EU Council Directive 96/53/EC, Annex I (width 2.55 m, 2.60 m for
-#:   conditioned bodies; height 4.00 m; rigid motor vehicle 12.00 m; bus 13.5 m with two
-#:   axles, 15 m with more, articulated 18.75 m); US 23 CFR 658.15 (width 102 in = 2.59 m);
-#:   Japanese kei car category (3.40 x 1.48 x 2.00 m), the smallest highway-legal cars;
-#: * smallest and largest production examples per class, from the manufacturers' published
-#:   dimensions (named in docs/realism.md, e.g. Smart Fortwo 2.69 m long, Lotus Elise 1.12 m
-#:   high, Chevrolet Suburban 5.73 x 2.06 m, Mercedes-Benz Sprinter 7.37 m).
-DIMENSION_RANGES: dict[str, tuple[tuple[float, float], tuple[float, float], tuple[float, float]]] = {
-    "sedan": ((4.0, 5.4), (1.65, 1.97), (1.35, 1.60)),
-    "hatchback": ((2.5, 4.5), (1.47, 1.85), (1.38, 1.80)),
-    "sports": ((3.7, 4.9), (1.70, 2.05), (1.05, 1.40)),
-    "suv": ((3.4, 5.8), (1.60, 2.10), (1.55, 2.00)),
-    "van": ((4.2, 7.4), (1.70, 2.10), (1.70, 3.10)),
-    "pickup": ((4.8, 6.8), (1.75, 2.45), (1.65, 2.10)),
-    "truck": ((4.7, 12.0), (1.69, 2.55), (2.00, 4.00)),
-    "bus": ((6.5, 18.75), (2.00, 2.55), (2.60, 4.00)),
-    "ambulance": ((5.2, 7.7), (1.90, 2.55), (2.30, 3.20)),
-    "fire_truck": ((6.5, 12.0), (2.20, 2.60), (2.70, 4.00)),
-    "garbage_truck": ((6.5, 12.0), (2.30, 2.60), (3.00, 4.00)),
-    "police": ((4.4, 5.4), (1.70, 2.05), (1.40, 2.00)),
-    "taxi": ((4.2, 5.4), (1.69, 2.05), (1.40, 1.90)),
-}
+# DIMENSION_RANGES (cited real ranges per class) lives with the class list in vehicle_classes.
 
 
 # ----------------------------------------------------------------------------- sampling, JSD
@@ -693,56 +671,27 @@ def load_reference(path: str | Path = DEFAULT_REFERENCE) -> RealismReference:
     Raises:
         FileFormatError: missing or corrupt file, or a field not matching the contract.
     """
-    path = Path(path)
-
-    def fail(where: str, expected: str, got: object) -> None:
-        raise FileFormatError(path, where, expected, got)
-
-    if not path.exists():
-        fail("$", "an existing realism reference .npz (build it with `adv3d shapes realism-reference`)",
-             "file not found")
-    try:
-        with np.load(path, allow_pickle=False) as npz:
-            members = {name: npz[name] for name in npz.files}
-    except (zipfile.BadZipFile, OSError, ValueError, EOFError) as exc:
-        fail("$", "a .npz (zip of .npy arrays)", f"{type(exc).__name__}: {exc}")
-    for name in _MEMBERS:
-        if name not in members:
-            fail(f"$.{name}", f"array member {name}.npy", sorted(members))
-    try:
-        meta = json.loads(str(members["meta"]))
-    except json.JSONDecodeError as exc:
-        fail("$.meta", "JSON", str(exc))
-    if not isinstance(meta, dict) or meta.get("format") != REFERENCE_FORMAT:
-        fail("$.meta.format", f'"{REFERENCE_FORMAT}"', meta.get("format") if isinstance(meta, dict) else meta)
-    if meta.get("version") != REFERENCE_VERSION:
-        fail("$.meta.version", str(REFERENCE_VERSION), meta.get("version"))
+    arrays = read_npz(path, "realism reference .npz", " (build it with `adv3d shapes realism-reference`)")
+    arrays.require(_MEMBERS)
+    meta_node = arrays.json("meta")
+    meta = meta_node.object()
+    check_header(meta_node, REFERENCE_FORMAT, (REFERENCE_VERSION,))
     if meta.get("bins") != BEV_BINS or meta.get("window_m") != BEV_WINDOW_M:
-        fail("$.meta.bins", f"bins {BEV_BINS} and window_m {BEV_WINDOW_M} (this code's histogram)",
-             f"{meta.get('bins')}, {meta.get('window_m')}")
-    ids = members["asset_ids"]
-    if ids.dtype.kind != "U" or ids.ndim != 1 or len(ids) < 2:
-        fail("$.asset_ids", "a 1-d unicode array of at least 2 ids", f"{ids.dtype} {ids.shape}")
+        meta_node["bins"].fail(f"bins {BEV_BINS} and window_m {BEV_WINDOW_M} (this code's histogram)",
+                               f"{meta.get('bins')}, {meta.get('window_m')}")
+    ids = arrays.array("asset_ids", kind="U", ndim=1)
+    if len(ids) < 2:
+        arrays.fail("asset_ids", "at least 2 asset ids", len(ids))
     m = len(ids)
-    hist, pts = members["histogram"], members["points"]
-    if hist.dtype != np.int64 or hist.shape != (BEV_BINS, BEV_BINS) or (hist < 0).any():
-        fail("$.histogram", f"non-negative int64 counts of shape ({BEV_BINS}, {BEV_BINS})", f"{hist.dtype} {hist.shape}")
-    if pts.dtype != np.float32 or pts.shape != (m, CHAMFER_POINTS, 3) or not np.isfinite(pts).all():
-        fail("$.points", f"finite float32 of shape ({m}, {CHAMFER_POINTS}, 3)", f"{pts.dtype} {pts.shape}")
-    loo = {}
-    for key in ("jsd_loo", "chamfer_loo", "mahalanobis_loo"):
-        val = meta.get(key)
-        arr = np.asarray(val, dtype=np.float64) if isinstance(val, list) and all(
-            isinstance(x, (int, float)) and not isinstance(x, bool) for x in val) else None
-        if arr is None or arr.shape != (m,) or not np.isfinite(arr).all() or (arr < 0).any():
-            fail(f"$.meta.{key}", f"a list of {m} finite non-negative numbers", val)
-        loo[key] = arr
-    classes = meta.get("asset_classes")
-    if not isinstance(classes, list) or len(classes) != m or not all(isinstance(c, str) for c in classes):
-        fail("$.meta.asset_classes", f"a list of {m} class names", classes)
+    hist = arrays.array("histogram", dtype=np.int64, shape=(BEV_BINS, BEV_BINS))
+    if (hist < 0).any():
+        arrays.fail("histogram", "non-negative counts", int(hist.min()))
+    pts = arrays.array("points", dtype=np.float32, shape=(m, CHAMFER_POINTS, 3), finite=True)
+    loo = {key: meta_node[key].numbers(length=m, lo=0.0) for key in ("jsd_loo", "chamfer_loo", "mahalanobis_loo")}
+    classes = [c.string() for c in meta_node["asset_classes"].items(length=m)]
     keep = {k: v for k, v in meta.items() if k not in ("format", "version", "asset_classes", *loo)}
     return RealismReference(histogram=hist, points=pts, asset_ids=[str(x) for x in ids], asset_classes=classes,
-                            meta=keep, source=path, **loo)
+                            meta=keep, source=Path(path), **loo)
 
 
 _CACHE: dict[str, RealismReference] = {}

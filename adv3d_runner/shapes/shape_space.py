@@ -23,8 +23,9 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from ..errors import Adv3dError, ConfigError, FileFormatError
+from ..errors import Adv3dError, ConfigError
 from ..fileio import REPO_ROOT, atomic_write_bytes
+from ..validate import check_header, read_npz
 from .decode import extract_surface
 from .sdf import DEFAULT_METHOD, DEFAULT_TRUNCATION, GridSpec
 
@@ -286,105 +287,46 @@ def _content_hash(meta: dict, arrays: dict[str, np.ndarray]) -> str:
     return "sha256:" + h.hexdigest()
 
 
-def _fail(path: Path, fieldname: str, expected: str, got: object = None) -> None:
-    raise FileFormatError(path, fieldname, expected, got)
-
-
 def _load(path: Path) -> ShapeSpace:
-    if not path.exists():
-        _fail(path, "$", "an existing shape-space .npz file (build one with `adv3d shapes build`)", "file not found")
-    try:
-        with np.load(path, allow_pickle=False) as npz:
-            members = {name: npz[name] for name in npz.files}
-    except (zipfile.BadZipFile, OSError, ValueError, EOFError) as exc:
-        _fail(path, "$", "a .npz (zip of .npy arrays) shape-space file", f"{type(exc).__name__}: {exc}")
-    for name in _ARRAYS:
-        if name not in members:
-            _fail(path, f"$.{name}", f"array member {name}.npy", f"members {sorted(members)}")
-    meta_arr = members["meta"]
-    if meta_arr.dtype.kind != "U" or meta_arr.ndim != 0:
-        _fail(path, "$.meta", "a 0-d unicode array holding JSON", f"{meta_arr.dtype} {meta_arr.shape}")
-    try:
-        meta = json.loads(str(meta_arr))
-    except json.JSONDecodeError as exc:
-        _fail(path, "$.meta", "valid JSON", str(exc))
-    if not isinstance(meta, dict):
-        _fail(path, "$.meta", "a JSON object", type(meta).__name__)
-    if meta.get("format") != FORMAT:
-        _fail(path, "$.meta.format", f'"{FORMAT}"', meta.get("format"))
-    if meta.get("version") != VERSION:
-        _fail(path, "$.meta.version", f"{VERSION}", meta.get("version"))
-
-    def num(key: str, sub: dict, where: str, positive: bool = False) -> float:
-        v = sub.get(key)
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v) or (positive and v <= 0):
-            _fail(path, f"{where}.{key}", "a finite positive number" if positive else "a finite number", v)
-        return float(v)
-
-    g = meta.get("grid")
-    if not isinstance(g, dict):
-        _fail(path, "$.meta.grid", "an object with resolution, extent_m, ground_z, truncation", g)
-    res = g.get("resolution")
-    if isinstance(res, bool) or not isinstance(res, int) or not 8 <= res <= 512:
-        _fail(path, "$.meta.grid.resolution", "an integer in [8, 512]", res)
-    grid = GridSpec(res, num("extent_m", g, "$.meta.grid", True), num("ground_z", g, "$.meta.grid"),
-                    num("truncation", g, "$.meta.grid", True))
-    k = meta.get("k")
-    if isinstance(k, bool) or not isinstance(k, int) or k < 1:
-        _fail(path, "$.meta.k", "a positive integer", k)
-    rank = meta.get("rank")
-    if isinstance(rank, bool) or not isinstance(rank, int) or not 0 <= rank <= k:
-        _fail(path, "$.meta.rank", f"an integer in [0, {k}]", rank)
+    z = read_npz(path, "shape-space .npz file", " (build one with `adv3d shapes build`)")
+    z.require(_ARRAYS)
+    meta = z.json("meta")
+    meta.object("a JSON object")
+    check_header(meta, FORMAT, (VERSION,))
+    g = meta["grid"]
+    g.object("an object with resolution, extent_m, ground_z, truncation")
+    res = g["resolution"].integer(lo=8, hi=512)
+    grid = GridSpec(res, g["extent_m"].number(lo=0.0, lo_open=True), g["ground_z"].number(),
+                    g["truncation"].number(lo=0.0, lo_open=True))
+    k = meta["k"].integer(lo=1)
+    rank = meta["rank"].integer(lo=0, hi=k)
     d = res**3
-
-    def vec(key: str, n: int) -> np.ndarray:
-        v = meta.get(key)
-        arr = np.asarray(v, dtype=np.float64) if isinstance(v, list) and all(
-            isinstance(x, (int, float)) and not isinstance(x, bool) for x in v) else None
-        if arr is None or arr.shape != (n,) or not np.all(np.isfinite(arr)):
-            _fail(path, f"$.meta.{key}", f"a list of {n} finite numbers", v)
-        return arr
-
-    ev = vec("explained_variance", k)
-    evr = vec("explained_variance_ratio", k)
-    zmin = vec("latent_min", k)
-    zmax = vec("latent_max", k)
+    ev = meta["explained_variance"].numbers(length=k)
+    evr = meta["explained_variance_ratio"].numbers(length=k)
+    zmin = meta["latent_min"].numbers(length=k)
+    zmax = meta["latent_max"].numbers(length=k)
     if np.any(zmin > zmax):
-        _fail(path, "$.meta.latent_max", "latent_max >= latent_min in every dimension", zmax.tolist())
-    sr = vec("scale_range", 2)
+        meta["latent_max"].fail("latent_max >= latent_min in every dimension", zmax.tolist())
+    sr = meta["scale_range"].numbers(length=2)
     if not 0 < sr[0] < sr[1]:
-        _fail(path, "$.meta.scale_range", "0 < low < high", sr.tolist())
-    method = meta.get("method")
-    if not isinstance(method, str):
-        _fail(path, "$.meta.method", "a string", method)
-    build = meta.get("build", {})
-    if not isinstance(build, dict):
-        _fail(path, "$.meta.build", "an object", build)
-
-    def arr(name: str, dtype: str, shape: tuple) -> np.ndarray:
-        a = members[name]
-        if a.dtype != np.dtype(dtype) or a.shape != shape:
-            _fail(path, f"$.{name}", f"{np.dtype(dtype).name} array of shape {shape}", f"{a.dtype} {a.shape}")
-        if a.dtype.kind == "f" and not np.all(np.isfinite(a)):
-            _fail(path, f"$.{name}", "finite values", "NaN or inf")
-        return a
-
-    mean = arr("mean", "float32", (d,))
-    comps = arr("components", "float32", (k, d))
-    ids_arr = members["asset_ids"]
-    if ids_arr.dtype.kind != "U" or ids_arr.ndim != 1 or len(ids_arr) == 0:
-        _fail(path, "$.asset_ids", "a non-empty 1-d unicode array", f"{ids_arr.dtype} {ids_arr.shape}")
-    m = len(ids_arr)
-    latents = arr("latents", "float64", (m, k))
+        meta["scale_range"].fail("0 < low < high", sr.tolist())
+    method = meta["method"].string(empty=True)
+    build = meta.get("build", {}).object()
+    mean = z.array("mean", dtype=np.float32, shape=(d,), finite=True)
+    comps = z.array("components", dtype=np.float32, shape=(k, d), finite=True)
+    ids_arr = z.array("asset_ids", kind="U", ndim=1)
+    if len(ids_arr) == 0:
+        z.fail("asset_ids", "a non-empty 1-d unicode array", f"{ids_arr.dtype} {ids_arr.shape}")
+    latents = z.array("latents", dtype=np.float64, shape=(len(ids_arr), k), finite=True)
     space = ShapeSpace(
         grid=grid, mean=np.ascontiguousarray(mean), components=np.ascontiguousarray(comps),
         explained_variance=ev, explained_variance_ratio=evr, latents=latents,
         asset_ids=[str(x) for x in ids_arr], latent_min=zmin, latent_max=zmax,
         scale_range=(float(sr[0]), float(sr[1])), method=method, rank=rank, build=build, source=path,
     )
-    stored = meta.get("content_hash")
+    stored = meta.get("content_hash").value
     if stored != space.content_hash:
-        _fail(path, "$.meta.content_hash", f"{space.content_hash} (the hash of the stored data)", stored)
+        meta.child("content_hash").fail(f"{space.content_hash} (the hash of the stored data)", stored)
     return space
 
 
@@ -508,8 +450,12 @@ def library_sdfs(
     truncation: float = DEFAULT_TRUNCATION,
     progress: bool = True,
     mesh_loader: Callable | None = None,
+    on_progress: Callable[[int, int], None] | None = None,
 ) -> tuple[GridSpec, list, np.ndarray]:
     """SDF volumes of every shape-space asset on the common grid.
+
+    ``progress`` shows a terminal bar; ``on_progress(done, total)``, when given, is called
+    instead before each asset and once at the end (the Blender add-on's progress bar).
 
     Returns:
         grid, the assets (``library.shape_space_assets()`` order), sdfs (M, N, N, N) float32,
@@ -533,15 +479,19 @@ def library_sdfs(
     grid = grid_for_dimensions(dims, resolution, truncation)
     sdfs = np.empty((len(assets), resolution, resolution, resolution), dtype=np.float32)
     items = list(zip(assets, meshes))
-    if progress:
+    if progress and on_progress is None:
         from ..progress import progress as bar
 
         items = bar(items, desc=f"SDF {resolution}^3 ({method})", unit="asset")
     for i, (a, mesh) in enumerate(items):
+        if on_progress is not None:
+            on_progress(i, len(assets))
         try:
             sdfs[i] = sdf_volume(mesh.vertices, mesh.faces, grid, method)
         except Adv3dError as exc:
             raise Adv3dError(f"asset {a.id}: {exc}") from None
+    if on_progress is not None:
+        on_progress(len(assets), len(assets))
     return grid, assets, sdfs, library_fingerprint(assets, meshes)
 
 
@@ -553,6 +503,7 @@ def build_shape_space(
     truncation: float = DEFAULT_TRUNCATION,
     progress: bool = True,
     mesh_loader: Callable | None = None,
+    on_progress: Callable[[int, int], None] | None = None,
 ) -> ShapeSpace:
     """Build the shape space over ``library.shape_space_assets()``.
 
@@ -564,8 +515,10 @@ def build_shape_space(
         truncation: SDF clamp, unit-cube units.
         progress: show a progress bar per asset.
         mesh_loader: ``(library, asset_id) -> trimesh.Trimesh``; default ``load_asset_mesh``.
+        on_progress: ``(done, total)`` called per asset instead of the terminal bar.
     """
-    grid, assets, sdfs, fingerprint = library_sdfs(library, resolution, method, truncation, progress, mesh_loader)
+    grid, assets, sdfs, fingerprint = library_sdfs(library, resolution, method, truncation, progress, mesh_loader,
+                                                   on_progress)
     build = {"assets": len(assets), "classes": sorted({a.vehicle_class for a in assets}),
              "library_fingerprint": fingerprint}
     return shape_space_from_sdfs(sdfs, [a.id for a in assets], grid, k, method, build)

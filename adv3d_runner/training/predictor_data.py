@@ -218,16 +218,12 @@ def save_samples(path: str | Path, samples: dict[str, np.ndarray]) -> None:
 def load_samples(path: str | Path) -> dict[str, np.ndarray]:
     """Read a cached scene npz (``allow_pickle=False``); raises FileFormatError when arrays are
     missing or malformed."""
-    from ..errors import FileFormatError
+    from ..validate import read_npz
 
-    with np.load(path, allow_pickle=False) as z:
-        out = {k: z[k] for k in z.files}
-    for k in ARRAYS:
-        if k not in out:
-            raise FileFormatError(str(path), f"$.{k}", "a predictor sample array", "missing")
-    if out["features"].ndim != 2 or out["features"].shape[1] != NUM_FEATURES:
-        raise FileFormatError(str(path), "$.features", f"(M, {NUM_FEATURES})", out["features"].shape)
-    return out
+    z = read_npz(path, "predictor sample cache (.npz)")
+    z.require(ARRAYS)
+    z.array("features", shape=(None, NUM_FEATURES))
+    return dict(z.members)
 
 
 def build_dataset(seeds: Sequence[int], cache: str | Path | None = None, use_cache: bool = True,
