@@ -6,14 +6,21 @@ or killed run never leaves a half-written file where the user's file was.
 from __future__ import annotations
 
 import gzip
+import io
 import json
 import os
 import tempfile
+import zipfile
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Iterator, Mapping
+
+import numpy as np
 
 from .errors import FileFormatError
+
+#: Timestamp of every member of a reproducible .npz (zip's earliest representable date).
+_ZIP_DATE = (1980, 1, 1, 0, 0, 0)
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 
@@ -93,3 +100,21 @@ def read_json(path: str | Path) -> Any:
         return json.loads(raw.decode("utf-8"))
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise FileFormatError(path, "$", "valid UTF-8 JSON", str(exc)) from None
+
+
+def npz_bytes(members: Mapping[str, np.ndarray]) -> bytes:
+    """The bytes of an ``.npz`` holding ``members`` (name -> array, in this order), reproducible:
+    fixed timestamps, permissions and creator system, deflate level 6, no pickled objects, so
+    the same arrays give the same file on every machine (files that carry a content hash or are
+    compared byte for byte rely on it)."""
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w") as zf:
+        for name, array in members.items():
+            npy = io.BytesIO()
+            np.lib.format.write_array(npy, np.asanyarray(array), allow_pickle=False)
+            info = zipfile.ZipInfo(f"{name}.npy", date_time=_ZIP_DATE)
+            info.compress_type = zipfile.ZIP_DEFLATED
+            info.external_attr = 0o644 << 16
+            info.create_system = 3  # unix, whatever the building machine is
+            zf.writestr(info, npy.getvalue(), compresslevel=6)
+    return buf.getvalue()

@@ -42,9 +42,7 @@ labelling when present), like decoding, so the Blender add-on can call it.
 """
 from __future__ import annotations
 
-import io
 import json
-import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
@@ -52,7 +50,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from ..errors import ConfigError
-from ..fileio import REPO_ROOT, atomic_write_bytes
+from ..fileio import REPO_ROOT, atomic_write_bytes, npz_bytes
 from ..validate import check_header, read_npz
 from ..vehicle_classes import DIMENSION_RANGES
 from .cleaning import connected_vertex_parts
@@ -99,7 +97,6 @@ WALL_MAX_M = 1.5
 DEFAULT_REFERENCE: Path = REPO_ROOT / "assets" / "shape_space" / "realism_reference.npz"
 REFERENCE_FORMAT = "adv3d.realism_reference"
 REFERENCE_VERSION = 1
-_ZIP_DATE = (1980, 1, 1, 0, 0, 0)
 _MEMBERS = ("meta", "histogram", "points", "asset_ids")
 
 # ----------------------------------------------------------------------------- real dimensions
@@ -591,17 +588,7 @@ class RealismReference:
             "points": np.ascontiguousarray(self.points, dtype=np.float32),
             "asset_ids": np.asarray(self.asset_ids, dtype=f"<U{max([1] + [len(a) for a in self.asset_ids])}"),
         }
-        buf = io.BytesIO()
-        with zipfile.ZipFile(buf, "w") as zf:
-            for name in _MEMBERS:
-                npy = io.BytesIO()
-                np.lib.format.write_array(npy, members[name], allow_pickle=False)
-                info = zipfile.ZipInfo(f"{name}.npy", date_time=_ZIP_DATE)
-                info.compress_type = zipfile.ZIP_DEFLATED
-                info.external_attr = 0o644 << 16
-                info.create_system = 3
-                zf.writestr(info, npy.getvalue(), compresslevel=6)
-        return buf.getvalue()
+        return npz_bytes({name: members[name] for name in _MEMBERS})
 
     def save(self, path: str | Path = DEFAULT_REFERENCE) -> Path:
         """Write the ``.npz`` atomically; returns the path."""

@@ -14,9 +14,7 @@ uses it in-process); building imports libigl through ``sdf``.
 from __future__ import annotations
 
 import hashlib
-import io
 import json
-import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Sequence
@@ -24,7 +22,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from ..errors import Adv3dError, ConfigError
-from ..fileio import REPO_ROOT, atomic_write_bytes
+from ..fileio import REPO_ROOT, atomic_write_bytes, npz_bytes
 from ..validate import check_header, read_npz
 from .decode import extract_surface
 from .sdf import DEFAULT_METHOD, DEFAULT_TRUNCATION, GridSpec
@@ -40,7 +38,6 @@ DEFAULT_SHAPE_SPACE: Path = REPO_ROOT / "assets" / "shape_space" / "vehicles_64.
 # fewer assets than K + 1). float32 SDFs have ~1e-7 relative noise, so 1e-10 on variance
 # (1e-5 on amplitude) separates real from numerical directions.
 _RANK_TOL = 1e-10
-_ZIP_DATE = (1980, 1, 1, 0, 0, 0)
 _ARRAYS = ("meta", "mean", "components", "latents", "asset_ids")
 
 
@@ -246,17 +243,7 @@ class ShapeSpace:
         arrays = self._arrays()
         meta["content_hash"] = _content_hash(meta, arrays)
         members = {"meta": np.asarray(json.dumps(meta, indent=1, allow_nan=False)), **arrays}
-        buf = io.BytesIO()
-        with zipfile.ZipFile(buf, "w") as zf:
-            for name in _ARRAYS:
-                npy = io.BytesIO()
-                np.lib.format.write_array(npy, members[name], allow_pickle=False)
-                info = zipfile.ZipInfo(f"{name}.npy", date_time=_ZIP_DATE)
-                info.compress_type = zipfile.ZIP_DEFLATED
-                info.external_attr = 0o644 << 16
-                info.create_system = 3  # unix, whatever the building machine is
-                zf.writestr(info, npy.getvalue(), compresslevel=6)
-        return buf.getvalue()
+        return npz_bytes({name: members[name] for name in _ARRAYS})
 
     def save(self, path: str | Path) -> Path:
         """Write the ``.npz`` atomically; returns the path."""
