@@ -110,11 +110,13 @@ def plot(summary: dict, limit: float, path: Path, smoke: bool) -> None:
     fig, ax = plt.subplots(figsize=(6.4, 4.2))
     pts = [(n, r["jsd_mean"], r["gain_mean"]) for n, r in rows.items() if np.isfinite(r["gain_mean"])]
     on = front(pts)
+    seen: dict[tuple[float, float], int] = {}
     for name, jsd, gain in pts:
         r = rows[name]
         ax.errorbar(jsd, gain, xerr=[[jsd - r["jsd_min"]], [r["jsd_max"] - jsd]], fmt="o",
                     color="C1" if name in on else "C0", capsize=3)
-        ax.annotate(name, (jsd, gain), textcoords="offset points", xytext=(5, 4), fontsize=8)
+        k = seen[(round(jsd, 6), round(gain, 6))] = seen.get((round(jsd, 6), round(gain, 6)), -1) + 1
+        ax.annotate(name, (jsd, gain), textcoords="offset points", xytext=(5, 4 - 10 * k), fontsize=8)
     f = sorted((j, g) for n, j, g in pts if n in on)
     if len(f) > 1:
         ax.plot([p[0] for p in f], [p[1] for p in f], "-", color="C1", alpha=0.6, label="front")
@@ -243,6 +245,12 @@ def main() -> int:
         print(f"{n:16s} {r['gain_mean']:8.2f} {r['gain_kept']:6.2f} {r['jsd_mean']:9.3f} {r['jsd_max']:6.3f} "
               f"{r['n_within_jsd_range']:>4d}/{r['n_scenes']}")
     print(f"selected: {chosen} (target {'met' if met else 'NOT met'}); wrote {out}")
+    if chosen and not args.smoke:
+        from adv3d_runner.attack.realism_constraints import PRESETS
+
+        knobs = {"max_mahalanobis": None, "class_scales": False, "realism_weight": 0.0, **per[chosen]["knobs"]}
+        if knobs != PRESETS["realistic"]:
+            print(f"update PRESETS['realistic'] in adv3d_runner/attack/realism_constraints.py to {knobs}")
     return 0
 
 
