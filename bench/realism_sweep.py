@@ -134,6 +134,16 @@ def plot(summary: dict, limit: float, path: Path, smoke: bool) -> None:
     plt.close(fig)
 
 
+def _add_cpu(work: Path, seconds: float) -> float:
+    """CPU seconds of this process added to the total of every run of this work folder (a
+    resumed campaign keeps counting; ``work``/cpu_s.json)."""
+    path = work / "cpu_s.json"
+    total = (json.loads(path.read_text())["cpu_s"] if path.exists() else 0.0) + seconds
+    work.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps({"cpu_s": round(total, 1)}) + "\n")
+    return round(total, 1)
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scenes", type=int, default=10, help="the first N benchmark scenes (default 10)")
@@ -234,6 +244,7 @@ def main() -> int:
         "selected": chosen, "target_met": met,
         "selected_knobs": per[chosen]["knobs"] if chosen else None,
         "cpu_s_this_process": round(time.process_time() - t_cpu, 1), "wall_s": round(time.perf_counter() - t_wall, 1),
+        "cpu_s_total": _add_cpu(work, time.process_time() - t_cpu),
         "queries_this_sweep": n_queries,
         "machine": {"platform": platform.platform(), "note": "2-core machine shared with other jobs"},
     }

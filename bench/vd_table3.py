@@ -54,6 +54,16 @@ def _mean(values: list[float]) -> float:
     return float(v.mean()) if len(v) else float("nan")
 
 
+def _add_cpu(work: Path, seconds: float) -> float:
+    """CPU seconds of this process added to the total of every run of this work folder (a
+    resumed campaign keeps counting; ``work``/cpu_s.json)."""
+    path = work / "cpu_s.json"
+    total = (json.loads(path.read_text())["cpu_s"] if path.exists() else 0.0) + seconds
+    work.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps({"cpu_s": round(total, 1)}) + "\n")
+    return round(total, 1)
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scenes", type=int, default=10, help="the first N benchmark scenes (default 10)")
@@ -101,7 +111,11 @@ def main() -> int:
         figs = [_figures(ev) for _, ev in per["best"]]
         gains = [ev["cost"] - o["cost"] for (_, ev), (_, o) in zip(per["best"], per["original"])]
         jsd = [max(r["jsd"] for r in ev["realism"]) for _, ev in per["best"]]
+        best = {sid: [{k: r.get(k) for k in ("jsd", "nearest_asset", "nearest_chamfer_m", "dimensions_m",
+                                               "dimension_class", "flags", "max_displacement_m", "mahalanobis")}
+                      for r in ev["realism"]] for sid, ev in per["best"]}
         table[name] = {k: _mean([f[k] for f in figs]) for k in figs[0]} | {
+            "best_shapes": best,
             "objective_gain": _mean(gains), "jsd": _mean(jsd), "jsd_max": float(np.max(jsd)) if jsd else None,
             "scenes": len(figs), "queries": int(sum(m["n_queries"] for e in summary["scenes"].values()
                                                     for m in (e.get("modes") or {}).values()))}
@@ -114,6 +128,7 @@ def main() -> int:
         "scenes": len(scenes), "budget": args.budget, "seconds": args.seconds, "algo": args.algo,
         "autonomy": args.autonomy, "seed": args.seed, "rows": table, "report": str(report),
         "cpu_s_this_process": round(time.process_time() - t_cpu, 1), "wall_s": round(time.perf_counter() - t_wall, 1),
+        "cpu_s_total": _add_cpu(work, time.process_time() - t_cpu),
         "machine": {"platform": platform.platform(), "note": "2-core machine shared with other jobs"},
     }
     out.parent.mkdir(parents=True, exist_ok=True)
