@@ -4,6 +4,9 @@ The latent sliders are properties whose ``update`` callback calls ``schedule_pre
 while Blender runs interactively the update is coalesced with a ``bpy.app.timers`` callback
 (every slider event inside ``DEBOUNCE_S`` collapses into one decode), in background mode (tests,
 scripts) it runs at once. The preview mesh is written in place with ``foreach_set``.
+
+Realism (docs/realism.md): each update also measures the cheap figures of the slider shape
+(JSD, Mahalanobis, dimensions against a class; ~2 ms), the full report is an operator.
 """
 from __future__ import annotations
 
@@ -61,12 +64,32 @@ def update_preview(scene: "bpy.types.Scene") -> float:
     if shapes.k != space.k:
         shapes.k = space.k
     t0 = time.perf_counter()
-    vertices, faces = space.decode_arrays(current_unit(shapes))
+    u = current_unit(shapes)
+    vertices, faces = space.decode_arrays(u)
     obj = preview_object(scene)
     meshdata.set_mesh_arrays(obj.data, vertices, faces)
     ms = (time.perf_counter() - t0) * 1000.0
     shapes.last_update_ms = ms
+    shapes.realism_full = ""  # the full report described the previous shape
+    if shapes.show_realism:
+        t1 = time.perf_counter()
+        try:
+            lines = runner.live_realism(space, u, vertices, faces, realism_class(shapes), _library_path(scene))
+        except runner.Adv3dError as exc:
+            lines = [f"Realism: {exc}"]
+        shapes.realism_live = "\n".join(lines)
+        shapes.realism_ms = (time.perf_counter() - t1) * 1000.0
     return ms
+
+
+def realism_class(shapes) -> str | None:
+    """The class the panel checks dimensions against (None: the nearest library vehicle's)."""
+    return None if shapes.realism_class == "AUTO" else shapes.realism_class
+
+
+def _library_path(scene) -> str | None:
+    path = scene.adv3d.library.path
+    return bpy.path.abspath(path) if path else None
 
 
 def _run_pending() -> None:
@@ -221,6 +244,29 @@ class ADV3D_OT_shapes_nearest(bpy.types.Operator):
         return {"FINISHED"}
 
 
+class ADV3D_OT_shapes_realism(bpy.types.Operator):
+    """Measure every realism figure of the preview shape (JSD, nearest vehicle, Mahalanobis,
+    parts, genus, thinnest wall, dimensions); takes a fraction of a second"""
+
+    bl_idname = "adv3d.shapes_realism"
+    bl_label = "Full realism report"
+    bl_options = {"REGISTER"}
+
+    def execute(self, context):
+        shapes = context.scene.adv3d.shapes
+        try:
+            space = runner.load_space(bpy.path.abspath(shapes.space_path))
+            shapes.k = space.k
+            rep, lines = runner.full_realism(space, current_unit(shapes), realism_class(shapes),
+                                             _library_path(context.scene))
+        except runner.Adv3dError as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        shapes.realism_full = "\n".join(lines)
+        self.report({"INFO"}, "Realistic" if rep["realistic"] else "Fails: " + ", ".join(rep["flags"]))
+        return {"FINISHED"}
+
+
 class ADV3D_OT_shapes_export(bpy.types.Operator, ExportHelper):
     """Export the decoded preview vehicle as a mesh file (metres, +x front, origin on the ground)"""
 
@@ -304,6 +350,7 @@ classes = (
     ADV3D_OT_shapes_reset,
     ADV3D_OT_shapes_random,
     ADV3D_OT_shapes_nearest,
+    ADV3D_OT_shapes_realism,
     ADV3D_OT_shapes_export,
     ADV3D_OT_shapes_build,
 )

@@ -106,7 +106,27 @@ class ADV3D_PT_shapes(_Adv3dPanel, bpy.types.Panel):
         row.operator("adv3d.shapes_nearest", icon="VIEWZOOM")
         if shapes.nearest_asset:
             layout.label(text=f"Nearest: {shapes.nearest_asset}")
+        _draw_realism(layout, shapes)
         layout.operator("adv3d.shapes_export", icon="EXPORT")
+
+
+def _draw_realism(layout, shapes) -> None:
+    """The realism box: live figures of the slider shape, the full report on demand."""
+    box = layout.box()
+    row = box.row(align=True)
+    row.prop(shapes, "show_realism")
+    row.prop(shapes, "realism_class", text="")
+    if shapes.show_realism and shapes.realism_live:
+        col = box.column(align=True)
+        col.scale_y = 0.8
+        for line in shapes.realism_live.splitlines():
+            col.label(text=line, icon="ERROR" if "OUT" in line else "NONE")
+    box.operator("adv3d.shapes_realism", icon="VIEWZOOM")
+    if shapes.realism_full:
+        col = box.column(align=True)
+        col.scale_y = 0.8
+        for line in shapes.realism_full.splitlines():
+            col.label(text=line)
 
 
 class ADV3D_PT_scenes(_Adv3dPanel, bpy.types.Panel):

@@ -19,7 +19,7 @@ from bpy.props import (
 )
 
 # The class menus use the runner's one class list (pure Python, instant to import).
-from adv3d_runner.vehicle_classes import VEHICLE_CLASSES
+from adv3d_runner.vehicle_classes import DIMENSION_RANGES, VEHICLE_CLASSES
 
 # Room for the latent sliders: K shape dimensions (the paper uses K = 3); the width and length
 # scales have their own properties. A vector property has a fixed size at registration, so it is
@@ -93,6 +93,16 @@ class ADV3D_PG_shapes(bpy.types.PropertyGroup):
     last_update_ms: FloatProperty(name="Last update", default=0.0, options={"HIDDEN"})
     nearest_asset: StringProperty(name="Nearest asset", options={"HIDDEN"})
     variance_text: StringProperty(options={"HIDDEN"})
+    # Realism of the slider shape (docs/realism.md): live cheap figures, the full report on demand.
+    show_realism: BoolProperty(name="Realism", default=True, update=_latent_update,
+                               description="Measure the preview's realism (JSD, Mahalanobis, dimensions) live")
+    realism_class: EnumProperty(
+        name="Class", items=[("AUTO", "Nearest", "The class of the nearest library vehicle")]
+        + [(c, c, "") for c in DIMENSION_RANGES], default="AUTO", update=_latent_update,
+        description="Vehicle class whose real dimensions the shape is checked against")
+    realism_live: StringProperty(options={"HIDDEN"})
+    realism_full: StringProperty(options={"HIDDEN"})
+    realism_ms: FloatProperty(name="Realism time", default=0.0, options={"HIDDEN"})
 
 
 class ADV3D_PG_scene(bpy.types.PropertyGroup):

@@ -356,6 +356,42 @@ def test_nearest_asset_and_export(ctx, data, tmp_path):
         bpy.ops.adv3d.shapes_export(filepath=str(tmp_path / "shape.xyz"))
 
 
+def test_live_realism_of_the_slider_shape(ctx, data):
+    """The Shape space panel measures the preview's realism at every slider change (JSD,
+    Mahalanobis, dimensions against the chosen class) with the same numbers as the runner, and
+    the full report on demand; the reference of a custom space is built from the library."""
+    from adv3d_runner.shapes import realism
+    from adv3d_runner.shapes.library import load_library
+    from adv3d_runner.shapes.shape_space import ShapeSpace
+    from blender_addon import ops_shapes
+
+    ctx.scene.adv3d.library.path = str(data["library"])
+    assert bpy.ops.adv3d.shapes_load(filepath=str(data["space"])) == {"FINISHED"}
+    shapes = ctx.scene.adv3d.shapes
+    space = ShapeSpace.load(data["space"])
+    ref = realism.build_reference(load_library(data["library"]), space)
+    ops_shapes.set_unit(shapes, space.asset_unit("fx.van"))
+    shapes.realism_class = "van"                      # the update runs at once in background mode
+    u = ops_shapes.current_unit(shapes)
+    v, f = space.decode_arrays(u)
+    q = realism.quick_measures(v, f, ref, latent=space.unit_to_latent(u)[0], latents=space.latents,
+                               vehicle_class="van", chamfer=False)
+    live = shapes.realism_live.splitlines()
+    assert live[0].startswith(f"JSD {q['jsd']:.3f}") and f"Mahalanobis {q['mahalanobis']:.2f}" in live[1]
+    assert "vs real van" in live[2] and shapes.realism_ms > 0
+    shapes.latent[0] = 1.0 - shapes.latent[0]         # another shape: new figures
+    assert shapes.realism_live.splitlines() != live
+    assert bpy.ops.adv3d.shapes_realism() == {"FINISHED"}
+    full = realism.realism_report(space, ops_shapes.current_unit(shapes), ref, vehicle_class="van")
+    assert shapes.realism_full.splitlines()[0].startswith(f"JSD {full['jsd']:.3f}, nearest {full['nearest_asset']}")
+    shapes.latent[1] = 0.3
+    assert shapes.realism_full == ""                  # the full report described the previous shape
+    shapes.show_realism = False
+    shapes.realism_live = ""
+    shapes.latent[1] = 0.4
+    assert shapes.realism_live == ""
+
+
 def test_missing_or_corrupt_shape_space_is_reported(ctx, tmp_path):
     with pytest.raises(RuntimeError, match="not found|existing"):
         bpy.ops.adv3d.shapes_load(filepath=str(tmp_path / "none.npz"))

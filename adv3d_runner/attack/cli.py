@@ -5,7 +5,8 @@ import argparse
 
 
 def register(subparsers) -> None:
-    from .config import MODES
+    from .config import MODES, SHAPE_MODELS
+    from .realism_constraints import PRESETS
     from .search import ALGORITHMS
 
     p = subparsers.add_parser(
@@ -34,6 +35,22 @@ def register(subparsers) -> None:
     p.add_argument("--reactive", action="store_true", help="actors react to the ego (IDM/MOBIL)")
     p.add_argument("--n-initial", type=int, default=11, help="BO initial queries (default 11)")
     p.add_argument("--shape-space", default=None, help="shape space .npz (default: the shipped one)")
+    g = p.add_argument_group("shape model and realism (docs/realism.md)")
+    g.add_argument("--shape-model", choices=SHAPE_MODELS, default="latent",
+                   help="latent: the shape space (default); vd: vertex deformation of the actor's own mesh "
+                        "(the paper's baseline)")
+    g.add_argument("--vd-bound", type=float, default=None, metavar="M",
+                   help="vd: l-infinity bound of every vertex displacement in m (paper: 0.1, 0.2, 0.5, 1.0; default 0.5)")
+    g.add_argument("--vd-lattice", default=None, metavar="NX,NY,NZ",
+                   help="vd: control lattice nodes along length, width, height (default 6,3,3: 162 dimensions)")
+    g.add_argument("--max-mahalanobis", type=float, default=None, metavar="R",
+                   help="search only latents within Mahalanobis distance R of the library mean (inside the box)")
+    g.add_argument("--class-scales", action="store_true", default=None,
+                   help="search only width/length scales that keep the actor's class within real dimensions")
+    g.add_argument("--realism-weight", type=float, default=None, metavar="W",
+                   help="maximise objective - W x (JSD excess over the library's leave-one-out maximum); default 0")
+    g.add_argument("--realism-preset", choices=sorted(PRESETS), default=None,
+                   help="named setting of the three realism knobs (explicit knobs override it)")
     p.set_defaults(func=_attack)
 
     r = subparsers.add_parser("report", help="markdown report of attack runs",
@@ -55,7 +72,7 @@ def _attack(args: argparse.Namespace) -> int:
     cfg = AttackConfig(scenes=tuple(args.scenes), algo=args.algo, budget=args.budget, actors=args.actors,
                        mode=args.mode, seconds=args.seconds, seed=args.seed, objective=args.objective,
                        autonomy=args.autonomy, reactive=args.reactive, batch=args.workers,
-                       n_initial=args.n_initial, shape_space=args.shape_space)
+                       n_initial=args.n_initial, shape_space=args.shape_space, **_shape_options(args))
     summary = run_attack(cfg, args.out, workers=args.workers, ray_address=args.ray_address,
                          show_progress=not is_quiet())
     for sid, entry in summary.get("scenes", {}).items():
@@ -64,6 +81,28 @@ def _attack(args: argparse.Namespace) -> int:
                    f"({m.get('n_failed', 0)} failed of {m.get('n_queries')})")
     status(f"run bundle: {args.out}  (adv3d report {args.out})")
     return 0
+
+
+def _shape_options(args: argparse.Namespace) -> dict:
+    """The AttackConfig fields of the shape-model and realism options: a preset first, then the
+    knobs given explicitly; options left out keep their defaults."""
+    from ..errors import ConfigError
+    from .realism_constraints import preset_knobs
+
+    out: dict = {"shape_model": args.shape_model}
+    if args.realism_preset:
+        out.update(preset_knobs(args.realism_preset))
+    for key in ("max_mahalanobis", "class_scales", "realism_weight", "vd_bound"):
+        if getattr(args, key) is not None:
+            out[key] = getattr(args, key)
+    if args.vd_lattice is not None:
+        try:
+            out["vd_lattice"] = tuple(int(x) for x in args.vd_lattice.split(","))
+        except ValueError:
+            raise ConfigError(f"--vd-lattice must be NX,NY,NZ integers, got {args.vd_lattice!r}") from None
+    if args.shape_model != "vd" and ("vd_bound" in out or "vd_lattice" in out):
+        raise ConfigError("--vd-bound and --vd-lattice need --shape-model vd")
+    return out
 
 
 def _report(args: argparse.Namespace) -> int:

@@ -8,6 +8,11 @@ the new one key by key (``attack.journal.Journal.start``).
 
 The shape space of a run is loaded in one place, :meth:`QuerySettings.load_shape_space` (once
 per process and file).
+
+The shape model and realism knobs (issue 14: ``shape_model``, ``vd_bound``, ``vd_lattice``,
+``max_mahalanobis``, ``class_scales``, ``realism_weight``) came after run.json version 1; they are
+written only when set (``vd_*`` with ``shape_model`` ``vd``), so a run that uses none of them
+writes the run.json it always wrote, and older runs resume and compare equal.
 """
 from __future__ import annotations
 
@@ -16,10 +21,19 @@ from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
 from typing import Any, Mapping
 
+import numpy as np
+
 from ..errors import ConfigError
 from .objective import ObjectiveWeights, parse_objective
+from .vertex_deform import DEFAULT_LATTICE, check_lattice
 
 MODES = ("closed", "open", "both")
+#: How a query becomes shapes: the shape space's latents (the paper's attack) or vertex
+#: deformation of the actor's own mesh (the paper's baseline); see attack/shape_models.py.
+SHAPE_MODELS = ("latent", "vd")
+#: Knobs added after run.json version 1, with the value that leaves them out of run.json.
+_OPTIONAL_KEYS = {"shape_model": "latent", "max_mahalanobis": None, "class_scales": False, "realism_weight": 0.0}
+_VD_KEYS = ("vd_bound", "vd_lattice")
 
 
 @dataclass(frozen=True)
@@ -37,6 +51,15 @@ class QuerySettings:
     seed: int = 0
     reactive: bool = False
     shape_space: str | None = None
+    shape_model: str = "latent"
+    vd_bound: float = 0.5
+    vd_lattice: tuple[int, int, int] = DEFAULT_LATTICE
+    max_mahalanobis: float | None = None
+    class_scales: bool = False
+    realism_weight: float = 0.0
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "vd_lattice", check_lattice(self.vd_lattice))  # hashable tuple
 
     @property
     def weights(self) -> ObjectiveWeights:
@@ -90,9 +113,17 @@ class AttackConfig:
     batch: int = 1
     n_initial: int = 11
     shape_space: str | None = None
+    shape_model: str = "latent"
+    vd_bound: float = 0.5
+    vd_lattice: tuple[int, int, int] = DEFAULT_LATTICE
+    max_mahalanobis: float | None = None
+    class_scales: bool = False
+    realism_weight: float = 0.0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "scenes", tuple(self.scenes))
+        object.__setattr__(self, "vd_lattice", check_lattice(self.vd_lattice))
+        self._check_shape_options()
         if self.mode not in MODES:
             raise ConfigError(f"--mode must be one of {', '.join(MODES)}, got {self.mode!r}")
         if self.budget < 1:
@@ -102,6 +133,27 @@ class AttackConfig:
         if self.batch < 1:
             raise ConfigError(f"batch (workers) must be >= 1, got {self.batch}")
         parse_objective(self.objective)  # validate early
+
+    def _check_shape_options(self) -> None:
+        if self.shape_model not in SHAPE_MODELS:
+            raise ConfigError(f"--shape-model must be one of {', '.join(SHAPE_MODELS)}, got {self.shape_model!r}")
+        if not (np.isfinite(self.realism_weight) and self.realism_weight >= 0):
+            raise ConfigError(f"--realism-weight must be a finite number >= 0, got {self.realism_weight}")
+        if self.max_mahalanobis is not None and not (np.isfinite(self.max_mahalanobis) and self.max_mahalanobis > 0):
+            raise ConfigError(f"--max-mahalanobis must be a finite number > 0, got {self.max_mahalanobis}")
+        region = self.max_mahalanobis is not None or self.class_scales
+        if self.shape_model == "vd":
+            if not (np.isfinite(self.vd_bound) and self.vd_bound > 0):
+                raise ConfigError(f"--vd-bound must be a finite number of metres > 0, got {self.vd_bound}")
+            if self.algo in ("grid", "bruteforce"):
+                raise ConfigError(f"--algo {self.algo} does not apply to vertex deformation (a grid of 3^D points "
+                                  f"in D = 3 x lattice nodes, or the library's latents); use bo, random or blendsearch")
+            if region:
+                raise ConfigError("--max-mahalanobis and --class-scales restrict the latent shape space; "
+                                  "they do not apply to --shape-model vd")
+        if region and self.algo == "bruteforce":
+            raise ConfigError("bruteforce enumerates the library's own vehicles; --max-mahalanobis and "
+                              "--class-scales do not apply")
 
     @property
     def modes(self) -> list[str]:
@@ -113,16 +165,26 @@ class AttackConfig:
         """The part of the config a worker needs (:class:`QuerySettings`)."""
         return QuerySettings(autonomy=self.autonomy, actors=self.actors, objective=self.objective,
                              seconds=self.seconds, seed=self.seed, reactive=self.reactive,
-                             shape_space=self.shape_space)
+                             shape_space=self.shape_space, shape_model=self.shape_model, vd_bound=self.vd_bound,
+                             vd_lattice=self.vd_lattice, max_mahalanobis=self.max_mahalanobis,
+                             class_scales=self.class_scales, realism_weight=self.realism_weight)
 
     def with_batch(self, batch: int) -> "AttackConfig":
         """The same config with another batch size (a resume keeps the first run's)."""
         return replace(self, batch=int(batch))
 
     def run_json(self) -> dict[str, Any]:
-        """The fields as stored in ``run.json`` (field order, ``scenes`` as a list)."""
+        """The fields as stored in ``run.json`` (field order, ``scenes`` as a list; the knobs added
+        after version 1 only when set, ``vd_bound`` / ``vd_lattice`` only for ``vd``)."""
         doc = asdict(self)
         doc["scenes"] = list(self.scenes)
+        doc["vd_lattice"] = list(self.vd_lattice)
+        for key, default in _OPTIONAL_KEYS.items():
+            if doc[key] == default:
+                del doc[key]
+        if self.shape_model != "vd":
+            for key in _VD_KEYS:
+                del doc[key]
         return doc
 
     @classmethod

@@ -151,7 +151,8 @@ def run_scene(journal: Journal, config: AttackConfig, evaluator: QueryEvaluator,
         for (i, x), out in zip(todo, executor.evaluate(evaluator, queries)):
             rec = query_record(scene_id, mode, i, targets, x, latent=out.latent, scales=out.scales,
                                dimensions=out.dimensions, cost=out.cost, components=out.components,
-                               metrics=out.metrics, status=out.status, error=out.error, wall_s=out.wall_s)
+                               metrics=out.metrics, status=out.status, error=out.error, wall_s=out.wall_s,
+                               realism=out.realism)
             journal.append(rec)
             results[i] = rec
             run.evaluated += 1

@@ -16,8 +16,9 @@ queries; the driver then re-asks its searchers and takes the recorded results fo
 already in the journal instead of evaluating it again (see :mod:`.driver`).
 
 Line fields (fixed order): ``scene``, ``mode``, ``index`` (query number within the scene and
-mode), ``actors``, ``unit`` (m lists of K + 2 numbers), ``latent``, ``scales``,
-``dimensions``, ``cost`` (null when failed), ``components``, ``metrics``, ``status``
+mode), ``actors``, ``unit`` (m lists of the query's unit entries), ``latent``, ``scales``,
+``dimensions``, ``realism`` (per actor the cheap realism figures, or null; absent in journals
+written before issue 14), ``cost`` (null when failed), ``components``, ``metrics``, ``status``
 (``ok`` / ``invalid`` / ``error``), ``error`` (message or null), ``wall_s``.
 """
 from __future__ import annotations
@@ -38,7 +39,7 @@ SUMMARY_FORMAT = "adv3d.attack_summary"
 QUERY_FORMAT = "adv3d.attack_query"
 VERSION = 1
 STATUSES = ("ok", "invalid", "error")
-_LINE_KEYS = ("scene", "mode", "index", "actors", "unit", "latent", "scales", "dimensions", "cost",
+_LINE_KEYS = ("scene", "mode", "index", "actors", "unit", "latent", "scales", "dimensions", "realism", "cost",
               "components", "metrics", "status", "error", "wall_s")
 # Config keys that may differ between the first run and a resume (they do not change results).
 RESUME_FREE_KEYS = ("workers", "ray_address", "quiet", "out")
@@ -63,7 +64,7 @@ def _clean(x: Any) -> Any:
 
 
 def query_record(scene: str, mode: str, index: int, actors: list[int], unit: np.ndarray, *,
-                 latent=None, scales=None, dimensions=None, cost: float | None = None,
+                 latent=None, scales=None, dimensions=None, realism=None, cost: float | None = None,
                  components: dict | None = None, metrics: dict | None = None, status: str = "ok",
                  error: str | None = None, wall_s: float = 0.0) -> dict:
     """One journal line as a dict with the fixed field order."""
@@ -72,8 +73,8 @@ def query_record(scene: str, mode: str, index: int, actors: list[int], unit: np.
     u = np.asarray(unit, dtype=np.float64).reshape(len(actors), -1)
     rec = {"scene": scene, "mode": mode, "index": int(index), "actors": [int(a) for a in actors],
            "unit": [[float(v) for v in row] for row in u], "latent": latent, "scales": scales,
-           "dimensions": dimensions, "cost": cost, "components": components or {}, "metrics": metrics or {},
-           "status": status, "error": error, "wall_s": round(float(wall_s), 4)}
+           "dimensions": dimensions, "realism": realism, "cost": cost, "components": components or {},
+           "metrics": metrics or {}, "status": status, "error": error, "wall_s": round(float(wall_s), 4)}
     return _clean(rec)
 
 

@@ -736,6 +736,62 @@ def shape_surface_measures(vertices: np.ndarray, faces: np.ndarray, reference: R
     }
 
 
+def quick_measures(vertices: np.ndarray, faces: np.ndarray, reference: RealismReference, *,
+                   latent: Any = None, latents: np.ndarray | None = None, vehicle_class: str | None = None,
+                   chamfer: bool = True, seed: Any = 0) -> dict:
+    """The cheap realism figures of a metric mesh: what every attack query carries and what the
+    add-on shows live (docs/realism.md, "Per query and live").
+
+    The paper's JSD (the same sample and value as the full report), the dimensions against the
+    class's real ranges, the nearest CAD model by Chamfer distance (``chamfer``) and the latent
+    Mahalanobis distance (when ``latent`` is given). Leaves out what needs the decoder's field
+    (parts, genus, wall thickness): those cost ~3x more and are computed for best shapes only.
+
+    Args:
+        vertices: (V, 3) metres, vehicle frame. faces: (F, 3).
+        reference: what to compare against.
+        latent: (K,) latent of the shape, or None (a mesh from outside the shape space).
+        latents: (M, K) library latents, in ``reference.asset_ids`` order (needed with ``latent``).
+        vehicle_class: class whose real dimensions apply; default the nearest CAD model's class
+            (by Chamfer, else by latent distance); without either, no dimension check.
+        chamfer: compute the nearest CAD model (~25 ms with scipy, ~50 ms without).
+        seed: surface sample seed (0: the full report's sample).
+    Returns:
+        a JSON-able dict: ``jsd``, [``nearest_asset``, ``nearest_chamfer_m``], [``mahalanobis``],
+        ``dimensions_m``, ``dimension_class``, ``dimension_excess`` (None without a class),
+        ``flags`` (the failed checks among those measured, named as in the full report).
+    """
+    v = np.asarray(vertices, dtype=np.float64)
+    pts = footprint_centred(sample_surface(v, faces, N_POINTS, seed), v)
+    out: dict[str, Any] = {"jsd": jsd(bev_histogram(pts), reference.histogram)}
+    checks = {"jsd": out["jsd"] <= reference.jsd_limit}
+    nearest_class = None
+    if chamfer:
+        dists = reference.chamfer_distances(pts)
+        near = int(np.argmin(dists))
+        out["nearest_asset"], out["nearest_chamfer_m"] = reference.asset_ids[near], float(dists[near])
+        checks["nearest_chamfer_m"] = out["nearest_chamfer_m"] <= reference.chamfer_limit_m
+        nearest_class = reference.asset_classes[near]
+    if latent is not None:
+        if latents is None:
+            raise ConfigError("quick_measures: a latent needs the library latents")
+        z = np.asarray(latent, dtype=np.float64).reshape(-1)
+        out["mahalanobis"] = latent_mahalanobis(z, latents)
+        checks["mahalanobis"] = out["mahalanobis"] <= reference.mahalanobis_limit
+        if nearest_class is None:
+            nearest_class = reference.asset_classes[int(np.argmin(np.linalg.norm(latents - z[None], axis=1)))]
+    dims = mesh_dimensions(v)
+    cls = vehicle_class or nearest_class
+    out["dimensions_m"] = [float(x) for x in dims]
+    out["dimension_class"] = cls
+    out["dimension_excess"] = None
+    if cls is not None:
+        out["dimension_excess"] = [float(x) for x in dimension_excess(dims, cls)]
+        checks["dimension_excess"] = max(out["dimension_excess"]) == 0.0
+    out["flags"] = [k for k, ok in checks.items() if not ok]
+    return out
+
+
 def latent_realism_report(space, z: Any, scales: Sequence[float] = (1.0, 1.0),
                           reference: RealismReference | None = None, vehicle_class: str | None = None,
                           seed: Any = 0) -> dict:
