@@ -111,7 +111,10 @@ def register(subparsers) -> None:
     b.set_defaults(func=cmd_build)
 
     r = sub.add_parser("render", help="render the library grid, a latent sweep, a scene or a review frame to PNG")
-    r.add_argument("--what", choices=("library", "sweep", "scene", "review"), required=True)
+    r.add_argument("--what", choices=("library", "sweep", "shapes", "scene", "review"), required=True)
+    r.add_argument("--panel", action="store_true",
+                   help="draw the panel's state (its list, sliders, settings) in a column beside the picture")
+    r.add_argument("--u", default=None, help="shapes: unit vector z1,..,zK,width,length in [0, 1] (default 0.5s)")
     r.add_argument("--out", type=Path, required=True, help="PNG file to write")
     r.add_argument("--library", type=Path, default=None, help="library.json (default: the shipped library)")
     r.add_argument("--space", type=Path, default=None, help="shape-space .npz (default: the shipped one)")
@@ -153,6 +156,10 @@ def cmd_render(args) -> int:
             setattr(args, name, Path(getattr(args, name)).expanduser().absolute())
     cmd = [sys.executable, "-m", "blender_addon.render", "--what", args.what, "--out", str(args.out),
            "--size", f"{w}x{h}", "--engine", args.engine, "--dim", str(args.dim), "--steps", str(args.steps)]
+    if args.panel:
+        cmd += ["--panel"]
+    if args.u:
+        cmd += ["--u", args.u]
     if args.library:
         cmd += ["--library", str(args.library)]
     if args.space:

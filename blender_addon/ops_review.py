@@ -159,6 +159,7 @@ def load_review_steps(bscene, path: str | Path):
     from adv3d_runner.sim.replay import load_replay_steps
 
     path = Path(path).expanduser()
+    yield from jobs.import_steps(("scipy.spatial", "trimesh"))  # adversarial shapes are glb files
     key = yield from span(replay_key_steps(path), 0.0, 0.05, f"hashing {path.name}")
     replay = yield from span(load_replay_steps(path, points=True), 0.05, 0.95, f"reading {path.name}")
     yield 0.95, "building the review"
@@ -201,6 +202,7 @@ def reattach_steps(bscenes):
         key = props.key
         path = key_path(key)
         coll = bpy.data.collections.get(review.REVIEW_COLLECTION)
+        yield from jobs.import_steps(("scipy.spatial", "trimesh"))
         try:
             now = yield from span(replay_key_steps(path), 0.0, 0.05, f"checking {path.name}")
             if now != key:

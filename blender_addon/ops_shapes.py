@@ -259,6 +259,7 @@ def build_steps(library, out: str, options: dict):
     atomic write. Cancelling before the write leaves the old file untouched."""
     from adv3d_runner.shapes.shape_space import build_shape_space_steps
 
+    yield from jobs.import_steps()
     space = yield from build_shape_space_steps(library, **options)
     yield 1.0, f"writing {Path(out).name}"
     runner.save_space(space, out)

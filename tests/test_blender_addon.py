@@ -765,3 +765,25 @@ def test_panels_draw_with_existing_properties_and_operators(ctx, data, lib_copy)
         panel.draw(SimpleNamespace(layout=_Layout(seen)), ctx)
     for expected in ("adv3d.library_import", "adv3d.shapes_random", "adv3d.scene_export", "latent", "asset_id"):
         assert expected in seen
+
+
+def test_render_resolves_relative_paths_against_the_callers_folder(data, tmp_path, repo_root):
+    """``adv3d blender render`` run from another folder: ``--out`` and ``--space`` mean the
+    caller's paths; ``--panel`` adds the panel column (drawn from the panel's properties)."""
+    import os
+    import subprocess
+    import sys
+
+    from PIL import Image
+
+    shutil.copy(data["space"], tmp_path / "space.npz")
+    env = dict(os.environ, PYTHONPATH=str(repo_root))
+    cmd = [sys.executable, "-m", "adv3d_runner.cli", "--quiet", "blender", "render", "--what", "shapes", "--panel",
+           "--space", "space.npz", "--u", "0.2,0.8,0.5,0.5,0.5", "--size", "200x120", "--out", "pics/shape.png"]
+    done = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
+    img = Image.open(tmp_path / "pics" / "shape.png")
+    assert img.size == (200 + 330, 120)
+    assert not (repo_root / "pics").exists()
+    bad = subprocess.run(cmd[:-1] + ["out.png", "--u", "0.5"], cwd=tmp_path, env=env, capture_output=True, text=True)
+    assert bad.returncode != 0 and "--u needs 5 values" in bad.stderr
