@@ -26,13 +26,12 @@ import json
 import math
 import zipfile
 from pathlib import Path, PurePosixPath
-from typing import Any, Iterable, NoReturn, Sequence
+from typing import Any, Generator, Iterable, NoReturn, Sequence
 
 import numpy as np
 
 from .errors import FileFormatError
 from .fileio import read_json
-from .progress import Steps
 
 #: What a missing required field expects (one wording for every contract).
 MISSING = "a value (field is missing)"
@@ -443,7 +442,7 @@ NPZ_STEP_BYTES = 1 << 22
 
 
 def read_npz_steps(path: str | Path, what: str, hint: str = "",
-                   step_bytes: int = NPZ_STEP_BYTES) -> Steps[Arrays]:
+                   step_bytes: int = NPZ_STEP_BYTES) -> Generator[Any, None, Arrays]:
     """:func:`read_npz` in pieces (a steps generator, ``progress.run_steps``): each member's
     data is inflated ``step_bytes`` at a time into its array, yielding between pieces, for
     callers that must stay responsive (the Blender add-on loading a replay's points). Gives the

@@ -175,8 +175,14 @@ class JobOperator:
             return None
         try:
             steps = self.start_job(context)
-        except (runner.Adv3dError, OSError, ValueError) as exc:
-            self.report({"ERROR"}, str(exc))
+        except (runner.Adv3dError, OSError, ValueError, KeyError) as exc:
+            from .uiutil import error_text
+
+            self.report({"ERROR"}, error_text(exc))
+            return None
+        except Exception as exc:  # a bug: one line for the user, the traceback on the console
+            traceback.print_exc()
+            self.report({"ERROR"}, f"internal error ({type(exc).__name__}: {exc})")
             return None
         return None if steps is None else Job(self.job_label, steps)
 
