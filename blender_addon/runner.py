@@ -53,14 +53,6 @@ def unit_vector(latent: np.ndarray | list[float], k: int, width_scale: float, le
     return np.clip(u, 0.0, 1.0)
 
 
-def build_space(library, options: dict, callback) -> Any:
-    """``build_shape_space(library, **options)`` reporting per-asset progress to
-    ``callback(done, total)`` (the Blender progress bar) instead of a terminal bar."""
-    from adv3d_runner.shapes.shape_space import build_shape_space
-
-    return build_shape_space(library, progress=False, on_progress=callback, **options)
-
-
 def save_space(space, path: str | os.PathLike) -> Path:
     """Write a shape space atomically and drop any cached copy of that path."""
     out = space.save(Path(path))

@@ -50,9 +50,13 @@ from typing import Iterable, Sequence
 import numpy as np
 
 from ..errors import Adv3dError, ConfigError
+from ..progress import Steps, run_steps
 from .cleaning import orient_faces
 
 METHODS = ("winding", "floodfill", "rayvote")
+#: Grid points per piece in the stepwise SDF (:func:`sdf_volume_steps`): one piece of libigl
+#: work takes well under 0.1 s at 64^3, so the add-on's UI never waits long.
+STEP_POINTS = 32768
 DEFAULT_METHOD = "winding"
 #: Truncation in unit-cube units: 0.1 x the cube edge (~0.55 m for a 5 m car). Wide enough that
 #: linear PCA blends of neighbouring surfaces stay distance-like (a narrow band blends like an
@@ -209,19 +213,44 @@ def boundary_faces(
     Returns:
         vertices (V', 3) and faces (B, 3) of the boundary pieces.
     """
+    return run_steps(boundary_faces_steps(vertices, faces, inside_fn, eps, max_edge))
+
+
+def boundary_faces_steps(vertices: np.ndarray, faces: np.ndarray, inside_fn, eps: float, max_edge: float,
+                         chunk: int | None = None) -> Steps[tuple[np.ndarray, np.ndarray]]:
+    """:func:`boundary_faces` as a steps generator (``progress.run_steps``); the probes are
+    classified ``chunk`` points at a time."""
     from trimesh.remesh import subdivide_to_size
 
     # A large triangle can be partly hidden inside another part (low-poly CAD): split triangles
     # to about one voxel so each piece is classified on its own.
     vertices, faces = subdivide_to_size(vertices, faces, max_edge=max_edge, max_iter=12)
+    yield
     tri = vertices[faces]
     centroid = tri.mean(axis=1)
     normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300)
     probe = np.concatenate([centroid + eps * normal, centroid - eps * normal])
-    side = inside_fn(probe)
+    side = yield from chunked(inside_fn, probe, chunk)
     n = len(faces)
     return vertices, faces[side[:n] != side[n:]]
+
+
+def chunked(fn, points: np.ndarray, chunk: int | None = None) -> Steps[np.ndarray]:
+    """``fn(points)`` evaluated ``chunk`` rows at a time, yielding after each piece (a steps
+    generator); returns the concatenation. Only for per-point functions (each row's result
+    does not depend on the other rows: winding numbers, distances, ray votes), so the result
+    is bit-identical to one call."""
+    chunk = chunk or len(points) or 1
+    if len(points) <= chunk:
+        out = fn(points)
+        yield
+        return out
+    parts = []
+    for s in range(0, len(points), chunk):
+        parts.append(fn(points[s : s + chunk]))
+        yield
+    return np.concatenate(parts)
 
 
 _RAY_DIRS = None
@@ -302,11 +331,19 @@ def fill_enclosed_cavities(
     Returns:
         inside, dist (new arrays).
     """
+    return run_steps(fill_enclosed_cavities_steps(vertices, faces, inside, dist, grid, bound))
+
+
+def fill_enclosed_cavities_steps(vertices: np.ndarray, faces: np.ndarray, inside: np.ndarray, dist: np.ndarray,
+                                 grid: GridSpec, bound: float,
+                                 chunk: int | None = None) -> Steps[tuple[np.ndarray, np.ndarray]]:
+    """:func:`fill_enclosed_cavities` as a steps generator (distances ``chunk`` points at a time)."""
     from scipy import ndimage
 
     n = grid.resolution
-    dist_all = unsigned_distance(vertices, faces, grid.points(), bound)
+    dist_all = yield from chunked(lambda p: unsigned_distance(vertices, faces, p, bound), grid.points(), chunk)
     hollow = enclosed_free_space(dist_all, n, 0.75 * grid.voxel) & ~inside
+    yield
     if not hollow.any():
         return inside, dist
     grown = ndimage.binary_dilation(hollow.reshape(n, n, n), structure=np.ones((3, 3, 3), dtype=bool))
@@ -333,6 +370,14 @@ def sdf_volume(vertices_m: np.ndarray, faces: np.ndarray, grid: GridSpec, method
         ConfigError: unknown method.
         Adv3dError: the mesh leaves the grid cube or encloses no volume.
     """
+    return run_steps(sdf_volume_steps(vertices_m, faces, grid, method))
+
+
+def sdf_volume_steps(vertices_m: np.ndarray, faces: np.ndarray, grid: GridSpec, method: str = DEFAULT_METHOD,
+                     chunk: int = STEP_POINTS) -> Steps[np.ndarray]:
+    """:func:`sdf_volume` as a steps generator (``progress.run_steps``): the per-point libigl /
+    Embree queries run ``chunk`` grid points at a time with a ``yield`` between pieces (the
+    Blender add-on's Build stays responsive); the result is the same array, bit for bit."""
     if method not in METHODS:
         raise ConfigError(f"unknown SDF method {method!r}; choose one of {', '.join(METHODS)}")
     v = grid.to_unit(vertices_m)
@@ -352,24 +397,29 @@ def sdf_volume(vertices_m: np.ndarray, faces: np.ndarray, grid: GridSpec, method
 
     if method == "winding":
         fo, _ = orient_faces(v, f, rule="outward")
+        yield
 
         def inside_fn(p: np.ndarray) -> np.ndarray:
             return winding_numbers(v, fo, p) > 0.5
 
-        inside = inside_fn(pts)
-        vb, fb = boundary_faces(v, fo, inside_fn, eps, grid.voxel)
-        dist = unsigned_distance(vb, fb, pts, bound) if len(fb) else unsigned_distance(v, fo, pts, bound)
-        inside, dist = fill_enclosed_cavities(v, fo, inside, dist, grid, bound)
+        inside = yield from chunked(inside_fn, pts, chunk)
+        vb, fb = yield from boundary_faces_steps(v, fo, inside_fn, eps, grid.voxel, chunk)
+        if not len(fb):
+            vb, fb = v, fo
+        dist = yield from chunked(lambda p: unsigned_distance(vb, fb, p, bound), pts, chunk)
+        inside, dist = yield from fill_enclosed_cavities_steps(v, fo, inside, dist, grid, bound, chunk)
     elif method == "rayvote":
 
         def inside_fn(p: np.ndarray) -> np.ndarray:
             return ray_escape_inside(v, f, p)
 
-        inside = inside_fn(pts)
-        vb, fb = boundary_faces(v, f, inside_fn, eps, grid.voxel)
-        dist = unsigned_distance(vb, fb, pts, bound) if len(fb) else unsigned_distance(v, f, pts, bound)
+        inside = yield from chunked(inside_fn, pts, chunk)
+        vb, fb = yield from boundary_faces_steps(v, f, inside_fn, eps, grid.voxel, chunk)
+        if not len(fb):
+            vb, fb = v, f
+        dist = yield from chunked(lambda p: unsigned_distance(vb, fb, p, bound), pts, chunk)
     else:  # floodfill
-        dist = unsigned_distance(v, f, pts, bound)
+        dist = yield from chunked(lambda p: unsigned_distance(v, f, p, bound), pts, chunk)
         wall = 0.75 * grid.voxel
         # mesh2sdf style: every wall node counts as inside, which biases the surface outwards.
         inside = enclosed_free_space(dist, n, wall) | (dist < wall)

@@ -23,6 +23,7 @@ import numpy as np
 
 from ..errors import Adv3dError, ConfigError
 from ..fileio import REPO_ROOT, atomic_write_bytes, npz_bytes
+from ..progress import Steps
 from ..validate import check_header, read_npz
 from .decode import extract_surface
 from .sdf import DEFAULT_METHOD, DEFAULT_TRUNCATION, GridSpec
@@ -442,20 +443,60 @@ def library_sdfs(
     """SDF volumes of every shape-space asset on the common grid.
 
     ``progress`` shows a terminal bar; ``on_progress(done, total)``, when given, is called
-    instead before each asset and once at the end (the Blender add-on's progress bar).
+    instead before each asset and once at the end.
 
     Returns:
         grid, the assets (``library.shape_space_assets()`` order), sdfs (M, N, N, N) float32,
         and the ``library_fingerprint`` of the assets.
     """
-    from .sdf import grid_for_dimensions, sdf_volume
+    from ..progress import run_steps
+
+    steps = library_sdfs_steps(library, resolution, method, truncation, mesh_loader)
+    if on_progress is None:
+        if not progress:
+            return run_steps(steps)
+        from ..progress import progress as bar
+
+        ticks = iter(bar(range(len(list(library.shape_space_assets()))), desc=f"SDF {resolution}^3 ({method})",
+                         unit="asset"))
+        on_progress = lambda done, total: next(ticks, None)  # noqa: E731  (one tick per asset)
+    started = -1
+    while True:
+        try:
+            step = next(steps)
+        except StopIteration as stop:
+            total = len(stop.value[1])
+            on_progress(total, total)
+            return stop.value
+        if step[2] != started:  # (fraction, message, assets_done, assets_total): a new asset
+            started = step[2]
+            on_progress(step[2], step[3])
+
+
+def library_sdfs_steps(
+    library,
+    resolution: int = DEFAULT_RESOLUTION,
+    method: str = DEFAULT_METHOD,
+    truncation: float = DEFAULT_TRUNCATION,
+    mesh_loader: Callable | None = None,
+) -> Steps[tuple[GridSpec, list, np.ndarray, str]]:
+    """:func:`library_sdfs` as a steps generator (``progress.run_steps``), for callers that must
+    stay responsive (the Blender add-on's Build): every step is a short piece of work, yielded
+    as ``(fraction, message, assets_done, assets_total)``; returns what ``library_sdfs`` does,
+    the same bytes."""
+    from ..progress import relay
+    from .sdf import grid_for_dimensions, sdf_volume_steps
 
     if mesh_loader is None:
         from .library import load_asset_mesh as mesh_loader
     assets = list(library.shape_space_assets())
     if not assets:
         raise ConfigError("the vehicle library has no assets marked in_shape_space")
-    meshes = [mesh_loader(library, a.id) for a in assets]
+    m = len(assets)
+    meshes = []
+    for i, a in enumerate(assets):
+        meshes.append(mesh_loader(library, a.id))
+        yield 0.0, f"reading {a.id}", 0, m
     # Common scale: the larger of the recorded dimensions and the mesh's own extent, so every
     # mesh fits the cube even where the manifest rounds.
     dims = []
@@ -464,21 +505,14 @@ def library_sdfs(
         ext = np.array([2 * np.abs(v[:, 0]).max(), 2 * np.abs(v[:, 1]).max(), v[:, 2].max()])
         dims.append(np.maximum(np.asarray(a.dimensions, dtype=np.float64), ext))
     grid = grid_for_dimensions(dims, resolution, truncation)
-    sdfs = np.empty((len(assets), resolution, resolution, resolution), dtype=np.float32)
-    items = list(zip(assets, meshes))
-    if progress and on_progress is None:
-        from ..progress import progress as bar
-
-        items = bar(items, desc=f"SDF {resolution}^3 ({method})", unit="asset")
-    for i, (a, mesh) in enumerate(items):
-        if on_progress is not None:
-            on_progress(i, len(assets))
+    sdfs = np.empty((m, resolution, resolution, resolution), dtype=np.float32)
+    for i, (a, mesh) in enumerate(zip(assets, meshes)):
+        message = f"SDF {resolution}^3 of {a.id} ({i + 1}/{m})"
+        yield i / m, message, i, m
         try:
-            sdfs[i] = sdf_volume(mesh.vertices, mesh.faces, grid, method)
+            sdfs[i] = yield from relay(sdf_volume_steps(mesh.vertices, mesh.faces, grid, method), (i / m, message, i, m))
         except Adv3dError as exc:
             raise Adv3dError(f"asset {a.id}: {exc}") from None
-    if on_progress is not None:
-        on_progress(len(assets), len(assets))
     return grid, assets, sdfs, library_fingerprint(assets, meshes)
 
 
@@ -506,6 +540,27 @@ def build_shape_space(
     """
     grid, assets, sdfs, fingerprint = library_sdfs(library, resolution, method, truncation, progress, mesh_loader,
                                                    on_progress)
+    return _space_of(grid, assets, sdfs, fingerprint, k, method)
+
+
+def build_shape_space_steps(
+    library,
+    resolution: int = DEFAULT_RESOLUTION,
+    k: int = DEFAULT_K,
+    method: str = DEFAULT_METHOD,
+    truncation: float = DEFAULT_TRUNCATION,
+    mesh_loader: Callable | None = None,
+) -> Steps[ShapeSpace]:
+    """:func:`build_shape_space` as a steps generator (``progress.run_steps``): yields
+    ``(fraction, message, assets_done, assets_total)`` between short pieces of work (the
+    Blender add-on's modal Build); returns the same shape space, byte for byte."""
+    grid, assets, sdfs, fingerprint = yield from library_sdfs_steps(library, resolution, method, truncation,
+                                                                    mesh_loader)
+    yield 1.0, "principal components", len(assets), len(assets)
+    return _space_of(grid, assets, sdfs, fingerprint, k, method)
+
+
+def _space_of(grid: GridSpec, assets: list, sdfs: np.ndarray, fingerprint: str, k: int, method: str) -> ShapeSpace:
     build = {"assets": len(assets), "classes": sorted({a.vehicle_class for a in assets}),
              "library_fingerprint": fingerprint}
     return shape_space_from_sdfs(sdfs, [a.id for a in assets], grid, k, method, build)

@@ -26,8 +26,9 @@ from typing import Any
 
 import numpy as np
 
-from ..fileio import atomic_path, write_json
-from ..validate import Node, check_header, describe, read_npz
+from ..fileio import atomic_path, read_json_steps, write_json
+from ..progress import Steps, run_steps
+from ..validate import Node, check_header, describe, read_npz_steps
 
 FORMAT = "adv3d-replay"
 VERSION = 1
@@ -312,8 +313,19 @@ def _frame(o: Node) -> ReplayFrame:
                        pl.get("label", "").string(empty=True), pl.get("cost", 0.0).number())
 
 
+#: Frames validated per step of :func:`load_replay_steps`; points rows converted per step.
+STEP_FRAMES = 25
+STEP_ROWS = 1 << 19
+
+
 def replay_from_dict(raw: Any, path: str | Path | None = None, points: list[np.ndarray] | None = None) -> Replay:
     """Validate a replay document and build the :class:`Replay` (points loaded separately)."""
+    return run_steps(replay_from_dict_steps(raw, path, points))
+
+
+def replay_from_dict_steps(raw: Any, path: str | Path | None = None,
+                           points: list[np.ndarray] | None = None) -> Steps[Replay]:
+    """:func:`replay_from_dict` as a steps generator (``STEP_FRAMES`` frames per step)."""
     doc = Node(raw, "$", path)
     check_header(doc, FORMAT, (VERSION,))
     scene = doc["scene"]
@@ -332,7 +344,11 @@ def replay_from_dict(raw: Any, path: str | Path | None = None, points: list[np.n
                                   _poses(a["poses"], T, nullable=True),
                                   a.get("adversarial", False).boolean(),
                                   a.get("mesh").string(nullable=True, empty=True)))
-    frames = [_frame(o) for o in doc["outputs"].items(f"a list of {T} frames", length=T)]
+    frames = []
+    for o in doc["outputs"].items(f"a list of {T} frames", length=T):
+        frames.append(_frame(o))
+        if len(frames) % STEP_FRAMES == 0:
+            yield
     meta = doc.get("metadata", {}).object("a JSON object")
     return Replay(scene_id, dt, ego_dims, ego_poses, ego_speed, actors, frames,
                   doc.get("start_frame", 0).integer(lo=0),
@@ -344,7 +360,15 @@ def replay_from_dict(raw: Any, path: str | Path | None = None, points: list[np.n
 
 def load_points(path: str | Path, frames: int, n_actors: int) -> list[np.ndarray]:
     """Read a replay's points file -> T float32 (P, 5) arrays (validated)."""
-    z = read_npz(path, "points file")
+    return run_steps(load_points_steps(path, frames, n_actors))
+
+
+def load_points_steps(path: str | Path, frames: int, n_actors: int) -> Steps[list[np.ndarray]]:
+    """:func:`load_points` as a steps generator: the file inflated and converted in pieces,
+    yielding ``(fraction,)``."""
+    from ..progress import span
+
+    z = yield from span(read_npz_steps(path, "points file"), 0.0, 0.8, "")
     z.require(("format", "version", "xyz_cm", "intensity", "label", "offsets"))
     z.header(POINTS_FORMAT, VERSION)
     xyz = z.array("xyz_cm", dtype=np.int16, shape=("P", 3))
@@ -358,19 +382,33 @@ def load_points(path: str | Path, frames: int, n_actors: int) -> list[np.ndarray
         z.fail("offsets", f"non-decreasing int array ({frames + 1},) from 0 to {P}", f"{off.shape}")
     # filled in place (no temporaries): this is most of the load time of a long replay
     pts = np.empty((P, 5), np.float32)
-    np.divide(xyz, np.float32(100.0), out=pts[:, :3], dtype=np.float32)
-    np.divide(inten, np.float32(255.0), out=pts[:, 3], dtype=np.float32)
-    pts[:, 4] = lab
+    for s in range(0, P, STEP_ROWS):  # row blocks: elementwise, so the same bytes as one call
+        e = min(s + STEP_ROWS, P)
+        np.divide(xyz[s:e], np.float32(100.0), out=pts[s:e, :3], dtype=np.float32)
+        np.divide(inten[s:e], np.float32(255.0), out=pts[s:e, 3], dtype=np.float32)
+        pts[s:e, 4] = lab[s:e]
+        yield 0.8 + 0.2 * e / P,
     return [pts[off[k]:off[k + 1]] for k in range(frames)]
 
 
 def load_replay(path: str | Path, *, points: bool = True) -> Replay:
     """Load and validate a replay file (and its points file when it names one and ``points``)."""
-    doc = Node.load(path)
-    replay = replay_from_dict(doc.value, path)
+    return run_steps(load_replay_steps(path, points=points))
+
+
+def load_replay_steps(path: str | Path, *, points: bool = True) -> Steps[Replay]:
+    """:func:`load_replay` as a steps generator (``progress.run_steps``): reading, parsing,
+    validating and the points file in pieces of a few tens of milliseconds, yielding
+    ``(fraction, message)`` between them (the Blender add-on's Load review stays responsive)."""
+    from ..progress import relay, span
+
+    name = Path(path).name
+    doc = Node((yield from relay(read_json_steps(path), (0.05, f"reading {name}"))), "$", path)
+    replay = yield from relay(replay_from_dict_steps(doc.value, path), (0.2, f"checking {name}"))
     pf = doc.get("points").string(nullable=True, empty=True, expected="a file name or null")
     if pf and points:
-        replay.points = load_points(Path(path).parent / pf, replay.n_frames, len(replay.actors))
+        replay.points = yield from span(load_points_steps(Path(path).parent / pf, replay.n_frames,
+                                                          len(replay.actors)), 0.3, 1.0, f"reading {pf}")
     return replay
 
 
