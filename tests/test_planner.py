@@ -358,3 +358,69 @@ def test_one_frame_obstacle_does_not_make_the_offset_dither():
     assert offsets({2}) == ["d+0.0"] * 6
     # seen for good, the nudge is taken one plan after it first appears, and kept
     assert offsets(set(range(2, 6))) == ["d+0.0"] * 3 + ["d-0.5"] * 3
+
+
+# ------------------------------------------------------------------ real traffic (issue 17)
+
+def test_forecast_heading_ignores_jitter_of_slow_actors():
+    """A slow actor's predicted path jitters by centimetres from step to step; its heading must
+    not (10-30 degrees step to step made a truck in the next lane overlap the ego)."""
+    rng = np.random.default_rng(0)
+    t = np.arange(1, 61) * DT
+    traj = np.zeros((2, 1, 60, 2))
+    traj[0, 0, :, 0] = 3.0 * t + rng.normal(0, 0.04, 60)   # 3 m/s along +x, jittering sideways and back
+    traj[0, 0, :, 1] = rng.normal(0, 0.04, 60)
+    traj[1, 0] = 50.0 + rng.normal(0, 0.04, (60, 2))       # standing still, jittering
+    boxes = np.array([[0.0, 0.0, 14.0, 2.6, 0.0], [50.0, 50.0, 4.6, 1.9, 0.3]])
+    tracks = Tracks(np.array([1, 2]), boxes, np.zeros((2, 2)), np.ones(2), np.zeros(2, np.int64),
+                    np.zeros((2, 1, 3)), np.ones((2, 1), bool))
+    f = forecast_from(Predictions(np.array([1, 2]), traj, np.ones((2, 1))), tracks, steps=50, dt=0.1)
+    assert np.degrees(np.abs(f.poses[0, 0, :, 2])).max() < 3.0
+    assert np.allclose(f.poses[1, 0, :, 2], 0.3)
+    # a plain step-by-step heading of the same path is far off (what the chord is for)
+    d = np.diff(traj[0, 0], axis=0)
+    assert np.degrees(np.abs(np.arctan2(d[:, 1], d[:, 0]))).max() > 10.0
+
+
+def _follower_scene(brake_check):
+    """Ego at 10 m/s with a car 10 m behind at 10 m/s, predicted to keep its speed."""
+    from adv3d_runner.autonomy.planner import PlannerConfig
+
+    planner = planner_on(straight_lanes(1), SamplingPlanner(PlannerConfig(brake_check_decel=brake_check)))
+    ego = EgoState(np.array([0.0, 0.0, 0.0]), 10.0, length=4.8, width=1.9)
+    t = np.arange(1, 61) * DT
+    tracks, preds = actor_inputs(np.array([[-10.0, 0.0, 4.6, 1.9, 0.0]]), np.stack([-10.0 + 10.0 * t, 0 * t], -1)[None])
+    _, cands, table = planner.plan_with_scores(ego, preds, tracks)
+    return cands, table
+
+
+def test_brake_check_ends_the_rear_end_exemption():
+    cands, table = _follower_scene(np.inf)
+    stop = int(np.flatnonzero(cands.spec.emergency)[0])
+    assert table.raw["collision"][stop] == 0.0  # rear-ended while keeping the lane: exempt
+    cands, table = _follower_scene(3.5)
+    assert table.raw["collision"][stop] > 0.5  # but not after braking at 7 m/s^2 in front of it
+    keep = np.flatnonzero(~cands.spec.emergency & (cands.spec.target_speed > 9.0) & (cands.spec.corridor == 0))
+    assert np.all(table.raw["collision"][keep] == 0.0)
+
+
+@pytest.mark.parametrize("coolness", [0.0, 0.99])
+def test_acc_coolness_opens_a_short_gap_gently(coolness):
+    """Behind a leader at the same speed with a 0.5 s gap (dense real traffic), the plain IDM
+    brakes at its limit; the ACC model (coolness near 1) opens the gap at about ``idm_decel``."""
+    from adv3d_runner.autonomy.planner import PlannerConfig, ProposalConfig
+
+    pc = ProposalConfig(coolness=coolness)
+    planner = planner_on(straight_lanes(1), SamplingPlanner(PlannerConfig(proposals=pc)))
+    ego = EgoState(np.array([0.0, 0.0, 0.0]), 12.0, length=4.8, width=1.9)
+    t = np.arange(1, 61) * DT
+    lead = np.array([[4.8 + 6.0, 0.0, 4.8, 1.9, 0.0]])  # bumper gap 6 m at 12 m/s
+    tracks, preds = actor_inputs(lead, np.stack([lead[0, 0] + 12.0 * t, 0 * t], -1)[None])
+    _, cands, table = planner.plan_with_scores(ego, preds, tracks)
+    keep = np.flatnonzero(~cands.spec.emergency & (cands.spec.corridor == 0) & (cands.spec.target_speed > 12.0))
+    hardest = cands.accel[keep].min()
+    if coolness == 0.0:
+        assert hardest < -3.5
+    else:
+        assert -pc.idm_decel - 0.3 < hardest < -0.5
+    assert np.all(table.raw["collision"][keep] == 0.0)

@@ -258,3 +258,16 @@ def test_train_cli_quick(tmp_path):
     assert load_predictor(out).num_modes == 6
     # the cache is reused on a second run (same data, no regeneration needed)
     assert any((tmp_path / "cache").rglob("*.npz"))
+
+
+def test_no_reversing_keeps_forward_progress():
+    from adv3d_runner.autonomy.predictor import no_reversing
+
+    local = np.zeros((1, 2, 5, 2))
+    local[0, 0, :, 0] = [0.5, 0.3, 1.0, 0.8, 2.0]     # jitters backwards
+    local[0, 1, :, 0] = [-0.2, -0.5, -1.0, -2.0, -3.0]  # rolls back
+    local[..., 1] = 0.1
+    out = no_reversing(local)
+    assert out[0, 0, :, 0].tolist() == [0.5, 0.5, 1.0, 1.0, 2.0]
+    assert out[0, 1, :, 0].tolist() == [0.0] * 5
+    assert np.all(out[..., 1] == 0.1) and local[0, 1, 0, 0] == -0.2  # lateral kept, input untouched

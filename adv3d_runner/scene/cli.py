@@ -20,6 +20,9 @@ def register(subparsers) -> None:
                    help="road layout (default: cycles through all by seed)")
     g.add_argument("--density", default=None, choices=("free", "light", "moderate", "dense", "congested"),
                    help="traffic density (default: cycles through all by seed)")
+    g.add_argument("--profile", default="default", choices=("default", "us101"),
+                   help="traffic and road parameters: default (the bundled benchmark's) or us101 (fitted to the "
+                        "NGSIM US-101 training recordings; sets its own density)")
     g.set_defaults(func=_generate)
 
     c = sub.add_parser("import-commonroad", help="convert a CommonRoad XML scenario into a scene")
@@ -65,7 +68,8 @@ def _generate(args: argparse.Namespace) -> int:
     if args.count < 1:
         raise ConfigError("--count must be >= 1")
     seed = SPLITS[args.split][1] if args.seed is None else args.seed
-    paths = generate_scenes(args.out, args.count, seed, args.split, args.layout, args.density)
+    paths = generate_scenes(args.out, args.count, seed, args.split, args.layout, args.density,
+                            profile=args.profile)
     status(f"wrote {len(paths)} scene(s) to {args.out}")
     return 0
 

@@ -54,6 +54,12 @@ class ProposalConfig:
             the acceleration rises from a negative value (releasing the brakes).
         min_mode_prob: predicted modes below this probability are ignored as leaders.
         lane_margin: extra lateral margin when deciding that an actor is in a corridor, m.
+        coolness: c of the ACC model (Treiber & Kesting, *Traffic Flow Dynamics* 11.3.7): where
+            the IDM brakes harder than the constant-acceleration heuristic (CAH) says is
+            needed, the acceleration becomes (1 - c) a_IDM + c [a_CAH + b tanh((a_IDM -
+            a_CAH) / b)]. 0 = plain IDM; with c near 1 a gap shorter than the IDM's desired one
+            behind a leader that is not braking (dense real traffic: 0.5-1 s headways) is
+            opened with about ``idm_decel`` instead of the IDM's full braking.
     """
 
     horizon: float = 5.0
@@ -76,6 +82,7 @@ class ProposalConfig:
     max_release_jerk: float = 10.0
     min_mode_prob: float = 0.1
     lane_margin: float = 0.3
+    coolness: float = 0.0
 
     @property
     def steps(self) -> int:
@@ -269,6 +276,11 @@ def rollout_candidates(ego_pose: np.ndarray, ego_speed: float, ego_accel: float,
         lead_back = lead_s_t - (leader_len + half_len)  # the leader's rear bumper less the ego's half length
         lead_v = np.maximum((lead_s_t[1:] - lead_s_t[:-1]) / dt, 0.0)  # (T, B, M) leader speeds
         any_lead = lead_ok_t.any(axis=(1, 2))
+        if config.coolness > 0.0:  # leader accelerations over 0.5 s (single steps are jittery)
+            ahead = np.minimum(np.arange(T) + 5, T - 1)
+            span = np.maximum(ahead - np.arange(T), 1)[:, None, None] * dt
+            lead_a = np.minimum((lead_v[ahead] - lead_v) / span, config.idm_accel)  # (T, B, M)
+            lead_a[-1] = lead_a[-2] if T > 1 else 0.0
     x, y, yaw, v = (states[i, 0].copy() for i in range(4))
     # the proposal's own limits are within the vehicle's: the step's clamps would be no-ops
     clamp_accel = not (-max_dec <= -config.max_decel and config.idm_accel <= max_acc)
@@ -287,6 +299,8 @@ def rollout_candidates(ego_pose: np.ndarray, ego_speed: float, ego_accel: float,
             gap_hist[k] = gap
             if k < T:
                 v_lead = lead_v[k][rows, j]
+                if config.coolness > 0.0:
+                    a_lead = lead_a[k][rows, j]
         if k == T:
             break
         # ---- longitudinal: IDM towards the target speed
@@ -300,7 +314,17 @@ def rollout_candidates(ego_pose: np.ndarray, ego_speed: float, ego_accel: float,
             if finite.any():
                 s_star = config.idm_gap + np.maximum(0.0, v * config.idm_headway + v * (v - v_lead) / sqrt_ab)
                 q = s_star / np.maximum(gap, 0.1)
-                a = np.where(finite, np.where(gap <= 0.0, -config.max_decel, a - config.idm_accel * (q * q)), a)
+                a_idm = a - config.idm_accel * (q * q)
+                if config.coolness > 0.0:  # ACC model: temper the IDM with the CAH
+                    g = np.maximum(gap, 0.1)
+                    dv = v - v_lead
+                    plain = v_lead * dv <= -2.0 * g * a_lead
+                    cah = np.where(plain, v * v * a_lead / np.maximum(v_lead * v_lead - 2.0 * g * a_lead, 1e-6),
+                                   a_lead - np.where(dv > 0.0, dv * dv, 0.0) / (2.0 * g))
+                    c, b = config.coolness, config.idm_decel
+                    cool = (1.0 - c) * a_idm + c * (cah + b * np.tanh((a_idm - cah) / b))
+                    a_idm = np.where(a_idm < cah, cool, a_idm)
+                a = np.where(finite, np.where(gap <= 0.0, -config.max_decel, a_idm), a)
         a = np.minimum(np.maximum(a, -config.max_decel), config.idm_accel)
         # jerk limit; releasing the brakes may be faster (max_release_jerk) so that a plan that
         # braked hard does not keep the ego decelerating for seconds after the reason is gone
