@@ -154,10 +154,10 @@ def test_save_load_roundtrip_and_bad_files(tmp_path):
     t, _ = straight_track(d, nrm, 20.0)
     a = predict_on(p, t, lanes)
     with torch.inference_mode():
-        from adv3d_runner.autonomy.predictor import encode, to_map_frame
+        from adv3d_runner.autonomy.predictor import encode, no_reversing, to_map_frame
         f, prior = encode(t, LaneMap(lanes))
         traj, _ = net.eval()(torch.from_numpy(f), torch.from_numpy(prior))
-    assert np.allclose(a.trajectories, to_map_frame(traj.numpy().astype(float), t.boxes), atol=1e-4)
+    assert np.allclose(a.trajectories, to_map_frame(no_reversing(traj.numpy().astype(float)), t.boxes), atol=1e-4)
     with pytest.raises(FileFormatError):
         load_predictor(tmp_path / "missing")
     (tmp_path / "m" / WEIGHTS_NAME).write_bytes(b"not a torch file")

@@ -44,8 +44,6 @@ class PlannerConfig:
             lane (brakes to a stop), m.
         exempt_rear_end: ignore collisions and buffer violations with actors that come from
             behind in the same direction, for candidates that keep the current lane.
-        brake_check_decel: m/s^2; the rear-end exemption ends once a candidate has braked
-            harder than this (brake-checking a follower is the ego's fault); inf keeps it always.
         offset_confirm_factor: an in-lane offset change that was not already the (unsurcharged)
             choice of the previous plan costs this much more in the offset-change term
             (:func:`.costs.offset_change_cost`): nudges need two consecutive plans to agree.
@@ -61,7 +59,6 @@ class PlannerConfig:
     default_speed_limit: float = DEFAULT_SPEED_LIMIT
     off_lane_distance: float = 10.0
     exempt_rear_end: bool = True
-    brake_check_decel: float = np.inf
     offset_confirm_factor: float = 4.0
 
 
@@ -249,12 +246,6 @@ class SamplingPlanner:
         exempt = None
         if cfg.exempt_rear_end and len(fc):
             exempt = costs.from_behind(poses, fc.poses) & (cands.spec.corridor == 0)[:, None, None, None]
-            if np.isfinite(cfg.brake_check_decel):
-                # from the first step braking harder than the limit on, being rear-ended counts:
-                # an emergency stop in front of a close follower is not free
-                hard = np.logical_or.accumulate(cands.accel < -cfg.brake_check_decel, axis=1)
-                hard = np.concatenate([np.zeros((len(cands), 1), bool), hard], axis=1)  # (B, T + 1)
-                exempt &= ~hard[:, None, None, :]
         raw = {
             "collision": costs.collision_cost(dist, fc.probs, exempt),
             "drivable_area": costs.drivable_area_cost(excess),
