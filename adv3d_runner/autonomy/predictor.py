@@ -221,6 +221,16 @@ def encode(tracks: Tracks, lane_map: LaneMap, steps: int = PREDICTION_STEPS,
             np.nan_to_num(prior).astype(np.float32))
 
 
+def no_reversing(local: np.ndarray) -> np.ndarray:
+    """Agent-frame trajectories (N, K, T, 2) with the forward coordinate made non-decreasing and
+    >= 0 (a running maximum): highway vehicles do not reverse. The network's residuals could
+    move a slow or standing vehicle backwards by metres (seen on NGSIM US-101 stop-and-go,
+    issue 17), which the planner took for a car rolling back into the ego."""
+    out = np.array(local, dtype=np.float64, copy=True)
+    out[..., 0] = np.maximum.accumulate(np.maximum(out[..., 0], 0.0), axis=-1)
+    return out
+
+
 def to_map_frame(local: np.ndarray, boxes: np.ndarray) -> np.ndarray:
     """Agent-frame positions (N, K, T, 2) -> map frame with the boxes' (N, 5) pose."""
     c, s = np.cos(boxes[:, 4]), np.sin(boxes[:, 4])
@@ -323,6 +333,7 @@ class LearnedPredictor:
             return Predictions(np.zeros(0, np.int64), np.zeros((0, K, T, 2)), np.zeros((0, K)), self.config.dt)
         feats, prior = encode(tracks, self.lane_map, T, self.config.dt)
         local, probs = self.predict_local(feats, prior)
+        local = no_reversing(local)
         boxes = np.asarray(tracks.boxes, np.float64).reshape(n, 5)
         traj = to_map_frame(local, np.nan_to_num(boxes))
         bad = ~np.all(np.isfinite(boxes), axis=1)

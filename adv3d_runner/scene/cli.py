@@ -20,6 +20,9 @@ def register(subparsers) -> None:
                    help="road layout (default: cycles through all by seed)")
     g.add_argument("--density", default=None, choices=("free", "light", "moderate", "dense", "congested"),
                    help="traffic density (default: cycles through all by seed)")
+    g.add_argument("--profile", default="default", choices=("default", "us101"),
+                   help="traffic and road parameters: default (the bundled benchmark's) or us101 (fitted to the "
+                        "NGSIM US-101 training recordings; sets its own density)")
     g.set_defaults(func=_generate)
 
     c = sub.add_parser("import-commonroad", help="convert a CommonRoad XML scenario into a scene")
@@ -29,6 +32,9 @@ def register(subparsers) -> None:
     c.add_argument("--extend", action="store_true",
                    help="extend a recording shorter than --seconds at constant speed (marked synthetic)")
     c.add_argument("--ego", type=int, default=None, help="obstacle id to use as ego (default: automatic rule)")
+    c.add_argument("--ego-rank", type=int, default=0,
+                   help="take the car ranked K by the automatic ego rule (0 = the first); gives variants of one "
+                        "recording different egos")
     c.set_defaults(func=_import_commonroad)
 
     v = sub.add_parser("validate", help="validate scene files")
@@ -42,11 +48,13 @@ def register(subparsers) -> None:
 
 
 def _scene_files(paths: list[str]) -> list[Path]:
+    from .real import SPLIT_NAME
+
     out: list[Path] = []
     for item in paths:
         path = Path(item)
-        if path.is_dir():
-            out += sorted(q for q in path.rglob("*") if q.name.endswith((".json", ".json.gz")))
+        if path.is_dir():  # a folder's split manifest (scenes/real/split.json) is not a scene
+            out += sorted(q for q in path.rglob("*") if q.name.endswith((".json", ".json.gz")) and q.name != SPLIT_NAME)
         else:
             out.append(path)
     return out
@@ -60,7 +68,8 @@ def _generate(args: argparse.Namespace) -> int:
     if args.count < 1:
         raise ConfigError("--count must be >= 1")
     seed = SPLITS[args.split][1] if args.seed is None else args.seed
-    paths = generate_scenes(args.out, args.count, seed, args.split, args.layout, args.density)
+    paths = generate_scenes(args.out, args.count, seed, args.split, args.layout, args.density,
+                            profile=args.profile)
     status(f"wrote {len(paths)} scene(s) to {args.out}")
     return 0
 
@@ -70,7 +79,8 @@ def _import_commonroad(args: argparse.Namespace) -> int:
     from .commonroad import import_commonroad
     from .schema import save_scene
 
-    scene = import_commonroad(args.file, seconds=args.seconds, extend=args.extend, ego_id=args.ego)
+    scene = import_commonroad(args.file, seconds=args.seconds, extend=args.extend, ego_id=args.ego,
+                             ego_rank=args.ego_rank)
     save_scene(scene, args.out)
     status(f"wrote {args.out}: {len(scene.lanes)} lanes, {len(scene.actors)} actors, {scene.frames} frames")
     return 0

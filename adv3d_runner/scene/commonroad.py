@@ -206,8 +206,12 @@ def _extend(tracks: dict[int, np.ndarray], lengths: dict[int, float], last: int,
 
 
 def import_commonroad(path: str | Path, seconds: float | None = None, extend: bool = False,
-                      ego_id: int | None = None) -> Scene:
+                      ego_id: int | None = None, ego_rank: int = 0) -> Scene:
     """Convert a CommonRoad XML scenario into a Scene (see module docstring).
+
+    ``ego_rank`` k > 0 takes the (k+1)-th car of the ego rule's order instead of the first, so
+    the variants of one recording (same traffic, different planning problems) can become
+    different scenes.
 
     Raises:
         FileFormatError: unreadable scenario, or no usable ego.
@@ -249,7 +253,7 @@ def import_commonroad(path: str | Path, seconds: float | None = None, extend: bo
         tracks[oid] = arr
     info = {o.obstacle_id: o for o in obstacles}
     lengths = {oid: float(info[oid].obstacle_shape.length) for oid in tracks}
-    ego_oid, rule = _pick_ego(tracks, info, lanes, ego_id, path)
+    ego_oid, rule = _pick_ego(tracks, info, lanes, ego_id, path, ego_rank)
     synthetic_from = n_rec
     if frames > n_rec:
         more = _extend(tracks, lengths, n_rec - 1, frames, lanes)
@@ -327,15 +331,20 @@ def _edge_barriers(lanes: list[Lane], shoulder_left: float = 1.0) -> list[Barrie
     return out
 
 
-def _pick_ego(tracks: dict[int, np.ndarray], info: dict, lanes: list[Lane], ego_id: int | None, path: Path) -> tuple[int, str]:
+def _pick_ego(tracks: dict[int, np.ndarray], info: dict, lanes: list[Lane], ego_id: int | None, path: Path,
+              rank: int = 0) -> tuple[int, str]:
+    if rank < 0:
+        raise ConfigError(f"--ego-rank must be >= 0 (got {rank})")
     if ego_id is not None:
+        if rank:
+            raise ConfigError("--ego and --ego-rank exclude each other")
         if ego_id not in tracks:
             raise ConfigError(f"--ego {ego_id}: no such dynamic obstacle in {path.name}")
         if not np.isfinite(tracks[ego_id][:, 0]).all():
             raise ConfigError(f"--ego {ego_id}: its track does not cover the whole recording")
         return ego_id, "chosen by the user (--ego)"
     by_id = {lane.id: lane for lane in lanes}
-    best, best_key = None, None
+    keys = []
     for oid in sorted(tracks):
         arr = tracks[oid]
         if not np.isfinite(arr[:, 0]).all() or _obstacle_class(info[oid]) not in ("sedan", "hatchback", "suv"):
@@ -351,10 +360,13 @@ def _pick_ego(tracks: dict[int, np.ndarray], info: dict, lanes: list[Lane], ego_
             lon = dx * np.cos(yaw) + dy * np.sin(yaw)
             lat = -dx * np.sin(yaw) + dy * np.cos(yaw)
             ahead += int(0 < lon <= 50.0 and abs(lat) <= 5.5)
-        key = (-ahead, not middle, oid)
-        if best_key is None or key < best_key:
-            best, best_key = oid, key
-    if best is None:
+        keys.append((-ahead, not middle, oid))
+    if not keys:
         raise FileFormatError(path, "$.dynamicObstacle", "a car whose track covers the whole recording (to be the ego)")
-    return best, ("car with a track over the whole recording and the most vehicles ahead (same/adjacent lane, "
-                  "within 50 m) in the first frame; middle lanes preferred; ties -> smallest id")
+    if rank >= len(keys):
+        raise ConfigError(f"--ego-rank {rank}: {path.name} has only {len(keys)} car(s) that can be the ego")
+    rule = ("car with a track over the whole recording and the most vehicles ahead (same/adjacent lane, "
+            "within 50 m) in the first frame; middle lanes preferred; ties -> smallest id")
+    if rank:
+        rule += f"; rank {rank} in that order (--ego-rank {rank}: the first {rank} left out)"
+    return sorted(keys)[rank][2], rule

@@ -188,6 +188,11 @@ def add_train_predictor(train_subparsers) -> None:
     p.add_argument("--no-cache", action="store_true", help="do not read or write the sample cache")
     p.add_argument("--out", default=str(DEFAULT_MODEL_DIR), help="output folder")
     p.add_argument("--quick", action="store_true", help="tiny run for smoke tests (few scenes, 2 epochs)")
+    p.add_argument("--real", default=None,
+                   help="real scenes' split manifest (default scenes/real/split.json): its train part joins the "
+                        "training data, its benchmark part is evaluated only")
+    p.add_argument("--no-real", action="store_true", help="train on generated scenes only")
+    p.add_argument("--real-weight", type=int, default=10, help="times each real training sample is repeated")
     p.set_defaults(func=_train_predictor)
 
 
@@ -204,7 +209,18 @@ def _train_predictor(args: argparse.Namespace) -> int:
         raise ConfigError("--modes must be >= 3 (the issue asks for a multi-modal predictor)")
     command = ("adv3d " + " ".join(shlex.quote(a) for a in sys.argv[1:])) if sys.argv and "adv3d" in sys.argv[0] \
         else ""  # called in-process (tests): train_predictor spells out the arguments
+    real_train, real_eval, real_info = [], [], None
+    if not args.no_real:
+        from ..scene.real import load_real_split
+
+        split = load_real_split(args.real)  # validated: the parts' recordings are disjoint
+        real_train, real_eval = split.paths("train"), split.paths("benchmark")
+        if args.quick:
+            real_train, real_eval = real_train[:2], real_eval[:1]
+        real_info = {"split": args.real or "scenes/real/split.json", "train_recordings": list(split.recordings["train"]),
+                     "held_out_recordings": list(split.recordings["benchmark"])}
     train_predictor(scenes=scenes, val_scenes=val, epochs=epochs, seed=args.seed, modes=args.modes,
                     batch=args.batch, lr=args.lr, threads=args.threads, cache=args.cache,
-                    use_cache=not args.no_cache, out=args.out, command=command, time_limit_min=args.time_limit)
+                    use_cache=not args.no_cache, out=args.out, command=command, time_limit_min=args.time_limit,
+                    real_train=real_train, real_eval=real_eval, real_weight=args.real_weight, real_info=real_info)
     return 0
