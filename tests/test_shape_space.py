@@ -444,9 +444,49 @@ def test_decode_drops_crumbs_and_cavities():
     second = box_field((0, 0.35, 0), (0.1, 0.1, 0.1))
     field = np.minimum(np.minimum(body, crumb), second)
     field = np.maximum(field, cavity).reshape((40,) * 3).astype(np.float32)
-    raw = trimesh.Trimesh(*extract_surface(field, grid, min_part_fraction=0.0), process=False)
+    raw_info: dict = {}
+    raw = trimesh.Trimesh(*extract_surface(field, grid, min_part_fraction=0.0, info=raw_info), process=False)
     assert len(raw.split(only_watertight=False)) == 4
-    clean = trimesh.Trimesh(*extract_surface(field, grid), process=False)
+    assert raw_info["parts"] == 4 and raw_info["dropped_parts"] == 0 and raw_info["kept_parts"] == 4
+    info: dict = {}
+    clean = trimesh.Trimesh(*extract_surface(field, grid, info=info), process=False)
     parts = clean.split(only_watertight=False)
     assert len(parts) == 2 and all(part.volume > 0 for part in parts)
     assert clean.is_watertight and clean.volume > raw.volume  # the cavity no longer subtracts
+    # what was dropped is counted and measured, not hidden
+    assert info["parts"] == 4 and info["dropped_parts"] == 1 and info["dropped_cavities"] == 1
+    assert info["kept_parts"] == 2
+    small = sorted(abs(part.volume) for part in raw.split(only_watertight=False))[:2]  # crumb, cavity
+    assert info["dropped_volume_m3"] == pytest.approx(sum(small), rel=1e-9)
+    assert info["volume_m3"] == pytest.approx(clean.volume, rel=1e-9)
+
+
+def test_decode_places_the_body_by_its_footprint_not_a_blob(caplog):
+    """A blob beside the body (kept: over 1 % of its volume) must not shift the car: the
+    footprint centre is the body's, and the drop of a crumb is logged."""
+    import logging
+
+    from adv3d_runner.shapes.decode import extract_surface
+    from adv3d_runner.shapes.sdf import GridSpec
+
+    grid = GridSpec(48, 6.0, -0.15, 0.1)
+    p = grid.points()
+
+    def box_field(c, half):
+        q = np.abs(p - np.asarray(c)) - np.asarray(half)
+        return np.linalg.norm(np.maximum(q, 0), axis=1) + np.minimum(q.max(axis=1), 0)
+
+    body = box_field((0.0, 0.0, 0.0), (0.38, 0.15, 0.11))
+    plain = extract_surface(body.reshape((48,) * 3).astype(np.float32), grid)[0]
+    blob = box_field((0.0, 0.27, -0.05), (0.05, 0.05, 0.05))  # 3 % of the body, off to the left
+    crumb = box_field((0.2, -0.3, 0.0), (0.012, 0.012, 0.012))
+    field = np.minimum(np.minimum(body, blob), crumb).reshape((48,) * 3).astype(np.float32)
+    info: dict = {}
+    with caplog.at_level(logging.INFO, logger="adv3d_runner.shapes.decode"):
+        v, f = extract_surface(field, grid, info=info)
+    assert info["kept_parts"] == 2 and info["dropped_parts"] == 1
+    assert "dropped 1 small part" in caplog.text
+    body_v = v[v[:, 1] < 0.15 * 6.0 + 1e-6]
+    # the body sits where it sits without the blob; the blob widens the mesh on one side only
+    assert np.allclose([body_v[:, 0].min() + body_v[:, 0].max(), body_v[:, 1].min() + body_v[:, 1].max()], 0, atol=1e-9)
+    assert np.allclose(body_v[:, 1].min(), plain[:, 1].min()) and v[:, 1].max() > plain[:, 1].max() + 0.5
