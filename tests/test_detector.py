@@ -184,7 +184,7 @@ def test_shipped_detector_finds_car_20m_ahead():
     world = LidarWorld(v, f, np.asarray(REFLECTIVITY, np.float32)[kind])
     lib = load_library()
     dims = np.array([4.7, 1.85, 1.45])
-    mesh = actor_mesh(lib, choose_asset(lib, "sedan", dims), dims)
+    mesh = actor_mesh(lib, choose_asset(lib, "sedan", dims, rule="nearest-size"), dims)
     world.add_actor(1, np.asarray(mesh.vertices), np.asarray(mesh.faces))
     ego = scene.ego_poses()[0]
     c, s = np.cos(ego[2]), np.sin(ego[2])
