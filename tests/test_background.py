@@ -162,3 +162,34 @@ def test_actor_mesh_fits_box(tmp_path):
     mesh = actor_mesh(lib, asset.id, np.array([4.5, 1.8, 1.5]))
     assert isinstance(mesh, trimesh.Trimesh)
     np.testing.assert_allclose(mesh.bounds, [[-2.25, -0.9, 0.0], [2.25, 0.9, 1.5]], atol=1e-9)
+
+
+def test_generated_scenes_record_drawn_assets_and_keep_them(tmp_path):
+    """`scenes generate` records the drawn asset per actor; `assign-assets` keeps what is
+    recorded unless told to overwrite."""
+    from adv3d_runner.cli import main
+    from adv3d_runner.shapes.library import load_library
+
+    lib = load_library()
+    assert main(["-q", "scenes", "generate", "--out", str(tmp_path), "--count", "2"]) == 0
+    files = sorted(tmp_path.glob("*.json.gz"))
+    scenes = [load_scene(f) for f in files]
+    for s in scenes:
+        assert all(a.asset in lib.ids() for a in s.actors)
+        assert [a.asset for a in s.actors] == [choose_asset(lib, a.cls, key=f"{s.id}/{a.id}") for a in s.actors]
+    before = [f.read_bytes() for f in files]
+    assert main(["-q", "scenes", "assign-assets", str(tmp_path), "--rule", "nearest-size"]) == 0
+    assert [f.read_bytes() for f in files] == before  # recorded assets are kept
+    assert main(["-q", "scenes", "assign-assets", str(tmp_path), "--rule", "nearest-size", "--overwrite"]) == 0
+    assert [f.read_bytes() for f in files] != before
+
+
+def test_shipped_scenes_record_the_meshes_they_were_simulated_with():
+    """The benchmark and real scenes record the v1 (nearest-size) assignment, so the library's
+    growth does not change them (docs/scenes.md); every recorded asset is in the library."""
+    from adv3d_runner.shapes.library import load_library
+
+    lib = load_library()
+    for path in sorted((REPO / "scenes").rglob("*.json.gz"))[::10]:
+        scene = load_scene(path)
+        assert all(a.asset in lib.ids() for a in scene.actors), path

@@ -34,6 +34,9 @@ def register(subparsers) -> None:
     p.add_argument("--reactive", action="store_true", help="actors react to the ego (IDM/MOBIL)")
     p.add_argument("--n-initial", type=int, default=11, help="BO initial queries (default 11)")
     p.add_argument("--shape-space", default=None, help="shape space .npz (default: the shipped one)")
+    p.add_argument("--library", default=None,
+                   help="vehicle library of the benign actors' meshes (default: the bundled one; 'none': boxes); "
+                        "its fingerprint is recorded in run.json and checked on resume")
     p.set_defaults(func=_attack)
 
     r = subparsers.add_parser("report", help="markdown report of attack runs",
@@ -55,7 +58,7 @@ def _attack(args: argparse.Namespace) -> int:
     cfg = AttackConfig(scenes=tuple(args.scenes), algo=args.algo, budget=args.budget, actors=args.actors,
                        mode=args.mode, seconds=args.seconds, seed=args.seed, objective=args.objective,
                        autonomy=args.autonomy, reactive=args.reactive, batch=args.workers,
-                       n_initial=args.n_initial, shape_space=args.shape_space)
+                       n_initial=args.n_initial, shape_space=args.shape_space, library=args.library)
     summary = run_attack(cfg, args.out, workers=args.workers, ray_address=args.ray_address,
                          show_progress=not is_quiet())
     for sid, entry in summary.get("scenes", {}).items():

@@ -37,6 +37,7 @@ class QuerySettings:
     seed: int = 0
     reactive: bool = False
     shape_space: str | None = None
+    library: str | None = None
 
     @property
     def weights(self) -> ObjectiveWeights:
@@ -60,6 +61,31 @@ class QuerySettings:
         except OSError:
             stamp = None  # missing: ShapeSpace.load says so
         return _load_shape_space(str(path), stamp)
+
+    def load_library(self):
+        """The vehicle library the benign actors take their meshes from: ``library`` (a
+        library.json, or ``"none"`` for boxes), or the bundled one when None (None when the
+        bundled one is not there). Loaded once per process and path."""
+        return _load_library(self.library)
+
+
+@functools.lru_cache(maxsize=4)
+def _load_library(arg: str | None):
+    if arg is None:
+        from ..sim.episode import default_library
+
+        return default_library()
+    from ..shapes.library import resolve_library
+
+    return resolve_library(arg)
+
+
+def library_fingerprint_of(arg: str | None) -> str | None:
+    """The ``library_fingerprint`` of the library a ``--library`` value names (None: boxes)."""
+    from ..shapes.library import library_fingerprint
+
+    library = _load_library(arg)
+    return None if library is None else library_fingerprint(library)
 
 
 @functools.lru_cache(maxsize=4)
@@ -90,6 +116,7 @@ class AttackConfig:
     batch: int = 1
     n_initial: int = 11
     shape_space: str | None = None
+    library: str | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "scenes", tuple(self.scenes))
@@ -113,7 +140,7 @@ class AttackConfig:
         """The part of the config a worker needs (:class:`QuerySettings`)."""
         return QuerySettings(autonomy=self.autonomy, actors=self.actors, objective=self.objective,
                              seconds=self.seconds, seed=self.seed, reactive=self.reactive,
-                             shape_space=self.shape_space)
+                             shape_space=self.shape_space, library=self.library)
 
     def with_batch(self, batch: int) -> "AttackConfig":
         """The same config with another batch size (a resume keeps the first run's)."""
