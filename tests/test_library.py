@@ -279,11 +279,11 @@ def test_build_script_reproduces_the_shipped_library_byte_for_byte(repo_root, tm
         pytest.skip(f"source packs not found at {packs}")
     env = {**__import__("os").environ, "ADV3D_LIBRARY_DIR": str(tmp_path), "OMP_NUM_THREADS": "1"}
     subprocess.run(["bash", str(repo_root / "assets/vehicles/build_library.sh"), str(packs)],
-                   check=True, env=env, capture_output=True, timeout=600)
+                   check=True, env=env, capture_output=True, timeout=1200)
     shipped_files = sorted(p.relative_to(DEFAULT_LIBRARY.parent) for p in DEFAULT_LIBRARY.parent.rglob("*")
-                           if p.is_file() and p.suffix in (".json", ".glb", ".txt"))
+                           if p.is_file() and p.suffix in (".json", ".glb", ".txt", ".md"))
     built_files = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*")
-                         if p.is_file() and p.suffix in (".json", ".glb", ".txt"))
+                         if p.is_file() and p.suffix in (".json", ".glb", ".txt", ".md"))
     assert built_files == shipped_files
     for rel in shipped_files:
         assert (tmp_path / rel).read_bytes() == (DEFAULT_LIBRARY.parent / rel).read_bytes(), rel
