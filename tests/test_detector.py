@@ -214,5 +214,10 @@ def test_train_cli_writes_model_and_report(tmp_path):
     report = json.loads((out / "training_report.json").read_text())
     assert report["format"] == "adv3d-detector-training-report" and report["data"]["train_frames"] == 4
     assert len(report["history"]["epoch"]) == 1
+    # the actors drew their meshes from the whole bundled library, recorded by fingerprint
+    from adv3d_runner.shapes.library import library_fingerprint, load_library
+
+    assert report["data"]["library_fingerprint"] == library_fingerprint(load_library())
+    assert all("-lib-" in p.name for p in (tmp_path / "cache").rglob("*.npz"))
     det = load_detector(out)
     assert det.cfg.resolution == 0.4
