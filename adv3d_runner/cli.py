@@ -48,9 +48,28 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+#: Options whose value is an axis such as ``-y``: argparse would read ``--up -y`` as two options.
+AXIS_OPTIONS = ("--up", "--forward")
+_AXIS_VALUES = {f"{s}{a}" for s in "+-" for a in "xyzXYZ"}
+
+
+def join_axis_values(argv: list[str]) -> list[str]:
+    """``["--up", "-y"]`` -> ``["--up=-y"]``, so ``--up -y`` works as the docs write it."""
+    out: list[str] = []
+    i = 0
+    while i < len(argv):
+        if argv[i] in AXIS_OPTIONS and i + 1 < len(argv) and argv[i + 1] in _AXIS_VALUES:
+            out.append(f"{argv[i]}={argv[i + 1]}")
+            i += 2
+            continue
+        out.append(argv[i])
+        i += 1
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args = parser.parse_args(join_axis_values(list(sys.argv[1:] if argv is None else argv)))
     set_quiet(args.quiet)
     if not getattr(args, "func", None):
         parser.print_help()

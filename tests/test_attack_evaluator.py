@@ -16,7 +16,7 @@ from adv3d_runner.errors import ConfigError
 
 #: run.json's config keys in their order (docs/formats.md, "Run bundle"): the file contract.
 RUN_JSON_KEYS = ["scenes", "algo", "budget", "actors", "mode", "seconds", "seed", "objective", "autonomy",
-                 "reactive", "batch", "n_initial", "shape_space"]
+                 "reactive", "batch", "n_initial", "shape_space", "library"]
 
 
 def test_attack_config_is_frozen_and_round_trips_through_run_json():

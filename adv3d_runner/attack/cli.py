@@ -35,6 +35,9 @@ def register(subparsers) -> None:
     p.add_argument("--reactive", action="store_true", help="actors react to the ego (IDM/MOBIL)")
     p.add_argument("--n-initial", type=int, default=11, help="BO initial queries (default 11)")
     p.add_argument("--shape-space", default=None, help="shape space .npz (default: the shipped one)")
+    p.add_argument("--library", default=None,
+                   help="vehicle library of the benign actors' meshes (default: the bundled one; 'none': boxes); "
+                        "its fingerprint is recorded in run.json and checked on resume")
     g = p.add_argument_group("shape model and realism (docs/realism.md)")
     g.add_argument("--shape-model", choices=SHAPE_MODELS, default="latent",
                    help="latent: the shape space (default); vd: vertex deformation of the actor's own mesh "
@@ -72,7 +75,8 @@ def _attack(args: argparse.Namespace) -> int:
     cfg = AttackConfig(scenes=tuple(args.scenes), algo=args.algo, budget=args.budget, actors=args.actors,
                        mode=args.mode, seconds=args.seconds, seed=args.seed, objective=args.objective,
                        autonomy=args.autonomy, reactive=args.reactive, batch=args.workers,
-                       n_initial=args.n_initial, shape_space=args.shape_space, **_shape_options(args))
+                       n_initial=args.n_initial, shape_space=args.shape_space, library=args.library,
+                       **_shape_options(args))
     summary = run_attack(cfg, args.out, workers=args.workers, ray_address=args.ray_address,
                          show_progress=not is_quiet())
     for sid, entry in summary.get("scenes", {}).items():

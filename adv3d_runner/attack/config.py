@@ -60,6 +60,7 @@ class QuerySettings:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "vd_lattice", check_lattice(self.vd_lattice))  # hashable tuple
+    library: str | None = None
 
     @property
     def weights(self) -> ObjectiveWeights:
@@ -83,6 +84,31 @@ class QuerySettings:
         except OSError:
             stamp = None  # missing: ShapeSpace.load says so
         return _load_shape_space(str(path), stamp)
+
+    def load_library(self):
+        """The vehicle library the benign actors take their meshes from: ``library`` (a
+        library.json, or ``"none"`` for boxes), or the bundled one when None (None when the
+        bundled one is not there). Loaded once per process and path."""
+        return _load_library(self.library)
+
+
+@functools.lru_cache(maxsize=4)
+def _load_library(arg: str | None):
+    if arg is None:
+        from ..sim.episode import default_library
+
+        return default_library()
+    from ..shapes.library import resolve_library
+
+    return resolve_library(arg)
+
+
+def library_fingerprint_of(arg: str | None) -> str | None:
+    """The ``library_fingerprint`` of the library a ``--library`` value names (None: boxes)."""
+    from ..shapes.library import library_fingerprint
+
+    library = _load_library(arg)
+    return None if library is None else library_fingerprint(library)
 
 
 @functools.lru_cache(maxsize=4)
@@ -119,6 +145,7 @@ class AttackConfig:
     max_mahalanobis: float | None = None
     class_scales: bool = False
     realism_weight: float = 0.0
+    library: str | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "scenes", tuple(self.scenes))
@@ -167,7 +194,8 @@ class AttackConfig:
                              seconds=self.seconds, seed=self.seed, reactive=self.reactive,
                              shape_space=self.shape_space, shape_model=self.shape_model, vd_bound=self.vd_bound,
                              vd_lattice=self.vd_lattice, max_mahalanobis=self.max_mahalanobis,
-                             class_scales=self.class_scales, realism_weight=self.realism_weight)
+                             class_scales=self.class_scales, realism_weight=self.realism_weight,
+                             library=self.library)
 
     def with_batch(self, batch: int) -> "AttackConfig":
         """The same config with another batch size (a resume keeps the first run's)."""

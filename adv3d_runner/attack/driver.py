@@ -223,8 +223,10 @@ def run_attack(config: AttackConfig, out: str | Path, *, workers: int = 1, ray_a
     ev = evaluator(config.settings)
     ids = [ev.scene_id(ref) for ref in config.scenes]
     journal = Journal(root)
-    stored = journal.start({**config.run_json(), "scene_ids": ids, "versions": versions(ev), "workers": workers,
-                            "ray_address": ray_address})
+    from .config import library_fingerprint_of
+
+    stored = journal.start({**config.run_json(), "library_fingerprint": library_fingerprint_of(config.library),
+                            "scene_ids": ids, "versions": versions(ev), "workers": workers, "ray_address": ray_address})
     config = config.with_batch(int(stored.get("batch", config.batch)))  # a resume keeps the first run's batches
     summary = journal.read_summary()
     summary.setdefault("scenes", {})

@@ -149,18 +149,17 @@ class SceneWorkspace:
         from ..autonomy.stacks import make_stack
         from ..scene.schema import load_scene
         from ..sensors.world import world_from_scene
-        from ..sim.episode import default_library
         from .shape_models import ActorShapes
         from .targets import select_targets
 
         self.settings = settings
         self.scene = load_scene(scene_path)
         self.space = settings.load_shape_space()
-        self.world = world_from_scene(self.scene, default_library(), scene_dir=Path(scene_path).parent)
+        self.world = world_from_scene(self.scene, settings.load_library(), scene_dir=Path(scene_path).parent)
         self.context = SceneContext.from_scene(self.scene)
         self.stack = make_stack(settings.autonomy)
         self.targets = select_targets(self.scene, settings.actors)
-        self.shapes = ActorShapes(settings, self.scene, self.targets, self.space, default_library())
+        self.shapes = ActorShapes(settings, self.scene, self.targets, self.space, settings.load_library())
         self.weights = settings.weights
 
     def episode(self, overrides: dict | None, closed_loop: bool, record_points: bool = False) -> "EpisodeResult":

@@ -38,6 +38,10 @@ RUN_FORMAT = "adv3d.attack_run"
 SUMMARY_FORMAT = "adv3d.attack_summary"
 QUERY_FORMAT = "adv3d.attack_query"
 VERSION = 1
+#: run.json version: 2 adds ``library`` and ``library_fingerprint`` (the vehicle library the
+#: benign actors' meshes come from); version 1 runs are still read (reports) but not resumed.
+RUN_VERSION = 2
+RUN_VERSIONS = (1, 2)
 STATUSES = ("ok", "invalid", "error")
 _LINE_KEYS = ("scene", "mode", "index", "actors", "unit", "latent", "scales", "dimensions", "realism", "cost",
               "components", "metrics", "status", "error", "wall_s")
@@ -108,9 +112,17 @@ class Journal:
         """
         self.root.mkdir(parents=True, exist_ok=True)
         run_path = self.root / "run.json"
-        doc = _clean({"format": RUN_FORMAT, "version": VERSION, **config})
+        doc = _clean({"format": RUN_FORMAT, "version": RUN_VERSION, **config})
         if run_path.exists():
             old = _read_doc(run_path, RUN_FORMAT)
+            if old.get("version") != RUN_VERSION:
+                raise ConfigError(f"{self.root} holds a run.json version {old.get('version')} run, made before runs "
+                                  "recorded their vehicle library's fingerprint: it can be reported, not resumed; "
+                                  "use another --out")
+            if old.get("library_fingerprint") != doc.get("library_fingerprint"):
+                raise ConfigError(f"{self.root} was run with another vehicle library (fingerprint "
+                                  f"{old.get('library_fingerprint')}, now {doc.get('library_fingerprint')}): the "
+                                  "benign actors would change; give the run's --library or use another --out")
             diff = sorted(k for k in set(old) | set(doc)
                           if k not in RESUME_FREE_KEYS and k != "versions" and old.get(k) != doc.get(k))
             if diff:
@@ -182,7 +194,7 @@ class Journal:
 def _read_doc(path: Path, fmt: str) -> dict:
     """A run-bundle JSON file (run.json, summary.json) with its format/version header checked."""
     doc = Node.load(path)
-    check_header(doc, fmt, (VERSION,))
+    check_header(doc, fmt, RUN_VERSIONS if fmt == RUN_FORMAT else (VERSION,))
     return doc.value
 
 

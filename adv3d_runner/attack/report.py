@@ -50,7 +50,8 @@ def attach_realism(runs: list[tuple[str, dict, list, dict]]) -> None:
     """Give every closed-loop evaluation of a best shape its realism reports (in memory), where
     its run predates them: recomputed from ``best_unit`` through the run's shape model (the
     scene gives the actors' classes; without the scene file, latent runs are measured without a
-    class). Evaluations that have them are left as they are."""
+    class). Evaluations that have them are left as they are, and so are runs made with another
+    shape space than the one loaded (their unit vectors decode to other shapes now)."""
     from ..errors import Adv3dError
     from ..shapes.realism import realism_report
     from .config import AttackConfig
@@ -66,6 +67,9 @@ def attach_realism(runs: list[tuple[str, dict, list, dict]]) -> None:
                     continue
                 config = config or AttackConfig.from_run_json(run)
                 space = config.settings.load_shape_space()
+                made_with = (run.get("versions") or {}).get("shape_space")
+                if made_with is not None and made_with != space.content_hash:
+                    continue  # another shape space decodes the unit vector to another shape: no figure
                 unit = np.asarray(m["best_unit"], dtype=np.float64).reshape(-1)
                 try:
                     from ..scene.schema import load_scene

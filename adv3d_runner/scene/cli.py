@@ -1,4 +1,4 @@
-"""``adv3d scenes ...``: generate, import-commonroad, validate, info."""
+"""``adv3d scenes ...``: generate, import-commonroad, assign-assets, validate, info."""
 from __future__ import annotations
 
 import argparse
@@ -23,7 +23,19 @@ def register(subparsers) -> None:
     g.add_argument("--profile", default="default", choices=("default", "us101"),
                    help="traffic and road parameters: default (the bundled benchmark's) or us101 (fitted to the "
                         "NGSIM US-101 training recordings; sets its own density)")
+    g.add_argument("--library", default=None,
+                   help="vehicle library whose assets the actors draw and record (default: the bundled one; "
+                        "'none': record no asset)")
     g.set_defaults(func=_generate)
+
+    a = sub.add_parser("assign-assets", help="record a library asset for every actor of scene files (in place)")
+    a.add_argument("paths", nargs="+", help="scene files or folders")
+    a.add_argument("--library", default=None, help="vehicle library (default: the bundled one)")
+    a.add_argument("--rule", default="draw", choices=("draw", "nearest-size"),
+                   help="draw: seeded by scene and actor id over every asset of the class (default); "
+                        "nearest-size: the closest dimensions (the v1 rule)")
+    a.add_argument("--overwrite", action="store_true", help="replace assets already recorded")
+    a.set_defaults(func=_assign_assets)
 
     c = sub.add_parser("import-commonroad", help="convert a CommonRoad XML scenario into a scene")
     c.add_argument("file", help="CommonRoad scenario (.xml)")
@@ -67,10 +79,35 @@ def _generate(args: argparse.Namespace) -> int:
 
     if args.count < 1:
         raise ConfigError("--count must be >= 1")
+    from ..shapes.library import resolve_library
+
     seed = SPLITS[args.split][1] if args.seed is None else args.seed
+    library = resolve_library(args.library)
     paths = generate_scenes(args.out, args.count, seed, args.split, args.layout, args.density,
-                            profile=args.profile)
+                            profile=args.profile, library=library)
     status(f"wrote {len(paths)} scene(s) to {args.out}")
+    return 0
+
+
+def _assign_assets(args: argparse.Namespace) -> int:
+    from ..errors import ConfigError
+    from ..progress import status
+    from ..shapes.library import resolve_library
+    from .actors import assign_assets
+    from .schema import load_scene, save_scene
+
+    library = resolve_library(args.library)
+    if library is None:
+        raise ConfigError("assign-assets needs a vehicle library")
+    files = _scene_files(args.paths)
+    changed = 0
+    for path in files:
+        scene = load_scene(path)
+        out = assign_assets(scene, library, overwrite=args.overwrite, rule=args.rule)
+        if [a.asset for a in out.actors] != [a.asset for a in scene.actors]:
+            save_scene(out, path)
+            changed += 1
+    status(f"{changed} of {len(files)} scene file(s) updated ({args.rule} over {len(library.assets)} assets)")
     return 0
 
 

@@ -573,10 +573,13 @@ def _generate_once(rng, seed: int, split: str, layout: str, density: str, attemp
 
 def generate_scenes(out_dir: str | Path, count: int, seed: int, split: str = "benchmark",
                     layout: str | None = None, density: str | None = None, progress_desc: str = "scenes",
-                    profile: str | None = None) -> list[Path]:
+                    profile: str | None = None, library=None) -> list[Path]:
     """Generate ``count`` scenes with seeds ``seed .. seed + count - 1`` into ``out_dir``
     (``<scene id>.json.gz``). Refuses to write training scenes, or scenes of another profile
-    than the default, into the benchmark folder."""
+    than the default, into the benchmark folder.
+
+    With a vehicle ``library``, every actor records the asset drawn for it
+    (``actors.assign_assets``), so the scene keeps its meshes whatever the library becomes."""
     from ..progress import progress
     out_dir = Path(out_dir)
     check_split(split, seed)
@@ -588,6 +591,10 @@ def generate_scenes(out_dir: str | Path, count: int, seed: int, split: str = "be
     paths = []
     for s in progress(range(seed, seed + count), desc=progress_desc, total=count, unit="scene"):
         scene = generate_scene(s, split, layout, density, prof)
+        if library is not None:
+            from .actors import assign_assets
+
+            scene = assign_assets(scene, library)
         path = out_dir / f"{scene.id}.json.gz"
         save_scene(scene, path)
         paths.append(path)

@@ -100,14 +100,21 @@ def _decode(args: argparse.Namespace) -> int:
         u = [float(x) for x in args.u.split(",") if x.strip() != ""]
     except ValueError:
         raise ConfigError(f"--u must be comma-separated numbers, got {args.u!r}") from None
+    import trimesh
+
     space = _load_space(args.space)
-    mesh = space.decode(u)
+    info: dict = {}
+    mesh = trimesh.Trimesh(*space.decode_arrays(u, info=info), process=False)
     write_mesh(mesh, args.out)
     z, scales = space.unit_to_latent(u)
     ext = mesh.extents
+    dropped = ""
+    if info["dropped_parts"] or info["dropped_cavities"]:
+        dropped = (f"; dropped {info['dropped_parts']} small part(s) and {info['dropped_cavities']} cavity(ies), "
+                   f"{info['dropped_volume_m3']:.3g} m^3")
     status(f"decoded z={[round(float(x), 4) for x in z]} width/length scale={[round(float(x), 3) for x in scales]}: "
-           f"{len(mesh.vertices)} vertices, {len(mesh.faces)} faces, {ext[0]:.2f} x {ext[1]:.2f} x {ext[2]:.2f} m "
-           f"(nearest library asset {space.nearest_asset(u)}) -> {args.out}")
+           f"{len(mesh.vertices)} vertices, {len(mesh.faces)} faces, {ext[0]:.2f} x {ext[1]:.2f} x {ext[2]:.2f} m, "
+           f"{info['kept_parts']} part(s){dropped} (nearest library asset {space.nearest_asset(u)}) -> {args.out}")
     return 0
 
 

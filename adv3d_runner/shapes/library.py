@@ -211,6 +211,33 @@ def load_library(path: str | Path = DEFAULT_LIBRARY) -> VehicleLibrary:
     return library_from_json(Node.load(path), path.parent, path)
 
 
+def library_fingerprint(library: VehicleLibrary) -> str:
+    """``sha256:`` over the library's records and the bytes of every mesh file it lists.
+
+    What a scene's actors look like depends on both; runs record it (run.json) and a resume
+    refuses another library. Missing mesh files count as empty.
+    """
+    import hashlib
+    import json
+
+    h = hashlib.sha256(json.dumps(library.to_json(), sort_keys=True).encode())
+    for asset in library.assets:
+        path = library.path_of(asset)
+        h.update(asset.file.encode() + b"\0")
+        h.update(hashlib.sha256(path.read_bytes() if path.is_file() else b"").digest())
+    return "sha256:" + h.hexdigest()
+
+
+def resolve_library(arg: str | Path | None) -> VehicleLibrary | None:
+    """The library a ``--library`` option names: None or "" -> the bundled one, ``"none"`` ->
+    None (actors are boxes), else that library.json."""
+    if arg is None or str(arg) == "":
+        return load_library(DEFAULT_LIBRARY)
+    if str(arg).lower() == "none":
+        return None
+    return load_library(Path(arg))
+
+
 def load_or_new_library(path: str | Path) -> VehicleLibrary:
     """The library at ``path``, or a new empty one rooted in its folder if there is no file."""
     path = Path(path)

@@ -18,7 +18,8 @@ def register(subparsers) -> None:
     sub = parser.add_subparsers(dest="assets_command", metavar="ACTION")
 
     imp = sub.add_parser("import", help="convert mesh files into the library and record them")
-    imp.add_argument("paths", nargs="+", metavar="PATH", help=".glb .gltf .obj .ply .stl .fbx .blend")
+    imp.add_argument("paths", nargs="+", metavar="PATH",
+                     help=".glb .gltf .obj .ply .stl .fbx .blend, ApolloCar3D .json")
     imp.add_argument("--class", dest="vehicle_class", required=True,
                      help="vehicle class: " + " ".join(VEHICLE_CLASSES[:8]) + " ... (any lower-case name)")
     imp.add_argument("--dimensions", nargs=3, type=float, metavar=("L", "W", "H"),
@@ -26,6 +27,9 @@ def register(subparsers) -> None:
     imp.add_argument("--id", dest="asset_id", help="asset id (one PATH only); default PACK.file-stem")
     imp.add_argument("--up", help="file axis that is up (+x -x +y -y +z -z); default from the format")
     imp.add_argument("--forward", help="file axis the vehicle's front points to; default: longest horizontal axis")
+    imp.add_argument("--convention", default="auto", choices=("auto", "none", "apollocar3d", "shapenet"),
+                     help="dataset axis convention (auto: ApolloCar3D for .json, ShapeNet for "
+                          "model_normalized.obj; none: the format's own axes)")
     imp.add_argument("--unit", default="auto", choices=("auto", "m", "cm", "mm", "in"),
                      help="file length unit (auto: guessed from the vehicle's length)")
     imp.add_argument("--library", type=Path, default=None, help="library.json (default assets/vehicles/library.json)")
@@ -85,7 +89,7 @@ def cmd_import(args) -> int:
 
     def read(path: Path):
         mesh, curation, report = import_vehicle(path, up=args.up, forward=args.forward, unit=args.unit,
-                                                dimensions=dimensions)
+                                                dimensions=dimensions, convention=args.convention)
         if dimensions:
             curation["scaled_to_dimensions"] = [float(v) for v in dimensions]
         return mesh, curation, report

@@ -162,8 +162,12 @@ class ShapeSpace:
         n = self.grid.resolution
         return field_.reshape(n, n, n)
 
-    def decode_latent(self, z: Any, scales: Sequence[float] = (1.0, 1.0)) -> tuple[np.ndarray, np.ndarray]:
+    def decode_latent(self, z: Any, scales: Sequence[float] = (1.0, 1.0),
+                      info: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Mesh arrays of a latent (any finite z, not limited to the library box).
+
+        ``info``, if a dict, receives what the decoder's clean-up dropped (parts, cavities,
+        volume: see ``decode.extract_surface``).
 
         Raises:
             EmptySurfaceError: the field has no zero crossing.
@@ -171,19 +175,20 @@ class ShapeSpace:
         s = np.asarray(scales, dtype=np.float64).reshape(-1)
         if s.shape != (2,) or not np.all(np.isfinite(s)) or np.any(s <= 0):
             raise ConfigError(f"scales must be 2 positive finite numbers, got {s.tolist()}")
-        return extract_surface(self.decode_sdf(z), self.grid, (float(s[0]), float(s[1])))
+        return extract_surface(self.decode_sdf(z), self.grid, (float(s[0]), float(s[1])), info=info)
 
-    def decode_arrays(self, u: Any) -> tuple[np.ndarray, np.ndarray]:
+    def decode_arrays(self, u: Any, info: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Unit vector -> (vertices (V, 3) float64 metres, faces (F, 3) int64); the fast path.
 
-        The mesh is closed, wound counter-clockwise from outside, origin at the footprint centre
-        with its lowest point at z = 0, +x forward.
+        The mesh is closed, wound counter-clockwise from outside, origin at the centre of the
+        body's footprint (its largest closed part) with its lowest point at z = 0, +x forward.
+        ``info``: see :meth:`decode_latent`.
 
         Raises:
             ConfigError: bad unit vector. EmptySurfaceError: no surface (invalid query).
         """
         z, scales = self.unit_to_latent(u)
-        return self.decode_latent(z, scales)
+        return self.decode_latent(z, scales, info=info)
 
     def decode(self, u: Any):
         """Unit vector -> ``trimesh.Trimesh`` (metric, watertight, outward normals)."""

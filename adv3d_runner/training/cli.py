@@ -43,6 +43,9 @@ def add_train_detector(train_sub) -> None:
                    help="stop training after the epoch that passes this many seconds (data included)")
     p.add_argument("--cache", default=None, help="frame cache folder (default ~/.cache/adv3d/detector)")
     p.add_argument("--out", default="assets/models/detector", help="model folder")
+    p.add_argument("--library", default=None,
+                   help="vehicle library the scenes' actors draw their meshes from (default: the bundled one; "
+                        "'none': boxes)")
     p.add_argument("--quick", action="store_true",
                    help="small recipe for smoke tests and the resolution benchmark (24 scenes, 4 epochs)")
     p.set_defaults(func=_train_detector)
@@ -77,10 +80,13 @@ def _train_detector(args) -> int:
     val_seeds = list(range(VAL_SEED0, VAL_SEED0 + args.val_scenes))
     t_data = time.perf_counter()
     cache_stats: dict = {}
-    train = make_frames(train_seeds, args.frames_per_scene, cache_dir=args.cache, desc="training scenes",
-                        stats=cache_stats)
-    val = make_frames(val_seeds, args.frames_per_scene, cache_dir=args.cache, desc="held-out scenes",
-                      stats=cache_stats)
+    from ..shapes.library import library_fingerprint, resolve_library
+
+    library = resolve_library(args.library)
+    train = make_frames(train_seeds, args.frames_per_scene, library=library, cache_dir=args.cache,
+                        desc="training scenes", stats=cache_stats)
+    val = make_frames(val_seeds, args.frames_per_scene, library=library, cache_dir=args.cache,
+                      desc="held-out scenes", stats=cache_stats)
     data_s = time.perf_counter() - t_data
     status(f"data: {len(train)} training frames, {len(val)} held-out frames ({data_s:.0f} s)")
     limit = None if args.time_limit is None else max(0.0, args.time_limit - (time.perf_counter() - t0))
@@ -108,7 +114,10 @@ def _train_detector(args) -> int:
         else "adv3d train detector " + _args_line(args)
     recipe = {"split": "train", "train_seeds": [train_seeds[0], train_seeds[-1]],
               "val_seeds": [val_seeds[0], val_seeds[-1]] if val_seeds else [],
-              "frames_per_scene": args.frames_per_scene, "library": "bundled benign vehicle library",
+              "frames_per_scene": args.frames_per_scene,
+              "library": args.library or "bundled benign vehicle library",
+              "library_fingerprint": library_fingerprint(library) if library is not None else None,
+              "actor_meshes": "drawn per actor from every asset of its class (scene.actors.assign_assets)",
               "lidar": "scene rig (HDL-64E at 1.73 m) with noise and ray drop", "min_points": args.min_points,
               "train_frames": len(train), "val_frames": len(val),
               "cache": {"scenes_from_cache": cache_stats.get("cached", 0),

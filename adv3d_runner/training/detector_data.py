@@ -208,7 +208,14 @@ def make_frames(seeds: Sequence[int], frames_per_scene: int, split: str = "train
     if isinstance(library, str) and library == "default":
         from ..shapes.library import load_library
         library = load_library()
-    tag = "lib" if library is not None else "box"
+    # the cache is keyed by the library's fingerprint: actors draw their meshes from it
+    # (``scene.actors.assign_assets``), so another library (or assignment) means other frames
+    if library is not None:
+        from ..shapes.library import library_fingerprint
+
+        tag = "lib-" + library_fingerprint(library).split(":", 1)[1][:12]
+    else:
+        tag = "box"
     cache = default_cache_dir() if cache_dir is None else (Path(cache_dir) if cache_dir != "" else None)
     sets = []
     for seed in progress(list(seeds), desc=desc, unit="scene"):
