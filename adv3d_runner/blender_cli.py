@@ -38,8 +38,9 @@ EXTENSION_ID = "adv3d"
 #: (distribution name, wheel file prefix) of the third-party packages the add-on imports
 #: in-process: meshes need trimesh; decoding needs scikit-image's marching cubes (which imports
 #: lazy_loader and packaging, not scikit-image's other dependencies); Build shape space needs
-#: libigl (winding numbers, distances) and scipy (ndimage: cavity fill). tqdm is not shipped:
-#: progress bars are optional (``adv3d_runner.progress``).
+#: libigl (winding numbers, distances), scipy (ndimage: cavity fill) and embreex (the SDF's
+#: visibility orientation of CAD panels casts rays, issue 13). tqdm is not shipped: progress
+#: bars are optional (``adv3d_runner.progress``).
 EXTENSION_DEPENDENCIES = (
     ("trimesh", "trimesh"),
     ("scikit-image", "scikit_image"),
@@ -47,6 +48,7 @@ EXTENSION_DEPENDENCIES = (
     ("packaging", "packaging"),
     ("libigl", "libigl"),
     ("scipy", "scipy"),
+    ("embreex", "embreex"),
 )
 
 #: The Blender releases whose Python (3.11) the cp311 wheels load in: 4.2 (the first with

@@ -52,7 +52,8 @@ def test_quick_measures_agree_with_the_full_report(space, ref):
             assert quick[key] == full[key], key
         assert set(quick["flags"]) == set(full["flags"]) & {"jsd", "nearest_chamfer_m", "mahalanobis", "dimension_excess"}
     blob = R.quick_measures(*space.decode_arrays(BLOB_U), ref, vehicle_class="sedan")
-    assert "jsd" in blob["flags"] and "dimension_excess" in blob["flags"] and "mahalanobis" not in blob
+    # with the v2 reference (28 vehicles) the blob's JSD stays inside the library's range: its size flags it
+    assert "dimension_excess" in blob["flags"] and "mahalanobis" not in blob
     live = R.quick_measures(*space.decode_arrays(BLOB_U), ref, latent=space.unit_to_latent(BLOB_U)[0],
                             latents=space.latents, chamfer=False)
     assert "nearest_asset" not in live and live["jsd"] == blob["jsd"]
