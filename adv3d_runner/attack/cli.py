@@ -5,6 +5,7 @@ import argparse
 
 
 def register(subparsers) -> None:
+    from .. import argtypes as at
     from .config import MODES
     from .search import ALGORITHMS
 
@@ -15,14 +16,14 @@ def register(subparsers) -> None:
                     "running the same command again resumes a killed run without redoing queries.")
     p.add_argument("scenes", nargs="+", metavar="SCENE", help="scene files (.json/.json.gz)")
     p.add_argument("--algo", choices=ALGORITHMS, default="bo", help="search algorithm (default bo)")
-    p.add_argument("--budget", type=int, default=100, help="queries per scene and mode (default 100)")
-    p.add_argument("--actors", type=int, default=1, help="attack the m closest actors in front of the ego (default 1)")
+    p.add_argument("--budget", type=at.positive_int, default=100, help="queries per scene and mode (default 100)")
+    p.add_argument("--actors", type=at.integer(1, 64), default=1, help="attack the m closest actors in front of the ego (default 1)")
     p.add_argument("--mode", choices=MODES, default="closed",
                    help="closed: attack in closed loop; open: attack with the ego on its log, then evaluate "
                         "in closed loop; both: the two (paper Table 1)")
-    p.add_argument("--seconds", type=float, default=5.0, help="episode length in s (default 5)")
-    p.add_argument("--workers", type=int, default=1, help="local worker processes (default 1)")
-    p.add_argument("--seed", type=int, default=0, help="search and LiDAR-noise seed (default 0)")
+    p.add_argument("--seconds", type=at.number(0.0, 3600.0, lo_open=True), default=5.0, help="episode length in s (default 5)")
+    p.add_argument("--workers", type=at.integer(1, 256), default=1, help="local worker processes (default 1)")
+    p.add_argument("--seed", type=at.seed, default=0, help="search and LiDAR-noise seed (default 0)")
     p.add_argument("--out", required=True, help="run folder, e.g. runs/NAME")
     p.add_argument("--ray-address", default=None, metavar="ADDR",
                    help="evaluate queries on an existing Ray cluster (e.g. 127.0.0.1:6379 or auto)")
@@ -32,7 +33,7 @@ def register(subparsers) -> None:
     p.add_argument("--autonomy", default="A", choices=("A", "oracle"),
                    help="stack under test: A (learned detector + predictor) or oracle perception")
     p.add_argument("--reactive", action="store_true", help="actors react to the ego (IDM/MOBIL)")
-    p.add_argument("--n-initial", type=int, default=11, help="BO initial queries (default 11)")
+    p.add_argument("--n-initial", type=at.positive_int, default=11, help="BO initial queries (default 11)")
     p.add_argument("--shape-space", default=None, help="shape space .npz (default: the shipped one)")
     p.set_defaults(func=_attack)
 

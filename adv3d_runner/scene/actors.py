@@ -5,6 +5,8 @@ dimensions are closest (scale-free distance ``sum_i |log(asset_i / actor_i)|`` o
 width, height; ties broken by asset id), so the choice is deterministic and independent of the
 library's order. Classes missing from the library fall back along ``CLASS_FALLBACK`` and finally
 to every asset. ``actor_mesh`` loads the asset and scales it (per axis) to the actor's box.
+``check_assets`` checks the asset ids a scene names against a library (``scenes validate``,
+and every world built from a scene), so an unknown id is one clear error, not a KeyError.
 """
 from __future__ import annotations
 
@@ -13,6 +15,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ..errors import FileFormatError
 from .schema import Scene
 
 if TYPE_CHECKING:  # the library module is optional at import time (numpy-only users)
@@ -37,6 +40,20 @@ CLASS_FALLBACK = {
 def _dimension_distance(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Scale-free distance between boxes: sum |log(a / b)| over the 3 axes. a (N,3), b (3,)."""
     return np.abs(np.log(np.asarray(a, dtype=np.float64) / np.asarray(b, dtype=np.float64))).sum(axis=-1)
+
+
+def check_assets(scene: Scene, library: "VehicleLibrary", file: str | None = None) -> None:
+    """Every actor's ``asset`` (when set) is an asset of ``library``.
+
+    Raises:
+        FileFormatError: naming ``file`` (default ``scene <id>``) and ``$.actors[i].asset``.
+    """
+    known = set(library.ids())
+    for i, actor in enumerate(scene.actors):
+        if actor.asset is not None and actor.asset not in known:
+            raise FileFormatError(file or f"scene {scene.id}", f"$.actors[{i}].asset",
+                                  f"null or an asset id of the vehicle library {library.root / 'library.json'}",
+                                  actor.asset)
 
 
 def choose_asset(library: "VehicleLibrary", vehicle_class: str, dimensions: np.ndarray) -> str | None:

@@ -13,6 +13,8 @@ from ..vehicle_classes import VEHICLE_CLASSES
 
 
 def register(subparsers) -> None:
+    from .. import argtypes as at
+
     parser = subparsers.add_parser("assets", help="curate the vehicle library (import, list, check)",
                                    description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="assets_command", metavar="ACTION")
@@ -21,11 +23,11 @@ def register(subparsers) -> None:
     imp.add_argument("paths", nargs="+", metavar="PATH", help=".glb .gltf .obj .ply .stl .fbx .blend")
     imp.add_argument("--class", dest="vehicle_class", required=True,
                      help="vehicle class: " + " ".join(VEHICLE_CLASSES[:8]) + " ... (any lower-case name)")
-    imp.add_argument("--dimensions", nargs=3, type=float, metavar=("L", "W", "H"),
+    imp.add_argument("--dimensions", nargs=3, type=at.number(0.0, 100.0, lo_open=True), metavar=("L", "W", "H"),
                      help="scale (anisotropically) to this real length, width, height in metres")
     imp.add_argument("--id", dest="asset_id", help="asset id (one PATH only); default PACK.file-stem")
-    imp.add_argument("--up", help="file axis that is up (+x -x +y -y +z -z); default from the format")
-    imp.add_argument("--forward", help="file axis the vehicle's front points to; default: longest horizontal axis")
+    imp.add_argument("--up", type=at.axis, help="file axis that is up (+x -x +y -y +z -z); default from the format")
+    imp.add_argument("--forward", type=at.axis, help="file axis the vehicle's front points to; default: longest horizontal axis")
     imp.add_argument("--unit", default="auto", choices=("auto", "m", "cm", "mm", "in"),
                      help="file length unit (auto: guessed from the vehicle's length)")
     imp.add_argument("--library", type=Path, default=None, help="library.json (default assets/vehicles/library.json)")
