@@ -93,7 +93,7 @@ def _join_axis_values(parser: argparse.ArgumentParser, argv: list[str]) -> list[
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     argv = list(sys.argv[1:] if argv is None else argv)
-    args = parser.parse_args(_join_axis_values(parser, argv))
+    args = parser.parse_args(_join_axis_values(parser, argv))  # usage errors: one line, SystemExit(2)
     set_quiet(args.quiet)
     if not getattr(args, "func", None):
         parser.print_help()
