@@ -41,6 +41,11 @@ class EmptySurfaceError(InvalidQueryError):
     """A latent decodes to a field with no zero level set (no surface to extract)."""
 
 
+class RunFailedError(Adv3dError):
+    """A command ran but produced nothing usable (every attack query failed, or every scene was
+    skipped); the message says why."""
+
+
 class ConfigError(Adv3dError):
     """Bad command-line or configuration value."""
 

@@ -46,13 +46,11 @@ def register(subparsers) -> None:
 
 
 def _attack(args: argparse.Namespace) -> int:
-    from ..errors import ConfigError
     from ..progress import is_quiet, status
     from .config import AttackConfig
-    from .driver import run_attack
+    from .driver import check_outcome, run_attack
+    from .journal import read_run
 
-    if args.workers < 1:
-        raise ConfigError(f"--workers must be >= 1, got {args.workers}")
     cfg = AttackConfig(scenes=tuple(args.scenes), algo=args.algo, budget=args.budget, actors=args.actors,
                        mode=args.mode, seconds=args.seconds, seed=args.seed, objective=args.objective,
                        autonomy=args.autonomy, reactive=args.reactive, batch=args.workers,
@@ -64,6 +62,7 @@ def _attack(args: argparse.Namespace) -> int:
             status(f"{sid} [{mode}]: best cost {m.get('best_cost')} at query {m.get('best_index')} "
                    f"({m.get('n_failed', 0)} failed of {m.get('n_queries')})")
     status(f"run bundle: {args.out}  (adv3d report {args.out})")
+    check_outcome(summary, read_run(args.out)[1])  # exit 1 saying why when nothing worked
     return 0
 
 
