@@ -17,6 +17,7 @@ from __future__ import annotations
 import gzip
 import io
 import json
+import math
 import os
 import re
 import stat
@@ -237,24 +238,53 @@ _BRACKETS[[ord("["), ord("{")]] = 1
 _BRACKETS[[ord("]"), ord("}")]] = -1
 
 
+_NON_FINITE = re.compile(rb"NaN|Infinity")
+
+
 def json_depth(raw: bytes) -> int:
     """Deepest bracket nesting of JSON text (``[]`` is 1), strings skipped: computed on the
     bytes before parsing (the parser itself would recurse), in C speed (~2 % of a parse)."""
-    codes = np.frombuffer(_JSON_STRING.sub(b"", raw), np.uint8)
+    return _depth(_JSON_STRING.sub(b"", raw))
+
+
+def _depth(stripped: bytes) -> int:
+    codes = np.frombuffer(stripped, np.uint8)
     return int(np.cumsum(_BRACKETS[codes], dtype=np.int64).max()) if len(codes) else 0
 
 
+def _first_non_finite(doc: Any) -> str | None:
+    """JSON path of the first NaN / inf number in a parsed document, or None."""
+    stack: list[tuple[Any, str]] = [(doc, "$")]
+    while stack:
+        value, path = stack.pop()
+        if isinstance(value, float) and not math.isfinite(value):
+            return path
+        if isinstance(value, dict):
+            stack.extend((v, f"{path}.{k}") for k, v in reversed(list(value.items())))
+        elif isinstance(value, list):
+            stack.extend((v, f"{path}[{i}]") for i, v in reversed(list(enumerate(value))))
+    return None
+
+
 def parse_json(raw: bytes, path: str | Path | None = None, *, max_depth: int = MAX_JSON_DEPTH) -> Any:
-    """Parse UTF-8 JSON bytes nested at most ``max_depth`` levels (``FileFormatError`` naming
-    ``path`` otherwise)."""
-    if json_depth(raw) > max_depth:
+    """Parse UTF-8 JSON bytes nested at most ``max_depth`` levels, without the ``NaN`` /
+    ``Infinity`` tokens Python's parser would accept (they are not JSON; the tool never writes
+    them), raising ``FileFormatError`` naming ``path`` (and the JSON path of a non-finite
+    number) otherwise."""
+    stripped = _JSON_STRING.sub(b"", raw)
+    if _depth(stripped) > max_depth:
         raise FileFormatError(path, "$", f"JSON nested at most {max_depth} levels", "deeper")
     try:
-        return json.loads(raw.decode("utf-8"))
+        doc = json.loads(raw.decode("utf-8"))
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise FileFormatError(path, "$", "valid UTF-8 JSON", str(exc)) from None
     except RecursionError:  # not reached after the depth check; kept as a guard
         raise FileFormatError(path, "$", f"JSON nested at most {max_depth} levels", "deeper") from None
+    if _NON_FINITE.search(stripped):  # rare: only then walk the document for the field
+        where = _first_non_finite(doc)
+        if where is not None:
+            raise FileFormatError(path, where, "a finite number (JSON has no NaN or Infinity)", "NaN or Infinity")
+    return doc
 
 
 def read_json(path: str | Path, *, limit: int = MAX_JSON_BYTES) -> Any:

@@ -381,10 +381,11 @@ def load_predictor(path: str | Path = DEFAULT_MODEL_DIR, threads: int | None = 1
         residual_scale=raw.get("residual_scale", dflt.residual_scale).number(lo=0.0, lo_open=True, hi=1000.0),
         dt=raw.get("dt", dflt.dt).number(lo=0.0, lo_open=True, hi=10.0))
     feats = doc.get("features", {})
-    layout = feats.object()
-    if (list(layout.get("lane_offsets_m", LANE_OFFSETS.tolist())) != LANE_OFFSETS.tolist()
-            or layout.get("history", HISTORY) != HISTORY):
-        feats.fail("the feature layout of this code version", layout)
+    feats.object()
+    offsets = feats.get("lane_offsets_m", LANE_OFFSETS.tolist()).numbers()
+    if offsets.tolist() != LANE_OFFSETS.tolist():
+        feats["lane_offsets_m"].fail(f"the lane offsets of this code version {LANE_OFFSETS.tolist()}", offsets.tolist())
+    feats.get("history", HISTORY).integer(lo=HISTORY, hi=HISTORY, expected=f"{HISTORY} (this code's history)")
     from .detector import load_weights
 
     w_path = doc.get("weights", WEIGHTS_NAME).file_in(path, inside="the model folder")

@@ -302,8 +302,11 @@ def import_commonroad(path: str | Path, seconds: float | None = None, extend: bo
     }
     background = Background(shoulder_left=1.0, shoulder_right=2.5, ground_margin=30.0, lane_markings=True,
                             barriers=_edge_barriers(lanes))
-    return Scene(id=f"commonroad-{bench}", source=Source("commonroad", details, LICENCE, ATTRIBUTION), dt=DT,
-                 frames=frames, lanes=lanes, background=background, ego=ego, actors=actors)
+    scene = Scene(id=f"commonroad-{bench}", source=Source("commonroad", details, LICENCE, ATTRIBUTION), dt=DT,
+                  frames=frames, lanes=lanes, background=background, ego=ego, actors=actors)
+    # the scene contract, checked here so a broken scenario (a lanelet naming a missing
+    # neighbour, an id that is not a file name) is an error naming the XML, before any writing
+    return Scene.from_dict(scene.to_dict(), path)
 
 
 def _check_scenario(path: Path, scenario) -> None:

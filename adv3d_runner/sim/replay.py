@@ -371,7 +371,7 @@ def load_points(path: str | Path, frames: int, n_actors: int) -> list[np.ndarray
     lab = z.array("label", dtype=np.int16, shape=(P,))
     if P and (lab.min() < -1 or lab.max() >= n_actors):
         z.fail("label", f"int16 array ({P},) in [-1, {n_actors - 1}]", f"values in [{lab.min()}, {lab.max()}]")
-    off = z.members["offsets"]
+    off = z.array("offsets", kind="i", shape=(frames + 1,))
     if off.shape != (frames + 1,) or off[0] != 0 or off[-1] != P or np.any(np.diff(off) < 0):
         z.fail("offsets", f"non-decreasing int array ({frames + 1},) from 0 to {P}", f"{off.shape}")
     # filled in place (no temporaries): this is most of the load time of a long replay
