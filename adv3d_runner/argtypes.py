@@ -103,8 +103,12 @@ def axis(text: str) -> str:
     return t if t[0] in "+-" else "+" + t
 
 
+#: Upper bound of counts without a natural one (epochs, scenes, frame numbers): far above any
+#: use, low enough that nothing sizes an array or a loop by an absurd number.
+MAX_COUNT = 10**9
+
 seed = integer(0, SEED_MAX)
 seed.__name__ = "seed"
-positive_int = integer(1)
-count = integer(0)
+positive_int = integer(1, MAX_COUNT)
+count = integer(0, MAX_COUNT)
 positive = number(0.0, lo_open=True)

@@ -127,7 +127,9 @@ def cmd_render(args) -> int:
     try:
         w, h = (int(v) for v in args.size.lower().split("x"))
     except ValueError:
-        raise ConfigError(f"--size: expected WxH such as 1280x720, got {args.size!r}") from None
+        w = h = 0
+    if not (16 <= w <= 8192 and 16 <= h <= 8192):
+        raise ConfigError(f"--size: expected WxH such as 1280x720 (16 to 8192 pixels each), got {args.size!r}")
     cmd = [sys.executable, "-m", "blender_addon.render", "--what", args.what, "--out", str(args.out),
            "--size", f"{w}x{h}", "--engine", args.engine, "--dim", str(args.dim), "--steps", str(args.steps)]
     if args.library:

@@ -24,7 +24,7 @@ def register(subparsers) -> None:
     parser.add_argument("--out", type=Path, default=Path("out/demo"), help="output folder (default out/demo)")
     parser.add_argument("--seed", type=at.seed, default=0, help="seed of the random shape sample and the attack")
     parser.add_argument("--scene", type=Path, default=DEMO_SCENE, help=f"scene to attack (default {DEMO_SCENE})")
-    parser.add_argument("--budget", type=at.positive_int, default=16, help="attack queries (default 16; the paper uses 100)")
+    parser.add_argument("--budget", type=at.integer(1, 1_000_000), default=16, help="attack queries (default 16; the paper uses 100)")
     parser.add_argument("--seconds", type=at.number(0.0, 3600.0, lo_open=True), default=3.0, help="episode length in seconds (default 3)")
     parser.add_argument("--no-attack", action="store_true", help="only decode the sample vehicles")
     parser.set_defaults(func=run_demo)

@@ -715,10 +715,11 @@ def _phases(findings: list | None) -> tuple:
 
 
 def fuzz_contract(name: str, root: Path, max_examples: int, counts: Counter | None = None,
-                  findings: list | None = None, seed_only: bool = True) -> None:
+                  findings: list | None = None, seed_only: bool = True, accepted: list | None = None) -> None:
     """Run ``max_examples`` hypothesis cases on contract ``name`` (derandomized: the same cases
-    every run), counting outcomes in ``counts`` and collecting non-ok outcomes in
-    ``findings``; raises AssertionError at the first finding unless ``findings`` is given."""
+    every run), counting outcomes in ``counts``, collecting non-ok outcomes in ``findings`` and
+    the descriptions of accepted cases in ``accepted``; raises AssertionError at the first
+    finding unless ``findings`` is given."""
     contract = CONTRACTS[name]
     pristine = Pristine(contract, root)
     folder = pristine.copy()  # the untouched files are accepted: errors below are the mutations'
@@ -736,6 +737,8 @@ def fuzz_contract(name: str, root: Path, max_examples: int, counts: Counter | No
         outcome = run_case(lambda: contract.load(file), lambda r: contract.accept(r, folder), file, what)
         if counts is not None:
             counts[outcome.kind] += 1
+        if accepted is not None and outcome.kind == "accepted":
+            accepted.append(outcome.case)
         if not outcome.ok:
             if findings is not None:
                 findings.append({"contract": name, **outcome.__dict__})
@@ -787,24 +790,24 @@ CLI_OPTIONS: list[tuple[list[str], str, tuple[float, float]]] = [
     (["attack", "s.json", "--out", "r"], "--seconds", (5e-324, 3600)),
     (["attack", "s.json", "--out", "r"], "--workers", (1, 256)),
     (["attack", "s.json", "--out", "r"], "--seed", (0, 2**32 - 1)),
-    (["attack", "s.json", "--out", "r"], "--n-initial", (1, 1e18)),
+    (["attack", "s.json", "--out", "r"], "--n-initial", (1, 1e6)),
     (["simulate", "s.json", "--out", "o"], "--seconds", (5e-324, 3600)),
     (["simulate", "s.json", "--out", "o"], "--seed", (0, 2**32 - 1)),
-    (["simulate", "s.json", "--out", "o"], "--start-frame", (0, 1e18)),
-    (["lidar", "render", "s.json", "-o", "p.ply"], "--frame", (0, 1e18)),
+    (["simulate", "s.json", "--out", "o"], "--start-frame", (0, 1e9)),
+    (["lidar", "render", "s.json", "-o", "p.ply"], "--frame", (0, 1e9)),
     (["lidar", "render", "s.json", "-o", "p.ply"], "--seed", (0, 2**32 - 1)),
     (["lidar", "render", "s.json", "-o", "p.ply"], "--extent", (5e-324, 1e4)),
-    (["scenes", "generate", "--out", "d"], "--count", (1, 1e18)),
+    (["scenes", "generate", "--out", "d"], "--count", (1, 1e9)),
     (["scenes", "generate", "--out", "d"], "--seed", (0, 2**32 - 1)),
     (["scenes", "import-commonroad", "x.xml", "--out", "s.json"], "--seconds", (5e-324, 3600)),
-    (["scenes", "import-commonroad", "x.xml", "--out", "s.json"], "--ego", (0, 1e18)),
+    (["scenes", "import-commonroad", "x.xml", "--out", "s.json"], "--ego", (0, 1e9)),
     (["shapes", "build"], "--resolution", (8, 512)),
     (["shapes", "build"], "--k", (1, 64)),
     (["shapes", "build"], "--truncation", (5e-324, 1)),
     (["demo"], "--seed", (0, 2**32 - 1)),
-    (["demo"], "--budget", (1, 1e18)),
+    (["demo"], "--budget", (1, 1e6)),
     (["demo"], "--seconds", (5e-324, 3600)),
-    (["train", "detector"], "--epochs", (1, 1e18)),
+    (["train", "detector"], "--epochs", (1, 1e9)),
     (["train", "detector"], "--lr", (5e-324, 1.8e308)),
     (["train", "detector"], "--resolution", (0.01, 10)),
     (["train", "predictor"], "--modes", (3, 64)),
@@ -842,7 +845,8 @@ def cli_case(argv: list[str], option: str, text: str, bounds: tuple[float, float
     return Outcome("bad-accept", case, f"parsed {value!r}")
 
 
-def fuzz_cli(max_examples: int, counts: Counter | None = None, findings: list | None = None) -> None:
+def fuzz_cli(max_examples: int, counts: Counter | None = None, findings: list | None = None,
+             accepted: list | None = None) -> None:
     """hypothesis over every numeric option of the CLI (:data:`CLI_OPTIONS`)."""
 
     @settings(max_examples=max_examples, derandomize=True, deadline=None, database=None,
@@ -852,6 +856,8 @@ def fuzz_cli(max_examples: int, counts: Counter | None = None, findings: list | 
         outcome = cli_case(option[0], option[1], text, option[2])
         if counts is not None:
             counts[outcome.kind] += 1
+        if accepted is not None and outcome.kind == "accepted":
+            accepted.append(outcome.case)
         if not outcome.ok:
             if findings is not None:
                 findings.append({"contract": "cli", **outcome.__dict__})

@@ -10,7 +10,6 @@ import os
 import shutil
 from pathlib import Path
 
-import numpy as np
 import pytest
 from attack_synthetic import SyntheticEvaluator
 from fuzz_contracts import SIGN_OBJ, _make_replay, commonroad_xml, small_scene_doc

@@ -16,7 +16,7 @@ def register(subparsers) -> None:
                     "running the same command again resumes a killed run without redoing queries.")
     p.add_argument("scenes", nargs="+", metavar="SCENE", help="scene files (.json/.json.gz)")
     p.add_argument("--algo", choices=ALGORITHMS, default="bo", help="search algorithm (default bo)")
-    p.add_argument("--budget", type=at.positive_int, default=100, help="queries per scene and mode (default 100)")
+    p.add_argument("--budget", type=at.integer(1, 1_000_000), default=100, help="queries per scene and mode (default 100)")
     p.add_argument("--actors", type=at.integer(1, 64), default=1, help="attack the m closest actors in front of the ego (default 1)")
     p.add_argument("--mode", choices=MODES, default="closed",
                    help="closed: attack in closed loop; open: attack with the ego on its log, then evaluate "
@@ -33,7 +33,7 @@ def register(subparsers) -> None:
     p.add_argument("--autonomy", default="A", choices=("A", "oracle"),
                    help="stack under test: A (learned detector + predictor) or oracle perception")
     p.add_argument("--reactive", action="store_true", help="actors react to the ego (IDM/MOBIL)")
-    p.add_argument("--n-initial", type=at.positive_int, default=11, help="BO initial queries (default 11)")
+    p.add_argument("--n-initial", type=at.integer(1, 1_000_000), default=11, help="BO initial queries (default 11)")
     p.add_argument("--shape-space", default=None, help="shape space .npz (default: the shipped one)")
     p.set_defaults(func=_attack)
 

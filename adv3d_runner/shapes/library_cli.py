@@ -153,13 +153,15 @@ def check_library(library, tolerance: float = 1e-3) -> list[str]:
     """
     import numpy as np
 
+    from ..errors import FileFormatError
+    from ..fileio import resolve_inside
     from .mesh_io import read_library_mesh
 
     problems = []
     for asset in library.assets:
         try:
             mesh = read_library_mesh(library.path_of(asset))
-        except MeshImportError as exc:
+        except (MeshImportError, FileFormatError) as exc:
             problems.append(f"{asset.id}: {exc}")
             continue
         lo, hi = mesh.bounds
@@ -173,7 +175,12 @@ def check_library(library, tolerance: float = 1e-3) -> list[str]:
         centre = 0.5 * (lo[:2] + hi[:2])
         if np.max(np.abs(centre)) > tolerance:
             problems.append(f"{asset.id}: footprint centre at {np.round(centre, 4).tolist()}, expected the origin")
-        if not (library.root / asset.licence["file"]).is_file():
+        try:  # inside the library folder, symlinks included
+            licence = resolve_inside(library.root, asset.licence["file"], inside="the library folder")
+        except FileFormatError as exc:
+            problems.append(f"{asset.id}: licence file: {exc}")
+            continue
+        if not licence.is_file():
             problems.append(f"{asset.id}: licence file {asset.licence['file']} is missing")
     return problems
 
