@@ -51,6 +51,10 @@ def shape_text(shape: Sequence[int | str | None]) -> str:
     return "(" + ", ".join("N" if s is None else str(s) for s in shape) + ")"
 
 
+_NUMBER_TYPES = frozenset((int, float))
+_NULLABLE_TYPES = frozenset((int, float, type(None)))  # 1-d arrays: null reads as NaN (refused unless nullable)
+
+
 def _is_number(value: Any) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool)
 
@@ -293,6 +297,13 @@ class Node:
             if len(v) == 0 and shape[0] in (None, 0):
                 return np.zeros(tuple(0 if s is None else s for s in shape))
             self.fail(f"an array of shape {shape_text(shape)} of numbers", describe(v))
+        # numpy would read "1.5" and true as numbers: every item must be a JSON number (or null)
+        leaves = v if a.ndim == 1 else np.array(v, dtype=object).reshape(-1)
+        allowed = _NUMBER_TYPES if a.ndim > 1 else _NULLABLE_TYPES
+        if not set(map(type, leaves)) <= allowed:
+            i = next(i for i, x in enumerate(leaves) if type(x) not in allowed)
+            self.fail("a number", describe(leaves[i]),
+                      at="".join(f"[{int(k)}]" for k in np.unravel_index(i, a.shape)))
         if not nullable and not np.isfinite(a).all():
             bad = np.argwhere(~np.isfinite(a))[0]
             self.fail("a finite number", None, at="".join(f"[{int(i)}]" for i in bad))

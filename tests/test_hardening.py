@@ -482,3 +482,34 @@ def test_quiet_after_the_subcommand_and_axis_values_as_documented(capsys):
     argv = _join_axis_values(parser, ["assets", "import", "x.obj", "--class", "sedan", "--up", "-y", "--forward", "-x"])
     args = parser.parse_args(argv)
     assert (args.up, args.forward) == ("-y", "-x")
+
+
+def test_journal_line_whose_unit_does_not_match_the_run_is_refused_on_resume(tmp_path):
+    cfg = AttackConfig(["synthetic:peak"], algo="random", budget=3)
+    run_attack(cfg, tmp_path / "run", evaluator=SyntheticEvaluator, show_progress=False)
+    path = tmp_path / "run" / "queries.jsonl"
+    rows = [json.loads(x) for x in path.read_text().splitlines()]
+    rows[1]["unit"][0] = rows[1]["unit"][0][:4]  # one number short
+    path.write_text("".join(json.dumps(r) + "\n" for r in rows))
+    with pytest.raises(ConfigError, match="query 1 of synthetic:peak/closed does not match this run"):
+        run_attack(cfg, tmp_path / "run", evaluator=SyntheticEvaluator, show_progress=False)
+    rows[1]["unit"][0] = rows[1]["unit"][0] + [7.0]  # out of [0, 1]
+    path.write_text("".join(json.dumps(r) + "\n" for r in rows))
+    with pytest.raises(FileFormatError, match=r"queries.jsonl: line 2: \$\.unit\[0\]\[4\]"):
+        read_run(tmp_path / "run")
+
+
+def test_string_and_bool_numbers_are_refused(tmp_path):
+    from adv3d_runner.sim.replay import load_replay
+
+    path = _make_replay(tmp_path)
+    doc = read_json(path)
+    doc["ego"]["poses"][2][1] = "0.0"  # numpy would read it as a number
+    write_json(path, doc)
+    with pytest.raises(FileFormatError, match=r"\$\.ego\.poses\[2\]\[1\]: expected a number"):
+        load_replay(path)
+    doc["ego"]["poses"][2][1] = 0.0
+    doc["outputs"][0]["plan"]["trajectory"][1][1] = True
+    write_json(path, doc)
+    with pytest.raises(FileFormatError, match=r"\$\.outputs\[0\]\.plan\.trajectory\[1\]\[1\]: expected a number"):
+        load_replay(path)

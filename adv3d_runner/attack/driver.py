@@ -152,7 +152,8 @@ def run_scene(journal: Journal, config: AttackConfig, evaluator: QueryEvaluator,
         for i, x in zip(idx, X):
             if i in done:
                 rec = done[i]
-                if not np.allclose(record_unit(rec), x, rtol=0, atol=1e-9) or rec.get("actors") != targets:
+                u = record_unit(rec)
+                if u.shape != np.shape(x) or not np.allclose(u, x, rtol=0, atol=1e-9) or rec.get("actors") != targets:
                     raise ConfigError(f"{journal.path}: query {i} of {scene_id}/{mode} does not match this run "
                                       f"(different code or options?); use a new --out")
                 results[i] = rec

@@ -275,7 +275,7 @@ def check_record(node: Node) -> dict:
     actors = [a.integer() for a in node["actors"].items("a list of actor ids", non_empty=True)]
     unit = node["unit"].items("one unit vector per attacked actor", length=len(actors))
     for row in unit:
-        row.numbers(min_length=1, lo=0.0, hi=1.0)
+        row.numbers(length=len(unit[0].list()), min_length=1, lo=0.0, hi=1.0)
     for key in ("latent", "scales", "dimensions"):
         _nested_numbers(node.get(key))
     status = node["status"].string(choices=STATUSES)
@@ -307,14 +307,14 @@ def check_summary(doc: Node, root: Path | None = None) -> None:
             mn = e["modes"].child(mode, m)
             mn.object()
             mn.check_keys(("best_index", "best_cost", "best_unit", "n_queries", "n_failed", "closed_loop_eval",
-                           "files"))
+                           "files"), required=("best_index", "best_cost", "best_unit", "n_queries", "n_failed"))
             mn["best_index"].integer(lo=-1)
-            if mn.get("best_cost").value is not None:
-                mn["best_cost"].number()
-            if mn.get("best_unit").value is not None:
+            if mn["best_cost"].value is not None or mn["best_unit"].value is not None:
+                mn["best_cost"].number()  # a best query has a cost
+            if mn["best_unit"].value is not None:
                 rows = mn["best_unit"].items("one unit vector per target", length=n_targets)
                 for row in rows:
-                    row.numbers(min_length=1, lo=0.0, hi=1.0)
+                    row.numbers(length=len(rows[0].list()), min_length=1, lo=0.0, hi=1.0)
             n = mn["n_queries"].integer(lo=0)
             mn["n_failed"].integer(lo=0, hi=n)
             mn.get("closed_loop_eval", {}).object()

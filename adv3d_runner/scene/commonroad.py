@@ -37,6 +37,7 @@ from .schema import (MAX_COORD, MAX_DT, MAX_FRAMES, MAX_SIZE, MAX_SPEED, Actor, 
                      Scene, Source, Track, default_sensors)
 
 DT = 0.1
+MIN_SCENARIO_DT = 1e-3  # s: recordings are sampled at 10-100 Hz; a smaller step is a broken file
 LICENCE = "BSD-3-Clause (CommonRoad scenario; see scenes/real/LICENSE.txt)"
 ATTRIBUTION = ("Vehicle trajectories: NGSIM US-101 dataset, U.S. Department of Transportation, Federal "
                "Highway Administration (FHWA), Next Generation Simulation program. Scenario conversion: "
@@ -322,8 +323,8 @@ def _check_scenario(path: Path, scenario) -> None:
         raise FileFormatError(path, field, expected, got)
 
     dt = float(scenario.dt)
-    if not (np.isfinite(dt) and 0 < dt <= MAX_DT):
-        bad("commonRoad/@timeStepSize", f"a time step in (0, {MAX_DT:g}] s", scenario.dt)
+    if not (np.isfinite(dt) and MIN_SCENARIO_DT <= dt <= MAX_DT):  # 1e-320 s would fold a recording into one frame
+        bad("commonRoad/@timeStepSize", f"a time step in [{MIN_SCENARIO_DT:g}, {MAX_DT:g}] s", scenario.dt)
     coord = f"finite coordinates within +-{MAX_COORD:g} m"
     for ll in scenario.lanelet_network.lanelets:
         for name in ("left_vertices", "right_vertices", "center_vertices"):
