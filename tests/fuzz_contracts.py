@@ -753,7 +753,8 @@ def fuzz_contract(name: str, root: Path, max_examples: int, counts: Counter | No
 
 def special_files(folder: Path) -> dict[str, Path]:
     """Files no mutation makes: a symlink to ``/dev/zero``, a FIFO, a folder, a 300 MiB sparse
-    file, a gzip bomb (300 MiB of spaces in ~300 kB), a symlink loop, a dangling symlink."""
+    file, a gzip bomb (320 MiB of spaces in ~1.4 MB), a zip bomb (1.1 GiB of zeros in ~1 MB), a
+    symlink loop, a dangling symlink."""
     import os
 
     out = {}
@@ -766,18 +767,21 @@ def special_files(folder: Path) -> dict[str, Path]:
     with open(folder / "sparse.json", "wb") as fh:
         fh.truncate(300 * 2**20)
     out["300 MiB sparse file"] = folder / "sparse.json"
-    comp = gzip.compress(b" " * (300 * 2**20), compresslevel=1)
-    (folder / "bomb.json.gz").write_bytes(comp)
-    out[f"gzip bomb ({len(comp) // 1024} kB -> 300 MiB)"] = folder / "bomb.json.gz"
+    chunk = b" " * (32 * 2**20)  # bombs are written in chunks: never 300 MiB in memory
+    with gzip.open(folder / "bomb.json.gz", "wb", compresslevel=1) as fh:
+        for _ in range(10):
+            fh.write(chunk)
+    out[f"gzip bomb ({(folder / 'bomb.json.gz').stat().st_size // 1024} kB -> 320 MiB)"] = folder / "bomb.json.gz"
     (folder / "loop.json").symlink_to(folder / "loop.json")
     out["symlink loop"] = folder / "loop.json"
     (folder / "dangling.json").symlink_to(folder / "nowhere.json")
     out["dangling symlink"] = folder / "dangling.json"
-    zbomb = io.BytesIO()
-    with zipfile.ZipFile(zbomb, "w", compression=zipfile.ZIP_DEFLATED) as zf:
-        zf.writestr("a.npy", b"\x00" * (1100 * 2**20))
-    (folder / "bomb.npz").write_bytes(zbomb.getvalue())
-    out[f"zip bomb ({len(zbomb.getvalue()) // 1024} kB -> 1.1 GiB)"] = folder / "bomb.npz"
+    zeros = bytes(32 * 2**20)
+    with zipfile.ZipFile(folder / "bomb.npz", "w", compression=zipfile.ZIP_DEFLATED, compresslevel=1) as zf:
+        with zf.open("a.npy", "w", force_zip64=True) as fh:
+            for _ in range(36):
+                fh.write(zeros)
+    out[f"zip bomb ({(folder / 'bomb.npz').stat().st_size // 1024} kB -> 1.1 GiB)"] = folder / "bomb.npz"
     return out
 
 
