@@ -29,6 +29,7 @@ import tempfile
 import zipfile
 from pathlib import Path
 
+from . import argtypes as at
 from .errors import ConfigError, Adv3dError
 from .fileio import REPO_ROOT
 
@@ -120,10 +121,10 @@ def register(subparsers) -> None:
     r.add_argument("--out", type=Path, required=True, help="PNG file to write")
     r.add_argument("--library", type=Path, default=None, help="library.json (default: the shipped library)")
     r.add_argument("--space", type=Path, default=None, help="shape-space .npz (default: the shipped one)")
-    r.add_argument("--dim", type=int, default=0, help="sweep: latent dimension (0-based; K, K+1 = width, length)")
-    r.add_argument("--steps", type=int, default=5, help="sweep: number of shapes")
+    r.add_argument("--dim", type=at.count, default=0, help="sweep: latent dimension (0-based; K, K+1 = width, length)")
+    r.add_argument("--steps", type=at.integer(1, 100), default=5, help="sweep: number of shapes")
     r.add_argument("--scene", type=Path, default=None, help="scene: scene file")
-    r.add_argument("--frame", type=int, default=None, help="scene / review: frame to show (default 0 / the middle)")
+    r.add_argument("--frame", type=at.count, default=None, help="scene / review: frame to show (default 0 / the middle)")
     r.add_argument("--run", type=Path, default=None,
                    help="review: run bundle folder (runs/NAME), adv3d simulate output folder, or a replay file")
     r.add_argument("--replay", default=None,
@@ -150,7 +151,9 @@ def cmd_render(args) -> int:
     try:
         w, h = (int(v) for v in args.size.lower().split("x"))
     except ValueError:
-        raise ConfigError(f"--size: expected WxH such as 1280x720, got {args.size!r}") from None
+        w = h = 0
+    if not (16 <= w <= 8192 and 16 <= h <= 8192):
+        raise ConfigError(f"--size: expected WxH such as 1280x720 (16 to 8192 pixels each), got {args.size!r}")
     # Paths mean what they mean where the user typed them: made absolute here, before the child
     # (which runs with the repository on its path) sees them.
     for name in ("out", "library", "space", "scene", "run"):

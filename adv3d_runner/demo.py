@@ -18,12 +18,14 @@ DEMO_SCENE = REPO_ROOT / "scenes" / "highway" / "highway-benchmark-000000.json.g
 
 
 def register(subparsers) -> None:
+    from . import argtypes as at
+
     parser = subparsers.add_parser("demo", help="run the main job on the bundled defaults")
     parser.add_argument("--out", type=Path, default=Path("out/demo"), help="output folder (default out/demo)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the random shape sample and the attack")
+    parser.add_argument("--seed", type=at.seed, default=0, help="seed of the random shape sample and the attack")
     parser.add_argument("--scene", type=Path, default=DEMO_SCENE, help=f"scene to attack (default {DEMO_SCENE})")
-    parser.add_argument("--budget", type=int, default=16, help="attack queries (default 16; the paper uses 100)")
-    parser.add_argument("--seconds", type=float, default=3.0, help="episode length in seconds (default 3)")
+    parser.add_argument("--budget", type=at.integer(1, 1_000_000), default=16, help="attack queries (default 16; the paper uses 100)")
+    parser.add_argument("--seconds", type=at.number(0.0, 3600.0, lo_open=True), default=3.0, help="episode length in seconds (default 3)")
     parser.add_argument("--no-attack", action="store_true", help="only decode the sample vehicles")
     parser.add_argument("--library", default=None,
                         help="vehicle library of the scene's actors (default: the bundled one; 'none': boxes)")

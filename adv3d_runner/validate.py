@@ -22,16 +22,17 @@ add-on included, can use it.
 """
 from __future__ import annotations
 
-import json
 import math
 import zipfile
-from pathlib import Path, PurePosixPath
+import zlib
+from pathlib import Path
 from typing import Any, Generator, Iterable, NoReturn, Sequence
 
 import numpy as np
 
 from .errors import FileFormatError
-from .fileio import read_json
+from .fileio import (SAFE_NAME_EXPECTED, check_regular_file, is_safe_name, parse_json, read_json,
+                     rel_path_problem, resolve_inside)
 
 #: What a missing required field expects (one wording for every contract).
 MISSING = "a value (field is missing)"
@@ -48,6 +49,10 @@ def describe(value: Any) -> Any:
 def shape_text(shape: Sequence[int | str | None]) -> str:
     """``(N, 5)`` for an expected array shape; ``None`` entries (any length) print as ``N``."""
     return "(" + ", ".join("N" if s is None else str(s) for s in shape) + ")"
+
+
+_NUMBER_TYPES = frozenset((int, float))
+_NULLABLE_TYPES = frozenset((int, float, type(None)))  # 1-d arrays: null reads as NaN (refused unless nullable)
 
 
 def _is_number(value: Any) -> bool:
@@ -232,9 +237,9 @@ class Node:
 
     # ------------------------------------------------------------------ numeric lists
     def numbers(self, *, length: int | None = None, min_length: int = 0, lo: float | None = None,
-                lo_open: bool = False, expected: str | None = None) -> np.ndarray:
-        """A flat JSON list of finite numbers -> (n,) float64; a bad item is named
-        (``$.track.x[17]``). ``expected`` replaces the wording of the range."""
+                lo_open: bool = False, hi: float | None = None, expected: str | None = None) -> np.ndarray:
+        """A flat JSON list of finite numbers in ``[lo, hi]`` -> (n,) float64; a bad item is
+        named (``$.track.x[17]``). ``expected`` replaces the wording of the range."""
         v = self.value
         if not isinstance(v, list):
             self.fail("a list of numbers", describe(v))
@@ -249,6 +254,8 @@ class Node:
                 self.fail("a finite number", item, at=f"[{i}]")
             if lo is not None and (item < lo or (lo_open and item == lo)):
                 self.fail(expected or f"a number {'>' if lo_open else '>='} {lo}", item, at=f"[{i}]")
+            if hi is not None and item > hi:
+                self.fail(expected or f"a number <= {hi}", item, at=f"[{i}]")
         return np.asarray(v, dtype=np.float64).reshape(-1)
 
     def flags(self, length: int) -> np.ndarray:
@@ -261,21 +268,23 @@ class Node:
                 self.fail("0 or 1", item, at=f"[{i}]")
         return np.asarray(v, dtype=bool)
 
-    def points(self, *, min_points: int = 2) -> np.ndarray:
-        """A JSON list of ``[x, y]`` -> (P, 2) float64, P >= ``min_points``."""
+    def points(self, *, min_points: int = 2, limit: float | None = None) -> np.ndarray:
+        """A JSON list of ``[x, y]`` -> (P, 2) float64, P >= ``min_points``; with ``limit``
+        every coordinate lies in ``[-limit, limit]``."""
         v = self.value
         if not isinstance(v, list) or len(v) < min_points:
             self.fail(f"a list of at least {min_points} [x, y] points", describe(v))
+        lo = None if limit is None else -limit
         for node in self.items():
-            node.numbers(length=2)
+            node.numbers(length=2, lo=lo, hi=limit)
         return np.asarray(v, dtype=np.float64).reshape(-1, 2)
 
-    def array(self, shape: Sequence[int | None], *, nullable: bool = False) -> np.ndarray:
+    def array(self, shape: Sequence[int | None], *, nullable: bool = False, limit: float | None = None) -> np.ndarray:
         """A nested JSON list of numbers of ``shape`` (``None``: any length) -> float64 array.
 
-        All values finite; with ``nullable`` (1-d only) ``null`` items become NaN. An empty
-        list stands for any shape whose first length is free or 0 (JSON cannot keep the other
-        lengths of an empty array).
+        All values finite (and within ``[-limit, limit]`` when given); with ``nullable`` (1-d
+        only) ``null`` items become NaN. An empty list stands for any shape whose first length
+        is free or 0 (JSON cannot keep the other lengths of an empty array).
         """
         v = self.value
         if not isinstance(v, list):
@@ -288,20 +297,45 @@ class Node:
             if len(v) == 0 and shape[0] in (None, 0):
                 return np.zeros(tuple(0 if s is None else s for s in shape))
             self.fail(f"an array of shape {shape_text(shape)} of numbers", describe(v))
+        # numpy would read "1.5" and true as numbers: every item must be a JSON number (or null)
+        leaves = v if a.ndim == 1 else np.array(v, dtype=object).reshape(-1)
+        allowed = _NUMBER_TYPES if a.ndim > 1 else _NULLABLE_TYPES
+        if not set(map(type, leaves)) <= allowed:
+            i = next(i for i, x in enumerate(leaves) if type(x) not in allowed)
+            self.fail("a number", describe(leaves[i]),
+                      at="".join(f"[{int(k)}]" for k in np.unravel_index(i, a.shape)))
         if not nullable and not np.isfinite(a).all():
             bad = np.argwhere(~np.isfinite(a))[0]
             self.fail("a finite number", None, at="".join(f"[{int(i)}]" for i in bad))
+        if limit is not None and np.any(big := np.abs(a) > limit):
+            bad = np.argwhere(big)[0]
+            self.fail(f"a number in [-{limit:g}, {limit:g}]", float(a[tuple(bad)]),
+                      at="".join(f"[{int(i)}]" for i in bad))
         return a
 
+    def name(self, *, expected: str | None = None) -> str:
+        """An id that becomes a file or folder name (``fileio.SAFE_NAME``: letters, digits,
+        ``_ . -``, starting with a letter or digit; never a path)."""
+        v = self.value
+        if not is_safe_name(v):
+            self.fail(expected or SAFE_NAME_EXPECTED, describe(v))
+        return v
+
     def rel_path(self, *, inside: str = "the folder of the file") -> str:
-        """A relative POSIX path that stays inside a folder (no ``..``, not absolute, no ``\\``)."""
+        """A relative POSIX path that stays inside a folder by its letters (no ``..``, not
+        absolute, no ``\\``); :meth:`file_in` also resolves it."""
         v = self.value
         if not isinstance(v, str) or not v:
             self.fail("a relative file path (string)", v)
-        p = PurePosixPath(v)
-        if p.is_absolute() or ".." in p.parts or "\\" in v:
+        if rel_path_problem(v):
             self.fail(f"a relative POSIX path inside {inside} (no '..', no absolute path)", v)
         return v
+
+    def file_in(self, root: str | Path, *, inside: str | None = None) -> Path:
+        """``root / value`` for a relative path that stays inside ``root``, symlinks included
+        (``fileio.resolve_inside``); errors name this file and field."""
+        self.rel_path(inside=inside or str(root))
+        return resolve_inside(root, self.value, file=self.file, field=self.path, inside=inside)
 
 
 def check_header(doc: Node | Any, fmt: str, supported_versions: Sequence[int],
@@ -402,37 +436,61 @@ class Arrays:
         """A 0-d unicode member holding a JSON document, as a :class:`Node` at ``$.NAME``."""
         text = self.text(name)
         try:
-            doc = json.loads(text)
-        except json.JSONDecodeError as exc:
-            self.fail(name, "valid JSON", str(exc))
+            doc = parse_json(text.encode("utf-8"), self.file)
+        except FileFormatError as exc:
+            self.fail(name, exc.expected, exc.got)
         return Node(doc, f"$.{name}", self.file)
 
 
-def read_npz(path: str | Path, what: str, hint: str = "") -> Arrays:
-    """Every member of an ``.npz`` file, loaded without pickle.
+#: Largest ``.npz`` contents read (bytes, the members' sizes once decompressed). The biggest
+#: files the tool writes are the LiDAR points of long replays (~250 MB for 20 s).
+MAX_NPZ_BYTES = 2**30
+
+
+def read_npz(path: str | Path, what: str, hint: str = "", *, limit: int = MAX_NPZ_BYTES) -> Arrays:
+    """Every member of an ``.npz`` file, loaded without pickle, bounded.
+
+    Only a regular file is opened; the members' declared sizes (the zip directory) sum to at
+    most ``limit`` bytes, and each ``.npy`` header is checked against its member's size before
+    any array is allocated, so neither a zip bomb nor a header claiming a huge shape gets far.
 
     Args:
         path: the file.
         what: what the file is, for errors (``"shape-space .npz file"``).
         hint: appended when the file does not exist (how to make one).
+        limit: largest total decompressed size, bytes.
     Raises:
-        FileFormatError: missing file, not a zip of ``.npy`` arrays, or a member that would
-            need pickle.
+        FileFormatError: missing or not a regular file, not a zip of ``.npy`` arrays, truncated
+            or corrupt, too large, or a member that would need pickle.
     """
     path = Path(path)
-    if not path.exists():
+    if not path.exists() and not path.is_symlink():
         raise FileFormatError(path, "$", f"an existing {what}{hint}", "file not found")
+    check_regular_file(path, what)
     expected = f"a {what} (zip of .npy arrays, no pickled objects)"
+    members: dict[str, np.ndarray] = {}
     try:
-        loaded = np.load(path, allow_pickle=False)
-    except (zipfile.BadZipFile, OSError, ValueError, EOFError) as exc:
-        raise FileFormatError(path, "$", expected, f"{type(exc).__name__}: {exc}") from None
-    if not isinstance(loaded, np.lib.npyio.NpzFile):  # a single .npy array
-        raise FileFormatError(path, "$", expected, "a single .npy array")
-    try:
-        with loaded as npz:
-            members = {name: npz[name] for name in npz.files}
-    except (zipfile.BadZipFile, OSError, ValueError, EOFError) as exc:
+        with open(path, "rb") as fh:
+            if fh.read(6) == b"\x93NUMPY":
+                raise FileFormatError(path, "$", expected, "a single .npy array")
+        with zipfile.ZipFile(path) as zf:
+            infos = zf.infolist()
+            total = sum(i.file_size for i in infos)
+            if total > limit:
+                raise FileFormatError(path, "$", f"a {what} of at most {limit / 2**20:.0f} MiB decompressed",
+                                      f"{total / 2**20:.0f} MiB")
+            for info in infos:
+                if not info.filename.endswith(".npy"):
+                    raise FileFormatError(path, "$", expected, f"member {info.filename!r}")
+                name = info.filename[:-4]
+                with zf.open(info) as fh:
+                    _check_npy_header(fh, info.file_size, path, name, expected)
+                with zf.open(info) as fh:
+                    members[name] = np.lib.format.read_array(fh, allow_pickle=False)
+    except FileFormatError:
+        raise
+    except (zipfile.BadZipFile, zipfile.LargeZipFile, OSError, ValueError, EOFError, NotImplementedError,
+            zlib.error, UnicodeDecodeError, SyntaxError) as exc:
         raise FileFormatError(path, "$", expected, f"{type(exc).__name__}: {exc}") from None
     return Arrays(members, path)
 
@@ -491,3 +549,16 @@ def _npy_member(fh) -> tuple[np.ndarray, tuple, bool] | None:
     if dtype.hasobject:
         return None
     return np.empty(int(np.prod(shape, dtype=np.int64)), dtype=dtype), shape, fortran
+def _check_npy_header(fh, size: int, path: Path, name: str, expected: str) -> None:
+    """The member's ``.npy`` header: no object dtype, and a shape whose bytes fit the member."""
+    fmt = np.lib.format
+    version = fmt.read_magic(fh)
+    if version not in ((1, 0), (2, 0)):  # what np.savez writes; 3.0 only adds UTF-8 field names
+        raise FileFormatError(path, f"$.{name}", ".npy format 1.0 or 2.0", f"{version[0]}.{version[1]}")
+    shape, _, dtype = (fmt.read_array_header_1_0 if version == (1, 0) else fmt.read_array_header_2_0)(fh)
+    if dtype.hasobject:
+        raise FileFormatError(path, f"$.{name}", expected, f"an array of {dtype} (needs pickle)")
+    nbytes = math.prod(shape) * dtype.itemsize
+    if nbytes > size:
+        raise FileFormatError(path, f"$.{name}", f"an array that fits its {size} stored bytes",
+                              f"shape {shape} of {dtype} ({nbytes} bytes)")

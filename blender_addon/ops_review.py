@@ -19,7 +19,6 @@ itself (the output of ``adv3d simulate``) are offered.
 """
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import bpy
@@ -49,14 +48,20 @@ def find_replays(path: str | Path) -> list[tuple[str, Path]]:
     summary = p / "summary.json"
     if summary.is_file():
         try:
-            doc = json.loads(summary.read_text())
+            from adv3d_runner.fileio import read_json
+
+            doc = read_json(summary)  # bounded read
             for sid, entry in sorted(doc.get("scenes", {}).items()):
                 for mode, m in sorted(entry.get("modes", {}).items()):
                     rel = (m.get("files") or {}).get("replay")
-                    if rel and (p / rel).is_file():
-                        found.append((f"{sid} / {mode}", p / rel))
-        except (ValueError, AttributeError, TypeError):
-            found = []  # a damaged summary: fall back to the folder layout below
+                    if not rel:
+                        continue
+                    # the summary's paths stay inside the run folder (symlinks included)
+                    target = runner_resolve_inside(p, rel, summary, f"$.scenes.{sid}.modes.{mode}.files.replay")
+                    if target.is_file():
+                        found.append((f"{sid} / {mode}", target))
+        except (runner.FileFormatError, ValueError, AttributeError, TypeError):
+            found = []  # a damaged summary (or a path leading out of the folder): use the folder layout
     if not found:
         for name in REPLAY_NAMES:
             for f in sorted(p.glob(f"scenes/*/*/{name}")):
@@ -71,13 +76,21 @@ def find_replays(path: str | Path) -> list[tuple[str, Path]]:
 
 # --------------------------------------------------------------------------- conversion
 
-def _actor_mesh(replay_dir: Path, rel: str | None):
-    """(V, 3), (F, 3) of an actor's substituted shape (convention frame), or None."""
+def runner_resolve_inside(root: Path, rel, file: Path, field: str) -> Path:
+    """``root / rel`` checked to stay inside ``root`` (``adv3d_runner.fileio.resolve_inside``)."""
+    from adv3d_runner.fileio import resolve_inside
+
+    return resolve_inside(root, rel, file=file, field=field)
+
+
+def _actor_mesh(replay_dir: Path, rel: str | None, index: int = 0):
+    """(V, 3), (F, 3) of an actor's substituted shape (convention frame), or None. The file
+    stays inside the replay's folder (symlinks included)."""
     if not rel:
         return None
     from adv3d_runner.shapes.mesh_io import read_library_mesh
 
-    mesh = read_library_mesh(replay_dir / rel)
+    mesh = read_library_mesh(runner_resolve_inside(replay_dir, rel, replay_dir / "replay", f"$.actors[{index}].mesh"))
     return np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64)
 
 
@@ -91,8 +104,8 @@ def replay_to_review(replay, replay_dir: str | Path) -> tuple[review.ReviewData,
     origin = np.floor(first[0, :2]) if len(first) else np.zeros(2)
     shift = np.array([origin[0], origin[1], 0.0])
     actors = []
-    for a in replay.actors:
-        mesh = _actor_mesh(replay_dir, a.mesh) if a.adversarial else None
+    for i, a in enumerate(replay.actors):
+        mesh = _actor_mesh(replay_dir, a.mesh, i) if a.adversarial else None
         actors.append(review.ReviewActor(a.id, a.poses - shift, np.asarray(a.dimensions, float),
                                          None if mesh is None else mesh[0], None if mesh is None else mesh[1],
                                          adversarial=a.adversarial))

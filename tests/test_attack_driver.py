@@ -152,7 +152,9 @@ def test_cli_attack_and_report(tmp_path, repo_root):
     text = (out / "report.md").read_text()
     assert "highway-benchmark-000000" in text and "random" in text
     assert (out / "convergence.png").exists()
-    assert main(["-q", "attack", str(scene), "--budget", "0", "--out", str(tmp_path / "z")]) == 1
+    with pytest.raises(SystemExit) as exc:  # refused by the argument type: one usage line, exit 2
+        main(["-q", "attack", str(scene), "--budget", "0", "--out", str(tmp_path / "z")])
+    assert exc.value.code == 2 and not (tmp_path / "z").exists()
 
 
 def test_report_of_a_run_without_closed_loop_evaluations(tmp_path):

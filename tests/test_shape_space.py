@@ -336,7 +336,9 @@ def test_load_rejects_bad_files(space, tmp_path):
         "$.meta.format": meta_edit("format", "something.else"),
         "$.meta.version": meta_edit("version", 99),
         "$.meta.k": meta_edit("k", "three"),
-        "$.meta.latent_max": meta_edit("latent_max", [-1e9, -1e9, -1e9]),
+        "$.meta.latent_max": meta_edit("latent_max", [-1e5, -1e5, -1e5]),  # below latent_min
+        "$.meta.latent_min[0]": meta_edit("latent_min", [-1e9, -1e9, -1e9]),  # beyond the contract's bound
+        "$.meta.scale_range[1]": meta_edit("scale_range", [0.8, 1e12]),      # a 5e11 m car
         "$.meta.content_hash": lambda m: m.__setitem__("mean", m["mean"] + np.float32(1e-3)),
     }
     for fieldname, edit in edits.items():
@@ -376,9 +378,10 @@ def test_cli_decode_and_info(space, tmp_path, capsys):
                          "--space", str(sp_path)])
         assert rc == 0 and (tmp_path / f"car{suffix}").stat().st_size > 0
     capsys.readouterr()
-    rc = adv3d_main(["shapes", "decode", "--u", "0.5,0.5,nan,0.5,0.5", "-o", str(tmp_path / "x.glb"), "--space", str(sp_path)])
+    with pytest.raises(SystemExit) as exc:  # refused by the argument type (argtypes.numbers): a usage error
+        adv3d_main(["shapes", "decode", "--u", "0.5,0.5,nan,0.5,0.5", "-o", str(tmp_path / "x.glb"), "--space", str(sp_path)])
     err = capsys.readouterr().err
-    assert rc == 1 and "NaN" in err and not (tmp_path / "x.glb").exists()
+    assert exc.value.code == 2 and "--u" in err and "'nan'" in err and not (tmp_path / "x.glb").exists()
     rc = adv3d_main(["shapes", "decode", "--u", "0.5,0.5,0.5,0.5,0.5", "-o", str(tmp_path / "x.fbx"), "--space", str(sp_path)])
     assert rc == 1
     rc = adv3d_main(["shapes", "info", "--space", str(sp_path)])

@@ -5,6 +5,7 @@ import argparse
 
 
 def register(subparsers) -> None:
+    from .. import argtypes as at
     from .config import MODES, SHAPE_MODELS
     from .realism_constraints import PRESETS
     from .search import ALGORITHMS
@@ -16,14 +17,14 @@ def register(subparsers) -> None:
                     "running the same command again resumes a killed run without redoing queries.")
     p.add_argument("scenes", nargs="+", metavar="SCENE", help="scene files (.json/.json.gz)")
     p.add_argument("--algo", choices=ALGORITHMS, default="bo", help="search algorithm (default bo)")
-    p.add_argument("--budget", type=int, default=100, help="queries per scene and mode (default 100)")
-    p.add_argument("--actors", type=int, default=1, help="attack the m closest actors in front of the ego (default 1)")
+    p.add_argument("--budget", type=at.integer(1, 1_000_000), default=100, help="queries per scene and mode (default 100)")
+    p.add_argument("--actors", type=at.integer(1, 64), default=1, help="attack the m closest actors in front of the ego (default 1)")
     p.add_argument("--mode", choices=MODES, default="closed",
                    help="closed: attack in closed loop; open: attack with the ego on its log, then evaluate "
                         "in closed loop; both: the two (paper Table 1)")
-    p.add_argument("--seconds", type=float, default=5.0, help="episode length in s (default 5)")
-    p.add_argument("--workers", type=int, default=1, help="local worker processes (default 1)")
-    p.add_argument("--seed", type=int, default=0, help="search and LiDAR-noise seed (default 0)")
+    p.add_argument("--seconds", type=at.number(0.0, 3600.0, lo_open=True), default=5.0, help="episode length in s (default 5)")
+    p.add_argument("--workers", type=at.integer(1, 256), default=1, help="local worker processes (default 1)")
+    p.add_argument("--seed", type=at.seed, default=0, help="search and LiDAR-noise seed (default 0)")
     p.add_argument("--out", required=True, help="run folder, e.g. runs/NAME")
     p.add_argument("--ray-address", default=None, metavar="ADDR",
                    help="evaluate queries on an existing Ray cluster (e.g. 127.0.0.1:6379 or auto)")
@@ -33,7 +34,7 @@ def register(subparsers) -> None:
     p.add_argument("--autonomy", default="A", choices=("A", "oracle"),
                    help="stack under test: A (learned detector + predictor) or oracle perception")
     p.add_argument("--reactive", action="store_true", help="actors react to the ego (IDM/MOBIL)")
-    p.add_argument("--n-initial", type=int, default=11, help="BO initial queries (default 11)")
+    p.add_argument("--n-initial", type=at.integer(1, 1_000_000), default=11, help="BO initial queries (default 11)")
     p.add_argument("--shape-space", default=None, help="shape space .npz (default: the shipped one)")
     p.add_argument("--library", default=None,
                    help="vehicle library of the benign actors' meshes (default: the bundled one; 'none': boxes); "
@@ -65,13 +66,11 @@ def register(subparsers) -> None:
 
 
 def _attack(args: argparse.Namespace) -> int:
-    from ..errors import ConfigError
     from ..progress import is_quiet, status
     from .config import AttackConfig
-    from .driver import run_attack
+    from .driver import check_outcome, run_attack
+    from .journal import read_run
 
-    if args.workers < 1:
-        raise ConfigError(f"--workers must be >= 1, got {args.workers}")
     cfg = AttackConfig(scenes=tuple(args.scenes), algo=args.algo, budget=args.budget, actors=args.actors,
                        mode=args.mode, seconds=args.seconds, seed=args.seed, objective=args.objective,
                        autonomy=args.autonomy, reactive=args.reactive, batch=args.workers,
@@ -84,6 +83,7 @@ def _attack(args: argparse.Namespace) -> int:
             status(f"{sid} [{mode}]: best cost {m.get('best_cost')} at query {m.get('best_index')} "
                    f"({m.get('n_failed', 0)} failed of {m.get('n_queries')})")
     status(f"run bundle: {args.out}  (adv3d report {args.out})")
+    check_outcome(summary, read_run(args.out)[1])  # exit 1 saying why when nothing worked
     return 0
 
 

@@ -17,13 +17,16 @@ writes the run.json it always wrote, and older runs resume and compare equal.
 from __future__ import annotations
 
 import functools
+import math
 from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
 
+from ..argtypes import SEED_MAX
 from ..errors import ConfigError
+from ..validate import Node
 from .objective import ObjectiveWeights, parse_objective
 from .vertex_deform import DEFAULT_LATTICE, check_lattice
 
@@ -34,6 +37,11 @@ SHAPE_MODELS = ("latent", "vd")
 #: Knobs added after run.json version 1, with the value that leaves them out of run.json.
 _OPTIONAL_KEYS = {"shape_model": "latent", "max_mahalanobis": None, "class_scales": False, "realism_weight": 0.0}
 _VD_KEYS = ("vd_bound", "vd_lattice")
+AUTONOMY = ("A", "oracle")
+#: Bounds of the options (the CLI's argument types use the same ones).
+MAX_ACTORS = 64
+MAX_SECONDS = 3600.0
+MAX_BUDGET = 1_000_000
 
 
 @dataclass(frozen=True)
@@ -148,17 +156,36 @@ class AttackConfig:
     library: str | None = None
 
     def __post_init__(self) -> None:
+        """Every field typed and in range (``ConfigError`` naming the option): a config built
+        in code or read from run.json is checked like the command line."""
+        from .search import ALGORITHMS
+
         object.__setattr__(self, "scenes", tuple(self.scenes))
+        if not self.scenes or not all(isinstance(s, str) and s for s in self.scenes):
+            raise ConfigError(f"scenes must be a non-empty list of scene files, got {list(self.scenes)!r}")
+        if self.algo not in ALGORITHMS:
+            raise ConfigError(f"--algo must be one of {', '.join(ALGORITHMS)}, got {self.algo!r}")
         object.__setattr__(self, "vd_lattice", check_lattice(self.vd_lattice))
         self._check_shape_options()
         if self.mode not in MODES:
             raise ConfigError(f"--mode must be one of {', '.join(MODES)}, got {self.mode!r}")
-        if self.budget < 1:
-            raise ConfigError(f"--budget must be >= 1, got {self.budget}")
-        if self.seconds <= 0:
-            raise ConfigError(f"--seconds must be > 0, got {self.seconds}")
-        if self.batch < 1:
-            raise ConfigError(f"batch (workers) must be >= 1, got {self.batch}")
+        if self.autonomy not in AUTONOMY:
+            raise ConfigError(f"--autonomy must be one of {', '.join(AUTONOMY)}, got {self.autonomy!r}")
+        for name, lo, hi in (("budget", 1, MAX_BUDGET), ("actors", 1, MAX_ACTORS), ("seed", 0, SEED_MAX),
+                             ("batch", 1, 4096), ("n_initial", 1, MAX_BUDGET)):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or not lo <= value <= hi:
+                option = "batch (workers)" if name == "batch" else "--" + name.replace("_", "-")
+                raise ConfigError(f"{option} must be an integer in [{lo}, {hi}], got {value!r}")
+        if (isinstance(self.seconds, bool) or not isinstance(self.seconds, (int, float))
+                or not math.isfinite(self.seconds) or not 0 < self.seconds <= MAX_SECONDS):
+            raise ConfigError(f"--seconds must be a finite number in (0, {MAX_SECONDS:g}], got {self.seconds!r}")
+        if not isinstance(self.reactive, bool):
+            raise ConfigError(f"--reactive must be true or false, got {self.reactive!r}")
+        if self.shape_space is not None and not (isinstance(self.shape_space, str) and self.shape_space):
+            raise ConfigError(f"--shape-space must be a file name, got {self.shape_space!r}")
+        if not isinstance(self.objective, str):
+            raise ConfigError(f"--objective must be a string, got {self.objective!r}")
         parse_objective(self.objective)  # validate early
 
     def _check_shape_options(self) -> None:
@@ -216,10 +243,20 @@ class AttackConfig:
         return doc
 
     @classmethod
-    def from_run_json(cls, doc: Mapping[str, Any]) -> "AttackConfig":
-        """The config stored in a ``run.json`` mapping (other keys, e.g. ``versions``, ignored)."""
-        names = [f.name for f in fields(cls)]
-        missing = [n for n in ("scenes",) if n not in doc]
-        if missing:
-            raise ConfigError(f"run.json has no {', '.join(missing)}")
-        return cls(**{n: doc[n] for n in names if n in doc})
+    def from_run_json(cls, doc: Mapping[str, Any], path: str | Path | None = None) -> "AttackConfig":
+        """The config stored in a ``run.json`` mapping (other keys, e.g. ``versions``, ignored).
+
+        Raises:
+            FileFormatError: naming ``path`` and the field, for a missing ``scenes`` or a
+                value that is not a valid option.
+        """
+        node = Node(doc, "$", path)
+        node.object("a JSON object")
+        node["scenes"].items("a non-empty list of scene files", non_empty=True)
+        kw = {f.name: doc[f.name] for f in fields(cls) if f.name in doc}
+        try:
+            return cls(**kw)
+        except ConfigError as exc:  # messages start with the option: "--budget must be ..."
+            name = str(exc).split(" ", 1)[0].lstrip("-").replace("-", "_")
+            target = node.child(name, kw[name]) if name in kw else node
+            target.fail("a valid attack option", str(exc))

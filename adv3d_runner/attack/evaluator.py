@@ -97,7 +97,11 @@ class QueryEvaluator(Protocol):
     """What the driver needs from whatever scores queries (must pickle: it goes to workers)."""
 
     def scene_id(self, ref: str) -> str:
-        """The id of the scene ``ref`` (journal and summary key)."""
+        """The id of the scene ``ref`` (journal and summary key; a file-name-safe id)."""
+
+    def scene_digest(self, ref: str) -> str:
+        """The identity of the scene's content (``sha256:...``): a resume compares it, not the
+        path the scene was given by."""
 
     def targets(self, ref: str) -> tuple[list[int], int]:
         """(attacked actor ids, query dimension) of a scene. Raises ConfigError when the scene
@@ -228,6 +232,16 @@ class EpisodeEvaluator:
         from ..scene.schema import load_scene
 
         return load_scene(ref).id
+
+    def scene_digest(self, ref: str) -> str:
+        """sha256 of the scene's canonical JSON (the loaded scene written compactly): the same
+        scene as ``.json`` or ``.json.gz``, by any path, has the same digest."""
+        import hashlib
+
+        from ..fileio import dump_json
+        from ..scene.schema import load_scene
+
+        return "sha256:" + hashlib.sha256(dump_json(load_scene(ref).to_dict(), indent=None).encode()).hexdigest()
 
     def targets(self, ref: str) -> tuple[list[int], int]:
         from ..scene.schema import load_scene

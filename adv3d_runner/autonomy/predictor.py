@@ -373,8 +373,6 @@ def load_predictor(path: str | Path = DEFAULT_MODEL_DIR, threads: int | None = 1
     Weights are read with ``torch.load(weights_only=True)``; a missing or malformed file raises
     :class:`~adv3d_runner.errors.FileFormatError` naming the file and field.
     """
-    import torch
-
     path = Path(path)
     cfg_path = path / CONFIG_NAME
     if not cfg_path.is_file():
@@ -382,24 +380,27 @@ def load_predictor(path: str | Path = DEFAULT_MODEL_DIR, threads: int | None = 1
     doc = Node.load(cfg_path)
     check_header(doc, MODEL_FORMAT, (MODEL_VERSION,))
     raw = doc["config"]
-    try:
-        config = PredictorConfig(**raw.object())
-    except TypeError as exc:
-        raw.fail("PredictorConfig fields", str(exc))
-    if config.num_features != NUM_FEATURES:
-        raw.child("num_features").fail(str(NUM_FEATURES), config.num_features)
+    raw.object()
+    raw.check_keys(PredictorConfig.__dataclass_fields__)
+    dflt = PredictorConfig()
+    config = PredictorConfig(
+        num_features=raw.get("num_features", dflt.num_features).integer(lo=NUM_FEATURES, hi=NUM_FEATURES),
+        num_modes=raw.get("num_modes", dflt.num_modes).integer(lo=1, hi=64),
+        steps=raw.get("steps", dflt.steps).integer(lo=1, hi=1000),
+        hidden=raw.get("hidden", dflt.hidden).integer(lo=1, hi=8192),
+        layers=raw.get("layers", dflt.layers).integer(lo=1, hi=64),
+        residual_scale=raw.get("residual_scale", dflt.residual_scale).number(lo=0.0, lo_open=True, hi=1000.0),
+        dt=raw.get("dt", dflt.dt).number(lo=0.0, lo_open=True, hi=10.0))
     feats = doc.get("features", {})
-    layout = feats.object()
-    if (list(layout.get("lane_offsets_m", LANE_OFFSETS.tolist())) != LANE_OFFSETS.tolist()
-            or layout.get("history", HISTORY) != HISTORY):
-        feats.fail("the feature layout of this code version", layout)
-    w_path = path / doc.get("weights", WEIGHTS_NAME).string()
-    if not w_path.is_file():
-        raise FileFormatError(str(w_path), "$", "predictor weights", "no file")
-    try:
-        state = torch.load(w_path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # torch raises several types for corrupt / pickled files
-        raise FileFormatError(str(w_path), "$", "a weights-only torch state_dict", str(exc)) from exc
+    feats.object()
+    offsets = feats.get("lane_offsets_m", LANE_OFFSETS.tolist()).numbers()
+    if offsets.tolist() != LANE_OFFSETS.tolist():
+        feats["lane_offsets_m"].fail(f"the lane offsets of this code version {LANE_OFFSETS.tolist()}", offsets.tolist())
+    feats.get("history", HISTORY).integer(lo=HISTORY, hi=HISTORY, expected=f"{HISTORY} (this code's history)")
+    from .detector import load_weights
+
+    w_path = doc.get("weights", WEIGHTS_NAME).file_in(path, inside="the model folder")
+    state = load_weights(w_path, "predictor weights")
     net = build_net(config)
     try:
         net.load_state_dict(state)

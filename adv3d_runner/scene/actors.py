@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..errors import ConfigError
+from ..errors import ConfigError, FileFormatError
 from .schema import Scene
 
 if TYPE_CHECKING:  # the library module is optional at import time (numpy-only users)
@@ -52,6 +52,20 @@ ASSIGNMENT_RULES = ("draw", "nearest-size")
 def _dimension_distance(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Scale-free distance between boxes: sum |log(a / b)| over the 3 axes. a (N,3), b (3,)."""
     return np.abs(np.log(np.asarray(a, dtype=np.float64) / np.asarray(b, dtype=np.float64))).sum(axis=-1)
+
+
+def check_assets(scene: Scene, library: "VehicleLibrary", file: str | None = None) -> None:
+    """Every actor's ``asset`` (when set) is an asset of ``library``.
+
+    Raises:
+        FileFormatError: naming ``file`` (default ``scene <id>``) and ``$.actors[i].asset``.
+    """
+    known = set(library.ids())
+    for i, actor in enumerate(scene.actors):
+        if actor.asset is not None and actor.asset not in known:
+            raise FileFormatError(file or f"scene {scene.id}", f"$.actors[{i}].asset",
+                                  f"null or an asset id of the vehicle library {library.root / 'library.json'}",
+                                  actor.asset)
 
 
 def class_candidates(library: "VehicleLibrary", vehicle_class: str) -> list:

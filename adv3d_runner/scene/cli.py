@@ -6,13 +6,15 @@ from pathlib import Path
 
 
 def register(subparsers) -> None:
+    from .. import argtypes as at
+
     p = subparsers.add_parser("scenes", help="generate, import, validate and inspect scene files")
     sub = p.add_subparsers(dest="scenes_command", metavar="SUBCOMMAND")
 
     g = sub.add_parser("generate", help="generate highway scenes with the IDM/MOBIL traffic model")
     g.add_argument("--out", required=True, help="output folder (one <id>.json.gz per scene)")
-    g.add_argument("--count", type=int, default=1, help="number of scenes (seeds SEED .. SEED+COUNT-1)")
-    g.add_argument("--seed", type=int, default=None,
+    g.add_argument("--count", type=at.positive_int, default=1, help="number of scenes (seeds SEED .. SEED+COUNT-1)")
+    g.add_argument("--seed", type=at.seed, default=None,
                    help="first seed (default: the first seed of the split's reserved range)")
     g.add_argument("--split", default="benchmark", choices=("benchmark", "train"),
                    help="seed namespace: benchmark seeds [0, 100000), train seeds [100000, 1e9)")
@@ -40,17 +42,19 @@ def register(subparsers) -> None:
     c = sub.add_parser("import-commonroad", help="convert a CommonRoad XML scenario into a scene")
     c.add_argument("file", help="CommonRoad scenario (.xml)")
     c.add_argument("--out", required=True, help="output scene file (.json or .json.gz)")
-    c.add_argument("--seconds", type=float, default=None, help="scene length in s (default: the recording)")
+    c.add_argument("--seconds", type=at.number(0.0, 3600.0, lo_open=True), default=None, help="scene length in s (default: the recording)")
     c.add_argument("--extend", action="store_true",
                    help="extend a recording shorter than --seconds at constant speed (marked synthetic)")
-    c.add_argument("--ego", type=int, default=None, help="obstacle id to use as ego (default: automatic rule)")
-    c.add_argument("--ego-rank", type=int, default=0,
+    c.add_argument("--ego", type=at.count, default=None, help="obstacle id to use as ego (default: automatic rule)")
+    c.add_argument("--ego-rank", type=at.count, default=0,
                    help="take the car ranked K by the automatic ego rule (0 = the first); gives variants of one "
                         "recording different egos")
     c.set_defaults(func=_import_commonroad)
 
-    v = sub.add_parser("validate", help="validate scene files")
+    v = sub.add_parser("validate", help="validate scene files (and their actors' asset ids against the library)")
     v.add_argument("paths", nargs="+", help="scene files or folders")
+    v.add_argument("--library", default=None,
+                   help="vehicle library JSON the asset ids must name (default: the bundled one; 'none': skip)")
     v.set_defaults(func=_validate)
 
     i = sub.add_parser("info", help="one line per scene: layout, lanes, actors, frames, vehicles ahead")
@@ -125,13 +129,23 @@ def _import_commonroad(args: argparse.Namespace) -> int:
 
 def _validate(args: argparse.Namespace) -> int:
     from ..errors import FileFormatError
+    from ..fileio import REPO_ROOT
+    from .actors import check_assets
     from .schema import load_scene
 
+    library = None
+    if args.library is None or args.library.lower() != "none":
+        from ..shapes.library import load_library
+
+        path = Path(args.library) if args.library else REPO_ROOT / "assets" / "vehicles" / "library.json"
+        library = load_library(path) if args.library or path.exists() else None
     bad = 0
     files = _scene_files(args.paths)
     for path in files:
         try:
-            load_scene(path)
+            scene = load_scene(path)
+            if library is not None:
+                check_assets(scene, library, str(path))
         except FileFormatError as exc:
             bad += 1
             print(f"INVALID {exc}")

@@ -33,10 +33,11 @@ from ..dynamics.traffic import IDMParams, Traffic
 from ..geometry.angles import wrap_angle
 from . import lanes as lg
 from .generate import EGO_WHEELBASE
-from .schema import (Actor, Background, Barrier, Ego, Lane, Scene, Source, Track,
-                     default_sensors)
+from .schema import (MAX_COORD, MAX_DT, MAX_FRAMES, MAX_SIZE, MAX_SPEED, Actor, Background, Barrier, Ego, Lane,
+                     Scene, Source, Track, default_sensors)
 
 DT = 0.1
+MIN_SCENARIO_DT = 1e-3  # s: recordings are sampled at 10-100 Hz; a smaller step is a broken file
 LICENCE = "BSD-3-Clause (CommonRoad scenario; see scenes/real/LICENSE.txt)"
 ATTRIBUTION = ("Vehicle trajectories: NGSIM US-101 dataset, U.S. Department of Transportation, Federal "
                "Highway Administration (FHWA), Next Generation Simulation program. Scenario conversion: "
@@ -63,9 +64,13 @@ def _obstacle_class(obstacle) -> str:
 
 
 def _header(path: Path) -> dict:
-    """Attributes of the root <commonRoad> element (authors, source, benchmark id, ...)."""
+    """Attributes of the root <commonRoad> element (authors, source, benchmark id, ...). The file
+    is read bounded (a regular file of at most ``fileio.MAX_JSON_BYTES``) before parsing."""
+    from ..fileio import read_bytes
+
+    raw = read_bytes(path, what="CommonRoad XML file")
     try:
-        root = ET.parse(path).getroot()
+        root = ET.fromstring(raw)
     except ET.ParseError as exc:
         raise FileFormatError(path, "$", "a CommonRoad XML file", str(exc)) from None
     return dict(root.attrib)
@@ -96,9 +101,11 @@ def _speed_limits(network) -> dict[int, float]:
             for el in sign.traffic_sign_elements:
                 if "max_speed" in str(el.traffic_sign_element_id.name).lower() and el.additional_values:
                     try:
-                        out[ll.lanelet_id] = float(el.additional_values[0])
+                        v = float(el.additional_values[0])
                     except ValueError:
-                        pass
+                        continue
+                    if np.isfinite(v) and 0 < v <= MAX_SPEED:  # anything else: unknown limit
+                        out[ll.lanelet_id] = v
     return out
 
 
@@ -226,6 +233,7 @@ def import_commonroad(path: str | Path, seconds: float | None = None, extend: bo
     except Exception as exc:  # commonroad-io raises assorted errors on bad files
         raise FileFormatError(path, "$", "a CommonRoad scenario readable by commonroad-io", str(exc)) from None
     sdt = float(scenario.dt)
+    _check_scenario(path, scenario)
     lanes = _lanes(scenario.lanelet_network)
     if not lanes:
         raise FileFormatError(path, "$.lanelet", "at least one lanelet")
@@ -299,8 +307,54 @@ def import_commonroad(path: str | Path, seconds: float | None = None, extend: bo
     }
     background = Background(shoulder_left=1.0, shoulder_right=2.5, ground_margin=30.0, lane_markings=True,
                             barriers=_edge_barriers(lanes))
-    return Scene(id=f"commonroad-{bench}", source=Source("commonroad", details, LICENCE, ATTRIBUTION), dt=DT,
-                 frames=frames, lanes=lanes, background=background, ego=ego, actors=actors)
+    scene = Scene(id=f"commonroad-{bench}", source=Source("commonroad", details, LICENCE, ATTRIBUTION), dt=DT,
+                  frames=frames, lanes=lanes, background=background, ego=ego, actors=actors)
+    # the scene contract, checked here so a broken scenario (a lanelet naming a missing
+    # neighbour, an id that is not a file name) is an error naming the XML, before any writing
+    return Scene.from_dict(scene.to_dict(), path)
+
+
+def _check_scenario(path: Path, scenario) -> None:
+    """Refuse what would make a broken or silently wrong scene, before anything is built: a
+    time step that is not a positive finite number (``timeStepSize="0"`` made one-frame scenes),
+    non-finite or out-of-range coordinates, sizes, speeds and time steps (the scene contract's
+    bounds, ``scene.schema.MAX_*``). Fields are named as in the XML.
+
+    Raises:
+        FileFormatError: naming the file and the element.
+    """
+    def bad(field: str, expected: str, got) -> None:
+        raise FileFormatError(path, field, expected, got)
+
+    dt = float(scenario.dt)
+    if not (np.isfinite(dt) and MIN_SCENARIO_DT <= dt <= MAX_DT):  # 1e-320 s would fold a recording into one frame
+        bad("commonRoad/@timeStepSize", f"a time step in [{MIN_SCENARIO_DT:g}, {MAX_DT:g}] s", scenario.dt)
+    coord = f"finite coordinates within +-{MAX_COORD:g} m"
+    for ll in scenario.lanelet_network.lanelets:
+        for name in ("left_vertices", "right_vertices", "center_vertices"):
+            v = np.asarray(getattr(ll, name), dtype=np.float64)
+            if v.ndim != 2 or len(v) < 2 or not np.isfinite(v).all() or np.abs(v).max() > MAX_COORD:
+                bad(f"lanelet[@id={ll.lanelet_id}]/{name.split('_')[0]}Bound", coord + " (at least 2 points)",
+                    v.tolist()[:2])
+    for o in scenario.dynamic_obstacles:
+        where = f"dynamicObstacle[@id={o.obstacle_id}]"
+        shape = o.obstacle_shape
+        for name in ("length", "width"):
+            v = getattr(shape, name, None)
+            if v is None or not np.isfinite(float(v)) or not 0 < float(v) <= MAX_SIZE:
+                bad(f"{where}/shape/rectangle/{name}", f"a rectangle {name} in (0, {MAX_SIZE:g}] m", v)
+        states = [o.initial_state] + list(o.prediction.trajectory.state_list if o.prediction else [])
+        for st in states:
+            step = int(st.time_step)
+            if not 0 <= step * dt / DT <= MAX_FRAMES:
+                bad(f"{where}/state[time={step}]", f"a time step within {MAX_FRAMES} frames of 0.1 s", step)
+            pos = np.asarray(st.position, dtype=np.float64)
+            if pos.shape != (2,) or not np.isfinite(pos).all() or np.abs(pos).max() > MAX_COORD:
+                bad(f"{where}/state[time={step}]/position", coord, pos.tolist())
+            for name, hi in (("orientation", 1e3), ("velocity", MAX_SPEED)):
+                v = getattr(st, name, 0.0) or 0.0
+                if not np.isfinite(float(v)) or abs(float(v)) > hi:
+                    bad(f"{where}/state[time={step}]/{name}", f"a finite {name} within +-{hi:g}", v)
 
 
 def _edge_barriers(lanes: list[Lane], shoulder_left: float = 1.0) -> list[Barrier]:

@@ -47,6 +47,16 @@ DIM_DECIMALS = 3
 
 NO_ACTOR = -1  # label used by consumers for "background" (never a valid actor id)
 
+# Bounds of the contract (docs/formats.md): far outside any real scene, close enough that a
+# mistyped or hostile number (1e308 m, a 1e9-frame scene) is refused when the file is read
+# instead of overflowing a rounding or allocating gigabytes downstream.
+MAX_COORD = 1e7     # m, |x|, |y| of every position (a local map frame; UTM northings fit)
+MAX_SIZE = 100.0    # m, vehicle dimensions, lane widths, barrier heights, wheelbase
+MAX_MARGIN = 10_000.0  # m, shoulders and ground margin
+MAX_SPEED = 150.0   # m/s, recorded speeds and speed limits
+MAX_FRAMES = 100_000  # frames (2.8 h at 10 Hz)
+MAX_DT = 10.0       # s
+
 
 def _round(values: np.ndarray | float, decimals: int) -> np.ndarray:
     """Round to ``decimals`` the way files store numbers (idempotent, exact on reload)."""
@@ -470,22 +480,23 @@ def _scene_to_dict(scene: Scene) -> dict:
 
 def _load_track(t: Node, frames: int, *, full: bool) -> Track:
     t.object()
+    t.check_keys(_TRACK_KEYS)
     start = t["start"].integer(lo=0)
-    x = t["x"].numbers(min_length=1)
+    x = t["x"].numbers(min_length=1, lo=-MAX_COORD, hi=MAX_COORD)
     n = len(x)
     if start + n > frames:
         t["x"].fail(f"at most {frames - start} values (start {start} + length <= frames {frames})", f"{n} items")
     if full and (start != 0 or n != frames):
         t["x"].fail(f"{frames} values starting at frame 0 (the ego track covers every frame)",
                     f"start {start}, {n} items")
-    y = t["y"].numbers(length=n)
+    y = t["y"].numbers(length=n, lo=-MAX_COORD, hi=MAX_COORD)
     yaw = t["yaw"].numbers(length=n)
     bad = np.flatnonzero((yaw < -math.pi - 1e-3) | (yaw > math.pi + 1e-3))
     if len(bad):
         t["yaw"].fail("an angle in [-pi, pi] rad", float(yaw[bad[0]]), at=f"[{bad[0]}]")
     speed = None
     if "speed" in t:
-        speed = t["speed"].numbers(length=n, lo=0.0)
+        speed = t["speed"].numbers(length=n, lo=0.0, hi=MAX_SPEED)
     elif full:
         t.child("speed").fail("a value (field is missing; the ego track needs speeds)")
     valid = t["valid"].flags(n) if "valid" in t else None
@@ -494,7 +505,6 @@ def _load_track(t: Node, frames: int, *, full: bool) -> Track:
         t["valid"].fail("all 1 (the ego is valid in every frame)")
     if valid is not None and not valid.any():
         t["valid"].fail("at least one valid frame")
-    t.check_keys(_TRACK_KEYS)
     return Track(x=x, y=y, yaw=yaw, speed=speed, start=start, valid=valid, synthetic=synthetic)
 
 
@@ -502,22 +512,26 @@ _TRACK_KEYS = ("start", "x", "y", "yaw", "speed", "valid", "synthetic")
 
 
 def _load_dims(node: Node) -> np.ndarray:
-    return node.numbers(length=3, lo=0.0, lo_open=True, expected="a positive size in m")
+    return node.numbers(length=3, lo=0.0, lo_open=True, hi=MAX_SIZE, expected=f"a positive size in m (at most {MAX_SIZE:g})")
 
 
 def _load_class(node: Node) -> str:
     return node.string(pattern=CLASS_PATTERN, expected=f"a lower-case class name such as {class_examples(4)}")
 
 
+_LANE_KEYS = ("id", "centerline", "width", "left", "right", "successors", "speed_limit")
+
+
 def _load_lane(ld: Node) -> Lane:
-    centerline = ld["centerline"].points()
+    ld.check_keys(_LANE_KEYS)
+    centerline = ld["centerline"].points(limit=MAX_COORD)
     wd = ld["width"]
     if isinstance(wd.value, list):
-        width = wd.numbers(length=len(centerline), lo=0.0)
+        width = wd.numbers(length=len(centerline), lo=0.0, hi=MAX_SIZE)
         if np.all(width == 0):
             wd.fail("widths > 0 somewhere along the lane")
     else:
-        width = np.array(wd.number(lo=0.0, lo_open=True))
+        width = np.array(wd.number(lo=0.0, lo_open=True, hi=MAX_SIZE))
     left = ld.get("left")
     right = ld.get("right")
     succ = ld.get("successors", [])
@@ -527,11 +541,13 @@ def _load_lane(ld: Node) -> Lane:
         None if left.value is None else left.integer(lo=0),
         None if right.value is None else right.integer(lo=0),
         [s.integer(lo=0) for s in succ.items("a list of lane ids")],
-        None if limit.value is None else limit.number(lo=0.0, lo_open=True),
+        None if limit.value is None else limit.number(lo=0.0, lo_open=True, hi=MAX_SPEED),
     )
 
 
 def _load_map(doc: Node) -> list[Lane]:
+    doc["map"].object()
+    doc["map"].check_keys(("lanes",))
     nodes = doc["map"]["lanes"].objects("a non-empty list of lanes", non_empty=True)
     lanes: list[Lane] = []
     seen: set[int] = set()
@@ -550,31 +566,47 @@ def _load_map(doc: Node) -> list[Lane]:
     return lanes
 
 
+_BACKGROUND_KEYS = ("shoulder_left", "shoulder_right", "ground_margin", "lane_markings", "barriers", "meshes")
+
+
+def _load_barrier(b: Node) -> Barrier:
+    b.check_keys(("kind", "height", "polyline"))
+    return Barrier(kind=b["kind"].string(choices=BARRIER_KINDS), polyline=b["polyline"].points(limit=MAX_COORD),
+                   height=b.get("height", 0.8).number(lo=0.0, lo_open=True, hi=MAX_SIZE))
+
+
+def _load_static_mesh(m: Node) -> StaticMesh:
+    m.check_keys(("file", "pose", "surface"))
+    pose = m.get("pose", [0, 0, 0, 0]).numbers(length=4, lo=-MAX_COORD, hi=MAX_COORD)
+    return StaticMesh(file=m["file"].rel_path(inside="the scene's folder"), pose=pose,
+                      surface=m.get("surface", "concrete").string(choices=SURFACE_KINDS_FOR_MESHES))
+
+
 def _load_background(bd: Node) -> Background:
     bd.object()
-    barriers = [Barrier(kind=b["kind"].string(choices=BARRIER_KINDS), polyline=b["polyline"].points(),
-                        height=b.get("height", 0.8).number(lo=0.0, lo_open=True))
-                for b in bd.get("barriers", []).objects("a list of barriers")]
-    meshes = [StaticMesh(file=m["file"].string(), pose=m.get("pose", [0, 0, 0, 0]).numbers(length=4),
-                         surface=m.get("surface", "concrete").string(choices=SURFACE_KINDS_FOR_MESHES))
-              for m in bd.get("meshes", []).objects("a list of static meshes")]
+    bd.check_keys(_BACKGROUND_KEYS)
+    barriers = [_load_barrier(b) for b in bd.get("barriers", []).objects("a list of barriers")]
+    meshes = [_load_static_mesh(m) for m in bd.get("meshes", []).objects("a list of static meshes")]
     return Background(
-        shoulder_left=bd["shoulder_left"].number(lo=0.0),
-        shoulder_right=bd["shoulder_right"].number(lo=0.0),
-        ground_margin=bd.get("ground_margin", 30.0).number(lo=0.0),
+        shoulder_left=bd["shoulder_left"].number(lo=0.0, hi=MAX_MARGIN),
+        shoulder_right=bd["shoulder_right"].number(lo=0.0, hi=MAX_MARGIN),
+        ground_margin=bd.get("ground_margin", 30.0).number(lo=0.0, hi=MAX_MARGIN),
         lane_markings=bd.get("lane_markings", True).boolean(), barriers=barriers, meshes=meshes,
     )
 
 
 def _load_ego(ed: Node, frames: int) -> Ego:
+    ed.check_keys(("dimensions", "wheelbase", "sensors", "track"))
     sensors = []
     names: set[str] = set()
     for s in ed.get("sensors", []).objects("a list of LiDARs"):
+        s.check_keys(("name", "model", "mount"))
         name = s["name"].unique(s["name"].string(), names, "sensor name")
-        sensors.append(Lidar(name=name, model=s["model"].string(), mount=s["mount"].numbers(length=6)))
+        sensors.append(Lidar(name=name, model=s["model"].string(),
+                             mount=s["mount"].numbers(length=6, lo=-MAX_SIZE, hi=MAX_SIZE)))
     return Ego(
         dimensions=_load_dims(ed["dimensions"]),
-        wheelbase=ed["wheelbase"].number(lo=0.0, lo_open=True),
+        wheelbase=ed["wheelbase"].number(lo=0.0, lo_open=True, hi=MAX_SIZE),
         track=_load_track(ed["track"], frames, full=True),
         sensors=sensors,
     )
@@ -584,30 +616,41 @@ def _load_actors(nodes: Node, frames: int) -> list[Actor]:
     actors: list[Actor] = []
     ids: set[int] = set()
     for ad in nodes.objects("a list of actors"):
+        ad.check_keys(("id", "class", "dimensions", "asset", "track"))
         actors.append(Actor(
             id=ad["id"].unique(ad["id"].integer(lo=0), ids, "actor id"),
             cls=_load_class(ad["class"]),
             dimensions=_load_dims(ad["dimensions"]),
-            asset=ad.get("asset").string(nullable=True),
+            asset=_load_asset_id(ad.get("asset")),
             track=_load_track(ad["track"], frames, full=False),
         ))
     return actors
 
 
+def _load_asset_id(node: Node) -> str | None:
+    """A vehicle library asset id or null (checked against a library by ``scene.actors.check_assets``)."""
+    return None if node.value is None else node.name()
+
+
+_SCENE_KEYS = ("format", "version", "id", "source", "dt", "frames", "map", "background", "ego", "actors")
+
+
 def _scene_from_dict(raw: Any, path: str | Path | None) -> Scene:
     doc = Node(raw, "$", path)
     check_header(doc, FORMAT, SUPPORTED_VERSIONS)
-    scene_id = doc["id"].string()
+    doc.check_keys(_SCENE_KEYS, required=_SCENE_KEYS)
+    scene_id = doc["id"].name()  # becomes a folder name (attack run bundles)
     src = doc["source"]
     src.object()
+    src.check_keys(("kind", "details", "licence", "attribution"))
     source = Source(
         kind=src["kind"].string(choices=SOURCE_KINDS),
         details=src.get("details", {}).object(),
         licence=src.get("licence").string(nullable=True),
         attribution=src.get("attribution").string(nullable=True),
     )
-    dt = doc["dt"].number(lo=0.0, lo_open=True)
-    frames = doc["frames"].integer(lo=1)
+    dt = doc["dt"].number(lo=0.0, lo_open=True, hi=MAX_DT)
+    frames = doc["frames"].integer(lo=1, hi=MAX_FRAMES)
     lanes = _load_map(doc)
     background = _load_background(doc["background"])
     ed = doc["ego"]

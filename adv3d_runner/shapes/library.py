@@ -23,8 +23,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
-from ..errors import ConfigError, MeshImportError
-from ..fileio import REPO_ROOT, write_json
+from ..errors import ConfigError, MeshImportError, UnknownIdError
+from ..fileio import REPO_ROOT, atomic_path, resolve_inside, write_json
 from ..validate import Node, check_header
 from ..vehicle_classes import CLASS_PATTERN, class_examples, is_class_name
 
@@ -100,12 +100,13 @@ class VehicleLibrary:
     excluded: list[dict] = field(default_factory=list)
 
     def get(self, asset_id: str) -> VehicleAsset:
-        """The asset with this id; ``KeyError`` listing the known ids if absent."""
+        """The asset with this id; ``UnknownIdError`` (a ``KeyError``) listing the known ids if
+        absent."""
         for asset in self.assets:
             if asset.id == asset_id:
                 return asset
-        raise KeyError(f"no asset {asset_id!r} in the library at {self.root} "
-                       f"(known: {', '.join(a.id for a in self.assets) or 'none'})")
+        raise UnknownIdError(f"no asset {asset_id!r} in the library at {self.root} "
+                             f"(known: {', '.join(a.id for a in self.assets) or 'none'})")
 
     def ids(self) -> list[str]:
         return [a.id for a in self.assets]
@@ -119,10 +120,13 @@ class VehicleLibrary:
         return [a for a in self.assets if a.vehicle_class == vehicle_class]
 
     def path_of(self, asset: VehicleAsset | str) -> Path:
-        """Absolute path of an asset's mesh file."""
+        """Path of an asset's mesh file, checked to stay inside the library folder (symlinks
+        included; ``FileFormatError`` naming library.json and the asset's ``file`` field)."""
         if isinstance(asset, str):
             asset = self.get(asset)
-        return self.root / asset.file
+        index = next((i for i, a in enumerate(self.assets) if a.id == asset.id), None)
+        return resolve_inside(self.root, asset.file, file=self.root / "library.json", field=f"$.assets[{index}].file",
+                              inside="the library folder")
 
     def put(self, asset: VehicleAsset) -> None:
         """Add ``asset``, or replace the asset with the same id in place (keeps order)."""
@@ -362,24 +366,36 @@ def add_asset(library: VehicleLibrary, library_path: str | Path, source: str | P
         raise ConfigError(f"{licence_src}: cannot tell the licence from its text; give its name (e.g. CC0-1.0)")
 
     mesh, curation, report = read(source)
+    if len(getattr(mesh, "faces", ())) == 0:
+        raise MeshImportError(f"{source}: no triangles left after conversion and cleaning; nothing was changed")
     rel_file = f"{pack}/{asset_id.split('.', 1)[-1] if asset_id.startswith(pack + '.') else asset_id}.glb"
-    target = library.root / rel_file
-    write_library_glb(mesh, target)
-    stored = read_library_mesh(target)  # dimensions from what is on disk (float32 in glb)
+    target = resolve_inside(library.root, rel_file, field="asset file", inside="the library folder")
     lic_rel = f"{pack}/{licence_src.name}"
+    if note:
+        curation["note"] = note
+    # Nothing the library had is touched until the new mesh has been written beside it, read
+    # back and the new library validated: a broken mesh under an existing id keeps the old one.
+    with atomic_path(target) as tmp:
+        write_library_glb(mesh, tmp)
+        try:
+            stored = read_library_mesh(tmp)  # dimensions from what is on disk (float32 in glb)
+        except MeshImportError as exc:
+            raise MeshImportError(f"{source}: the converted mesh cannot be read back ({exc}); "
+                                  "nothing was changed in the library") from None
+        asset = VehicleAsset(
+            id=asset_id, file=rel_file, vehicle_class=vehicle_class,
+            dimensions=tuple(round(v, 4) for v in mesh_dimensions(stored)),
+            source={"pack": pack, "file": source.name, "author": author, "url": url},
+            licence={"name": licence_name, "file": lic_rel},
+            triangle_count=int(len(stored.faces)), cleaning=report, curation=curation,
+            in_shape_space=in_shape_space,
+        )
+        trial = VehicleLibrary(root=library.root, assets=list(library.assets), excluded=library.excluded)
+        trial.put(asset)
+        library_from_json(trial.to_json(), Path(library_path).parent, Path(library_path))
     if (library.root / lic_rel).resolve() != licence_src.resolve():
         (library.root / pack).mkdir(parents=True, exist_ok=True)
         shutil.copyfile(licence_src, library.root / lic_rel)
-    if note:
-        curation["note"] = note
-    asset = VehicleAsset(
-        id=asset_id, file=rel_file, vehicle_class=vehicle_class,
-        dimensions=tuple(round(v, 4) for v in mesh_dimensions(stored)),
-        source={"pack": pack, "file": source.name, "author": author, "url": url},
-        licence={"name": licence_name, "file": lic_rel},
-        triangle_count=int(len(stored.faces)), cleaning=report, curation=curation,
-        in_shape_space=in_shape_space,
-    )
     library.put(asset)
     save_library(library, library_path)
     return asset

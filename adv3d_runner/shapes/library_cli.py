@@ -13,6 +13,8 @@ from ..vehicle_classes import VEHICLE_CLASSES
 
 
 def register(subparsers) -> None:
+    from .. import argtypes as at
+
     parser = subparsers.add_parser("assets", help="curate the vehicle library (import, list, check)",
                                    description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="assets_command", metavar="ACTION")
@@ -22,11 +24,11 @@ def register(subparsers) -> None:
                      help=".glb .gltf .obj .ply .stl .fbx .blend, ApolloCar3D .json")
     imp.add_argument("--class", dest="vehicle_class", required=True,
                      help="vehicle class: " + " ".join(VEHICLE_CLASSES[:8]) + " ... (any lower-case name)")
-    imp.add_argument("--dimensions", nargs=3, type=float, metavar=("L", "W", "H"),
+    imp.add_argument("--dimensions", nargs=3, type=at.number(0.0, 100.0, lo_open=True), metavar=("L", "W", "H"),
                      help="scale (anisotropically) to this real length, width, height in metres")
     imp.add_argument("--id", dest="asset_id", help="asset id (one PATH only); default PACK.file-stem")
-    imp.add_argument("--up", help="file axis that is up (+x -x +y -y +z -z); default from the format")
-    imp.add_argument("--forward", help="file axis the vehicle's front points to; default: longest horizontal axis")
+    imp.add_argument("--up", type=at.axis, help="file axis that is up (+x -x +y -y +z -z); default from the format")
+    imp.add_argument("--forward", type=at.axis, help="file axis the vehicle's front points to; default: longest horizontal axis")
     imp.add_argument("--convention", default="auto", choices=("auto", "none", "apollocar3d", "shapenet"),
                      help="dataset axis convention (auto: ApolloCar3D for .json, ShapeNet for "
                           "model_normalized.obj; none: the format's own axes)")
@@ -155,13 +157,15 @@ def check_library(library, tolerance: float = 1e-3) -> list[str]:
     """
     import numpy as np
 
+    from ..errors import FileFormatError
+    from ..fileio import resolve_inside
     from .mesh_io import read_library_mesh
 
     problems = []
     for asset in library.assets:
         try:
             mesh = read_library_mesh(library.path_of(asset))
-        except MeshImportError as exc:
+        except (MeshImportError, FileFormatError) as exc:
             problems.append(f"{asset.id}: {exc}")
             continue
         lo, hi = mesh.bounds
@@ -175,7 +179,12 @@ def check_library(library, tolerance: float = 1e-3) -> list[str]:
         centre = 0.5 * (lo[:2] + hi[:2])
         if np.max(np.abs(centre)) > tolerance:
             problems.append(f"{asset.id}: footprint centre at {np.round(centre, 4).tolist()}, expected the origin")
-        if not (library.root / asset.licence["file"]).is_file():
+        try:  # inside the library folder, symlinks included
+            licence = resolve_inside(library.root, asset.licence["file"], inside="the library folder")
+        except FileFormatError as exc:
+            problems.append(f"{asset.id}: licence file: {exc}")
+            continue
+        if not licence.is_file():
             problems.append(f"{asset.id}: licence file {asset.licence['file']} is missing")
     return problems
 

@@ -61,6 +61,8 @@ GLTF_TO_CONVENTION = CONVENTION_TO_GLTF.T
 UNIT_SCALES = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254}
 DEFAULT_RGBA = (180, 180, 180, 255)
 BPY_TIMEOUT_S = 300
+#: Largest mesh file read (bytes): the library's meshes are < 1 MB, source packs' files a few MB.
+MAX_MESH_BYTES = 512 * 2**20
 
 
 # ----------------------------------------------------------------------------- reading
@@ -84,8 +86,9 @@ def read_mesh(path: str | Path) -> tuple[Any, dict]:
     if suffix not in SUPPORTED_FORMATS:
         raise MeshImportError(f"{path}: unsupported mesh format {suffix or '(none)'!r}; "
                               f"expected one of {' '.join(SUPPORTED_FORMATS)}")
-    if not path.is_file():
+    if not path.exists():
         raise MeshImportError(f"{path}: no such file")
+    check_mesh_file(path)
     if suffix in BLENDER_FORMATS:
         mesh = _read_with_blender(path)
         reader = "bpy"
@@ -151,11 +154,25 @@ def read_apollocar3d_json(path: str | Path):
                                                                         (len(mesh.faces), 1)))
     mesh.metadata["car_type"] = car_type
     return mesh
+def check_mesh_file(path: str | Path) -> None:
+    """``path`` is a regular file (not a folder, FIFO or device) of at most
+    :data:`MAX_MESH_BYTES`; else ``MeshImportError`` naming it."""
+    from ..errors import FileFormatError
+    from ..fileio import check_regular_file
+
+    try:
+        st = check_regular_file(path, "mesh file")
+    except FileFormatError as exc:
+        raise MeshImportError(f"{path}: expected {exc.expected} (got {exc.got})") from None
+    if st.st_size > MAX_MESH_BYTES:
+        raise MeshImportError(f"{path}: expected a mesh file of at most {MAX_MESH_BYTES // 2**20} MiB "
+                              f"(got {st.st_size // 2**20} MiB)")
 
 
 def _read_with_trimesh(path: Path, suffix: str):
     import trimesh
 
+    check_mesh_file(path)
     try:
         loaded = trimesh.load(str(path), file_type=suffix[1:], force="scene", process=False)
     except Exception as exc:  # noqa: BLE001 - trimesh raises many types for bad files
@@ -425,7 +442,7 @@ def read_library_mesh(path: str | Path):
     was cleaned with. Returns a ``trimesh.Trimesh`` with float64 vertices and face colours.
     """
     path = Path(path)
-    if not path.is_file():
+    if not path.exists():
         raise MeshImportError(f"{path}: library mesh file is missing")
     mesh = _read_with_trimesh(path, path.suffix.lower() or ".glb")
     if path.suffix.lower() in (".glb", ".gltf"):

@@ -674,6 +674,8 @@ def load_reference(path: str | Path = DEFAULT_REFERENCE) -> RealismReference:
     if (hist < 0).any():
         arrays.fail("histogram", "non-negative counts", int(hist.min()))
     pts = arrays.array("points", dtype=np.float32, shape=(m, CHAMFER_POINTS, 3), finite=True)
+    if np.abs(pts).max(initial=0.0) > 100.0:  # footprint-centred vehicle surfaces, metres
+        arrays.fail("points", "surface points within 100 m of the footprint centre", float(np.abs(pts).max()))
     loo = {key: meta_node[key].numbers(length=m, lo=0.0) for key in ("jsd_loo", "chamfer_loo", "mahalanobis_loo")}
     classes = [c.string() for c in meta_node["asset_classes"].items(length=m)]
     keep = {k: v for k, v in meta.items() if k not in ("format", "version", "asset_classes", *loo)}

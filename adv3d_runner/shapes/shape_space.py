@@ -40,6 +40,12 @@ DEFAULT_SHAPE_SPACE: Path = REPO_ROOT / "assets" / "shape_space" / "vehicles_64.
 # (1e-5 on amplitude) separates real from numerical directions.
 _RANK_TOL = 1e-10
 _ARRAYS = ("meta", "mean", "components", "latents", "asset_ids")
+# Bounds of the contract: a vehicle grid of at most 50 m, width/length scales within [0.1, 10]
+# (the shipped range is 0.8-1.3), latents within 1e6: a file outside them is refused on load,
+# never decoded into a 5e11 m car.
+MAX_EXTENT_M = 50.0
+SCALE_LIMITS = (0.1, 10.0)
+MAX_LATENT = 1e6
 
 
 @dataclass
@@ -289,20 +295,21 @@ def _load(path: Path) -> ShapeSpace:
     g = meta["grid"]
     g.object("an object with resolution, extent_m, ground_z, truncation")
     res = g["resolution"].integer(lo=8, hi=512)
-    grid = GridSpec(res, g["extent_m"].number(lo=0.0, lo_open=True), g["ground_z"].number(),
-                    g["truncation"].number(lo=0.0, lo_open=True))
+    extent = g["extent_m"].number(lo=0.0, lo_open=True, hi=MAX_EXTENT_M)
+    grid = GridSpec(res, extent, g["ground_z"].number(lo=-extent, hi=extent),
+                    g["truncation"].number(lo=0.0, lo_open=True, hi=1.0))
     k = meta["k"].integer(lo=1)
     rank = meta["rank"].integer(lo=0, hi=k)
     d = res**3
-    ev = meta["explained_variance"].numbers(length=k)
-    evr = meta["explained_variance_ratio"].numbers(length=k)
-    zmin = meta["latent_min"].numbers(length=k)
-    zmax = meta["latent_max"].numbers(length=k)
+    ev = meta["explained_variance"].numbers(length=k, lo=0.0)
+    evr = meta["explained_variance_ratio"].numbers(length=k, lo=0.0, hi=1.0)
+    zmin = meta["latent_min"].numbers(length=k, lo=-MAX_LATENT, hi=MAX_LATENT)
+    zmax = meta["latent_max"].numbers(length=k, lo=-MAX_LATENT, hi=MAX_LATENT)
     if np.any(zmin > zmax):
         meta["latent_max"].fail("latent_max >= latent_min in every dimension", zmax.tolist())
-    sr = meta["scale_range"].numbers(length=2)
-    if not 0 < sr[0] < sr[1]:
-        meta["scale_range"].fail("0 < low < high", sr.tolist())
+    sr = meta["scale_range"].numbers(length=2, lo=SCALE_LIMITS[0], hi=SCALE_LIMITS[1])
+    if not sr[0] < sr[1]:
+        meta["scale_range"].fail(f"low < high, both in [{SCALE_LIMITS[0]:g}, {SCALE_LIMITS[1]:g}]", sr.tolist())
     method = meta["method"].string(empty=True)
     build = meta.get("build", {}).object()
     mean = z.array("mean", dtype=np.float32, shape=(d,), finite=True)

@@ -34,6 +34,12 @@ FORMAT = "adv3d-replay"
 VERSION = 1
 POINTS_FORMAT = "adv3d-replay-points"
 POS, ANG, SPD, SCORE = 3, 4, 3, 4  # decimals
+#: Largest |value| of any number in a replay (m, m/s, rad): far beyond any scene (whose
+#: positions are bounded by 1e7 m), so a hostile 1e308 cannot overflow the quantisation.
+MAX_ABS = 1e7
+MAX_FRAMES = 100_000
+_KEYS = ("format", "version", "scene", "dt", "start_frame", "frames", "closed_loop", "reactive", "seed", "autonomy",
+         "ego", "actors", "outputs", "points", "metadata")
 
 
 def _q(a, decimals: int) -> np.ndarray:
@@ -282,35 +288,40 @@ def _poses(node: Node, T: int, *, nullable: bool) -> np.ndarray:
     for k, p in enumerate(node.items(f"a list of {T} poses", length=T)):
         if p.value is None and nullable:
             continue
-        out[k] = p.array((3,))
+        out[k] = p.array((3,), limit=MAX_ABS)
     return out
 
 
 def _ids(node: Node, n: int | None = None) -> np.ndarray:
     """A list of integer ids -> (n,) int64 (JSON numbers that are whole)."""
-    ids = node.array((n,))
+    ids = node.array((n,), limit=2**62)
     if np.any(ids != np.round(ids)):
         node.fail("integers", describe(node.value))
     return ids.astype(np.int64)
 
 
 def _frame(o: Node) -> ReplayFrame:
+    o.check_keys(("detections", "tracks", "predictions", "plan"))
     det = o["detections"]
-    boxes = det["boxes"].array((None, 5))
-    scores = det["scores"].array((len(boxes),))
+    det.check_keys(("boxes", "scores"))
+    boxes = det["boxes"].array((None, 5), limit=MAX_ABS)
+    scores = det["scores"].array((len(boxes),), limit=MAX_ABS)
     tr = o["tracks"]
+    tr.check_keys(("ids", "boxes", "velocities"))
     tids = _ids(tr["ids"])
-    tboxes = tr["boxes"].array((len(tids), 5))
-    tvel = tr["velocities"].array((len(tids), 2))
+    tboxes = tr["boxes"].array((len(tids), 5), limit=MAX_ABS)
+    tvel = tr["velocities"].array((len(tids), 2), limit=MAX_ABS)
     pr = o["predictions"]
+    pr.check_keys(("track_ids", "probabilities", "trajectories"))
     pids = _ids(pr["track_ids"])
-    probs = pr["probabilities"].array((len(pids), None))
-    traj = pr["trajectories"].array((len(pids), probs.shape[1] if probs.ndim == 2 else None, None, 2))
+    probs = pr["probabilities"].array((len(pids), None), limit=MAX_ABS)
+    traj = pr["trajectories"].array((len(pids), probs.shape[1] if probs.ndim == 2 else None, None, 2), limit=MAX_ABS)
     pl = o["plan"]
-    plan = pl["trajectory"].array((None, 3))
-    speed = pl["speed"].array((len(plan),))
+    pl.check_keys(("trajectory", "speed", "label", "cost"))
+    plan = pl["trajectory"].array((None, 3), limit=MAX_ABS)
+    speed = pl["speed"].array((len(plan),), limit=MAX_ABS)
     return ReplayFrame(boxes, scores, tids, tboxes, tvel, pids, traj, probs, plan, speed,
-                       pl.get("label", "").string(empty=True), pl.get("cost", 0.0).number())
+                       pl.get("label", "").string(empty=True), pl.get("cost", 0.0).number(lo=-MAX_ABS, hi=MAX_ABS))
 
 
 #: Frames validated per step of :func:`load_replay_steps`; points rows converted per step.
@@ -328,22 +339,29 @@ def replay_from_dict_steps(raw: Any, path: str | Path | None = None,
     """:func:`replay_from_dict` as a steps generator (``STEP_FRAMES`` frames per step)."""
     doc = Node(raw, "$", path)
     check_header(doc, FORMAT, (VERSION,))
+    doc.check_keys(_KEYS)
     scene = doc["scene"]
+    scene.object()
+    scene.check_keys(("id", "file"))
     scene_id = scene["id"].string(empty=True)
     scene_file = scene.get("file").string(nullable=True, empty=True)
-    dt = doc["dt"].number(lo=1e-6)
-    T = doc["frames"].integer(lo=0)
+    dt = doc["dt"].number(lo=1e-6, hi=10.0)
+    T = doc["frames"].integer(lo=0, hi=MAX_FRAMES)
     ego = doc["ego"]
-    ego_dims = ego["dimensions"].array((3,))
+    ego.object()
+    ego.check_keys(("dimensions", "poses", "speed"))
+    ego_dims = ego["dimensions"].array((3,), limit=MAX_ABS)
     ego_poses = _poses(ego["poses"], T, nullable=False)
-    ego_speed = ego["speed"].array((T,))
+    ego_speed = ego["speed"].array((T,), limit=MAX_ABS)
     actors, seen = [], set()
-    for a in doc["actors"].items("a list"):
+    for a in doc["actors"].objects("a list of actors"):
+        a.check_keys(("id", "class", "dimensions", "adversarial", "mesh", "poses"))
         aid = a["id"].unique(a["id"].integer(lo=0), seen, "actor id")
-        actors.append(ReplayActor(aid, a["class"].string(empty=True), a["dimensions"].array((3,)),
+        mesh = a.get("mesh")
+        actors.append(ReplayActor(aid, a["class"].string(empty=True), a["dimensions"].array((3,), limit=MAX_ABS),
                                   _poses(a["poses"], T, nullable=True),
                                   a.get("adversarial", False).boolean(),
-                                  a.get("mesh").string(nullable=True, empty=True)))
+                                  None if mesh.value is None else mesh.rel_path(inside="the replay's folder")))
     frames = []
     for o in doc["outputs"].items(f"a list of {T} frames", length=T):
         frames.append(_frame(o))
@@ -377,7 +395,7 @@ def load_points_steps(path: str | Path, frames: int, n_actors: int) -> Steps[lis
     lab = z.array("label", dtype=np.int16, shape=(P,))
     if P and (lab.min() < -1 or lab.max() >= n_actors):
         z.fail("label", f"int16 array ({P},) in [-1, {n_actors - 1}]", f"values in [{lab.min()}, {lab.max()}]")
-    off = z.members["offsets"]
+    off = z.array("offsets", kind="i", shape=(frames + 1,))
     if off.shape != (frames + 1,) or off[0] != 0 or off[-1] != P or np.any(np.diff(off) < 0):
         z.fail("offsets", f"non-decreasing int array ({frames + 1},) from 0 to {P}", f"{off.shape}")
     # filled in place (no temporaries): this is most of the load time of a long replay
@@ -405,11 +423,26 @@ def load_replay_steps(path: str | Path, *, points: bool = True) -> Steps[Replay]
     name = Path(path).name
     doc = Node((yield from relay(read_json_steps(path), (0.05, f"reading {name}"))), "$", path)
     replay = yield from relay(replay_from_dict_steps(doc.value, path), (0.2, f"checking {name}"))
-    pf = doc.get("points").string(nullable=True, empty=True, expected="a file name or null")
-    if pf and points:
-        replay.points = yield from span(load_points_steps(Path(path).parent / pf, replay.n_frames,
-                                                          len(replay.actors)), 0.3, 1.0, f"reading {pf}")
+    pf = doc.get("points")
+    if pf.value is not None:
+        pf.string(empty=True, expected="a file name or null")
+    if pf.value and points:
+        pfile = pf.file_in(Path(path).parent, inside="the replay's folder")
+        replay.points = yield from span(load_points_steps(pfile, replay.n_frames, len(replay.actors)),
+                                        0.3, 1.0, f"reading {pf.value}")
     return replay
+
+
+def actor_mesh_path(replay_path: str | Path, replay: Replay, index: int) -> Path | None:
+    """The file of actor ``index``'s substituted mesh, checked to stay inside the replay's
+    folder (symlinks included), or None when the actor has no mesh."""
+    from ..fileio import resolve_inside
+
+    rel = replay.actors[index].mesh
+    if not rel:
+        return None
+    return resolve_inside(Path(replay_path).parent, rel, file=replay_path, field=f"$.actors[{index}].mesh",
+                          inside="the replay's folder")
 
 
 def replay_equal(a: Replay, b: Replay) -> bool:

@@ -23,23 +23,25 @@ def register(subparsers) -> None:
 
 
 def add_train_detector(train_sub) -> None:
+    from .. import argtypes as at
+
     p = train_sub.add_parser(
         "detector", help="train the PIXOR-like BEV LiDAR detector",
         description="Simulate LiDAR frames of training-split scenes (seeds 100000 + [0, N)), train the BEV "
                     "detector, evaluate AP/recall at BEV IoU 0.5 on held-out scenes (seeds 900000 + [0, M)), "
                     "and write weights, config.json, training_report.json and loss_curves.png to --out.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    p.add_argument("--scenes", type=int, default=140, help="training scenes")
-    p.add_argument("--val-scenes", type=int, default=40, help="held-out evaluation scenes")
-    p.add_argument("--frames-per-scene", type=int, default=10, help="LiDAR frames per scene")
-    p.add_argument("--epochs", type=int, default=10)
-    p.add_argument("--batch", type=int, default=8)
-    p.add_argument("--lr", type=float, default=2e-3)
-    p.add_argument("--resolution", type=float, default=0.25, help="BEV cell size, m")
-    p.add_argument("--min-points", type=int, default=5, help="LiDAR returns for a vehicle to count as ground truth")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--threads", type=int, default=1, help="torch threads for training")
-    p.add_argument("--time-limit", type=float, default=38 * 60,
+    p.add_argument("--scenes", type=at.positive_int, default=140, help="training scenes")
+    p.add_argument("--val-scenes", type=at.positive_int, default=40, help="held-out evaluation scenes")
+    p.add_argument("--frames-per-scene", type=at.positive_int, default=10, help="LiDAR frames per scene")
+    p.add_argument("--epochs", type=at.positive_int, default=10)
+    p.add_argument("--batch", type=at.positive_int, default=8)
+    p.add_argument("--lr", type=at.positive, default=2e-3)
+    p.add_argument("--resolution", type=at.number(0.01, 10.0), default=0.25, help="BEV cell size, m")
+    p.add_argument("--min-points", type=at.positive_int, default=5, help="LiDAR returns for a vehicle to count as ground truth")
+    p.add_argument("--seed", type=at.seed, default=0)
+    p.add_argument("--threads", type=at.positive_int, default=1, help="torch threads for training")
+    p.add_argument("--time-limit", type=at.positive, default=38 * 60,
                    help="stop training after the epoch that passes this many seconds (data included)")
     p.add_argument("--cache", default=None, help="frame cache folder (default ~/.cache/adv3d/detector)")
     p.add_argument("--out", default="assets/models/detector", help="model folder")
@@ -175,6 +177,7 @@ def _finite(obj):
 
 def add_train_predictor(train_subparsers) -> None:
     """Add ``predictor`` to the ``adv3d train`` subcommand group."""
+    from .. import argtypes as at
     from ..autonomy.predictor import DEFAULT_MODEL_DIR
 
     p = train_subparsers.add_parser(
@@ -182,16 +185,16 @@ def add_train_predictor(train_subparsers) -> None:
         description="Generate training-split scenes, run noisy detections through the tracker, train the "
                     "predictor (winner-takes-all over K modes) and report held-out minADE against the "
                     "constant-velocity and lane-following baselines.")
-    p.add_argument("--scenes", type=int, default=None, help="training scenes (default 240; 8 with --quick)")
-    p.add_argument("--val-scenes", type=int, default=None, help="held-out scenes (default 40; 3 with --quick)")
-    p.add_argument("--epochs", type=int, default=None, help="epochs (default 20; 2 with --quick)")
-    p.add_argument("--seed", type=int, default=100_000, help="first training scene seed (>= 100000) and torch seed")
-    p.add_argument("--modes", type=int, default=6, help="number of modes K (>= 3)")
-    p.add_argument("--batch", type=int, default=512)
-    p.add_argument("--lr", type=float, default=2e-3)
-    p.add_argument("--threads", type=int, default=1,
+    p.add_argument("--scenes", type=at.positive_int, default=None, help="training scenes (default 240; 8 with --quick)")
+    p.add_argument("--val-scenes", type=at.positive_int, default=None, help="held-out scenes (default 40; 3 with --quick)")
+    p.add_argument("--epochs", type=at.positive_int, default=None, help="epochs (default 20; 2 with --quick)")
+    p.add_argument("--seed", type=at.seed, default=100_000, help="first training scene seed (>= 100000) and torch seed")
+    p.add_argument("--modes", type=at.integer(3, 64), default=6, help="number of modes K (>= 3)")
+    p.add_argument("--batch", type=at.positive_int, default=512)
+    p.add_argument("--lr", type=at.positive, default=2e-3)
+    p.add_argument("--threads", type=at.positive_int, default=1,
                    help="torch threads for training (1: on a shared 2-core machine 2 threads were 70x slower)")
-    p.add_argument("--time-limit", type=float, default=40.0,
+    p.add_argument("--time-limit", type=at.positive, default=40.0,
                    help="minutes: stop after the epoch that passes this (data included)")
     p.add_argument("--cache", default=None, help="data cache root (default $ADV3D_CACHE or ~/.cache/adv3d)")
     p.add_argument("--no-cache", action="store_true", help="do not read or write the sample cache")
