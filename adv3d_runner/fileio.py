@@ -358,11 +358,20 @@ def read_json_steps(path: str | Path, step_bytes: int = STEP_BYTES) -> Generator
             except (OSError, EOFError) as exc:
                 raise FileFormatError(path, "$", "gzip-compressed JSON", str(exc)) from None
         raw = b"".join(parts)
+    # the same bounds as read_json: nesting depth, and no NaN / Infinity tokens
+    stripped = _JSON_STRING.sub(b"", raw)
+    if _depth(stripped) > MAX_JSON_DEPTH:
+        raise FileFormatError(path, "$", f"JSON nested at most {MAX_JSON_DEPTH} levels", "deeper")
     try:
         text = raw.decode("utf-8")
-        return (yield from _parse_json_steps(text, step_bytes))
+        doc = yield from _parse_json_steps(text, step_bytes)
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise FileFormatError(path, "$", "valid UTF-8 JSON", str(exc)) from None
+    if _NON_FINITE.search(stripped):
+        where = _first_non_finite(doc)
+        if where is not None:
+            raise FileFormatError(path, where, "a finite number (JSON has no NaN or Infinity)", "NaN or Infinity")
+    return doc
 
 
 def _parse_json_steps(text: str, step_bytes: int) -> Generator[None, None, Any]:

@@ -79,13 +79,21 @@ def _stop(proc: subprocess.Popen) -> None:
         proc.wait()
 
 
+def side_folder(run_dir: Path) -> Path:
+    """``<run>.blender/`` beside the run: the exported scene and the attack's log. Nothing but
+    the runner writes into the run folder itself (``adv3d attack --out`` refuses a folder that
+    holds anything but a run)."""
+    return run_dir.with_name(run_dir.name + ".blender")
+
+
 def attack_steps(cmd: list[str], run_dir: Path, budget: int, env: dict | None = None,
                  started: list | None = None):
     """Steps generator: run the attack command and wait for it, yielding
     ``jobs.Waiting(fraction, message)`` every ``POLL_S``; closing the generator (Esc) terminates
     the process. Returns ``run_dir``; raises ``Adv3dError`` with the log's last line when the
     attack fails. ``started``: the ``Popen`` is appended to it (for callers that watch it)."""
-    log_path = run_dir / "blender-attack.log"
+    log_path = side_folder(run_dir) / "blender-attack.log"
+    log_path.parent.mkdir(parents=True, exist_ok=True)
     with open(log_path, "ab") as log:
         proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env,
                                 start_new_session=hasattr(os, "killpg"))
@@ -153,7 +161,7 @@ def prepare_attack(context) -> tuple[list[str], Path, dict]:
     tmp = staging / f"{scene.id}.json.gz"
     save_scene(scene, tmp)
     run_dir = runs / run_name(tmp.read_bytes(), settings, scene.id)
-    scene_file = run_dir / "input" / f"{scene.id}.json.gz"
+    scene_file = side_folder(run_dir) / f"{scene.id}.json.gz"
     if not scene_file.exists():  # on a resume the file is there with the same bytes
         scene_file.parent.mkdir(parents=True, exist_ok=True)
         os.replace(tmp, scene_file)

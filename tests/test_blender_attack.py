@@ -46,7 +46,7 @@ def test_attack_this_scene_runs_and_opens_in_review(ctx):
     assert bpy.ops.adv3d.scene_attack() == {"FINISHED"}
     run = Path(ctx.scene.adv3d.scene.last_run)
     assert len(_journal(run)) == 2 and (run / "summary.json").is_file()
-    assert (run / "input" / SCENE).is_file()  # the scene as exported from Blender
+    assert (run.with_name(run.name + ".blender") / SCENE).is_file()  # the scene as exported from Blender
     # the finished run is open in Review
     assert ctx.scene.adv3d.review.path == str(run) and review.data_of(ctx.scene) is not None
     assert "review ego" in bpy.data.objects and ctx.scene.adv3d.review.loaded.startswith(str(run))

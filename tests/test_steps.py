@@ -39,7 +39,7 @@ def test_run_steps_relay_span():
 
 DOCS = [
     {"format": "x", "outputs": [{"a": [1, 2.5, None]}, {"b": "é"}] * 50, "empty": [], "n": 3, "nested": {"l": [1]}},
-    {"dup": 1, "dup": 2, "f": [float("nan"), 1e308], "s": "a,b]}"},  # noqa: F601  (json keeps the last)
+    {"dup": 1, "dup": 2, "f": [-0.0, 1e308], "s": "a,b]}"},  # noqa: F601  (json keeps the last)
     [1, 2, {"x": 3}],  # not an object: one json.loads call
     {},
     "text",
@@ -51,7 +51,7 @@ DOCS = [
 def test_read_json_steps_equals_read_json(tmp_path, doc, gz):
     text = json.dumps(doc, indent=1)
     if isinstance(doc, dict) and "dup" in doc:
-        text = '{"dup": 1, "dup": 2, "f": [NaN, 1e308], "s": "a,b]}"}'
+        text = '{"dup": 1, "dup": 2, "f": [-0.0, 1e308], "s": "a,b]}"}'
     path = tmp_path / ("d.json.gz" if gz else "d.json")
     path.write_bytes(gzip.compress(text.encode()) if gz else text.encode())
     got, n = _steps(read_json_steps(path, step_bytes=64))
