@@ -39,8 +39,8 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 FIT_SEED = 17
-FIT_SCENES = 6                       # training-split scenes per candidate
-FIT_RANDOM, FIT_LOCAL = 32, 16       # random candidates, then local perturbations of the best
+FIT_SCENES = 5                       # training-split scenes per candidate
+FIT_RANDOM, FIT_LOCAL = 24, 12       # random candidates, then local perturbations of the best
 # parameter: (low, high) of the search
 SPACE = {"density": (25.0, 90.0), "v0_mean": (0.45, 1.0), "v0_std": (0.03, 0.25), "headway_scale": (0.35, 1.0),
          "headway_sigma": (0.0, 0.6), "s0": (1.0, 3.0), "a_thr": (0.0, 0.3), "politeness": (0.0, 0.5)}

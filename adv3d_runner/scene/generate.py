@@ -109,8 +109,11 @@ class GeneratorProfile:
 #: ``bench/results/traffic.json`` holds the search and the distances before and after).
 PROFILES = {
     "default": GeneratorProfile(),
-    "us101": GeneratorProfile(name="us101", density=60.0, lanes=(5, 6), speed_limits=(29.1,),
-                              layouts=("straight", "onramp")),
+    # the fit's best candidate (bench/results/traffic.fit.json, "best"), rounded to 3 digits
+    "us101": GeneratorProfile(name="us101", density=41.2, lanes=(5, 6), speed_limits=(29.1,),
+                              layouts=("straight", "onramp"), v0_mean=0.783, v0_std=0.0555,
+                              headway_scale=0.435, headway_sigma=0.0505,
+                              idm=IDMParams(s0=2.94), mobil=MOBILParams(politeness=0.5, a_thr=0.0)),
 }
 PROFILE_TAG = {"us101": 0x5101}  # SeedSequence element of a non-default profile (own seed space)
 
