@@ -73,7 +73,44 @@ def _header(path: Path) -> dict:
         root = ET.fromstring(raw)
     except ET.ParseError as exc:
         raise FileFormatError(path, "$", "a CommonRoad XML file", str(exc)) from None
+    _check_xml_numbers(root, path)
     return dict(root.attrib)
+
+
+# Bounds of the numbers of a CommonRoad XML by the element that holds them (its parent for
+# <exact>, <intervalStart>, <intervalEnd>); checked before commonroad-io parses the file:
+# commonroad-io wraps an orientation by subtracting 2 pi in a loop, which never ends for 1e20.
+_XML_BOUNDS = {"orientation": 1e3, "time": 1e7, "velocity": 1e3, "acceleration": 1e3, "yawRate": 1e3,
+               "slipAngle": 1e3, "x": MAX_COORD, "y": MAX_COORD, "length": MAX_SIZE, "width": MAX_SIZE,
+               "radius": MAX_SIZE}
+
+
+def _check_xml_numbers(root: ET.Element, path: Path) -> None:
+    """Every number of the scenario's states, bounds and shapes is finite and within
+    :data:`_XML_BOUNDS`, and ``timeStepSize`` is a number (``FileFormatError`` naming the
+    element, e.g. ``obstacle[@id=3]/initialState/orientation/exact``)."""
+    try:
+        float(root.get("timeStepSize", "0.1"))
+    except ValueError:
+        raise FileFormatError(path, "commonRoad/@timeStepSize", "a number", root.get("timeStepSize")) from None
+    stack = [(root, "commonRoad", None)]
+    while stack:
+        el, where, parent = stack.pop()
+        children = list(el)
+        for child in children:
+            ident = child.get("id")
+            stack.append((child, f"{where}/{child.tag}" + (f"[@id={ident}]" if ident else ""), el.tag))
+        if children or el.text is None or not el.text.strip():
+            continue
+        key = parent if el.tag in ("exact", "intervalStart", "intervalEnd") else el.tag
+        if key not in _XML_BOUNDS:
+            continue
+        try:
+            value = float(el.text)
+        except ValueError:
+            raise FileFormatError(path, where, "a number", el.text.strip()[:40]) from None
+        if not np.isfinite(value) or abs(value) > _XML_BOUNDS[key]:
+            raise FileFormatError(path, where, f"a finite number within +-{_XML_BOUNDS[key]:g}", el.text.strip()[:40])
 
 
 def _lanes(network) -> list[Lane]:
