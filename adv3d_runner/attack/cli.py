@@ -24,13 +24,20 @@ def register(subparsers) -> None:
                         "in closed loop; both: the two (paper Table 1)")
     p.add_argument("--seconds", type=at.number(0.0, 3600.0, lo_open=True), default=5.0, help="episode length in s (default 5)")
     p.add_argument("--workers", type=at.integer(1, 256), default=1, help="local worker processes (default 1)")
-    p.add_argument("--seed", type=at.seed, default=0, help="search and LiDAR-noise seed (default 0)")
+    p.add_argument("--seed", type=at.seed, default=0,
+                   help="search and LiDAR-noise seed (default 0; per scene derived from it with --scene-seeds)")
     p.add_argument("--out", required=True, help="run folder, e.g. runs/NAME")
     p.add_argument("--ray-address", default=None, metavar="ADDR",
                    help="evaluate queries on an existing Ray cluster (e.g. 127.0.0.1:6379 or auto)")
     p.add_argument("--objective", default="M0",
                    help="M0 (all terms, default) .. M5 (paper ablations), or key=value list "
                         "(det, pred, plan, alpha, beta), e.g. 'M1,beta=2' or 'pred=0.2'")
+    p.add_argument("--pred-reduction", choices=("sum", "mean"), default="sum",
+                   help="the prediction term over the H waypoints: sum (paper Eq. 5 as written, default) or "
+                        "mean (the ADE; the form of runs made before this option)")
+    p.add_argument("--scene-seeds", action="store_true",
+                   help="derive each scene's search seed and LiDAR-noise seed from --seed and the scene's "
+                        "content (recorded in summary.json), so searches differ per scene; default: --seed for all")
     p.add_argument("--autonomy", default="A", choices=("A", "oracle"),
                    help="stack under test: A (learned detector + predictor) or oracle perception")
     p.add_argument("--reactive", action="store_true", help="actors react to the ego (IDM/MOBIL)")
@@ -75,7 +82,7 @@ def _attack(args: argparse.Namespace) -> int:
                        mode=args.mode, seconds=args.seconds, seed=args.seed, objective=args.objective,
                        autonomy=args.autonomy, reactive=args.reactive, batch=args.workers,
                        n_initial=args.n_initial, shape_space=args.shape_space, library=args.library,
-                       **_shape_options(args))
+                       pred_reduction=args.pred_reduction, scene_seeds=args.scene_seeds, **_shape_options(args))
     summary = run_attack(cfg, args.out, workers=args.workers, ray_address=args.ray_address,
                          show_progress=not is_quiet())
     for sid, entry in summary.get("scenes", {}).items():

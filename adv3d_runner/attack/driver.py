@@ -11,8 +11,9 @@ results are told in query order, so completion order never matters. Each query i
 as soon as it finishes (``queries.jsonl`` if every lower index of its batch is already there,
 else ``queries.pending.jsonl`` until they are; see :mod:`.journal`), so a kill loses only the
 queries in flight while the journal stays in index order. The episode
-seed is the run seed for every query (common random numbers: two queries differ only by their
-shapes). A resumed run replays the same asks and takes the journalled result of every query
+seed is the same for every query of a scene (common random numbers: two queries differ only by
+their shapes): the run seed, or with ``scene_seeds`` a seed derived from it and the scene's
+content, as is then the searcher's (``config.scene_seed``; both recorded in summary.json). A resumed run replays the same asks and takes the journalled result of every query
 that is already there (checking that the journalled unit vector is the one asked), so it
 neither redoes work nor changes the outcome.
 
@@ -129,6 +130,7 @@ class SceneRun:
     best_unit: list | None = None
     evaluated: int = 0
     reused: int = 0
+    seeds: dict | None = None  # {"search_seed", "noise_seed"} of a run with scene_seeds
 
 
 def run_scene(journal: Journal, config: AttackConfig, evaluator: QueryEvaluator, ref: str, scene_id: str, mode: str,
@@ -137,9 +139,14 @@ def run_scene(journal: Journal, config: AttackConfig, evaluator: QueryEvaluator,
     targets, dim = evaluator.targets(ref)
     cands = evaluator.candidates(ref, targets) if config.algo == "bruteforce" else None
     options = {"n_initial": config.n_initial} if config.algo == "bo" else {}
-    searcher = make_searcher(config.algo, dim, seed=config.seed, budget=config.budget, candidates=cands, **options)
+    seeds = None
+    if config.scene_seeds:  # this scene's own search sequence and LiDAR noise (config.scene_seed)
+        digest = evaluator.scene_digest(ref)
+        seeds = {"search_seed": config.search_seed(digest), "noise_seed": config.settings.episode_seed(digest)}
+    searcher = make_searcher(config.algo, dim, seed=seeds["search_seed"] if seeds else config.seed,
+                             budget=config.budget, candidates=cands, **options)
     done = journal.finished(scene_id, mode)
-    run = SceneRun(scene_id, mode, targets)
+    run = SceneRun(scene_id, mode, targets, seeds=seeds)
     closed = mode == "closed"
     while not searcher.exhausted:
         X = searcher.ask(config.batch)
@@ -209,6 +216,8 @@ def finalize_scene(root: Path, config: AttackConfig, evaluator: QueryEvaluator, 
     m = {"best_index": run.best_index, "best_cost": run.best_cost if np.isfinite(run.best_cost) else None,
          "best_unit": run.best_unit, "n_queries": len(run.costs),
          "n_failed": int(sum(not np.isfinite(c) for c in run.costs))}
+    if run.seeds:
+        m.update(run.seeds)
     if run.best_unit is None:
         entry["modes"][run.mode] = m
         return
@@ -270,7 +279,10 @@ def run_attack(config: AttackConfig, out: str | Path, *, workers: int = 1, ray_a
     summary = journal.read_summary()
     summary.setdefault("scenes", {})
     summary["run"] = {"algo": config.algo, "budget": config.budget, "mode": config.mode, "seed": config.seed,
-                      "objective": config.objective, "autonomy": config.autonomy}
+                      "objective": config.objective, "pred_reduction": config.pred_reduction,
+                      "autonomy": config.autonomy}
+    if config.scene_seeds:
+        summary["run"]["scene_seeds"] = True
     executor = make_executor(workers, ray_address)
     evaluated = [0]
 
