@@ -2,7 +2,7 @@
 (issue 18; stated in docs/results.md, "Protocol").
 
     python bench/paper_tables.py table1 --autonomy A --scenes 5 --real 2 --seeds 3 --budget 20 --n-initial 8 --eval-seeds 3
-    python bench/paper_tables.py table1 --autonomy A --table-only      # rebuild the table from the kept files
+    python bench/paper_tables.py table1 --autonomy A --budget 20 --table-only   # rebuild the table from the kept files
     python bench/paper_tables.py --list                                # every table, its settings and status
 
 For a table it selects the scene set (``protocol.select_scenes``: ``--scenes`` generated scenes
@@ -67,8 +67,10 @@ class TableSpec:
     needs: str | None = None  # why the table cannot run yet (None: it can)
     note: str = ""
 
-    def folder(self, autonomy: str) -> str:
-        return f"{self.name}_{autonomy}"
+    def folder(self, autonomy: str, budget: int = 100) -> str:
+        """``<table>_<autonomy>``, with ``_b<budget>`` for a budget other than the paper's 100 (a
+        reduced-budget table is another protocol: it never mixes with the full one)."""
+        return f"{self.name}_{autonomy}" + ("" if budget == 100 else f"_b{budget}")
 
 
 def _realistic() -> dict:
@@ -248,7 +250,7 @@ def run_table(spec: TableSpec, args) -> Path:
 
     if spec.needs:
         raise ConfigError(f"{spec.name} cannot run yet: {spec.needs}")
-    folder = spec.folder(args.autonomy)
+    folder = spec.folder(args.autonomy, args.budget)
     results = Path(args.results) / folder
     work = Path(args.work) / folder
     scenes = select_scenes(args.scenes, args.real)
@@ -291,7 +293,7 @@ def run_table(spec: TableSpec, args) -> Path:
                 compute.update(queries=max(0, new_q - kept_q), heldout=n_new)
                 print(f"[{spec.name}] {tag}: {new_q} queries ({new_q - kept_q} new), {n_new} held-out evaluations, "
                       f"{time.perf_counter() - t0:.0f} s", flush=True)
-    return build_table(spec, args.autonomy, Path(args.results))
+    return build_table(spec, args.autonomy, Path(args.results), args.budget)
 
 
 # ============================================================================ the table
@@ -354,7 +356,7 @@ def _cell(est: float, lo: float, hi: float) -> str:
     return f"{_fmt(est)} [{_fmt(lo)}, {_fmt(hi)}]"
 
 
-def build_table(spec: TableSpec, autonomy: str, results_root: Path) -> Path:
+def build_table(spec: TableSpec, autonomy: str, results_root: Path, budget: int = 100) -> Path:
     """table.json and table.md of a table folder, from its kept files alone."""
     from adv3d_runner.attack.config import AttackConfig
     from adv3d_runner.attack.objective import TERMS, term_split
@@ -362,7 +364,7 @@ def build_table(spec: TableSpec, autonomy: str, results_root: Path) -> Path:
     from adv3d_runner.fileio import atomic_write_text, write_json
     from adv3d_runner.metrics.stats import bootstrap_ci, paired_summary
 
-    results = results_root / spec.folder(autonomy)
+    results = results_root / spec.folder(autonomy, budget)
     kept = load_kept(results)
     proto = json.loads((results / "protocol.json").read_text()) if (results / "protocol.json").exists() else {}
     compute = json.loads((results / "compute.json").read_text()) if (results / "compute.json").exists() else {}
@@ -448,6 +450,7 @@ def build_table(spec: TableSpec, autonomy: str, results_root: Path) -> Path:
 def table_markdown(spec: TableSpec, doc: dict, scene_part: dict) -> str:
     from adv3d_runner.attack.protocol import METRICS
 
+    folder_name = spec.folder(doc["autonomy"], int(doc.get("protocol", {}).get("budget") or 100))
     proto = doc.get("protocol", {})
     rows = doc["rows"]
     lines = [f"### {spec.title}, Autonomy-{doc['autonomy']}", ""]
@@ -536,7 +539,7 @@ def table_markdown(spec: TableSpec, doc: dict, scene_part: dict) -> str:
             a = rows[n]["metrics"]["AP"]["per_scene"].get(s, float("nan"))
             cells += [_fmt(o, 4), _fmt(a, 3)]
         lines.append(f"| {s} | {part} | " + " | ".join(cells) + " |")
-    lines += ["", f"Files: `{doc['table']}_{doc['autonomy']}/runs/<setting>/seed<k>/<scene>/` (run.json, summary.json, "
+    lines += ["", f"Files: `{folder_name}/runs/<setting>/seed<k>/<scene>/` (run.json, summary.json, "
               "queries.jsonl.gz, heldout.json.gz), table.json, protocol.json, compute.json.", ""]
     if doc.get("note"):
         lines += [doc["note"], ""]
@@ -576,7 +579,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     spec = TABLES[args.table]
     if args.table_only:
-        path = build_table(spec, args.autonomy, Path(args.results))
+        path = build_table(spec, args.autonomy, Path(args.results), args.budget)
     else:
         path = run_table(spec, args)
     print(f"wrote {path}")

@@ -50,7 +50,7 @@ def test_driver_smoke_run_resume_and_rebuild(tmp_path):
     args = ["table1", "--scenes", "1", "--real", "0", "--seeds", "1", "--budget", "2", "--n-initial", "2",
             "--seconds", "0.3", "--eval-seeds", "1", "--work", str(tmp_path / "work"), "--results", str(tmp_path / "res")]
     assert mod.main(args) == 0
-    folder = tmp_path / "res" / "table1_A"
+    folder = tmp_path / "res" / "table1_A_b2"
     kept = folder / "runs" / "bo" / "seed0" / "highway-benchmark-000000"
     assert sorted(p.name for p in kept.iterdir()) == ["heldout.json.gz", "queries.jsonl.gz", "run.json", "summary.json"]
     run = json.loads((kept / "run.json").read_text())
@@ -80,13 +80,13 @@ def test_driver_smoke_run_resume_and_rebuild(tmp_path):
     assert len(inv) == 2 and inv[1]["queries"] == 0 and inv[1]["heldout_evaluations"] == 0
     assert inv[0]["cpu_s"] > 0 and inv[0]["cpu_model"]
     # the table is rebuilt from the kept files alone, the same (the compute total aside)
-    assert mod.main(["table1", "--table-only", "--results", str(tmp_path / "res")]) == 0
+    assert mod.main(["table1", "--table-only", "--budget", "2", "--results", str(tmp_path / "res")]) == 0
     a, b = json.loads(before), json.loads((folder / "table.json").read_text())
     a.pop("compute"), b.pop("compute")
     assert a == b
-    # growing the table with another budget is refused
-    with pytest.raises(ConfigError, match="budget"):
-        mod.main([*args[:7], "--budget", "3", *args[9:]])
+    # growing the table with other protocol values is refused (another budget is another folder)
+    with pytest.raises(ConfigError, match="seconds"):
+        mod.main([*args[:11], "--seconds", "0.4", *args[13:]])
 
 
 def test_tables_listed_with_what_they_need(capsys):
