@@ -40,8 +40,8 @@ class QuerySettings:
 
     @property
     def weights(self) -> ObjectiveWeights:
-        """The objective's weights (``objective`` parsed)."""
-        return parse_objective(self.objective)
+        """The objective's weights (``objective`` parsed with the stack's presets)."""
+        return parse_objective(self.objective, self.autonomy)
 
     @property
     def shape_space_path(self) -> Path:
@@ -101,7 +101,11 @@ class AttackConfig:
             raise ConfigError(f"--seconds must be > 0, got {self.seconds}")
         if self.batch < 1:
             raise ConfigError(f"batch (workers) must be >= 1, got {self.batch}")
-        parse_objective(self.objective)  # validate early
+        from ..autonomy.stacks import AUTONOMY_CHOICES
+
+        if self.autonomy not in AUTONOMY_CHOICES:
+            raise ConfigError(f"--autonomy must be one of {', '.join(AUTONOMY_CHOICES)}, got {self.autonomy!r}")
+        parse_objective(self.objective, self.autonomy)  # validate early
 
     @property
     def modes(self) -> list[str]:

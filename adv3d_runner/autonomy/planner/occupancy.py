@@ -1,0 +1,159 @@
+"""Occupancy as the planner's obstacle model (Autonomy-B): what the sampling planner asks an
+:class:`~adv3d_runner.autonomy.interface.OccupancyField` and how the answers become the inputs
+of the named cost terms (:func:`.costs.occupancy_collision_cost`, :func:`.costs.occupancy_buffer_cost`).
+
+Instance-free: there are no actors, only occupancy and flow at query points.
+
+* **Footprint and buffer samples** (:func:`footprint_samples`): points on the ego's footprint
+  (a 3 x 2 grid, spacing below a car's size, so a car overlapping the footprint covers one)
+  and on a ring ``buffer_gap`` m outside it, in the ego's own frame. Each candidate's samples
+  are moved along its trajectory and queried every ``query_every`` planner steps
+  (:func:`candidate_occupancy`), in one batch per frame.
+* **Lane leaders** (:func:`occupancy_leaders`): the IDM of the proposals (and the headway term)
+  follow the first point along each corridor's centre line ahead of the ego that the field
+  calls occupied now (probability >= ``leader_threshold``), moving along the lane at the speed
+  of the flow predicted there: a "free space ends here" marker as an
+  :class:`~.proposals.ActorForecast` of one short virtual actor per corridor.
+* **Occupancy ramp** (:func:`occupancy_hit`): probabilities below ``ramp[0]`` are the
+  model's noise floor and count 0, above ``ramp[1]`` they count 1, linear in between.
+
+Rear-end exemption (as Autonomy-A's ``exempt_rear_end``): for candidates that keep the current
+lane, samples behind the ego's centre are not counted (a car closing in from behind is not the
+ego's fault).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ...scene.corridor import CorridorSet
+from .proposals import ActorForecast
+
+
+@dataclass(frozen=True)
+class OccupancyPlanConfig:
+    """How the planner queries occupancy (m, s).
+
+    Attributes:
+        query_every: planner steps between occupancy queries (5 x 0.1 s = 0.5 s).
+        buffer_gap: m, distance of the buffer ring outside the footprint.
+        ramp: occupancy probabilities mapped linearly onto [0, 1] between these two.
+        leader_range: m ahead of the ego's front scanned for a lane leader; leader_spacing: m.
+        leader_threshold: occupancy probability that ends the free lane.
+        leader_length, leader_width: m, the virtual leader's footprint.
+    """
+
+    query_every: int = 5
+    buffer_gap: float = 0.5
+    ramp: tuple[float, float] = (0.3, 0.7)
+    leader_range: float = 70.0
+    leader_spacing: float = 1.0
+    leader_threshold: float = 0.5
+    leader_length: float = 0.5
+    leader_width: float = 1.8
+
+
+def footprint_samples(length: float, width: float, gap: float) -> tuple[np.ndarray, np.ndarray]:
+    """Sample points in the vehicle frame (+x forward, origin at the footprint centre).
+
+    Returns:
+        inside (6, 2): a 3 x 2 grid on the footprint (0.4 m / 0.3 m in from its edges);
+        ring (8, 2): two points on each side of the footprint widened by ``gap`` m.
+    """
+    hl, hw = 0.5 * float(length), 0.5 * float(width)
+    xs = np.array([-(hl - 0.4), 0.0, hl - 0.4])
+    ys = np.array([-(hw - 0.3), hw - 0.3])
+    inside = np.array([(x, y) for x in xs for y in ys])
+    ring = np.array([(hl + gap, -0.5 * hw), (hl + gap, 0.5 * hw), (-(hl + gap), -0.5 * hw), (-(hl + gap), 0.5 * hw),
+                     (-0.5 * hl, hw + gap), (0.5 * hl, hw + gap), (-0.5 * hl, -(hw + gap)), (0.5 * hl, -(hw + gap))])
+    return inside, ring
+
+
+def occupancy_hit(occ: np.ndarray, ramp: tuple[float, float] = OccupancyPlanConfig.ramp) -> np.ndarray:
+    """Occupancy probability -> how much it counts, in [0, 1] (see module docstring)."""
+    lo, hi = ramp
+    return np.clip((np.asarray(occ, dtype=np.float64) - lo) / max(hi - lo, 1e-9), 0.0, 1.0)
+
+
+def query_steps(T: int, every: int) -> np.ndarray:
+    """Planner step indices (S,) queried: 0, every, 2 every, ..., T."""
+    return np.unique(np.r_[np.arange(0, T + 1, max(1, int(every))), T])
+
+
+def candidate_occupancy(field, poses: np.ndarray, local: np.ndarray, steps: np.ndarray, dt: float,
+                        exempt_rear: np.ndarray | None = None) -> np.ndarray:
+    """Occupancy at vehicle-frame sample points along every candidate.
+
+    Args:
+        field: an ``OccupancyField`` of the current frame.
+        poses: (B, T + 1, 3) candidate poses (map frame). local: (P, 2) sample points in the
+            vehicle frame. steps: (S,) planner steps to query (time = step x dt).
+        exempt_rear: (B,) bool, candidates whose samples behind the centre (local x < 0) do
+            not count (reported as 0).
+    Returns:
+        (B, S, P) occupancy probabilities. All candidates at step 0 share one query.
+    """
+    B = poses.shape[0]
+    S, P = len(steps), len(local)
+    out = np.zeros((B, S, P))
+    if B == 0 or P == 0:
+        return out
+    pz = poses[:, steps]                                   # (B, S, 3)
+    c, s = np.cos(pz[..., 2])[..., None], np.sin(pz[..., 2])[..., None]
+    x = pz[..., 0, None] + c * local[:, 0] - s * local[:, 1]   # (B, S, P)
+    y = pz[..., 1, None] + s * local[:, 0] + c * local[:, 1]
+    t = np.broadcast_to((steps * dt)[None, :, None], x.shape)
+    first = steps == 0
+    # step 0 is the same pose for every candidate: ask once
+    rows = np.ones((B, S), bool)
+    rows[1:, first] = False
+    occ, _ = field.query(np.stack([x[rows], y[rows]], axis=-1).reshape(-1, 2), t[rows].reshape(-1))
+    out[rows] = occ.reshape(-1, P)
+    if first.any() and B > 1:
+        out[1:, first] = out[0, first]
+    if exempt_rear is not None:
+        out[np.ix_(np.asarray(exempt_rear, bool), np.arange(S), local[:, 0] < 0)] = 0.0
+    return out
+
+
+def occupancy_leaders(field, corridors: CorridorSet, ego_xy: np.ndarray, ego_length: float, steps: int,
+                      dt: float, config: OccupancyPlanConfig = OccupancyPlanConfig()) -> ActorForecast:
+    """One virtual leader per corridor where the field shows an occupied point ahead now.
+
+    Along each corridor's centre line, from the ego's front bumper to ``leader_range`` m
+    beyond it every ``leader_spacing`` m, the first point with occupancy >= ``leader_threshold``
+    at t = 0 is where the free lane ends; the leader (``leader_length`` long) starts there and
+    moves along the corridor at the speed of the predicted flow at that point (its component
+    along the lane, >= 0).
+
+    Returns:
+        ActorForecast with poses (N, 1, steps + 1, 3), N <= len(corridors), probabilities 1;
+        ``ids`` are the corridor indices.
+    """
+    C = len(corridors)
+    s_ahead = np.arange(0.0, config.leader_range + 1e-9, config.leader_spacing)
+    s0 = np.array([float(corridors.project(ci, np.asarray(ego_xy, float))[0]) for ci in range(C)])
+    s_all = s0[:, None] + 0.5 * float(ego_length) + s_ahead[None]          # (C, M)
+    ci = np.repeat(np.arange(C), len(s_ahead)).reshape(C, -1)
+    pts = corridors.pose_at(ci, s_all)                                      # (C, M, 3)
+    occ, flow = field.query(pts[..., :2].reshape(-1, 2), np.zeros(pts[..., 0].size))
+    occ = occ.reshape(C, -1)
+    flow = flow.reshape(C, -1, 2)
+    hit = occ >= config.leader_threshold
+    poses, ids = [], []
+    for c in range(C):
+        j = np.flatnonzero(hit[c])
+        if not len(j):
+            continue
+        j = int(j[0])
+        h = pts[c, j, 2]
+        v = max(float(flow[c, j, 0] * np.cos(h) + flow[c, j, 1] * np.sin(h)), 0.0)
+        s_t = s_all[c, j] + 0.5 * config.leader_length + v * dt * np.arange(steps + 1)
+        poses.append(corridors.pose_at(np.full(steps + 1, c), s_t))
+        ids.append(c)
+    if not poses:
+        return ActorForecast.empty(steps)
+    n = len(poses)
+    return ActorForecast(np.stack(poses)[:, None], np.tile([config.leader_length, config.leader_width], (n, 1)),
+                         np.ones((n, 1)), np.array(ids, np.int64))
