@@ -6,11 +6,15 @@ the share of scenes where the ego neither collides nor leaves the road, and the 
 metrics (AP / recall in the ROI, minADE / meanADE, planning and driving comfort) next to the
 paper's "Original" row for Autonomy-A.
 
-    .venv/bin/python bench/sanity.py [--quick] [--autonomy A|oracle] [--workers 2] [--seconds 5]
+    .venv/bin/python bench/sanity.py [--quick] [--autonomy A|B|oracle] [--workers 2] [--seconds 5]
 
 ``--autonomy A`` needs the trained detector and predictor (assets/models/); without them use
 ``--autonomy oracle`` (ground-truth boxes of the actors the LiDAR hits + lane-following
-prediction). Writes ``bench/results/sanity[.<autonomy>][.quick].json``.
+prediction). ``--autonomy B`` (instance-free, the implicit occupancy model) reports the
+occupancy metrics instead of AP and ADE (paper Table 1's lower block: occupancy mAP and
+Soft-IoU, flow-grounded mAP and Soft-IoU, and the flow EPE) next to Autonomy-A's rows of the
+same scenes from ``bench/results/sanity.json``. Writes
+``bench/results/sanity[.<autonomy>][.quick].json``.
 """
 from __future__ import annotations
 
@@ -31,6 +35,8 @@ sys.path.insert(0, str(ROOT))
 
 PAPER_ORIGINAL_A = {"ap": 0.882, "recall": 0.894, "min_ade": 2.14, "mean_ade": 4.90, "plan_lat": 0.203,
                     "plan_jerk": 0.336, "drive_lat": 0.194, "drive_jerk": 0.331}
+PAPER_ORIGINAL_B = {"map": 0.831, "soft_iou": 0.504, "fg_map": 0.946, "fg_soft_iou": 0.612, "plan_lat": 0.256,
+                    "plan_jerk": 0.319, "drive_lat": 0.263, "drive_jerk": 0.315}
 
 _STACK = None
 _LIB = None
@@ -77,7 +83,7 @@ def _mean(rows, *keys) -> float | None:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="10 scenes instead of 100")
-    ap.add_argument("--autonomy", choices=("A", "oracle", "A-lanefollow"), default="A")
+    ap.add_argument("--autonomy", choices=("A", "B", "oracle", "A-lanefollow"), default="A")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--seconds", type=float, default=5.0)
     args = ap.parse_args()
@@ -116,6 +122,9 @@ def main() -> int:
         "min_ade": _mean(rows, "prediction", "min_ade"), "mean_ade": _mean(rows, "prediction", "mean_ade"),
         "plan_lat": _mean(rows, "planning_comfort", "lat"), "plan_jerk": _mean(rows, "planning_comfort", "jerk"),
         "drive_lat": _mean(rows, "driving_comfort", "lat"), "drive_jerk": _mean(rows, "driving_comfort", "jerk"),
+        "occ_map": _mean(rows, "occupancy", "map"), "occ_soft_iou": _mean(rows, "occupancy", "soft_iou"),
+        "fg_map": _mean(rows, "occupancy", "flow_grounded_map"),
+        "fg_soft_iou": _mean(rows, "occupancy", "flow_grounded_soft_iou"), "epe": _mean(rows, "occupancy", "epe"),
         "fps_mean": _mean(rows, "fps"), "wall_s": wall,
         "failures": [{"scene": r["scene"], "collided": r["collision"]["collided"], "at_fault": r["collision"]["at_fault"],
                       "first_frame": r["collision"]["first_frame"], "actors": r["collision"]["actors"],
@@ -127,13 +136,19 @@ def main() -> int:
           f"ok (no collision, on road) {100 * s['ok_rate']:.0f}% | collisions {100 * s['collision_rate']:.0f}% "
           f"(ego at fault {100 * s['at_fault_collision_rate']:.0f}%) | off road {100 * s['off_road_rate']:.0f}% | "
           f"{wall:.0f} s wall with {args.workers} workers")
-    print("\n| | AP | recall | minADE | meanADE | plan lat | plan jerk | drive lat | drive jerk |")
-    print("|---|---|---|---|---|---|---|---|---|")
-    print(f"| this run ({args.autonomy}) | {f(s['ap'])} | {f(s['recall'])} | {f(s['min_ade'], 2)} | {f(s['mean_ade'], 2)} | "
-          f"{f(s['plan_lat'])} | {f(s['plan_jerk'])} | {f(s['drive_lat'])} | {f(s['drive_jerk'])} |")
-    p = PAPER_ORIGINAL_A
-    print(f"| paper Table 1, Autonomy-A, Original | {p['ap']:.3f} | {p['recall']:.3f} | {p['min_ade']:.2f} | "
-          f"{p['mean_ade']:.2f} | {p['plan_lat']:.3f} | {p['plan_jerk']:.3f} | {p['drive_lat']:.3f} | {p['drive_jerk']:.3f} |")
+    reference = None
+    if args.autonomy == "B":
+        reference = _reference_a([r["scene"] for r in rows])
+        summary["autonomy_a_same_scenes"] = reference
+        _print_b(s, reference, args)
+    else:
+        print("\n| | AP | recall | minADE | meanADE | plan lat | plan jerk | drive lat | drive jerk |")
+        print("|---|---|---|---|---|---|---|---|---|")
+        print(f"| this run ({args.autonomy}) | {f(s['ap'])} | {f(s['recall'])} | {f(s['min_ade'], 2)} | {f(s['mean_ade'], 2)} | "
+              f"{f(s['plan_lat'])} | {f(s['plan_jerk'])} | {f(s['drive_lat'])} | {f(s['drive_jerk'])} |")
+        p = PAPER_ORIGINAL_A
+        print(f"| paper Table 1, Autonomy-A, Original | {p['ap']:.3f} | {p['recall']:.3f} | {p['min_ade']:.2f} | "
+              f"{p['mean_ade']:.2f} | {p['plan_lat']:.3f} | {p['plan_jerk']:.3f} | {p['drive_lat']:.3f} | {p['drive_jerk']:.3f} |")
     for fail in s["failures"]:
         print("failure:", fail)
     from adv3d_runner.fileio import write_json
@@ -144,17 +159,61 @@ def main() -> int:
                      "command": " ".join(["bench/sanity.py"] + sys.argv[1:]),
                      "machine": {"python": platform.python_version(), "platform": platform.platform(),
                                  "processor": platform.processor(), "cpus": os.cpu_count()},
-                     "paper_original_autonomy_a": PAPER_ORIGINAL_A, "summary": summary,
+                     "paper_original_autonomy_a": PAPER_ORIGINAL_A, "paper_original_autonomy_b": PAPER_ORIGINAL_B,
+                     "summary": summary,
                      "rows": [{k: v for k, v in r.items() if k not in ("format", "version")} for r in rows]})
     print(f"wrote {out.relative_to(ROOT)}")
     return 0
 
 
+def _reference_a(scenes: list[str]) -> dict | None:
+    """Autonomy-A's sanity rows of the same scenes (bench/results/sanity.json), averaged."""
+    import json
+
+    path = ROOT / "bench" / "results" / "sanity.json"
+    if not path.is_file():
+        return None
+    rows = [r for r in json.loads(path.read_text())["rows"] if r["scene"] in set(scenes)]
+    if not rows:
+        return None
+    return {"source": "bench/results/sanity.json", "scenes": len(rows),
+            "ok_rate": float(np.mean([not r["collision"]["collided"] and not r["off_road"] for r in rows])),
+            "ap": _mean(rows, "detection", "ap"), "recall": _mean(rows, "detection", "recall"),
+            "min_ade": _mean(rows, "prediction", "min_ade"), "mean_ade": _mean(rows, "prediction", "mean_ade"),
+            "plan_lat": _mean(rows, "planning_comfort", "lat"), "plan_jerk": _mean(rows, "planning_comfort", "jerk"),
+            "drive_lat": _mean(rows, "driving_comfort", "lat"), "drive_jerk": _mean(rows, "driving_comfort", "jerk")}
+
+
+def _print_b(s: dict, ref: dict | None, args) -> None:
+    f = lambda x, p=3: "n/a" if x is None else f"{x:.{p}f}"  # noqa: E731
+    print("\n| | ok | occ. mAP | occ. Soft-IoU | flow-gr. mAP | flow-gr. Soft-IoU | EPE m/s | plan lat | plan jerk | "
+          "drive lat | drive jerk |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    print(f"| this run (B) | {100 * s['ok_rate']:.0f}% | {f(s['occ_map'])} | {f(s['occ_soft_iou'])} | {f(s['fg_map'])} | "
+          f"{f(s['fg_soft_iou'])} | {f(s['epe'], 2)} | {f(s['plan_lat'])} | {f(s['plan_jerk'])} | {f(s['drive_lat'])} | "
+          f"{f(s['drive_jerk'])} |")
+    p = PAPER_ORIGINAL_B
+    print(f"| paper Table 1, Autonomy-B, Original | - | {p['map']:.3f} | {p['soft_iou']:.3f} | {p['fg_map']:.3f} | "
+          f"{p['fg_soft_iou']:.3f} | - | {p['plan_lat']:.3f} | {p['plan_jerk']:.3f} | {p['drive_lat']:.3f} | "
+          f"{p['drive_jerk']:.3f} |")
+    if ref:
+        print(f"\nAutonomy-A on the same {ref['scenes']} scenes ({ref['source']}): ok {100 * ref['ok_rate']:.0f}% | "
+              f"AP {f(ref['ap'])} recall {f(ref['recall'])} | minADE {f(ref['min_ade'], 2)} meanADE "
+              f"{f(ref['mean_ade'], 2)} | plan lat {f(ref['plan_lat'])} jerk {f(ref['plan_jerk'])} | drive lat "
+              f"{f(ref['drive_lat'])} jerk {f(ref['drive_jerk'])}")
+
+
 def _line(m: dict, i: int, n: int) -> None:
     d, c = m["detection"], m["collision"]
+    if m.get("occupancy") is not None:
+        o = m["occupancy"]
+        perception = (f"mAP={o['map'] and round(o['map'], 3)} softIoU={o['soft_iou'] and round(o['soft_iou'], 3)} "
+                      f"EPE={o['epe'] and round(o['epe'], 2)}")
+    else:
+        perception = (f"AP={d['ap'] if d['ap'] is None else round(d['ap'], 3)} "
+                      f"minADE={m['prediction']['min_ade'] and round(m['prediction']['min_ade'], 2)}")
     print(f"[{i}/{n}] {m['scene']:28s} coll={int(c['collided'])} fault={int(c['at_fault'])} "
-          f"off={m['off_road_m']:.2f} AP={d['ap'] if d['ap'] is None else round(d['ap'], 3)} "
-          f"minADE={m['prediction']['min_ade'] and round(m['prediction']['min_ade'], 2)} "
+          f"off={m['off_road_m']:.2f} {perception} "
           f"drive_lat={m['driving_comfort']['lat']:.3f} drive_jerk={m['driving_comfort']['jerk']:.3f} "
           f"fps={m['fps']:.1f}", flush=True)
 
