@@ -79,8 +79,12 @@ def test_occupancy_buffer_cost_is_a_horizon_weighted_mean():
 
 
 def test_ramp_samples_and_query_steps():
-    np.testing.assert_allclose(occ.occupancy_hit(np.array([0.0, 0.3, 0.5, 0.7, 1.0]), (0.3, 0.7)),
+    np.testing.assert_allclose(occ.occupancy_hit(np.array([0.0, 0.3, 0.5, 0.7, 1.0]), ramp=(0.3, 0.7)),
                                [0.0, 0.0, 0.5, 1.0, 1.0])
+    # the ramp moves from (0.3, 0.7) now to (0.6, 0.9) at the horizon
+    o = np.array([[0.5, 0.8], [0.5, 0.8], [0.5, 0.8]])
+    np.testing.assert_allclose(occ.occupancy_hit(o, np.array([0.0, 2.5, 5.0]), 5.0, (0.3, 0.7), (0.6, 0.9)),
+                               [[0.5, 1.0], [0.05 / 0.35, 0.35 / 0.35], [0.0, 0.2 / 0.3]])
     inside, ring = occ.footprint_samples(4.8, 2.0, 0.5)
     assert np.all(np.abs(inside[:, 0]) < 2.4) and np.all(np.abs(inside[:, 1]) < 1.0)
     # the ring lies exactly gap m outside the footprint (in x or in y)
@@ -122,8 +126,9 @@ def test_lane_leaders_from_occupancy_and_flow():
     f = occ.occupancy_leaders(field, corr, np.zeros(2), 4.8, 50, DT)
     assert len(f) == 1 and f.ids.tolist() == [0] and f.poses.shape == (1, 1, 51, 3)
     # its rear bumper is at 27.7 m: the first occupied centre-line point (1 m spacing from the
-    # ego's front at 2.4 m) is 28.4 m; the leader starts half its length beyond and moves at 20 m/s
-    assert f.poses[0, 0, 0, 0] == pytest.approx(28.4 + 0.25)
+    # ego's front at 2.4 m) is 28.4 m, the last free one 27.4 m; the occupancy crosses 0.5 at
+    # 27.4 + (0.5 - 0.02) / (0.95 - 0.02) m; the leader starts half its length beyond, at 20 m/s
+    assert f.poses[0, 0, 0, 0] == pytest.approx(27.4 + 0.48 / 0.93 + 0.25)
     np.testing.assert_allclose(np.diff(f.poses[0, 0, :, 0]), 20.0 * DT)
     assert occ.occupancy_leaders(BoxField([]), corr, np.zeros(2), 4.8, 50, DT).poses.shape[0] == 0
 

@@ -23,9 +23,9 @@ from ..autonomy.occupancy import OccupancyConfig, OccupancyModel, OccupancyNet
 from ..metrics.occupancy import occupancy_ap, soft_iou
 from .occupancy_data import SampleSet, decode_grid
 
-FLOW_WEIGHT = 0.2
+FLOW_WEIGHT = 0.4
 DROP_OLDER = 0.1   # probability that every sweep but the current one is missing (episode start)
-DROP_OLDEST = 0.1  # probability that only the oldest sweep is missing
+DROP_OLDEST = 0.15  # probability that only the oldest sweep is missing
 
 
 def make_batch(s: SampleSet, idx: np.ndarray, cfg: OccupancyConfig, rng: np.random.Generator | None = None

@@ -10,12 +10,16 @@ Instance-free: there are no actors, only occupancy and flow at query points.
   are moved along its trajectory and queried every ``query_every`` planner steps
   (:func:`candidate_occupancy`), in one batch per frame.
 * **Lane leaders** (:func:`occupancy_leaders`): the IDM of the proposals (and the headway term)
-  follow the first point along each corridor's centre line ahead of the ego that the field
-  calls occupied now (probability >= ``leader_threshold``), moving along the lane at the speed
-  of the flow predicted there: a "free space ends here" marker as an
-  :class:`~.proposals.ActorForecast` of one short virtual actor per corridor.
-* **Occupancy ramp** (:func:`occupancy_hit`): probabilities below ``ramp[0]`` are the
-  model's noise floor and count 0, above ``ramp[1]`` they count 1, linear in between.
+  follow the point along each corridor's centre line ahead of the ego where the field first
+  calls the lane occupied now (probability >= ``leader_threshold``), moving along the lane at
+  the speed of the flow predicted over that occupied stretch: a "free space ends here" marker as
+  an :class:`~.proposals.ActorForecast` of one short virtual actor per corridor.
+* **Occupancy ramp** (:func:`occupancy_hit`): probabilities below the ramp's lower end are the
+  model's noise floor and count 0, above its upper end they count 1, linear in between. The
+  ramp moves from ``ramp`` now to ``ramp_end`` at the horizon: the shipped model's predictions
+  smear out with time (on free query points its 99th percentile rises from about 0.4 now to
+  0.55-0.7 at 1-5 s, ``docs/occupancy.md``), and a fixed ramp made every fast candidate pay
+  for that smear, so the planner dithered between target speeds.
 
 Rear-end exemption (as Autonomy-A's ``exempt_rear_end``): for candidates that keep the current
 lane, samples behind the ego's centre are not counted (a car closing in from behind is not the
@@ -38,20 +42,27 @@ class OccupancyPlanConfig:
     Attributes:
         query_every: planner steps between occupancy queries (5 x 0.1 s = 0.5 s).
         buffer_gap: m, distance of the buffer ring outside the footprint.
-        ramp: occupancy probabilities mapped linearly onto [0, 1] between these two.
-        leader_range: m ahead of the ego's front scanned for a lane leader; leader_spacing: m.
+        ramp: occupancy probabilities mapped linearly onto [0, 1] between these two, now;
+        ramp_end: the same at the horizon (linear in time in between).
+        leader_range: m ahead of the ego's front scanned for a lane leader (55 m: the model's
+            grid ends 72 m ahead, and near that edge it shows phantom occupancy; Autonomy-A's
+            detector sees 60 m ahead); leader_spacing: m.
         leader_threshold: occupancy probability that ends the free lane.
         leader_length, leader_width: m, the virtual leader's footprint.
+        leader_length_avg: m of occupied lane beyond the leader's rear over which its speed is
+            averaged.
     """
 
     query_every: int = 5
     buffer_gap: float = 0.5
     ramp: tuple[float, float] = (0.3, 0.7)
-    leader_range: float = 70.0
+    ramp_end: tuple[float, float] = (0.6, 0.9)
+    leader_range: float = 55.0
     leader_spacing: float = 1.0
     leader_threshold: float = 0.5
     leader_length: float = 0.5
     leader_width: float = 1.8
+    leader_length_avg: float = 4.0
 
 
 def footprint_samples(length: float, width: float, gap: float) -> tuple[np.ndarray, np.ndarray]:
@@ -70,10 +81,24 @@ def footprint_samples(length: float, width: float, gap: float) -> tuple[np.ndarr
     return inside, ring
 
 
-def occupancy_hit(occ: np.ndarray, ramp: tuple[float, float] = OccupancyPlanConfig.ramp) -> np.ndarray:
-    """Occupancy probability -> how much it counts, in [0, 1] (see module docstring)."""
-    lo, hi = ramp
-    return np.clip((np.asarray(occ, dtype=np.float64) - lo) / max(hi - lo, 1e-9), 0.0, 1.0)
+def occupancy_hit(occ: np.ndarray, times: np.ndarray | None = None, horizon: float = 5.0,
+                  ramp: tuple[float, float] = OccupancyPlanConfig.ramp,
+                  ramp_end: tuple[float, float] | None = None) -> np.ndarray:
+    """Occupancy probability -> how much it counts, in [0, 1] (see module docstring).
+
+    Args:
+        occ: (..., S, P) probabilities at S query times (the second-last axis).
+        times: (S,) s; with ``ramp_end`` the ramp moves linearly from ``ramp`` at 0 to
+            ``ramp_end`` at ``horizon``. Without them the ramp is ``ramp`` everywhere.
+    """
+    o = np.asarray(occ, dtype=np.float64)
+    if times is None or ramp_end is None:
+        lo, hi = ramp
+        return np.clip((o - lo) / max(hi - lo, 1e-9), 0.0, 1.0)
+    f = np.clip(np.asarray(times, dtype=np.float64) / max(horizon, 1e-9), 0.0, 1.0)[:, None]  # (S, 1)
+    lo = ramp[0] + (ramp_end[0] - ramp[0]) * f
+    hi = ramp[1] + (ramp_end[1] - ramp[1]) * f
+    return np.clip((o - lo) / np.maximum(hi - lo, 1e-9), 0.0, 1.0)
 
 
 def query_steps(T: int, every: int) -> np.ndarray:
@@ -119,13 +144,16 @@ def candidate_occupancy(field, poses: np.ndarray, local: np.ndarray, steps: np.n
 
 def occupancy_leaders(field, corridors: CorridorSet, ego_xy: np.ndarray, ego_length: float, steps: int,
                       dt: float, config: OccupancyPlanConfig = OccupancyPlanConfig()) -> ActorForecast:
-    """One virtual leader per corridor where the field shows an occupied point ahead now.
+    """One virtual leader per corridor where the field shows an occupied stretch ahead now.
 
     Along each corridor's centre line, from the ego's front bumper to ``leader_range`` m
-    beyond it every ``leader_spacing`` m, the first point with occupancy >= ``leader_threshold``
-    at t = 0 is where the free lane ends; the leader (``leader_length`` long) starts there and
-    moves along the corridor at the speed of the predicted flow at that point (its component
-    along the lane, >= 0).
+    beyond it every ``leader_spacing`` m, the free lane ends where the occupancy at t = 0 first
+    reaches ``leader_threshold`` (linearly interpolated between the last free and the first
+    occupied sample, so the end does not jump by a whole spacing from frame to frame). The
+    leader (``leader_length`` long) starts there and moves along the corridor at the speed of
+    the flow predicted over the occupied stretch (the occupancy-weighted mean along the lane of
+    the samples up to ``leader_length_avg`` m beyond the end, >= 0: one edge sample alone is
+    noisy).
 
     Returns:
         ActorForecast with poses (N, 1, steps + 1, 3), N <= len(corridors), probabilities 1;
@@ -140,16 +168,24 @@ def occupancy_leaders(field, corridors: CorridorSet, ego_xy: np.ndarray, ego_len
     occ, flow = field.query(pts[..., :2].reshape(-1, 2), np.zeros(pts[..., 0].size))
     occ = occ.reshape(C, -1)
     flow = flow.reshape(C, -1, 2)
-    hit = occ >= config.leader_threshold
+    along = flow[..., 0] * np.cos(pts[..., 2]) + flow[..., 1] * np.sin(pts[..., 2])   # (C, M) m/s
+    thr = config.leader_threshold
+    hit = occ >= thr
+    n_avg = max(1, int(round(config.leader_length_avg / config.leader_spacing)) + 1)
     poses, ids = [], []
     for c in range(C):
         j = np.flatnonzero(hit[c])
         if not len(j):
             continue
         j = int(j[0])
-        h = pts[c, j, 2]
-        v = max(float(flow[c, j, 0] * np.cos(h) + flow[c, j, 1] * np.sin(h)), 0.0)
-        s_t = s_all[c, j] + 0.5 * config.leader_length + v * dt * np.arange(steps + 1)
+        s_end = s_all[c, j]
+        if j > 0:  # where the occupancy crosses the threshold between samples j - 1 and j
+            o0, o1 = occ[c, j - 1], occ[c, j]
+            s_end = s_all[c, j - 1] + (thr - o0) / max(o1 - o0, 1e-9) * (s_all[c, j] - s_all[c, j - 1])
+        blob = slice(j, min(j + n_avg, len(s_ahead)))
+        w = occ[c, blob] * hit[c, blob]
+        v = max(float(np.sum(w * along[c, blob]) / max(np.sum(w), 1e-9)), 0.0)
+        s_t = s_end + 0.5 * config.leader_length + v * dt * np.arange(steps + 1)
         poses.append(corridors.pose_at(np.full(steps + 1, c), s_t))
         ids.append(c)
     if not poses:

@@ -279,8 +279,8 @@ class SamplingPlanner:
         exempt = (cands.spec.corridor == 0) if cfg.exempt_rear_end else None
         occ = occmodel.candidate_occupancy(occupancy, cands.poses, np.concatenate([inside, ring]), steps, cands.dt,
                                            exempt)
-        hit = occmodel.occupancy_hit(occ, oc.ramp)
         horizon = cands.dt * (cands.poses.shape[1] - 1)
+        hit = occmodel.occupancy_hit(occ, steps * cands.dt, horizon, oc.ramp, oc.ramp_end)
         return (("occupancy_collision", costs.occupancy_collision_cost(hit[..., :len(inside)], steps * cands.dt, horizon)),
                 ("occupancy_buffer", costs.occupancy_buffer_cost(hit[..., len(inside):])))
 
