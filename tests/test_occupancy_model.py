@@ -21,8 +21,8 @@ def _points(rng, n=3000):
     return np.c_[rng.uniform(-30, 90, n), rng.uniform(-30, 30, n), rng.uniform(-0.2, 3.0, n), rng.random(n)]
 
 
-def test_sweeps_are_moved_into_the_current_frame_and_voxelised(rng):
-    cfg = OccupancyConfig()
+def test_sweeps_are_voxelised_in_their_own_or_the_current_frame(rng):
+    cfg = OccupancyConfig(sweep_frame="map")
     pts = keep_points(_points(rng), cfg)
     assert pts.dtype == np.float32 and pts.shape[1] == 3 and pts[:, 2].min() >= cfg.z_edges[0]
     now, before = np.array([100.0, 50.0, 0.3]), np.array([95.0, 48.0, 0.25])
@@ -32,6 +32,11 @@ def test_sweeps_are_moved_into_the_current_frame_and_voxelised(rng):
     np.testing.assert_array_equal(grid[:per], voxelize(pts, cfg.voxel_grid))
     np.testing.assert_array_equal(grid[per:2 * per], voxelize(to_current_frame(pts, before, now), cfg.voxel_grid))
     assert not grid[2 * per:].any()  # a missing sweep is zeros
+    # the default: every sweep in its own ego frame (the frame moving with the ego)
+    own = bev_input([(pts, now), (pts, before), None], now, OccupancyConfig())
+    np.testing.assert_array_equal(own[per:2 * per], voxelize(pts, cfg.voxel_grid))
+    with pytest.raises(ConfigError):
+        OccupancyConfig(sweep_frame="world")
     # to_current_frame is the rigid motion between the two ego frames
     p = np.array([[3.0, -2.0, 1.0]])
     q = to_current_frame(p, before, now)

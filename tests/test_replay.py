@@ -145,6 +145,26 @@ def test_simulate_command_writes_metrics_and_replay(tmp_path):
     assert path == pytest.approx(m["progress_m"], abs=0.01)
 
 
+def test_simulate_autonomy_b_writes_occupancy_metrics_and_maps(tmp_path):
+    """``adv3d simulate --autonomy B`` with the shipped occupancy model: the metrics have the
+    occupancy block instead of detection and prediction, the replay (version 2) a heat map per
+    frame."""
+    from adv3d_runner.cli import main
+
+    if not (REPO_ROOT / "assets" / "models" / "occupancy" / "config.json").is_file():
+        pytest.skip("no shipped occupancy model")
+    out = tmp_path / "simB"
+    assert main(["--quiet", "simulate", str(REPO_ROOT / "scenes/highway/highway-benchmark-000001.json.gz"),
+                 "--seconds", "0.3", "--autonomy", "B", "--library", "none", "--out", str(out)]) == 0
+    m = read_json(out / "metrics.json")
+    assert m["autonomy"] == "B" and m["detection"] is None and m["prediction"] is None
+    assert set(m["occupancy"]) >= {"map", "soft_iou", "flow_grounded_map", "flow_grounded_soft_iou", "epe"}
+    assert m["ms_per_frame"]["occupancy"] > 0 and m["ms_per_frame"]["detector"] == 0
+    assert read_json(out / "replay.json.gz")["version"] == 2
+    rp = load_replay(out / "replay.json.gz")
+    assert all(f.occupancy is not None and f.occupancy.values.shape == (4, 80, 32) for f in rp.frames)
+
+
 def test_docs_example_loads(tmp_path):
     text = (REPO_ROOT / "docs" / "formats.md").read_text()
     section = text.split("## Replay", 1)[1].split("\n## ", 1)[0]

@@ -8,12 +8,17 @@ s and returns the probability that q is occupied by a vehicle and the BEV backwa
 Pipeline:
 
 1. **Input**: the LiDAR sweeps of the current frame and of ``sweep_lags`` frames before it
-   (0.5 s and 1 s by default: over 1 s a car 2 m/s faster than the ego has moved 2 m, four
-   cells; with 0.2 s and 0.4 s the first model barely saw relative motion and predicted every
-   flow close to the ego's speed), each moved into the current ego frame (perfect localisation)
-   and voxelised with the detector's BEV voxeliser (:func:`adv3d_runner.autonomy.detector.voxelize`:
-   height-slice occupancies + a point-density channel per sweep), stacked as channels
-   (:func:`bev_input`). A sweep that does not exist yet (the first frames of an episode) is all
+   (0.5 s and 1 s by default), each voxelised with the detector's BEV voxeliser
+   (:func:`adv3d_runner.autonomy.detector.voxelize`: height-slice occupancies + a point-density
+   channel per sweep) and stacked as channels (:func:`bev_input`). With ``sweep_frame="ego"``
+   (the default) each sweep stays in its own ego frame, i.e. in a frame that moves with the
+   ego: a car as fast as the ego lies on itself in every sweep, one 2 m/s faster is 2 m further
+   ahead in the current sweep than in the 1 s old one (relative motion is a few cells, which
+   the encoder sees); the road-side moves backwards. With ``sweep_frame="map"`` the sweeps are
+   moved into the current ego frame (ego motion compensated, as ImplicitO does): then a car at
+   30 m/s leaves its 1 s old points 30 m behind it, beyond what this small encoder relates,
+   and models trained that way (with 0.2 s / 0.4 s or 0.5 s / 1 s lags) predicted every flow
+   close to the ego's own speed. A sweep that does not exist yet (the first frames of an episode) is all
    zeros; training drops sweeps the same way, so the model knows what that means.
 2. **Encoder**: a small BEV CNN (the detector's conv blocks; strides 2, 4, 8, merged top-down
    back to stride 2) gives a feature map Z at ``2 x resolution`` m per cell.
@@ -64,6 +69,8 @@ class OccupancyConfig:
             the cell counts are multiples of 8).
         z_edges: height slice edges above the ground, m.
         sweep_lags: frames before the current one whose sweeps are stacked (0 = current).
+        sweep_frame: "ego" (each sweep in its own ego frame: moving with the ego) or "map"
+            (moved into the current ego frame: ego motion compensated).
         channels: encoder stage widths (strides 2, 4, 8). features: width of Z.
         offsets: learned sampling offsets per query. hidden: decoder MLP width.
         horizon: s, queries cover t in [0, horizon] (the planner's horizon).
@@ -75,6 +82,7 @@ class OccupancyConfig:
     y_range: tuple[float, float] = (-24.0, 24.0)
     z_edges: tuple[float, ...] = (0.3, 0.8, 1.3, 1.8, 4.5)
     sweep_lags: tuple[int, ...] = (0, 5, 10)
+    sweep_frame: str = "ego"
     channels: tuple[int, int, int] = (16, 32, 64)
     features: int = 32
     offsets: int = 2
@@ -96,6 +104,8 @@ class OccupancyConfig:
             raise ConfigError("channels must have 3 entries; offsets >= 0, features and hidden >= 1")
         if not self.horizon > 0:
             raise ConfigError(f"horizon must be > 0 s, got {self.horizon}")
+        if self.sweep_frame not in ("ego", "map"):
+            raise ConfigError(f"sweep_frame must be 'ego' or 'map', got {self.sweep_frame!r}")
 
     @property
     def voxel_grid(self) -> DetectorConfig:
@@ -179,7 +189,9 @@ def bev_input(sweeps: Sequence[tuple[np.ndarray, np.ndarray] | None], current: n
         current: the current ego pose (3,).
     Returns:
         (len(sweep_lags) x len(z_edges), nx, ny) float32: per sweep the detector's voxel
-        channels (:func:`~.detector.voxelize`) in the current ego frame; zeros for a missing sweep.
+        channels (:func:`~.detector.voxelize`), in the sweep's own ego frame
+        (``cfg.sweep_frame == "ego"``) or moved into the current one (``"map"``); zeros for a
+        missing sweep.
     """
     if len(sweeps) != len(cfg.sweep_lags):
         raise ValueError(f"{len(sweeps)} sweeps for {len(cfg.sweep_lags)} lags")
@@ -191,7 +203,9 @@ def bev_input(sweeps: Sequence[tuple[np.ndarray, np.ndarray] | None], current: n
         if sw is None:
             continue
         pts, pose = sw
-        out[i * per:(i + 1) * per] = voxelize(to_current_frame(pts, np.asarray(pose, float), np.asarray(current, float)), grid)
+        if cfg.sweep_frame == "map":
+            pts = to_current_frame(pts, np.asarray(pose, float), np.asarray(current, float))
+        out[i * per:(i + 1) * per] = voxelize(pts, grid)
     return out
 
 
