@@ -123,14 +123,24 @@ def test_lane_leaders_from_occupancy_and_flow():
     corr = CorridorSet([planner.lane_map.corridor(lid, np.zeros(2), 20.0, 200.0) for lid in (0, 1)])
     # a car 30 m ahead in lane 0 at 20 m/s, nothing in lane 1
     field = BoxField([[30.0, 0.0, 4.6, 1.9, 0.0, 20.0, 0.0]])
-    f = occ.occupancy_leaders(field, corr, np.zeros(2), 4.8, 50, DT)
+    f, state = occ.occupancy_leaders(field, corr, np.zeros(2), 4.8, 50, DT)
     assert len(f) == 1 and f.ids.tolist() == [0] and f.poses.shape == (1, 1, 51, 3)
+    np.testing.assert_allclose(state[0], [*f.poses[0, 0, 0, :2], 0.0, 20.0])
     # its rear bumper is at 27.7 m: the first occupied centre-line point (1 m spacing from the
     # ego's front at 2.4 m) is 28.4 m, the last free one 27.4 m; the occupancy crosses 0.5 at
     # 27.4 + (0.5 - 0.02) / (0.95 - 0.02) m; the leader starts half its length beyond, at 20 m/s
     assert f.poses[0, 0, 0, 0] == pytest.approx(27.4 + 0.48 / 0.93 + 0.25)
     np.testing.assert_allclose(np.diff(f.poses[0, 0, :, 0]), 20.0 * DT)
-    assert occ.occupancy_leaders(BoxField([]), corr, np.zeros(2), 4.8, 50, DT).poses.shape[0] == 0
+    assert occ.occupancy_leaders(BoxField([]), corr, np.zeros(2), 4.8, 50, DT)[0].poses.shape[0] == 0
+    # the same car one frame later, its flow measured 2 m/s too high: continued, so the speed
+    # moves only 30 % of the way
+    later = BoxField([[32.0, 0.0, 4.6, 1.9, 0.0, 22.0, 0.0]])
+    f2, state2 = occ.occupancy_leaders(later, corr, np.zeros(2), 4.8, 50, DT, previous=state)
+    assert state2[0, 3] == pytest.approx(20.0 + 0.3 * 2.0)
+    np.testing.assert_allclose(np.diff(f2.poses[0, 0, :, 0]), 20.6 * DT)
+    # a leader far from where the previous one should be is a new one: its own speed
+    other = BoxField([[45.0, 0.0, 4.6, 1.9, 0.0, 22.0, 0.0]])
+    assert occ.occupancy_leaders(other, corr, np.zeros(2), 4.8, 50, DT, previous=state)[1][0, 3] == pytest.approx(22.0)
 
 
 # ------------------------------------------------------------------ closed loop

@@ -13,7 +13,11 @@ Instance-free: there are no actors, only occupancy and flow at query points.
   follow the point along each corridor's centre line ahead of the ego where the field first
   calls the lane occupied now (probability >= ``leader_threshold``), moving along the lane at
   the speed of the flow predicted over that occupied stretch: a "free space ends here" marker as
-  an :class:`~.proposals.ActorForecast` of one short virtual actor per corridor.
+  an :class:`~.proposals.ActorForecast` of one short virtual actor per corridor. A leader
+  that continues one of the previous frame's (within ``leader_match`` m of where that one
+  should be now) has its speed smoothed (``leader_smoothing``: the weight of the new
+  measurement): the flow at the leader is noisy by about half a metre per second from frame to
+  frame, and through the IDM's approach term that noise became acceleration jitter.
 * **Occupancy ramp** (:func:`occupancy_hit`): probabilities below the ramp's lower end are the
   model's noise floor and count 0, above its upper end they count 1, linear in between. The
   ramp moves from ``ramp`` now to ``ramp_end`` at the horizon: the shipped model's predictions
@@ -51,6 +55,9 @@ class OccupancyPlanConfig:
         leader_length, leader_width: m, the virtual leader's footprint.
         leader_length_avg: m of occupied lane beyond the leader's rear over which its speed is
             averaged.
+        leader_smoothing: weight of the new speed of a leader that continues one of the
+            previous frame's (1 = no smoothing); leader_match: m, how close to its predicted
+            position it must be to continue it.
     """
 
     query_every: int = 5
@@ -63,6 +70,8 @@ class OccupancyPlanConfig:
     leader_length: float = 0.5
     leader_width: float = 1.8
     leader_length_avg: float = 4.0
+    leader_smoothing: float = 0.3
+    leader_match: float = 2.0
 
 
 def footprint_samples(length: float, width: float, gap: float) -> tuple[np.ndarray, np.ndarray]:
@@ -143,7 +152,9 @@ def candidate_occupancy(field, poses: np.ndarray, local: np.ndarray, steps: np.n
 
 
 def occupancy_leaders(field, corridors: CorridorSet, ego_xy: np.ndarray, ego_length: float, steps: int,
-                      dt: float, config: OccupancyPlanConfig = OccupancyPlanConfig()) -> ActorForecast:
+                      dt: float, config: OccupancyPlanConfig = OccupancyPlanConfig(),
+                      previous: np.ndarray | None = None, frame_dt: float = 0.1
+                      ) -> tuple[ActorForecast, np.ndarray]:
     """One virtual leader per corridor where the field shows an occupied stretch ahead now.
 
     Along each corridor's centre line, from the ego's front bumper to ``leader_range`` m
@@ -155,9 +166,13 @@ def occupancy_leaders(field, corridors: CorridorSet, ego_xy: np.ndarray, ego_len
     the samples up to ``leader_length_avg`` m beyond the end, >= 0: one edge sample alone is
     noisy).
 
+    Args:
+        previous: (M, 4) the previous frame's leaders (x, y, heading, speed), or None.
+        frame_dt: s since the previous frame.
     Returns:
-        ActorForecast with poses (N, 1, steps + 1, 3), N <= len(corridors), probabilities 1;
-        ``ids`` are the corridor indices.
+        ActorForecast with poses (N, 1, steps + 1, 3), N <= len(corridors), probabilities 1
+        (``ids`` are the corridor indices), and (N, 4) the leaders' x, y, heading, speed now
+        (``previous`` of the next frame).
     """
     C = len(corridors)
     s_ahead = np.arange(0.0, config.leader_range + 1e-9, config.leader_spacing)
@@ -172,7 +187,7 @@ def occupancy_leaders(field, corridors: CorridorSet, ego_xy: np.ndarray, ego_len
     thr = config.leader_threshold
     hit = occ >= thr
     n_avg = max(1, int(round(config.leader_length_avg / config.leader_spacing)) + 1)
-    poses, ids = [], []
+    poses, ids, state = [], [], []
     for c in range(C):
         j = np.flatnonzero(hit[c])
         if not len(j):
@@ -185,11 +200,21 @@ def occupancy_leaders(field, corridors: CorridorSet, ego_xy: np.ndarray, ego_len
         blob = slice(j, min(j + n_avg, len(s_ahead)))
         w = occ[c, blob] * hit[c, blob]
         v = max(float(np.sum(w * along[c, blob]) / max(np.sum(w), 1e-9)), 0.0)
+        start = corridors.pose_at(np.array(c), np.array(s_end + 0.5 * config.leader_length))
+        if previous is not None and len(previous):
+            p = np.asarray(previous, dtype=np.float64).reshape(-1, 4)
+            px = p[:, 0] + p[:, 3] * frame_dt * np.cos(p[:, 2])
+            py = p[:, 1] + p[:, 3] * frame_dt * np.sin(p[:, 2])
+            d = np.hypot(px - start[0], py - start[1])
+            m = int(np.argmin(d))
+            if d[m] <= config.leader_match:
+                v = p[m, 3] + config.leader_smoothing * (v - p[m, 3])
         s_t = s_end + 0.5 * config.leader_length + v * dt * np.arange(steps + 1)
         poses.append(corridors.pose_at(np.full(steps + 1, c), s_t))
         ids.append(c)
+        state.append([start[0], start[1], start[2], v])
     if not poses:
-        return ActorForecast.empty(steps)
+        return ActorForecast.empty(steps), np.zeros((0, 4))
     n = len(poses)
-    return ActorForecast(np.stack(poses)[:, None], np.tile([config.leader_length, config.leader_width], (n, 1)),
-                         np.ones((n, 1)), np.array(ids, np.int64))
+    return (ActorForecast(np.stack(poses)[:, None], np.tile([config.leader_length, config.leader_width], (n, 1)),
+                          np.ones((n, 1)), np.array(ids, np.int64)), np.array(state))

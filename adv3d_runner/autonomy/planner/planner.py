@@ -142,7 +142,8 @@ class SamplingPlanner:
 
     def reset(self, lane_map: LaneMap) -> None:
         """Start an episode on ``lane_map`` (kept until the next reset) and forget the previous
-        plan's target (lane-change and offset hysteresis, offset confirmation)."""
+        plan's target (lane-change and offset hysteresis, offset confirmation) and, planning on
+        occupancy, the previous frame's lane leaders."""
         self.lane_map = lane_map
         self._forget()
 
@@ -150,6 +151,7 @@ class SamplingPlanner:
         self._prev_target_ids: frozenset[int] = frozenset()  # lane ids of the previous target corridor
         self._prev_offset: float | None = None
         self._confirmed_offset: float | None = None  # offset the previous plan wanted before confirmation
+        self._occ_leaders: np.ndarray | None = None  # Autonomy-B: the previous frame's lane leaders
 
     def plan(self, ego: EgoState, predictions: Predictions | None = None, tracks: Tracks | None = None,
              occupancy=None) -> Plan:
@@ -193,8 +195,8 @@ class SamplingPlanner:
         limit_now = float(corridors.limit_at(np.array(0), np.array(cfg.corridor_behind)))
         spec = make_specs(corridors, names, limit_now, pc, current_index=0)
         if occupancy is not None:  # instance-free: the lane leaders the occupancy shows
-            forecast = occmodel.occupancy_leaders(occupancy, corridors, ego.pose[:2], ego.length, T, dt,
-                                                  cfg.occupancy)
+            forecast, self._occ_leaders = occmodel.occupancy_leaders(occupancy, corridors, ego.pose[:2], ego.length,
+                                                                     T, dt, cfg.occupancy, self._occ_leaders)
         cands = rollout_candidates(ego.pose, ego.speed, ego.acceleration, spec, corridors, forecast,
                                    ego.length, ego.width, pc, params)
         table = self.score_candidates(cands, corridors, forecast, ego, limit_now, occupancy)
