@@ -16,14 +16,14 @@ Instance-free: there are no actors, only occupancy and flow at query points.
   an :class:`~.proposals.ActorForecast` of one short virtual actor per corridor. A leader
   that continues one of the previous frame's (within ``leader_match`` m of where that one
   should be now) has its speed smoothed (``leader_smoothing``: the weight of the new
-  measurement): the flow at the leader is noisy by about half a metre per second from frame to
-  frame, and through the IDM's approach term that noise became acceleration jitter.
+  measurement): the flow at the leader is noisy from frame to frame, and through the IDM's
+  approach term that noise became acceleration jitter.
 * **Occupancy ramp** (:func:`occupancy_hit`): probabilities below the ramp's lower end are the
   model's noise floor and count 0, above its upper end they count 1, linear in between. The
   ramp moves from ``ramp`` now to ``ramp_end`` at the horizon: the shipped model's predictions
-  smear out with time (on free query points its 99th percentile rises from about 0.4 now to
-  0.55-0.7 at 1-5 s, ``docs/occupancy.md``), and a fixed ramp made every fast candidate pay
-  for that smear, so the planner dithered between target speeds.
+  smear out with time (its AP and Soft-IoU fall with the query time, ``docs/occupancy.md``),
+  and with a fixed ramp every fast candidate paid for that smear, so the planner dithered
+  between target speeds.
 
 Rear-end exemption (as Autonomy-A's ``exempt_rear_end``): for candidates that keep the current
 lane, samples behind the ego's centre are not counted (a car closing in from behind is not the
