@@ -187,6 +187,28 @@ def test_every_train_command_takes_device():
             parser.parse_args(["train", model, "--device", "gpu0"])
 
 
+@pytest.mark.slow
+def test_train_occupancy_cli_quick(tmp_path):
+    """`adv3d train occupancy --quick --device auto` writes loadable weights, the report (with
+    the device and the times) and the loss plot."""
+    import json
+
+    from adv3d_runner.cli import main
+
+    out = tmp_path / "model"
+    rc = main(["-q", "train", "occupancy", "--quick", "--scenes", "2", "--val-scenes", "1", "--device", "auto",
+               "--cache", str(tmp_path / "cache"), "--out", str(out)])
+    assert rc == 0
+    for name in ("occupancy.pt", "config.json", "training_report.json", "loss_curves.png"):
+        assert (out / name).is_file(), name
+    rep = json.loads((out / "training_report.json").read_text())
+    assert rep["format"] == "adv3d-occupancy-training-report"
+    assert rep["device"]["device"] == ("cuda" if torch.cuda.is_available() else "cpu")
+    assert rep["seconds"]["train"] >= 0 and rep["data"]["train_samples"] == 2 * 4
+    assert rep["held_out"]["epe"] is not None and len(rep["history"]["epoch"]) == 2
+    assert load_occupancy(out).cfg == OccupancyConfig()
+
+
 def test_make_stack_b_runs_a_short_episode(repo_root):
     """Autonomy-B from the shipped weights: no detections, an occupancy field, occupancy-planned."""
     from adv3d_runner.autonomy.interface import OccupancyField
