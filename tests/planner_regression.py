@@ -1,7 +1,8 @@
 """Autonomy-A's planner on a recorded scene, for the regression test of
 ``tests/test_planner_occupancy.py`` (imports only what every version of the planner has, so
-``tests/data/planner_a_plans.npz`` can be made with the code before Autonomy-B was added:
-``PYTHONPATH=<old checkout> python tests/planner_regression.py OUT.npz``).
+``tests/data/planner_a_plans.npz`` can be made with code that has no Autonomy-B: a tree of main
+made by ``git archive main adv3d_runner scenes/highway/highway-benchmark-000010.json.gz``, this file
+copied to its ``tests/``, then ``PYTHONPATH=<that tree> python <that tree>/tests/planner_regression.py OUT.npz``).
 
 The ego starts at its logged pose on benchmark scene 10 and follows its own plans for 30
 frames (perfect control); the actors replay their logs and are given to the planner as tracks

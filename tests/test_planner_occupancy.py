@@ -201,8 +201,10 @@ def test_same_behaviour_as_instance_based_planning_of_the_same_car():
 # ------------------------------------------------------------------ Autonomy-A unchanged
 
 def test_autonomy_a_plans_are_unchanged_on_a_recorded_scene():
-    """tests/data/planner_a_plans.npz was made by tests/planner_regression.py with the planner as
-    it was before Autonomy-B's occupancy terms were added: the same plans, bit for bit."""
+    """tests/data/planner_a_plans.npz was made by tests/planner_regression.py with main's planner
+    without Autonomy-B's occupancy terms (main at 23dd95b, after issue 17 retuned its comfort
+    limits; ``git archive main`` + ``PYTHONPATH=<that tree> python tests/planner_regression.py``):
+    the merged code gives the same plans, bit for bit."""
     sys.path.insert(0, str(Path(__file__).parent))
     from planner_regression import a_plans
 

@@ -7,7 +7,10 @@ cheap analytic one) and is configured by a typed :class:`~adv3d_runner.attack.co
 
 Determinism: the searcher is asked for a batch of ``batch`` queries (``batch`` = the number of
 workers of the *first* run, stored in run.json), the batch is evaluated in parallel, and the
-results are journalled and told in query order, so completion order never matters. The episode
+results are told in query order, so completion order never matters. Each query is journalled
+as soon as it finishes (``queries.jsonl`` if every lower index of its batch is already there,
+else ``queries.pending.jsonl`` until they are; see :mod:`.journal`), so a kill loses only the
+queries in flight while the journal stays in index order. The episode
 seed is the run seed for every query (common random numbers: two queries differ only by their
 shapes). A resumed run replays the same asks and takes the journalled result of every query
 that is already there (checking that the journalled unit vector is the one asked), so it
@@ -28,30 +31,34 @@ import multiprocessing as mp
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Callable, Iterator, Sequence
 
 import numpy as np
 
-from ..errors import ConfigError
+from ..errors import ConfigError, RunFailedError
+from ..fileio import resolve_inside
 from .config import MODES, AttackConfig, QuerySettings
 from .evaluator import EpisodeEvaluator, Query, QueryEvaluator, QueryResult, run_query
 from .journal import Journal, query_record, record_cost, record_unit
 from .search import make_searcher
 
-__all__ = ["MODES", "AttackConfig", "SceneRun", "finalize_scene", "make_executor", "run_attack", "run_scene"]
+__all__ = ["MODES", "AttackConfig", "SceneRun", "check_outcome", "finalize_scene", "make_executor", "run_attack",
+           "run_scene"]
 
 #: Builds the run's evaluator from its settings (``run_attack(evaluator=...)``).
 EvaluatorFactory = Callable[[QuerySettings], QueryEvaluator]
 
 
 # ============================================================================ executors
-# Each evaluates a batch of queries with one evaluator and returns the results in query order.
+# Each evaluates a batch of queries with one evaluator and yields (position in the batch,
+# result) as each query finishes, so the driver can journal it at once.
 
 class SerialExecutor:
     """Evaluates in this process (``--workers 1``)."""
 
-    def evaluate(self, evaluator: QueryEvaluator, queries: Sequence[Query]) -> list[QueryResult]:
-        return [run_query(evaluator, q) for q in queries]
+    def as_completed(self, evaluator: QueryEvaluator, queries: Sequence[Query]) -> Iterator[tuple[int, QueryResult]]:
+        for k, q in enumerate(queries):
+            yield k, run_query(evaluator, q)
 
     def close(self) -> None:
         pass
@@ -64,9 +71,10 @@ class ProcessExecutor:
     def __init__(self, workers: int):
         self.pool = cf.ProcessPoolExecutor(max_workers=int(workers), mp_context=mp.get_context("spawn"))
 
-    def evaluate(self, evaluator: QueryEvaluator, queries: Sequence[Query]) -> list[QueryResult]:
-        # results in query order whatever finishes first
-        return list(self.pool.map(run_query, [evaluator] * len(queries), queries))
+    def as_completed(self, evaluator: QueryEvaluator, queries: Sequence[Query]) -> Iterator[tuple[int, QueryResult]]:
+        futures = {self.pool.submit(run_query, evaluator, q): k for k, q in enumerate(queries)}
+        for fut in cf.as_completed(futures):
+            yield futures[fut], fut.result()
 
     def close(self) -> None:
         self.pool.shutdown(wait=True, cancel_futures=True)
@@ -86,8 +94,12 @@ class RayExecutor:
             ray.init(address=address, log_to_driver=False, ignore_reinit_error=True)
         self._remote = ray.remote(run_query)
 
-    def evaluate(self, evaluator: QueryEvaluator, queries: Sequence[Query]) -> list[QueryResult]:
-        return list(self.ray.get([self._remote.remote(evaluator, q) for q in queries]))
+    def as_completed(self, evaluator: QueryEvaluator, queries: Sequence[Query]) -> Iterator[tuple[int, QueryResult]]:
+        refs = {self._remote.remote(evaluator, q): k for k, q in enumerate(queries)}
+        waiting = list(refs)
+        while waiting:
+            ready, waiting = self.ray.wait(waiting, num_returns=1)
+            yield refs[ready[0]], self.ray.get(ready[0])
 
     def close(self) -> None:
         if self._own:
@@ -140,21 +152,42 @@ def run_scene(journal: Journal, config: AttackConfig, evaluator: QueryEvaluator,
         for i, x in zip(idx, X):
             if i in done:
                 rec = done[i]
-                if not np.allclose(record_unit(rec), x, rtol=0, atol=1e-9) or rec.get("actors") != targets:
+                u = record_unit(rec)
+                if u.shape != np.shape(x) or not np.allclose(u, x, rtol=0, atol=1e-9) or rec.get("actors") != targets:
                     raise ConfigError(f"{journal.path}: query {i} of {scene_id}/{mode} does not match this run "
                                       f"(different code or options?); use a new --out")
                 results[i] = rec
                 run.reused += 1
             else:
                 todo.append((i, x))
+        # Journal each query as it finishes: in index order into queries.jsonl (the next index
+        # of the batch not yet there), anything that finishes early into the pending file.
+        commit = iter(idx)
+        nxt = [next(commit, None)]
+
+        def advance() -> None:
+            while nxt[0] is not None and nxt[0] in results:
+                i = nxt[0]
+                if i not in done or journal.is_pending(scene_id, mode, i):
+                    journal.append(results[i])
+                nxt[0] = next(commit, None)
+
+        advance()
         queries = [Query(ref, np.asarray(x, dtype=np.float64).reshape(-1), closed) for _, x in todo]
-        for (i, x), out in zip(todo, executor.evaluate(evaluator, queries)):
+        for k, out in executor.as_completed(evaluator, queries):
+            i, x = todo[k]
             rec = query_record(scene_id, mode, i, targets, x, latent=out.latent, scales=out.scales,
                                dimensions=out.dimensions, cost=out.cost, components=out.components,
-                               metrics=out.metrics, status=out.status, error=out.error, wall_s=out.wall_s)
-            journal.append(rec)
+                               metrics=out.metrics, status=out.status, error=out.error, wall_s=out.wall_s,
+                               realism=out.realism)
             results[i] = rec
             run.evaluated += 1
+            if i == nxt[0]:
+                advance()
+            else:
+                journal.append_pending(rec)
+        advance()
+        journal.clear_pending()
         y = [record_cost(results[i]) for i in idx]
         searcher.tell(X, y)
         for i in idx:
@@ -184,8 +217,9 @@ def finalize_scene(root: Path, config: AttackConfig, evaluator: QueryEvaluator, 
             and (root / old.get("files", {}).get("replay", "missing")).exists()):
         return  # a resumed run that had already finished this scene: nothing new to simulate
     folder = f"scenes/{run.scene}/{run.mode}"
+    out_dir = resolve_inside(root, folder, field="scene id", inside="the run folder")  # checked at start too
     best = evaluator.evaluate_best(
-        ref, run.targets, np.asarray(run.best_unit, dtype=np.float64).reshape(-1), root / folder,
+        ref, run.targets, np.asarray(run.best_unit, dtype=np.float64).reshape(-1), out_dir,
         original="original" not in entry,
         metadata={"attack": {"algo": config.algo, "mode": run.mode, "query": run.best_index, "cost": run.best_cost,
                              "seed": config.seed}})
@@ -220,10 +254,18 @@ def run_attack(config: AttackConfig, out: str | Path, *, workers: int = 1, ray_a
 
     root = Path(out)
     ev = evaluator(config.settings)
+    # Everything is read and checked before anything is written: scenes (ids, content),
+    # output folders of every scene, the run folder itself (Journal.start).
     ids = [ev.scene_id(ref) for ref in config.scenes]
+    for sid in ids:
+        resolve_inside(root, f"scenes/{sid}", field="scene id", inside="the run folder")
+    digests = [ev.scene_digest(ref) for ref in config.scenes]
     journal = Journal(root)
-    stored = journal.start({**config.run_json(), "scene_ids": ids, "versions": versions(ev), "workers": workers,
-                            "ray_address": ray_address})
+    from .config import library_fingerprint_of
+
+    stored = journal.start({**config.run_json(), "library_fingerprint": library_fingerprint_of(config.library),
+                            "scene_ids": ids, "scene_sha256": digests, "versions": versions(ev),
+                            "workers": workers, "ray_address": ray_address})
     config = config.with_batch(int(stored.get("batch", config.batch)))  # a resume keeps the first run's batches
     summary = journal.read_summary()
     summary.setdefault("scenes", {})
@@ -269,3 +311,27 @@ def run_attack(config: AttackConfig, out: str | Path, *, workers: int = 1, ray_a
     finally:
         executor.close()
     return summary
+
+
+def check_outcome(summary: dict, records: Sequence[dict]) -> None:
+    """Raise ``RunFailedError`` saying why when a run produced nothing: every scene skipped, or
+    a scene and mode whose every query failed (the most frequent errors are quoted)."""
+    from collections import Counter
+
+    scenes = summary.get("scenes", {})
+    attacked = {sid: e for sid, e in scenes.items() if "skipped" not in e}
+    if scenes and not attacked:
+        reasons = "; ".join(f"{sid}: {e['skipped']}" for sid, e in scenes.items())
+        raise RunFailedError(f"nothing was attacked: every scene was skipped ({reasons})")
+    problems = []
+    for sid, entry in attacked.items():
+        for mode, m in entry.get("modes", {}).items():
+            n = m.get("n_queries", 0)
+            if n and m.get("n_failed", 0) == n:
+                errors = Counter(r.get("error") or r.get("status") for r in records
+                                 if r.get("scene") == sid and r.get("mode") == mode and r.get("status") != "ok")
+                top = "; ".join(f"{c} x {msg}" for msg, c in errors.most_common(3))
+                problems.append(f"{sid} [{mode}]: all {n} queries failed ({top})")
+    if problems:
+        raise RunFailedError("every query failed: " + " | ".join(problems))
+

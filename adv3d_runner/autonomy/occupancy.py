@@ -133,15 +133,42 @@ class OccupancyConfig:
         return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
 
     @classmethod
-    def from_dict(cls, d: dict, path: str | Path | None = None) -> "OccupancyConfig":
-        known = set(cls.__dataclass_fields__)
-        unknown = sorted(set(d) - known)
-        if unknown:
-            raise FileFormatError(path, f"$.occupancy.{unknown[0]}", f"one of {sorted(known)}", unknown[0])
+    def from_dict(cls, d: "dict | Node", path: str | Path | None = None) -> "OccupancyConfig":
+        """Build from the ``occupancy`` object of a model's config.json: every field typed and
+        bounded (unknown keys refused), the input grid at most the detector's
+        ``MAX_GRID_CELLS`` cells."""
+        from ..validate import Node
+        from .detector import MAX_GRID_CELLS, _range
+
+        node = d if isinstance(d, Node) else Node(d, "$.occupancy", path)
+        node.object("an object of occupancy model parameters")
+        node.check_keys(cls.__dataclass_fields__)
+        dflt = cls()
+        g = node.get
+        kw: dict[str, Any] = {
+            "resolution": g("resolution", dflt.resolution).number(lo=0.01, hi=10.0),
+            "x_range": tuple(_range(g("x_range", list(dflt.x_range)))),
+            "y_range": tuple(_range(g("y_range", list(dflt.y_range)))),
+            "z_edges": tuple(g("z_edges", list(dflt.z_edges)).numbers(min_length=2, lo=-100.0, hi=100.0)),
+            "sweep_lags": tuple(c.integer(lo=0, hi=1000) for c in g("sweep_lags", list(dflt.sweep_lags)).items(non_empty=True)),
+            "sweep_frame": g("sweep_frame", dflt.sweep_frame).string(choices=("ego", "map")),
+            "channels": tuple(c.integer(lo=1, hi=4096) for c in g("channels", list(dflt.channels)).items(length=3)),
+            "features": g("features", dflt.features).integer(lo=1, hi=4096),
+            "offsets": g("offsets", dflt.offsets).integer(lo=0, hi=64),
+            "hidden": g("hidden", dflt.hidden).integer(lo=1, hi=4096),
+            "horizon": g("horizon", dflt.horizon).number(lo=0.0, hi=60.0, lo_open=True),
+            "dt": g("dt", dflt.dt).number(lo=1e-3, hi=10.0),
+        }
+        if np.any(np.diff(kw["z_edges"]) <= 0):
+            g("z_edges").fail("increasing height edges", list(kw["z_edges"]))
         try:
-            return cls(**d)
-        except (TypeError, ValueError, ConfigError) as exc:
-            raise FileFormatError(path, "$.occupancy", "valid occupancy model parameters", str(exc)) from None
+            cfg = cls(**kw)
+        except ConfigError as exc:
+            node.fail("valid occupancy model parameters", str(exc))
+        nx, ny = cfg.grid_shape
+        if nx * ny > MAX_GRID_CELLS:
+            node.fail(f"a BEV grid of at most {MAX_GRID_CELLS} cells (x_range, y_range, resolution)", f"{nx} x {ny}")
+        return cfg
 
 
 # ----------------------------------------------------------------------------- numpy parts
@@ -394,28 +421,19 @@ def load_occupancy(path: str | Path = DEFAULT_MODEL_DIR, threads: int | None = 1
         FileFormatError: missing/invalid config, or weights that are not a plain tensor
             state_dict matching the config (``torch.load(weights_only=True)`` refuses pickles).
     """
-    from ..fileio import check_header, read_json
+    from ..validate import Node, check_header
+    from .detector import load_weights
 
     path = Path(path)
     cfg_path = path / CONFIG_NAME if path.is_dir() else path
     if not cfg_path.is_file():
         raise FileFormatError(cfg_path, "$", "an occupancy config.json (train one with `adv3d train occupancy`)",
                               "no such file")
-    doc = read_json(cfg_path)
-    check_header(doc, cfg_path, CONFIG_FORMAT, (CONFIG_VERSION,))
-    if not isinstance(doc.get("occupancy"), dict):
-        raise FileFormatError(cfg_path, "$.occupancy", "an object of model parameters", type(doc.get("occupancy")).__name__)
-    cfg = OccupancyConfig.from_dict(doc["occupancy"], cfg_path)
-    weights = cfg_path.parent / str(doc.get("weights", WEIGHTS_NAME))
-    try:
-        state = torch.load(weights, map_location="cpu", weights_only=True)
-    except FileNotFoundError:
-        raise FileFormatError(weights, "$", "occupancy weights (state_dict .pt)", "no such file") from None
-    except Exception as exc:  # pickle.UnpicklingError & co: not a plain tensor state_dict
-        raise FileFormatError(weights, "$", "a tensor-only state_dict loadable with torch.load(weights_only=True)",
-                              f"{type(exc).__name__}: {str(exc).splitlines()[0][:200]}") from None
-    if not isinstance(state, dict) or not all(isinstance(v, torch.Tensor) for v in state.values()):
-        raise FileFormatError(weights, "$", "a dict of tensors (state_dict)", type(state).__name__)
+    doc = Node.load(cfg_path)
+    check_header(doc, CONFIG_FORMAT, (CONFIG_VERSION,))
+    cfg = OccupancyConfig.from_dict(doc["occupancy"])
+    weights = doc.get("weights", WEIGHTS_NAME).file_in(cfg_path.parent, inside="the model folder")
+    state = load_weights(weights, "occupancy weights (state_dict .pt)")
     net = OccupancyNet(cfg)
     try:
         net.load_state_dict(state, strict=True)
