@@ -325,38 +325,44 @@ STEP_BYTES = 1 << 19
 _WS = re.compile(r"[ \t\n\r]*")  # json's own whitespace rule
 
 
-def read_json_steps(path: str | Path, step_bytes: int = STEP_BYTES) -> Generator[None, None, Any]:
+def read_json_steps(
+    path: str | Path, step_bytes: int = STEP_BYTES, *, limit: int = MAX_JSON_BYTES
+) -> Generator[None, None, Any]:
     """:func:`read_json` in pieces, for callers that must stay responsive (the Blender add-on
     loading a long replay): a steps generator (``progress.run_steps``) yielding after each
     ~``step_bytes`` of gzip decompression or JSON parsing; returns the same value.
 
     A top-level object's list values (a replay's frames) are parsed item by item with json's
     own scanner (``JSONDecoder.raw_decode``), everything else in one call, so the result is what
-    ``json.loads`` gives, key order and duplicate keys included.
+    ``json.loads`` gives, key order and duplicate keys included. Bounded like
+    :func:`read_json`: a regular file of at most ``limit`` bytes, decompressed to at most
+    ``limit`` bytes (a gzip bomb stops there).
     """
     path = Path(path)
-    try:
-        raw = path.read_bytes()
-    except FileNotFoundError:
-        raise FileFormatError(path, "$", "an existing file", "file not found") from None
-    except OSError as exc:
-        raise FileFormatError(path, "$", "a readable file", str(exc)) from None
+    raw = read_bytes(path, limit=limit)
     yield
     if path.suffix == ".gz":
+        too_big = FileFormatError(path, "$", f"at most {_size_text(limit)} once decompressed", "more")
         d = zlib.decompressobj(16 + zlib.MAX_WBITS)
-        parts = []
+        parts, total = [], 0
         try:
             for s in range(0, len(raw), step_bytes):
-                parts.append(d.decompress(raw[s : s + step_bytes]))
+                # max_length bounds each piece, so a bomb never inflates past the limit
+                part = d.decompress(raw[s : s + step_bytes], limit + 1 - total)
+                while True:
+                    parts.append(part)
+                    total += len(part)
+                    if total > limit:
+                        raise too_big
+                    if not d.unconsumed_tail:
+                        break
+                    part = d.decompress(d.unconsumed_tail, limit + 1 - total)
                 yield
             parts.append(d.flush())
         except zlib.error as exc:
             raise FileFormatError(path, "$", "gzip-compressed JSON", str(exc)) from None
         if d.unused_data or not d.eof:  # several gzip members, or cut short: as read_json does
-            try:
-                parts = [gzip.decompress(raw)]
-            except (OSError, EOFError) as exc:
-                raise FileFormatError(path, "$", "gzip-compressed JSON", str(exc)) from None
+            parts = [gunzip(raw, limit=limit, path=path)]
         raw = b"".join(parts)
     # the same bounds as read_json: nesting depth, and no NaN / Infinity tokens
     stripped = _JSON_STRING.sub(b"", raw)

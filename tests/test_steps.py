@@ -83,6 +83,25 @@ def test_read_json_steps_bad_gzip(tmp_path):
         run_steps(read_json_steps(path))
 
 
+def test_read_json_steps_bounded_like_read_json(tmp_path):
+    """The add-on's stepwise reader refuses what read_json refuses for size: a file over the
+    limit, a gzip bomb (stopped at the limit, not inflated whole), a symlink to /dev/zero."""
+    big = tmp_path / "big.json"
+    big.write_text(json.dumps({"a": "x" * 5000}))
+    with pytest.raises(FileFormatError, match="big.json.*at most 4096 bytes"):
+        run_steps(read_json_steps(big, limit=4096))
+    bomb = tmp_path / "bomb.json.gz"
+    bomb.write_bytes(gzip.compress(b'{"a": "' + b"0" * 2_000_000 + b'"}'))
+    assert bomb.stat().st_size < 10_000
+    with pytest.raises(FileFormatError, match="bomb.json.gz.*once decompressed"):
+        run_steps(read_json_steps(bomb, step_bytes=1000, limit=100_000))
+    assert run_steps(read_json_steps(bomb, step_bytes=1000))["a"] == "0" * 2_000_000  # default limit
+    zero = tmp_path / "zero.json"
+    zero.symlink_to("/dev/zero")
+    with pytest.raises(FileFormatError, match="zero.json"):
+        run_steps(read_json_steps(zero))
+
+
 def test_read_npz_steps_equals_read_npz(tmp_path):
     rng = np.random.default_rng(0)
     arrays = {"xyz": rng.integers(-3000, 3000, (5000, 3)).astype(np.int16), "f": rng.random(77),
