@@ -231,6 +231,10 @@ def main() -> int:
     ap.add_argument("--autonomy", choices=("A", "B", "oracle", "A-lanefollow"), default="A")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--seconds", type=float, default=5.0)
+    ap.add_argument("--name", default=None,
+                    help="result file stem under bench/results/ (default sanity[.<autonomy>][.quick])")
+    ap.add_argument("--reference", default="bench/results/sanity.json",
+                    help="Autonomy-A's sanity file that --autonomy B is compared with (same scenes)")
     args = ap.parse_args()
     sets = [s.strip() for s in args.sets.split(",") if s.strip()]
     if not sets or set(sets) - {"generated", "real"}:
@@ -264,7 +268,8 @@ def main() -> int:
     reference = {}
     if args.autonomy == "B":  # Autonomy-A's rows of the same scenes, from its kept sanity run
         for key in out:
-            reference[key] = _reference_a([r["scene"] for r in out[key][1]], real=key == "real")
+            reference[key] = _reference_a([r["scene"] for r in out[key][1]], real=key == "real",
+                                          path=ROOT / args.reference)
             out[key][0]["autonomy_a_same_scenes"] = reference[key]
         _print_b(out, reference, args)
     else:
@@ -272,7 +277,9 @@ def main() -> int:
     from adv3d_runner.fileio import write_json
 
     tag = "" if args.autonomy == "A" else f".{args.autonomy}"
-    if "generated" in out:
+    if args.name:
+        name = args.name
+    elif "generated" in out:
         name = "sanity" + tag + (".quick" if args.quick else "")
     else:
         name = f"sanity.real-{args.real_part}" + tag
@@ -327,12 +334,12 @@ def _print(out: dict, args) -> None:
                   f"{'met' if t['met'] else 'NOT met'}")
 
 
-def _reference_a(scenes: list[str], real: bool = False) -> dict | None:
-    """Autonomy-A's sanity rows of the same scenes (bench/results/sanity.json; its ``real``
-    rows for real scenes), averaged."""
+def _reference_a(scenes: list[str], real: bool = False, path: Path | None = None) -> dict | None:
+    """Autonomy-A's sanity rows of the same scenes (``path``, default bench/results/sanity.json;
+    its ``real`` rows for real scenes), averaged."""
     import json
 
-    path = ROOT / "bench" / "results" / "sanity.json"
+    path = path or ROOT / "bench" / "results" / "sanity.json"
     if not path.is_file():
         return None
     doc = json.loads(path.read_text())
@@ -340,7 +347,7 @@ def _reference_a(scenes: list[str], real: bool = False) -> dict | None:
     rows = [r for r in source if r["scene"] in set(scenes)]
     if not rows:
         return None
-    return {"source": "bench/results/sanity.json" + (" (real)" if real else ""), "scenes": len(rows),
+    return {"source": str(path.relative_to(ROOT)) + (" (real)" if real else ""), "scenes": len(rows),
             "ok_rate": float(np.mean([not r["collision"]["collided"] and not r["off_road"] for r in rows])),
             "collisions": int(sum(r["collision"]["collided"] for r in rows)),
             "at_fault_collisions": int(sum(r["collision"]["at_fault"] for r in rows)),
