@@ -37,7 +37,7 @@ SHAPE_MODELS = ("latent", "vd")
 #: Knobs added after run.json version 1, with the value that leaves them out of run.json.
 _OPTIONAL_KEYS = {"shape_model": "latent", "max_mahalanobis": None, "class_scales": False, "realism_weight": 0.0}
 _VD_KEYS = ("vd_bound", "vd_lattice")
-AUTONOMY = ("A", "oracle")
+AUTONOMY = ("A", "oracle", "B")
 #: Bounds of the options (the CLI's argument types use the same ones).
 MAX_ACTORS = 64
 MAX_SECONDS = 3600.0
@@ -72,8 +72,8 @@ class QuerySettings:
 
     @property
     def weights(self) -> ObjectiveWeights:
-        """The objective's weights (``objective`` parsed)."""
-        return parse_objective(self.objective)
+        """The objective's weights (``objective`` parsed with the stack's presets)."""
+        return parse_objective(self.objective, self.autonomy)
 
     @property
     def shape_space_path(self) -> Path:
@@ -186,7 +186,7 @@ class AttackConfig:
             raise ConfigError(f"--shape-space must be a file name, got {self.shape_space!r}")
         if not isinstance(self.objective, str):
             raise ConfigError(f"--objective must be a string, got {self.objective!r}")
-        parse_objective(self.objective)  # validate early
+        parse_objective(self.objective, self.autonomy)  # validate early (B has its own presets)
 
     def _check_shape_options(self) -> None:
         if self.shape_model not in SHAPE_MODELS:
