@@ -10,9 +10,15 @@
     the ROI over open-loop episodes of the same scenes. Models are looked up as
     ``assets/models/detector`` (its config's resolution) and ``assets/models/detector-<res>``.
 
-    .venv/bin/python bench/episode.py [--quick] [--autonomy A|oracle]
+(c) ``--autonomy B``: Autonomy-B's per-frame CPU time on one core, its ``occupancy`` stage
+    (the implicit model: voxelising the stacked sweeps, encoding, and every query the planner
+    makes, measured with the model's own clock) and the rest of its planner, next to Autonomy-A's
+    detector + tracker + predictor measured on the same scenes in the same process (the
+    acceptance bar of issue 15: B's model is no slower than A's three stages together).
 
-Writes ``bench/results/episode[.quick].json``.
+    .venv/bin/python bench/episode.py [--quick] [--autonomy A|B|oracle]
+
+Writes ``bench/results/episode[.quick].json`` (``episode.B[.quick].json`` for B).
 """
 from __future__ import annotations
 
@@ -42,7 +48,7 @@ from adv3d_runner.sim.evaluate import episode_metrics  # noqa: E402
 from adv3d_runner.autonomy.stacks import make_stack  # noqa: E402
 
 CLOCK = time.thread_time
-STAGES = ("lidar", "detector", "tracker", "predictor", "planner")
+STAGES = ("lidar", "detector", "tracker", "predictor", "occupancy", "planner")
 SCENES = ("highway-benchmark-000010", "highway-benchmark-000013", "highway-benchmark-000041")
 RESOLUTIONS = (0.2, 0.25, 0.4, 0.5)
 
@@ -52,6 +58,7 @@ class _Timer:
 
     def __init__(self):
         self.now = {s: 0.0 for s in STAGES}
+        self.queries: list[int] = []  # Autonomy-B: occupancy queries per frame
 
     def wrap(self, obj, method: str, stage: str):
         """A proxy of ``obj`` whose ``method`` is timed (other attributes pass through)."""
@@ -74,6 +81,30 @@ class _Timer:
 
 
 def _instrument(stack, timer: _Timer) -> None:
+    if hasattr(stack, "model"):  # Autonomy-B: the implicit model and the planner
+        model = stack.model
+        model.clock = CLOCK  # its decode time (the planner's queries) on the same clock
+        stack.model = timer.wrap(model, "encode", "occupancy")
+        planner = stack.planner
+
+        def plan(*a, **k):
+            t0 = CLOCK()
+            try:
+                return planner.plan(*a, **k)
+            finally:
+                decode = float(model.timings.get("decode", 0.0))
+                timer.now["planner"] += CLOCK() - t0 - decode
+                timer.now["occupancy"] += decode
+                timer.queries.append(int(model.timings.get("queries", 0)))
+
+        class Proxy:
+            def __getattr__(self, name):
+                return getattr(planner, name)
+
+        proxy = Proxy()
+        proxy.plan = plan
+        stack.planner = proxy
+        return
     stack.detector = timer.wrap(stack.detector, "detect", "detector")
     stack.tracker = timer.wrap(stack.tracker, "update", "tracker")
     stack.predictor = timer.wrap(stack.predictor, "predict", "predictor")
@@ -111,6 +142,7 @@ def stage_times(scene, world, stack) -> dict:
     T = result.frames
     per["other"] = cpu / T - sum(per.values())
     return {"scene": scene.id, "frames": T, "actors": len(scene.actors), "points_per_frame": float(result.n_points.mean()),
+            "queries_per_frame": float(np.mean(timer.queries)) if timer.queries else None,
             "ms_cpu": {k: 1000 * v for k, v in per.items()}, "ms_cpu_total": 1000 * cpu / T,
             "fps_cpu": T / cpu, "ms_wall_total": 1000 * wall / T, "fps_wall": T / wall,
             "ms_wall_by_stage_episode_timer": {k: float(1000 * np.mean(v)) for k, v in result.timings.items()},
@@ -172,8 +204,9 @@ def detector_table(scenes_worlds, episodes, quick: bool) -> list[dict]:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="one scene")
-    ap.add_argument("--autonomy", choices=("A", "oracle", "A-lanefollow"), default=None,
-                    help="default: A when its weights exist, else A-lanefollow (learned detector), else oracle")
+    ap.add_argument("--autonomy", choices=("A", "B", "oracle", "A-lanefollow"), default=None,
+                    help="default: A when its weights exist, else A-lanefollow (learned detector), else oracle; "
+                         "B: Autonomy-B with Autonomy-A's stages measured alongside")
     args = ap.parse_args()
     import torch
 
@@ -187,6 +220,8 @@ def main() -> int:
             except Exception as exc:  # noqa: BLE001 - report and fall back
                 print(f"{autonomy} not available: {exc}")
     names = SCENES[:1] if args.quick else SCENES
+    if autonomy == "B":
+        return bench_b(names, args.quick)
     lib = default_library()
     rows, worlds, episodes = [], [], []
     for name in names:
@@ -249,6 +284,51 @@ def main() -> int:
                      "autonomy": autonomy, "stages_ms_cpu_mean": mean, "total_ms_cpu_mean": total,
                      "fps_cpu_mean": 1000 / total, "rows": rows, "detector_resolution": det_rows,
                      "detector_resolution_from_bench_detector": h7_rows})
+    print(f"wrote {out.relative_to(ROOT)}")
+    return 0
+
+
+def bench_b(names, quick: bool) -> int:
+    """(c): Autonomy-B's stages and Autonomy-A's on the same scenes, one core."""
+    import torch
+
+    lib = default_library()
+    rows = {"B": [], "A": []}
+    for name in names:
+        scene = load_scene(ROOT / "scenes" / "highway" / f"{name}.json.gz")
+        world = world_from_scene(scene, lib)
+        for autonomy in ("B", "A"):
+            stack = make_stack(autonomy)
+            run_episode(scene, stack, seconds=1.0, world=world)  # warm-up (imports, torch, caches)
+            r = stage_times(scene, world, stack)
+            r.pop("result")
+            rows[autonomy].append(r)
+            ms = r["ms_cpu"]
+            print(f"{name} {autonomy}: " + " ".join(f"{k} {ms[k]:.1f}" for k in (*STAGES, "other")) +
+                  f" | total {r['ms_cpu_total']:.1f} ms CPU", flush=True)
+    mean = {a: {k: float(np.mean([r["ms_cpu"][k] for r in rs])) for k in (*STAGES, "other")} for a, rs in rows.items()}
+    a_pp = mean["A"]["detector"] + mean["A"]["tracker"] + mean["A"]["predictor"]
+    b_occ = mean["B"]["occupancy"]
+    print(f"\n(c) 5 s closed-loop episode, one core, CPU ms per frame (mean of {len(names)} scenes)\n")
+    print("| stack | perception + prediction | of which | planner | lidar | total |")
+    print("|---|---|---|---|---|---|")
+    print(f"| Autonomy-A | {a_pp:.1f} | detector {mean['A']['detector']:.1f}, tracker {mean['A']['tracker']:.1f}, "
+          f"predictor {mean['A']['predictor']:.1f} | {mean['A']['planner']:.1f} | {mean['A']['lidar']:.1f} | "
+          f"{float(np.mean([r['ms_cpu_total'] for r in rows['A']])):.1f} |")
+    print(f"| Autonomy-B | {b_occ:.1f} | occupancy model (input, encoder, planner's queries) | {mean['B']['planner']:.1f} | "
+          f"{mean['B']['lidar']:.1f} | {float(np.mean([r['ms_cpu_total'] for r in rows['B']])):.1f} |")
+    print(f"\nB's occupancy model / A's detector + tracker + predictor: {b_occ / a_pp:.2f}")
+    out = ROOT / "bench" / "results" / f"episode.B{'.quick' if quick else ''}.json"
+    write_json(out, {"format": "adv3d-bench", "version": 1, "topic": "episode-autonomy-b",
+                     "command": " ".join(["bench/episode.py"] + sys.argv[1:]),
+                     "machine": {"python": platform.python_version(), "platform": platform.platform(),
+                                 "processor": platform.processor(), "cpus": os.cpu_count(),
+                                 "cores_used": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
+                                 "torch_threads": torch.get_num_threads(),
+                                 "load_avg": os.getloadavg() if hasattr(os, "getloadavg") else None},
+                     "timing": "CPU time of the (single) thread, time.thread_time; machine shared with other jobs",
+                     "stages_ms_cpu_mean": mean, "a_detector_tracker_predictor_ms": a_pp, "b_occupancy_ms": b_occ,
+                     "b_over_a": b_occ / a_pp, "rows": rows})
     print(f"wrote {out.relative_to(ROOT)}")
     return 0
 

@@ -360,11 +360,12 @@ def build_table(spec: TableSpec, autonomy: str, results_root: Path, budget: int 
     """table.json and table.md of a table folder, from its kept files alone."""
     from adv3d_runner.attack.config import AttackConfig
     from adv3d_runner.attack.objective import TERMS, term_split
-    from adv3d_runner.attack.protocol import LOWER_IS_WORSE, METRICS, metric_value, scene_means
+    from adv3d_runner.attack.protocol import LOWER_IS_WORSE, metric_value, metrics_for, scene_means
     from adv3d_runner.fileio import atomic_write_text, write_json
     from adv3d_runner.metrics.stats import bootstrap_ci, paired_summary
 
     results = results_root / spec.folder(autonomy, budget)
+    METRICS = metrics_for(autonomy)
     kept = load_kept(results)
     proto = json.loads((results / "protocol.json").read_text()) if (results / "protocol.json").exists() else {}
     compute = json.loads((results / "compute.json").read_text()) if (results / "compute.json").exists() else {}
@@ -448,8 +449,9 @@ def build_table(spec: TableSpec, autonomy: str, results_root: Path, budget: int 
 
 
 def table_markdown(spec: TableSpec, doc: dict, scene_part: dict) -> str:
-    from adv3d_runner.attack.protocol import METRICS
+    from adv3d_runner.attack.protocol import metrics_for
 
+    METRICS = metrics_for(doc["autonomy"])
     folder_name = spec.folder(doc["autonomy"], int(doc.get("protocol", {}).get("budget") or 100))
     proto = doc.get("protocol", {})
     rows = doc["rows"]
@@ -525,9 +527,10 @@ def table_markdown(spec: TableSpec, doc: dict, scene_part: dict) -> str:
               "noise seed, and the same shapes on the held-out seeds.", "", "| | search seed | held-out |", "|---|---:|---:|"]
     for name, row in rows.items():
         lines.append(f"| {name} | {_fmt(row['search_seed_objective']['mean'])} | {_fmt(row['metrics']['objective']['mean'])} |")
-    lines += ["", "Per scene (held-out objective and AP, mean over run and evaluation seeds):", ""]
+    second = list(METRICS)[1]  # AP (Autonomy-A), occupancy mAP (B)
+    lines += ["", f"Per scene (held-out objective and {second}, mean over run and evaluation seeds):", ""]
     names = list(rows)
-    lines.append("| scene | part | " + " | ".join(f"{n}: objective | AP" for n in names) + " |")
+    lines.append("| scene | part | " + " | ".join(f"{n}: objective | {second}" for n in names) + " |")
     lines.append("|---|---|" + "---:|---:|" * len(names))
     scenes = sorted({s for r in rows.values() for s in r["metrics"]["objective"]["per_scene"]})
     for s in scenes:
@@ -536,7 +539,7 @@ def table_markdown(spec: TableSpec, doc: dict, scene_part: dict) -> str:
         cells = []
         for n in names:
             o = rows[n]["metrics"]["objective"]["per_scene"].get(s, float("nan"))
-            a = rows[n]["metrics"]["AP"]["per_scene"].get(s, float("nan"))
+            a = rows[n]["metrics"][second]["per_scene"].get(s, float("nan"))
             cells += [_fmt(o, 4), _fmt(a, 3)]
         lines.append(f"| {s} | {part} | " + " | ".join(cells) + " |")
     lines += ["", f"Files: `{folder_name}/runs/<setting>/seed<k>/<scene>/` (run.json, summary.json, "

@@ -19,10 +19,14 @@ recorded future only (the ``--extend``-ed tail of a recording is IDM, not real t
 issue-17 targets on the real benchmark are checked at the end.
 
     .venv/bin/python bench/sanity.py [--quick] [--sets generated,real] [--real-part benchmark|train]
-                                     [--autonomy A|oracle|A-lanefollow] [--workers 2] [--seconds 5]
+                                     [--autonomy A|B|oracle|A-lanefollow] [--workers 2] [--seconds 5]
 
 ``--autonomy A`` needs the trained detector and predictor (assets/models/); without them use
-``--autonomy oracle``. Writes ``bench/results/sanity[.<autonomy>][.quick].json`` when both sets
+``--autonomy oracle``. ``--autonomy B`` (instance-free, the implicit occupancy model) reports the
+occupancy metrics instead of AP and ADE (paper Table 1's lower block: occupancy mAP and
+Soft-IoU, flow-grounded mAP and Soft-IoU, and the flow EPE) next to Autonomy-A's rows of the
+same scenes from ``bench/results/sanity.json`` (its ``real`` rows for the real set); the real
+targets on prediction do not apply to it (no trajectories). Writes ``bench/results/sanity[.<autonomy>][.quick].json`` when both sets
 run (the generated set under ``summary`` / ``rows`` as before, the real one under ``real``), and
 ``bench/results/sanity.real-<part>[.<autonomy>].json`` for ``--sets real``.
 """
@@ -45,6 +49,8 @@ sys.path.insert(0, str(ROOT))
 
 PAPER_ORIGINAL_A = {"ap": 0.882, "recall": 0.894, "min_ade": 2.14, "mean_ade": 4.90, "plan_lat": 0.203,
                     "plan_jerk": 0.336, "drive_lat": 0.194, "drive_jerk": 0.331}
+PAPER_ORIGINAL_B = {"map": 0.831, "soft_iou": 0.504, "fg_map": 0.946, "fg_soft_iou": 0.612, "plan_lat": 0.256,
+                    "plan_jerk": 0.319, "drive_lat": 0.263, "drive_jerk": 0.315}
 # issue 17, acceptance 4: on the real benchmark part
 REAL_TARGETS = {"min_ade_max": 2.0, "drive_jerk_max": 1.0, "at_fault_collisions_max": 0, "progress_ratio_min": 0.8}
 
@@ -168,6 +174,9 @@ def summarise(rows: list[dict], real: bool) -> dict:
         "min_accel_min": _min(rows, "ego", "min_accel"),
         "progress_ratio_mean": _mean(rows, "ego", "progress_ratio"),
         "progress_ratio_min": _min(rows, "ego", "progress_ratio"),
+        "occ_map": _mean(rows, "occupancy", "map"), "occ_soft_iou": _mean(rows, "occupancy", "soft_iou"),
+        "fg_map": _mean(rows, "occupancy", "flow_grounded_map"),
+        "fg_soft_iou": _mean(rows, "occupancy", "flow_grounded_soft_iou"), "epe": _mean(rows, "occupancy", "epe"),
         "fps_mean": _mean(rows, "fps"),
         "failures": [{"scene": r["scene"], "collided": r["collision"]["collided"], "at_fault": r["collision"]["at_fault"],
                       "first_frame": r["collision"]["first_frame"], "actors": r["collision"]["actors"],
@@ -219,9 +228,13 @@ def main() -> int:
     ap.add_argument("--sets", default="generated,real", help="comma-separated: generated, real")
     ap.add_argument("--real-part", choices=("benchmark", "train"), default="benchmark",
                     help="part of scenes/real/ (split.json); tune only on train")
-    ap.add_argument("--autonomy", choices=("A", "oracle", "A-lanefollow"), default="A")
+    ap.add_argument("--autonomy", choices=("A", "B", "oracle", "A-lanefollow"), default="A")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--seconds", type=float, default=5.0)
+    ap.add_argument("--name", default=None,
+                    help="result file stem under bench/results/ (default sanity[.<autonomy>][.quick])")
+    ap.add_argument("--reference", default="bench/results/sanity.json",
+                    help="Autonomy-A's sanity file that --autonomy B is compared with (same scenes)")
     args = ap.parse_args()
     sets = [s.strip() for s in args.sets.split(",") if s.strip()]
     if not sets or set(sets) - {"generated", "real"}:
@@ -248,13 +261,25 @@ def main() -> int:
         summary["part"] = args.real_part
         summary["recordings"] = list(split.recordings[args.real_part])
         summary["targets"] = check_targets(summary)
+        if args.autonomy == "B":  # no trajectories: the prediction targets do not apply
+            summary["targets"] = {k: v for k, v in summary["targets"].items() if not k.startswith("min_ade")}
         out["real"] = (summary, rows)
     wall = time.time() - t0
-    _print(out, args)
+    reference = {}
+    if args.autonomy == "B":  # Autonomy-A's rows of the same scenes, from its kept sanity run
+        for key in out:
+            reference[key] = _reference_a([r["scene"] for r in out[key][1]], real=key == "real",
+                                          path=ROOT / args.reference)
+            out[key][0]["autonomy_a_same_scenes"] = reference[key]
+        _print_b(out, reference, args)
+    else:
+        _print(out, args)
     from adv3d_runner.fileio import write_json
 
     tag = "" if args.autonomy == "A" else f".{args.autonomy}"
-    if "generated" in out:
+    if args.name:
+        name = args.name
+    elif "generated" in out:
         name = "sanity" + tag + (".quick" if args.quick else "")
     else:
         name = f"sanity.real-{args.real_part}" + tag
@@ -262,7 +287,8 @@ def main() -> int:
            "command": " ".join(["bench/sanity.py"] + sys.argv[1:]),
            "machine": {"python": platform.python_version(), "platform": platform.platform(),
                        "processor": platform.processor(), "cpus": os.cpu_count()},
-           "paper_original_autonomy_a": PAPER_ORIGINAL_A, "wall_s": wall}
+           "paper_original_autonomy_a": PAPER_ORIGINAL_A, "paper_original_autonomy_b": PAPER_ORIGINAL_B,
+           "wall_s": wall}
     strip = lambda rows: [{k: v for k, v in r.items() if k not in ("format", "version")} for r in rows]  # noqa: E731
     if "generated" in out:
         s, rows = out["generated"]
@@ -308,13 +334,82 @@ def _print(out: dict, args) -> None:
                   f"{'met' if t['met'] else 'NOT met'}")
 
 
+def _reference_a(scenes: list[str], real: bool = False, path: Path | None = None) -> dict | None:
+    """Autonomy-A's sanity rows of the same scenes (``path``, default bench/results/sanity.json;
+    its ``real`` rows for real scenes), averaged."""
+    import json
+
+    path = path or ROOT / "bench" / "results" / "sanity.json"
+    if not path.is_file():
+        return None
+    doc = json.loads(path.read_text())
+    source = (doc.get("real") or {}).get("rows", []) if real else doc.get("rows", [])
+    rows = [r for r in source if r["scene"] in set(scenes)]
+    if not rows:
+        return None
+    return {"source": str(path.relative_to(ROOT)) + (" (real)" if real else ""), "scenes": len(rows),
+            "ok_rate": float(np.mean([not r["collision"]["collided"] and not r["off_road"] for r in rows])),
+            "collisions": int(sum(r["collision"]["collided"] for r in rows)),
+            "at_fault_collisions": int(sum(r["collision"]["at_fault"] for r in rows)),
+            "ap": _mean(rows, "detection", "ap"), "recall": _mean(rows, "detection", "recall"),
+            "min_ade": _mean(rows, "prediction", "min_ade"), "mean_ade": _mean(rows, "prediction", "mean_ade"),
+            "plan_lat": _mean(rows, "planning_comfort", "lat"), "plan_jerk": _mean(rows, "planning_comfort", "jerk"),
+            "drive_lat": _mean(rows, "driving_comfort", "lat"), "drive_jerk": _mean(rows, "driving_comfort", "jerk"),
+            "progress_ratio_mean": _mean(rows, "ego", "progress_ratio"),
+            "progress_ratio_min": _min(rows, "ego", "progress_ratio")}
+
+
+def _print_b(out: dict, reference: dict, args) -> None:
+    f = lambda x, p=3: "n/a" if x is None else f"{x:.{p}f}"  # noqa: E731
+    print(f"\n{args.seconds:g} s closed loop, autonomy B\n")
+    print("| set | scenes | ok | collisions (at fault) | occ. mAP | occ. Soft-IoU | flow-gr. mAP | flow-gr. Soft-IoU | "
+          "EPE m/s | plan lat | plan jerk | drive lat | drive jerk | drive peak jerk (max) | progress vs log (min) |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for key, label in (("generated", "generated benchmark"), ("real", f"real, {args.real_part} part")):
+        if key not in out:
+            continue
+        s = out[key][0]
+        print(f"| {label} | {s['scenes']} | {100 * s['ok_rate']:.0f}% | {s['collisions']} ({s['at_fault_collisions']}) | "
+              f"{f(s['occ_map'])} | {f(s['occ_soft_iou'])} | {f(s['fg_map'])} | {f(s['fg_soft_iou'])} | "
+              f"{f(s['epe'], 2)} | {f(s['plan_lat'])} | {f(s['plan_jerk'])} | {f(s['drive_lat'])} | "
+              f"{f(s['drive_jerk'])} | {f(s['drive_peak_jerk'], 2)} ({f(s['drive_peak_jerk_max'], 1)}) | "
+              f"{f(s['progress_ratio_mean'], 2)} ({f(s['progress_ratio_min'], 2)}) |")
+    p = PAPER_ORIGINAL_B
+    print(f"| paper Table 1, Autonomy-B, Original | - | - | - | {p['map']:.3f} | {p['soft_iou']:.3f} | {p['fg_map']:.3f} | "
+          f"{p['fg_soft_iou']:.3f} | - | {p['plan_lat']:.3f} | {p['plan_jerk']:.3f} | {p['drive_lat']:.3f} | "
+          f"{p['drive_jerk']:.3f} | - | - |")
+    for key, ref in reference.items():
+        if ref:
+            print(f"\nAutonomy-A on the same {ref['scenes']} scenes ({ref['source']}): ok {100 * ref['ok_rate']:.0f}% "
+                  f"(collisions {ref['collisions']}, at fault {ref['at_fault_collisions']}) | AP {f(ref['ap'])} recall "
+                  f"{f(ref['recall'])} | minADE {f(ref['min_ade'], 2)} meanADE {f(ref['mean_ade'], 2)} | plan lat "
+                  f"{f(ref['plan_lat'])} jerk {f(ref['plan_jerk'])} | drive lat {f(ref['drive_lat'])} jerk "
+                  f"{f(ref['drive_jerk'])} | progress {f(ref['progress_ratio_mean'], 2)} "
+                  f"({f(ref['progress_ratio_min'], 2)})")
+    for key in out:
+        for fail in out[key][0]["failures"]:
+            print(f"failure ({key}):", fail)
+    if "real" in out:
+        print(f"\nissue-17 targets on the real {args.real_part} part (prediction targets do not apply to B):")
+        for name, t in out["real"][0]["targets"].items():
+            v = t["value"]
+            print(f"  {name}: {v if v is None or isinstance(v, int) else round(v, 3)} (target {t['target']}): "
+                  f"{'met' if t['met'] else 'NOT met'}")
+
+
 def _line(m: dict, i: int, n: int) -> None:
     d, c, e = m["detection"], m["collision"], m["ego"]
     rec = m.get("prediction_recorded")
+    if m.get("occupancy") is not None:  # Autonomy-B: occupancy instead of boxes and trajectories
+        o = m["occupancy"]
+        perception = (f"mAP={o['map'] and round(o['map'], 3)} softIoU={o['soft_iou'] and round(o['soft_iou'], 3)} "
+                      f"EPE={o['epe'] and round(o['epe'], 2)}")
+    else:
+        perception = (f"AP={d['ap'] if d['ap'] is None else round(d['ap'], 3)} "
+                      f"minADE={m['prediction']['min_ade'] and round(m['prediction']['min_ade'], 2)}"
+                      + (f" (rec {rec['min_ade'] and round(rec['min_ade'], 2)})" if rec else ""))
     print(f"[{i}/{n}] {m['scene']:30s} coll={int(c['collided'])} fault={int(c['at_fault'])} "
-          f"off={m['off_road_m']:.2f} AP={d['ap'] if d['ap'] is None else round(d['ap'], 3)} "
-          f"minADE={m['prediction']['min_ade'] and round(m['prediction']['min_ade'], 2)}"
-          + (f" (rec {rec['min_ade'] and round(rec['min_ade'], 2)})" if rec else "")
+          f"off={m['off_road_m']:.2f} {perception}"
           + f" drive_jerk={m['driving_comfort']['jerk']:.3f} peak={m['driving_comfort']['max_jerk']:.1f} "
           f"progress={e['progress_ratio'] and round(e['progress_ratio'], 2)} vmin={e['min_speed']:.1f}"
           f"/{e['logged_min_speed']:.1f} amin={e['min_accel']:.1f}/{e['logged_min_accel']:.1f} "

@@ -11,7 +11,10 @@ engine's :class:`~blender_addon.review.ReviewData`:
 * an adversarial actor gets the mesh of its substituted shape (the replay's ``mesh`` entry,
   the bundle's ``actor<ID>.glb``), the others a box of their dimensions;
 * detections (x, y, length, width, yaw, score) become boxes of a nominal height with a score
-  label; every predicted mode becomes one polyline; the plan another.
+  label; every predicted mode becomes one polyline; the plan another;
+* an instance-free stack's occupancy heat map (replay version 2) becomes a coloured grid on
+  the ground, the map of the frame's current time (t = 0: what the stack believes is occupied
+  now, around the attacked actors), blue (free) to red (occupied).
 
 Bundle layout (docs/formats.md, "Run bundle"): ``summary.json`` lists per scene and mode the
 replay file; without it, ``scenes/*/*/replay.json[.gz]`` and ``replay.json[.gz]`` in the folder
@@ -123,8 +126,15 @@ def replay_to_review(replay, replay_dir: str | Path) -> tuple[review.ReviewData,
         preds.append(t.reshape(-1, t.shape[2], 2) - origin if t.size else np.zeros((0, 2, 2)))
         plans.append(f.plan[:, :2] - origin)
     points = None if replay.points is None else [p[:, :3] for p in replay.points]
+    occupancy = None
+    if any(f.occupancy is not None for f in replay.frames):
+        occupancy = []
+        for f in replay.frames:
+            m = f.occupancy
+            occupancy.append(None if m is None else (m.probabilities[0], m.poses[0] - shift, m.cell))
     data = review.ReviewData(replay.ego_poses - shift, np.asarray(replay.ego_dimensions, float), actors,
-                             points, dets, preds, plans, dt=replay.dt, points_in_ego_frame=True)
+                             points, dets, preds, plans, dt=replay.dt, points_in_ego_frame=True,
+                             occupancy=occupancy)
     return data, origin
 
 

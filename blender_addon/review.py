@@ -21,6 +21,9 @@ import numpy as np
 from . import meshdata, places
 
 REVIEW_COLLECTION = "Adv3D Review"
+OCCUPANCY_OBJECT = "review occupancy"
+OCCUPANCY_ATTRIBUTE = "occupancy"
+OCCUPANCY_Z = 0.05  # m, the heat map lies just above the ground
 ADVERSARIAL_RGBA = (0.95, 0.1, 0.1, 1.0)
 BENIGN_RGBA = (0.6, 0.6, 0.62, 1.0)
 EGO_RGBA = (0.1, 0.35, 0.9, 1.0)
@@ -68,6 +71,9 @@ class ReviewData:
         plan: per frame (P, 2) the ego's chosen plan, or None.
         dt: seconds per frame.
         points_in_ego_frame: see ``points``.
+        occupancy: per frame None or (values (nx, ny) occupancy probability in [0, 1], pose (3,)
+            x, y, yaw of the grid's centre and axes, cell m): the predicted occupancy heat map
+            of an instance-free stack (the same nx, ny and cell in every frame); or None.
     """
 
     ego_poses: np.ndarray
@@ -79,6 +85,7 @@ class ReviewData:
     plan: list[np.ndarray] | None = None
     dt: float = 0.1
     points_in_ego_frame: bool = False
+    occupancy: list[tuple[np.ndarray, np.ndarray, float] | None] | None = None
 
     @property
     def frames(self) -> int:
@@ -132,6 +139,53 @@ def _show_as_points(obj) -> None:
     mod.node_group = group
 
 
+def occupancy_grid_arrays(nx: int, ny: int, cell: float) -> tuple[np.ndarray, np.ndarray]:
+    """A heat-map grid centred on the origin: every cell its own 4 vertices (so a per-vertex
+    colour paints the cell flat), (4 nx ny, 3) vertices and (2 nx ny, 3) triangles; cell
+    (i, j) is vertices 4 (i ny + j) .. + 3."""
+    i, j = np.meshgrid(np.arange(nx), np.arange(ny), indexing="ij")
+    x0 = (i.ravel() * cell - 0.5 * nx * cell)[:, None] + np.array([0.0, cell, cell, 0.0])
+    y0 = (j.ravel() * cell - 0.5 * ny * cell)[:, None] + np.array([0.0, 0.0, cell, cell])
+    verts = np.stack([x0, y0, np.zeros_like(x0)], axis=-1).reshape(-1, 3)
+    base = 4 * np.arange(nx * ny)[:, None]
+    faces = np.concatenate([base + [0, 1, 2], base + [0, 2, 3]], axis=1).reshape(-1, 3)
+    return verts, faces
+
+
+def occupancy_colours(values: np.ndarray) -> np.ndarray:
+    """Heat-map colours (4 nx ny, 4) RGBA float32 of occupancy probabilities (nx, ny): blue
+    (free) to red (occupied), one colour per cell repeated on its 4 vertices."""
+    p = np.clip(np.asarray(values, dtype=np.float32), 0.0, 1.0).reshape(-1)
+    rgba = np.stack([p, 0.15 * (1.0 - p), 1.0 - p, 0.25 + 0.75 * p], axis=1)
+    return np.repeat(rgba, 4, axis=0).astype(np.float32)
+
+
+def _occupancy_object(root, data: ReviewData):
+    """The heat-map object (a flat grid with a per-vertex colour attribute), or None when no
+    frame has a map."""
+    first = next((m for m in (data.occupancy or []) if m is not None), None)
+    if first is None:
+        return None
+    values, _, cell = first
+    nx, ny = np.asarray(values).shape
+    obj = meshdata.new_mesh_object(OCCUPANCY_OBJECT, *occupancy_grid_arrays(nx, ny, float(cell)), root)
+    mesh = obj.data
+    attr = mesh.color_attributes.new(OCCUPANCY_ATTRIBUTE, "FLOAT_COLOR", "POINT")
+    mesh.color_attributes.active_color = attr
+    # a material that shows the attribute in Eevee / Cycles (Solid view: colour "Attribute")
+    mat = bpy.data.materials.new(OCCUPANCY_OBJECT)  # node-based by default in Blender 5
+    nodes = mat.node_tree.nodes
+    bsdf = next(n for n in nodes if n.type == "BSDF_PRINCIPLED")
+    col = nodes.new("ShaderNodeAttribute")
+    col.attribute_name = OCCUPANCY_ATTRIBUTE
+    mat.node_tree.links.new(col.outputs["Color"], bsdf.inputs["Base Color"])
+    mat.node_tree.links.new(col.outputs["Color"], bsdf.inputs["Emission Color"])
+    bsdf.inputs["Emission Strength"].default_value = 0.5
+    mesh.materials.append(mat)
+    obj["adv3d_occupancy_shape"] = [int(nx), int(ny)]
+    return obj
+
+
 def build_review(bscene, data: ReviewData, key: str = "") -> dict:
     """Create the review objects in ``bscene`` (replacing a previous review) and show frame 0.
 
@@ -174,6 +228,7 @@ def build_review(bscene, data: ReviewData, key: str = "") -> dict:
         curve.dimensions = "3D"
         obj = bpy.data.objects.new(name, curve)
         root.objects.link(obj)
+    _occupancy_object(root, data)
     if data.detections is not None:
         most = max((len(d) for d in data.detections), default=0)
         labels = meshdata.get_collection(LABEL_COLLECTION, root)
@@ -243,10 +298,13 @@ def _validate(data: ReviewData) -> None:
     from adv3d_runner.errors import Adv3dError
 
     t = data.frames
-    for name in ("points", "detections", "predictions", "plan"):
+    for name in ("points", "detections", "predictions", "plan", "occupancy"):
         seq = getattr(data, name)
         if seq is not None and len(seq) != t:
             raise Adv3dError(f"review {name}: expected one entry per frame ({t}), got {len(seq)}")
+    shapes = {(np.asarray(m[0]).shape, float(m[2])) for m in (data.occupancy or []) if m is not None}
+    if len(shapes) > 1:
+        raise Adv3dError(f"review occupancy: every frame's map needs the same grid, got {sorted(shapes)}")
     for actor in data.actors:
         if actor.poses.shape != (t, 3):
             raise Adv3dError(f"review actor {actor.id}: poses must be ({t}, 3), got {actor.poses.shape}")
@@ -336,8 +394,23 @@ def update_frame(bscene, frame: int) -> None:
         _set_polylines(objs["review predictions"].data, list(pred) if pred.ndim == 3 else [])
     if data.plan is not None and "review plan" in objs:
         _set_polylines(objs["review plan"].data, [data.plan[f]], z=0.35)
+    if data.occupancy is not None and OCCUPANCY_OBJECT in objs:
+        _set_occupancy(objs[OCCUPANCY_OBJECT], data.occupancy[f])
     if data.detections is not None:
         _set_labels(data.detections[f])
+
+
+def _set_occupancy(obj, entry) -> None:
+    """Place the heat map at the frame's grid pose and paint its cells (hidden without a map)."""
+    obj.hide_viewport = obj.hide_render = entry is None
+    if entry is None:
+        return
+    values, pose, _ = entry
+    obj.location = (float(pose[0]), float(pose[1]), OCCUPANCY_Z)
+    obj.rotation_euler = (0.0, 0.0, float(pose[2]))
+    attr = obj.data.color_attributes[OCCUPANCY_ATTRIBUTE]
+    attr.data.foreach_set("color", occupancy_colours(values).ravel())
+    obj.data.update()
 
 
 def _set_labels(dets: np.ndarray) -> None:
@@ -359,7 +432,7 @@ def _set_labels(dets: np.ndarray) -> None:
 
 
 def blank_frame() -> None:
-    """Empty the per-frame geometry (points, boxes, curves, labels): shown when the replay a
+    """Empty the per-frame geometry (points, boxes, curves, labels, heat map): shown when the replay a
     review came from is missing or changed, so nothing stale is drawn."""
     objs = bpy.data.objects
     if "review lidar" in objs:
@@ -370,6 +443,8 @@ def blank_frame() -> None:
         if name in objs:
             objs[name].data.splines.clear()
     _set_labels(np.zeros((0, 7)))
+    if OCCUPANCY_OBJECT in objs:
+        _set_occupancy(objs[OCCUPANCY_OBJECT], None)
 
 
 @bpy.app.handlers.persistent

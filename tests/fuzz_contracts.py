@@ -331,6 +331,19 @@ def _make_replay(folder: Path) -> Path:
     return save_replay(replay, folder / "replay.json.gz")
 
 
+def _make_replay_v2(folder: Path) -> Path:
+    """The replay above with occupancy heat maps (version 2, Autonomy-B), one frame without."""
+    from adv3d_runner.sim.replay import OccupancyMap, load_replay, save_replay
+
+    path = _make_replay(folder)
+    replay = load_replay(path, points=True)
+    rng = np.random.default_rng(1)
+    for k, f in enumerate(replay.frames[:-1]):
+        poses = np.array([[20.0 + k + 10.0 * t, 1.0, 0.05] for t in (0.0, 1.0)])
+        f.occupancy = OccupancyMap([0.0, 1.0], poses, 0.5, rng.integers(0, 256, (2, 6, 3)))
+    return save_replay(replay, path)
+
+
 def _load_replay(path: Path):
     from adv3d_runner.shapes.mesh_io import read_library_mesh
     from adv3d_runner.sim.replay import actor_mesh_path, load_replay
@@ -549,6 +562,12 @@ def _load_detector(path: Path):
     return load_detector(path.parent)
 
 
+def _load_occupancy(path: Path):
+    from adv3d_runner.autonomy.occupancy import load_occupancy
+
+    return load_occupancy(path.parent)
+
+
 def _load_predictor(path: Path):
     from adv3d_runner.autonomy.predictor import load_predictor
 
@@ -677,11 +696,13 @@ CONTRACTS: dict[str, Contract] = {c.name: c for c in [
     Contract("scene.json", lambda f: _make_scene(f, False), _json_mutator(), _load_scene, _accept_scene),
     Contract("scene.json.gz", lambda f: _make_scene(f, True), _json_mutator(gz=True), _load_scene, _accept_scene),
     Contract("replay.json.gz", _make_replay, _json_mutator(gz=True), _load_replay, _accept_replay),
+    Contract("replay-v2.json.gz", _make_replay_v2, _json_mutator(gz=True), _load_replay, _accept_replay),
     Contract("replay.points.npz", _make_points, mutate_npz, _load_points, _accept_points),
     Contract("library.json", _make_library, _json_mutator(), _load_library, _accept_library),
     Contract("shape_space.npz", _make_space, lambda p, d: mutate_npz(p, d, _rehash_space), _load_space, _accept_space),
     Contract("detector/config.json", _make_model("detector"), _json_mutator(), _load_detector, _accept_model),
     Contract("predictor/config.json", _make_model("predictor"), _json_mutator(), _load_predictor, _accept_model),
+    Contract("occupancy/config.json", _make_model("occupancy"), _json_mutator(), _load_occupancy, _accept_model),
     Contract("run.json", _make_run("run.json"), _json_mutator(), _load_run, _accept_run),
     Contract("queries.jsonl", _make_run("queries.jsonl"), _json_mutator(lines=True), _load_run, _accept_run),
     Contract("summary.json", _make_run("summary.json"), _json_mutator(), _load_run, _accept_run),

@@ -296,6 +296,59 @@ def test_review_follows_the_timeline_after_reopening_the_blend(ctx, bundle, tmp_
     np.testing.assert_allclose(_world_points(lidar) + _origin(), replay.points_in_map(6), atol=2e-3)
 
 
+def with_occupancy_maps(replay, absent=(5,)):
+    """The fixture replay with an occupancy heat map in every frame but ``absent`` (Autonomy-B's
+    replays, version 2): 3 times, 8 x 4 cells of 0.5 m, the grid moving with the adversarial actor."""
+    from adv3d_runner.sim.replay import OccupancyMap
+
+    rng = np.random.default_rng(5)
+    for k, f in enumerate(replay.frames):
+        if k in absent:
+            continue
+        centre = np.array([ORIGIN_XY[0] + 20 + 0.8 * k, ORIGIN_XY[1] + 3.5])
+        poses = np.array([[*(centre + [10.0 * t, 0.0]), 0.05] for t in (0.0, 1.0, 2.0)])
+        f.occupancy = OccupancyMap([0.0, 1.0, 2.0], poses, 0.5, rng.integers(0, 256, (3, 8, 4)))
+    return replay
+
+
+def test_review_shows_the_occupancy_heat_map(ctx, tmp_path):
+    """An instance-free stack's replay: the t = 0 heat map of each frame is a coloured grid at
+    the map's pose; scrubbing repaints it; a frame without a map hides it."""
+    from adv3d_runner.sim.replay import load_replay
+    from blender_addon import review
+
+    path, _ = write_bundle(tmp_path / "run", with_occupancy_maps(make_replay()))
+    stored = load_replay(path)
+    assert bpy.ops.adv3d.review_load(filepath=str(path)) == {"FINISHED"}
+    obj = bpy.data.objects[review.OCCUPANCY_OBJECT]
+    assert len(obj.data.vertices) == 4 * 8 * 4 and len(obj.data.polygons) == 2 * 8 * 4
+    origin = _origin()
+    for f in (3, 8, 3):
+        ctx.scene.frame_set(f)
+        m = stored.frames[f].occupancy
+        np.testing.assert_allclose(np.array(obj.matrix_world.translation)[:2] + origin[:2], m.poses[0, :2], atol=1e-3)
+        col = np.empty(len(obj.data.vertices) * 4, np.float32)
+        obj.data.color_attributes[review.OCCUPANCY_ATTRIBUTE].data.foreach_get("color", col)
+        np.testing.assert_allclose(col.reshape(-1, 4)[::4, 0], (m.values[0] / 255.0).ravel(), atol=1e-6)
+        # the most occupied cell is where the map says (grid vertices follow the cell layout)
+        i, j = np.unravel_index(np.argmax(m.values[0]), m.values[0].shape)
+        cell = _world_points(obj).reshape(-1, 4, 3).mean(axis=1)[i * 4 + j]
+        np.testing.assert_allclose(cell[:2] + origin[:2], m.cell_centres(0)[i, j], atol=1e-3)
+        assert not obj.hide_render
+    ctx.scene.frame_set(5)
+    assert obj.hide_render and obj.hide_viewport
+
+
+def test_review_rejects_maps_of_different_grids(ctx):
+    from adv3d_runner.errors import Adv3dError
+    from blender_addon import review
+
+    data = review.ReviewData(np.zeros((2, 3)), np.array([4.8, 1.9, 1.5]),
+                             occupancy=[(np.zeros((4, 2)), np.zeros(3), 0.5), (np.zeros((4, 3)), np.zeros(3), 0.5)])
+    with pytest.raises(Adv3dError, match="same grid"):
+        review.build_review(ctx.scene, data)
+
+
 def test_opening_another_file_never_shows_its_review(ctx, tmp_path):
     """a.blend and b.blend both have a scene called "Scene" reviewing different replays: after
     File > Open, every frame shows the opened file's own points, never the other's."""

@@ -214,6 +214,7 @@ def test_train_cli_writes_model_and_report(tmp_path):
     report = json.loads((out / "training_report.json").read_text())
     assert report["format"] == "adv3d-detector-training-report" and report["data"]["train_frames"] == 4
     assert len(report["history"]["epoch"]) == 1
+    assert report["device"] == {"device": "cpu"} and report["seconds"]["train"] >= 0
     # the actors drew their meshes from the whole bundled library, recorded by fingerprint
     from adv3d_runner.shapes.library import library_fingerprint, load_library
 

@@ -253,6 +253,7 @@ def test_train_cli_quick(tmp_path):
 
     rep = json.loads((out / "training_report.json").read_text())
     assert rep["format"] == "adv3d-predictor-training-report"
+    assert rep["training"]["device"] == {"device": "cpu"} and rep["training"]["seconds"] >= 0
     models = rep["held_out"]["all"]["models"]
     assert {"constant_velocity", "lane_following", "learned_top3"} <= set(models)
     assert load_predictor(out).num_modes == 6

@@ -70,7 +70,7 @@ def _doc(rng):
 
 @pytest.mark.parametrize("mutate, field", [
     (lambda d: d.update(format="adv3d-scene"), "$.format"),
-    (lambda d: d.update(version=2), "$.version"),
+    (lambda d: d.update(version=3), "$.version"),
     (lambda d: d["scene"].pop("id"), "$.scene.id"),
     (lambda d: d.update(frames=-1), "$.frames"),
     (lambda d: d["ego"].update(speed=[1.0, 2.0]), "$.ego.speed"),
@@ -145,6 +145,26 @@ def test_simulate_command_writes_metrics_and_replay(tmp_path):
     assert path == pytest.approx(m["progress_m"], abs=0.01)
 
 
+def test_simulate_autonomy_b_writes_occupancy_metrics_and_maps(tmp_path):
+    """``adv3d simulate --autonomy B`` with the shipped occupancy model: the metrics have the
+    occupancy block instead of detection and prediction, the replay (version 2) a heat map per
+    frame."""
+    from adv3d_runner.cli import main
+
+    if not (REPO_ROOT / "assets" / "models" / "occupancy" / "config.json").is_file():
+        pytest.skip("no shipped occupancy model")
+    out = tmp_path / "simB"
+    assert main(["--quiet", "simulate", str(REPO_ROOT / "scenes/highway/highway-benchmark-000001.json.gz"),
+                 "--seconds", "0.3", "--autonomy", "B", "--library", "none", "--out", str(out)]) == 0
+    m = read_json(out / "metrics.json")
+    assert m["autonomy"] == "B" and m["detection"] is None and m["prediction"] is None
+    assert set(m["occupancy"]) >= {"map", "soft_iou", "flow_grounded_map", "flow_grounded_soft_iou", "epe"}
+    assert m["ms_per_frame"]["occupancy"] > 0 and m["ms_per_frame"]["detector"] == 0
+    assert read_json(out / "replay.json.gz")["version"] == 2
+    rp = load_replay(out / "replay.json.gz")
+    assert all(f.occupancy is not None and f.occupancy.values.shape == (4, 80, 32) for f in rp.frames)
+
+
 def test_docs_example_loads(tmp_path):
     text = (REPO_ROOT / "docs" / "formats.md").read_text()
     section = text.split("## Replay", 1)[1].split("\n## ", 1)[0]
@@ -154,3 +174,76 @@ def test_docs_example_loads(tmp_path):
     rp = load_replay(path, points=False)
     assert rp.n_frames == 2 and rp.actors[0].adversarial and np.isnan(rp.actors[0].poses[1]).all()
     assert rp.frames[1].pred_trajectories.shape == (1, 3, 2, 2)
+
+
+# ------------------------------------------------------------------ occupancy maps (version 2)
+
+class _Field:
+    """A hand-made occupancy field: one 4 x 2 m box at (10, 0) moving at 5 m/s along +x."""
+
+    horizon = 5.0
+    pose = np.zeros(3)
+
+    def query(self, xy, t):
+        xy = np.asarray(xy, float).reshape(-1, 2)
+        t = np.broadcast_to(np.asarray(t, float), (len(xy),))
+        inside = (np.abs(xy[:, 0] - 10.0 - 5.0 * t) <= 2.0) & (np.abs(xy[:, 1]) <= 1.0)
+        return np.where(inside, 0.9, 0.02), np.tile([5.0, 0.0], (len(xy), 1))
+
+
+def test_occupancy_map_samples_the_field_on_a_moving_grid():
+    from adv3d_runner.sim.replay import occupancy_map
+
+    m = occupancy_map(_Field(), np.array([10.0, 0.0]), 0.0, 5.0, times=(0.0, 2.0), cell=0.5, size=(8.0, 4.0))
+    assert m.values.shape == (2, 16, 8) and m.values.dtype == np.uint8
+    np.testing.assert_allclose(m.poses[:, :2], [[10.0, 0.0], [20.0, 0.0]])  # carried at 5 m/s
+    for k in range(2):  # the box sits in the middle of each grid: 4 x 2 m = 8 x 4 cells of 0.9
+        assert (m.values[k] == 230).sum() == 8 * 4 and (m.values[k] == 5).sum() == 16 * 8 - 32
+        c = m.cell_centres(k)[m.values[k] == 230]
+        np.testing.assert_allclose(c.mean(axis=0), m.poses[k, :2], atol=1e-9)
+
+
+def _with_maps(rp):
+    from adv3d_runner.sim.replay import OccupancyMap
+
+    rng = np.random.default_rng(1)
+    for k, f in enumerate(rp.frames):
+        if k != 1:  # one frame without a map
+            f.occupancy = OccupancyMap([0.0, 1.5], rng.normal(0, 50, (2, 3)), 0.5, rng.integers(0, 256, (2, 6, 4)))
+    return rp
+
+
+def test_occupancy_maps_round_trip_as_version_2(tmp_path, rng):
+    rp = _with_maps(_replay(rng))
+    path = save_replay(rp, tmp_path / "r.json.gz")
+    doc = read_json(path)
+    assert doc["version"] == 2 and doc["outputs"][1]["occupancy"] is None
+    assert doc["outputs"][0]["occupancy"]["shape"] == [6, 4]
+    back = load_replay(path)
+    assert replay_equal(rp, back) and back.frames[1].occupancy is None
+    assert np.array_equal(back.frames[2].occupancy.values, rp.frames[2].occupancy.values)
+    # a replay without maps stays version 1, byte for byte as before
+    assert replay_to_dict(_replay(np.random.default_rng(0)))["version"] == 1
+    other = _with_maps(_replay(np.random.default_rng(0)))
+    other.frames[0].occupancy.values = other.frames[0].occupancy.values.copy()
+    other.frames[0].occupancy.values[0, 0, 0] ^= 1
+    assert not replay_equal(_with_maps(_replay(np.random.default_rng(0))), other)
+
+
+@pytest.mark.parametrize("mutate, field", [
+    (lambda d: d.update(version=1), "$.outputs[0].occupancy"),
+    (lambda d: d["outputs"][0]["occupancy"].update(values=[[[300]]]), "$.outputs[0].occupancy.values"),
+    (lambda d: d["outputs"][0]["occupancy"]["values"][1][2].__setitem__(3, 0.5), "$.outputs[0].occupancy.values"),
+    (lambda d: d["outputs"][0]["occupancy"].update(shape=[6]), "$.outputs[0].occupancy.shape"),
+    (lambda d: d["outputs"][2]["occupancy"].update(poses=[[1.0, 2.0, 3.0]]), "$.outputs[2].occupancy.poses"),
+    (lambda d: d["outputs"][2]["occupancy"].update(cell=0), "$.outputs[2].occupancy.cell"),
+    (lambda d: d["outputs"][2]["occupancy"].pop("times"), "$.outputs[2].occupancy.times"),
+])
+def test_malformed_occupancy_maps_are_named(tmp_path, rng, mutate, field):
+    doc = replay_to_dict(_with_maps(_replay(rng, with_points=False)))
+    mutate(doc)
+    path = tmp_path / "bad.json"
+    write_json(path, doc)
+    with pytest.raises(FileFormatError) as err:
+        load_replay(path)
+    assert err.value.field == field, str(err.value)

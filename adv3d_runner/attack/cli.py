@@ -31,15 +31,18 @@ def register(subparsers) -> None:
                    help="evaluate queries on an existing Ray cluster (e.g. 127.0.0.1:6379 or auto)")
     p.add_argument("--objective", default="M0",
                    help="M0 (all terms, default) .. M5 (paper ablations), or key=value list "
-                        "(det, pred, plan, alpha, beta), e.g. 'M1,beta=2' or 'pred=0.2'")
+                        "(det, pred, plan, alpha, beta), e.g. 'M1,beta=2' or 'pred=0.2'; with --autonomy B the "
+                        "presets are Autonomy-B's (det = -Soft-IoU of occupancy, pred = flow EPE, lambda_pred 1.0)")
     p.add_argument("--pred-reduction", choices=("sum", "mean"), default="sum",
                    help="the prediction term over the H waypoints: sum (paper Eq. 5 as written, default) or "
-                        "mean (the ADE; the form of runs made before this option)")
+                        "mean (the ADE; the form of runs made before this option); Autonomy-A's term (B's flow "
+                        "EPE has no waypoints)")
     p.add_argument("--scene-seeds", action="store_true",
                    help="derive each scene's search seed and LiDAR-noise seed from --seed and the scene's "
                         "content (recorded in summary.json), so searches differ per scene; default: --seed for all")
-    p.add_argument("--autonomy", default="A", choices=("A", "oracle"),
-                   help="stack under test: A (learned detector + predictor) or oracle perception")
+    p.add_argument("--autonomy", default="A", choices=("A", "B", "oracle"),
+                   help="stack under test: A (learned detector + predictor), B (instance-free: learned implicit "
+                        "occupancy-and-flow model) or oracle perception")
     p.add_argument("--reactive", action="store_true", help="actors react to the ego (IDM/MOBIL)")
     p.add_argument("--n-initial", type=at.integer(1, 1_000_000), default=11, help="BO initial queries (default 11)")
     p.add_argument("--shape-space", default=None, help="shape space .npz (default: the shipped one)")

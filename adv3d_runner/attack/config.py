@@ -44,7 +44,7 @@ SHAPE_MODELS = ("latent", "vd")
 _OPTIONAL_KEYS = {"shape_model": "latent", "max_mahalanobis": None, "class_scales": False, "realism_weight": 0.0,
                   "pred_reduction": LEGACY_PRED_REDUCTION, "scene_seeds": False}
 _VD_KEYS = ("vd_bound", "vd_lattice")
-AUTONOMY = ("A", "oracle")
+AUTONOMY = ("A", "oracle", "B")
 #: Bounds of the options (the CLI's argument types use the same ones).
 MAX_ACTORS = 64
 MAX_SECONDS = 3600.0
@@ -81,8 +81,9 @@ class QuerySettings:
 
     @property
     def weights(self) -> ObjectiveWeights:
-        """The objective's weights (``objective`` parsed) and form (``pred_reduction``)."""
-        return replace(parse_objective(self.objective), pred_reduction=self.pred_reduction)
+        """The objective's weights (``objective`` parsed with the stack's presets) and form
+        (``pred_reduction``)."""
+        return replace(parse_objective(self.objective, self.autonomy), pred_reduction=self.pred_reduction)
 
     def episode_seed(self, scene_digest: str) -> int:
         """The seed of the search's episodes on a scene (the LiDAR noise): ``seed``, or with
@@ -223,7 +224,7 @@ class AttackConfig:
             raise ConfigError(f"--shape-space must be a file name, got {self.shape_space!r}")
         if not isinstance(self.objective, str):
             raise ConfigError(f"--objective must be a string, got {self.objective!r}")
-        parse_objective(self.objective)  # validate early
+        parse_objective(self.objective, self.autonomy)  # validate early (B has its own presets)
 
     def _check_shape_options(self) -> None:
         if self.shape_model not in SHAPE_MODELS:

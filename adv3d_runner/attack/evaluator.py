@@ -286,6 +286,8 @@ class EpisodeEvaluator:
         v: dict[str, Any] = {"shape_space": self.settings.load_shape_space().content_hash}
         if self.settings.autonomy == "A":
             v["models"] = model_fingerprints()
+        elif self.settings.autonomy == "B":
+            v["models"] = model_fingerprints(("occupancy",))
         return v
 
     def evaluate_best(self, ref: str, targets: list[int], unit: np.ndarray, out: Path, *, original: bool,
@@ -317,15 +319,16 @@ class EpisodeEvaluator:
         return BestEvaluation(closed_loop=best.evaluation(), original=first, meshes=meshes, replay="replay.json.gz")
 
 
-def model_fingerprints() -> dict[str, str]:
-    """sha256 (first 16 hex digits) of every file under assets/models/{detector,predictor}: a
-    run's results depend on the weights, which may be retrained between runs."""
+def model_fingerprints(models: tuple[str, ...] = ("detector", "predictor")) -> dict[str, str]:
+    """sha256 (first 16 hex digits) of every file under assets/models/<model> for each of
+    ``models`` (Autonomy-A's by default): a run's results depend on the weights, which may be
+    retrained between runs."""
     import hashlib
 
     from ..fileio import REPO_ROOT
 
     out = {}
-    for sub in ("detector", "predictor"):
+    for sub in models:
         d = REPO_ROOT / "assets" / "models" / sub
         if not d.is_dir():
             continue

@@ -18,6 +18,15 @@ paper's ablations (Table 3 / supp. Table 6) are named presets (:data:`ABLATIONS`
 three terms (the paper's full objective), M1 = detection only, M2 = prediction only, M3 =
 planning only, M4 = detection + prediction, M5 = detection + planning.
 
+**Autonomy-B** (instance-free, paper appendix A.4) has no boxes and no trajectories; its terms
+are over the occupancy query set Q of the frame (``adv3d_runner.sim.evaluate.occupancy_frames``):
+
+* ``l_det^t = -Soft-IoU`` of the predicted occupancy against the ground truth over Q;
+* ``l_pred^t`` = the foreground flow end-point error (m/s), the mean ``||f - f^||`` over the
+  occupied query points;
+* ``c_plan^t`` as above; lambda_pred = 1.0, lambda_plan = 0.5 (:data:`ABLATIONS_B`, the same
+  names M0-M5; ``alpha``, ``beta`` and ``pred_reduction`` do not apply).
+
 The functions here are pure: per-frame terms from plain arrays (hand-made in tests), and
 :func:`episode_objective` that pulls those arrays from an ``EpisodeResult`` with the same
 ground-truth rules as the episode metrics (``adv3d_runner.sim.evaluate``), from the same
@@ -33,6 +42,7 @@ import numpy as np
 from ..errors import ConfigError
 from ..metrics.comfort import plan_comfort_cost
 from ..metrics.detection import IOU_THRESHOLD, false_positive_term, true_positive_term
+from ..metrics.occupancy import frame_terms
 from ..metrics.prediction import prediction_loss
 
 LAMBDA_PRED = 0.1
@@ -43,6 +53,7 @@ PRED_REDUCTIONS = ("sum", "mean")
 DEFAULT_PRED_REDUCTION = "sum"
 #: The form of runs whose run.json predates the choice (they were all made with the mean).
 LEGACY_PRED_REDUCTION = "mean"
+LAMBDA_PRED_B = 1.0  # Autonomy-B (paper appendix A.4)
 
 
 @dataclass(frozen=True)
@@ -87,19 +98,32 @@ ABLATIONS: dict[str, ObjectiveWeights] = {
     "M5": ObjectiveWeights(det=1.0, pred=0.0, plan=LAMBDA_PLAN),
 }
 
+#: Autonomy-B's objective and its ablations: the same presets with lambda_pred = 1.0.
+ABLATIONS_B: dict[str, ObjectiveWeights] = {
+    name: replace(w, pred=LAMBDA_PRED_B if w.pred > 0 else 0.0) for name, w in ABLATIONS.items()}
 
-def parse_objective(text: str | None) -> ObjectiveWeights:
+
+def presets_for(autonomy: str = "A") -> dict[str, ObjectiveWeights]:
+    """The named presets of a stack: :data:`ABLATIONS_B` for the instance-free stacks
+    (``adv3d_runner.autonomy.stacks.INSTANCE_FREE``), :data:`ABLATIONS` otherwise."""
+    from ..autonomy.stacks import INSTANCE_FREE
+
+    return ABLATIONS_B if autonomy in INSTANCE_FREE else ABLATIONS
+
+
+def parse_objective(text: str | None, autonomy: str = "A") -> ObjectiveWeights:
     """``"M0"``..``"M5"``, or comma-separated ``key=value`` overrides of M0
     (``"det=1,pred=0.1,plan=0.5,alpha=1,beta=1"``), optionally after a preset
-    (``"M1,beta=2"``). The form of l_pred is not part of this text: it is its own option
-    (``--pred-reduction``, ``AttackConfig.pred_reduction``)."""
+    (``"M1,beta=2"``). The presets are the stack's (:func:`presets_for`). The form of l_pred is
+    not part of this text: it is its own option (``--pred-reduction``, ``AttackConfig.pred_reduction``)."""
+    presets = presets_for(autonomy)
     if not text:
-        return ABLATIONS["M0"]
-    w = ABLATIONS["M0"]
+        return presets["M0"]
+    w = presets["M0"]
     fields = set(w.numbers())
     for part in [p.strip() for p in text.split(",") if p.strip()]:
-        if part.upper() in ABLATIONS:
-            w = ABLATIONS[part.upper()]
+        if part.upper() in presets:
+            w = presets[part.upper()]
             continue
         key, sep, value = part.partition("=")
         key = key.strip()
@@ -154,17 +178,23 @@ def planning_terms(plans: Sequence[np.ndarray], dt: float = 0.1) -> np.ndarray:
 
 @dataclass
 class ObjectiveValue:
-    """The objective of one episode: ``total`` and its frame sums (unweighted) per term."""
+    """The objective of one episode: ``total`` and its frame sums (unweighted) per term. For an
+    instance-free stack ``tp`` and ``fp`` are None and ``soft_iou`` holds the frame sum of the
+    occupancy Soft-IoU (``det`` = its negative)."""
 
     total: float
     det: float
-    tp: float
-    fp: float
+    tp: float | None
+    fp: float | None
     pred: float
     plan: float
     frames: int
+    soft_iou: float | None = None
 
     def components(self) -> dict:
+        if self.soft_iou is not None:
+            return {"det": self.det, "soft_iou": self.soft_iou, "pred": self.pred, "plan": self.plan,
+                    "frames": self.frames}
         return {"det": self.det, "tp": self.tp, "fp": self.fp, "pred": self.pred, "plan": self.plan,
                 "frames": self.frames}
 
@@ -182,8 +212,30 @@ def combine(tp: np.ndarray, fp: np.ndarray, pred: np.ndarray, plan: np.ndarray,
                           float(plan.sum()), int(max(len(tp), len(pred), len(plan))))
 
 
+def occupancy_terms(frames: Sequence[Sequence]) -> tuple[np.ndarray, np.ndarray]:
+    """Per frame (Soft-IoU of occupancy, foreground flow EPE) over the frame's query set
+    (:func:`adv3d_runner.metrics.occupancy.frame_terms`), (T,) each.
+
+    Args:
+        frames: T lists of :class:`~adv3d_runner.metrics.occupancy.OccupancySample`.
+    """
+    terms = np.array([frame_terms(list(f)) for f in frames], dtype=np.float64).reshape(-1, 2)
+    return terms[:, 0], terms[:, 1]
+
+
+def combine_occupancy(soft_iou: np.ndarray, epe: np.ndarray, plan: np.ndarray,
+                      weights: ObjectiveWeights = ABLATIONS_B["M0"]) -> ObjectiveValue:
+    """Autonomy-B's objective summed over the frames: per-frame Soft-IoU, EPE (m/s) and c_plan
+    (T,) -> :class:`ObjectiveValue` (l_det = -Soft-IoU; ``alpha``/``beta`` unused)."""
+    iou, epe, plan = (np.asarray(a, dtype=np.float64).reshape(-1) for a in (soft_iou, epe, plan))
+    total = weights.det * -iou.sum() + weights.pred * epe.sum() + weights.plan * plan.sum()
+    return ObjectiveValue(float(total), float(-iou.sum()), None, None, float(epe.sum()), float(plan.sum()),
+                          int(max(len(iou), len(epe), len(plan))), soft_iou=float(iou.sum()))
+
+
 def episode_objective(result, weights: ObjectiveWeights = ABLATIONS["M0"], evaluation=None) -> ObjectiveValue:
-    """The objective of an :class:`~adv3d_runner.sim.episode.EpisodeResult` (all frames).
+    """The objective of an :class:`~adv3d_runner.sim.episode.EpisodeResult` (all frames); for an
+    instance-free stack (its outputs carry occupancy) Autonomy-B's terms (module docstring).
 
     ``evaluation``: the episode's :class:`~adv3d_runner.sim.evaluate.EpisodeEvaluation` (its
     detection frames and prediction pairs) when the caller already has it, e.g. to share it
@@ -196,11 +248,14 @@ def episode_objective(result, weights: ObjectiveWeights = ABLATIONS["M0"], evalu
     elif evaluation.min_gt_points != MIN_GT_POINTS:
         raise ValueError(f"the objective uses min_gt_points={MIN_GT_POINTS}, the evaluation has "
                          f"{evaluation.min_gt_points}")
+    plan = planning_terms(result.plans(), result.dt)
+    if evaluation.occupancy is not None:
+        iou, epe = occupancy_terms(evaluation.occupancy)
+        return combine_occupancy(iou, epe, plan, weights)
     tp, fp = detection_terms(evaluation.detection, weights.iou_threshold)
     # l_pred is measured even when its weight is 0 (M1, M3, M5): the journal reports every term
     # unweighted, whatever the search maximised.
     pred = prediction_terms(evaluation.prediction, weights.pred_reduction)
-    plan = planning_terms(result.plans(), result.dt)
     return combine(tp, fp, pred, plan, weights)
 
 

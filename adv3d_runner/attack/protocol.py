@@ -347,13 +347,34 @@ METRICS: dict[str, tuple[tuple[str, ...], float]] = {
     "Drive lat.": (("driving_comfort", "lat"), 1.0),
     "Drive jerk": (("driving_comfort", "jerk"), 1.0),
 }
+#: Autonomy-B's (instance-free) metrics, as the lower block of the paper's Table 1: occupancy
+#: and flow-grounded occupancy mAP and Soft-IoU in %, flow EPE in m/s, comfort as above.
+METRICS_B: dict[str, tuple[tuple[str, ...], float]] = {
+    "objective": (("_cost",), 1.0),
+    "Occupancy mAP": (("occupancy", "map"), 100.0),
+    "Occupancy Soft-IoU": (("occupancy", "soft_iou"), 100.0),
+    "Flow-grounded mAP": (("occupancy", "flow_grounded_map"), 100.0),
+    "Flow-grounded Soft-IoU": (("occupancy", "flow_grounded_soft_iou"), 100.0),
+    "EPE": (("occupancy", "epe"), 1.0),
+    **{k: v for k, v in METRICS.items() if k.startswith(("Plan", "Drive"))},
+}
 #: Metrics where a lower value is worse for the stack (for the others higher is worse).
-LOWER_IS_WORSE = ("AP", "Recall")
+LOWER_IS_WORSE = ("AP", "Recall", "Occupancy mAP", "Occupancy Soft-IoU", "Flow-grounded mAP",
+                  "Flow-grounded Soft-IoU")
+
+
+def metrics_for(autonomy: str) -> dict[str, tuple[tuple[str, ...], float]]:
+    """The reported metrics of a stack: :data:`METRICS_B` for the instance-free stacks,
+    :data:`METRICS` otherwise."""
+    from ..autonomy.stacks import INSTANCE_FREE
+
+    return METRICS_B if autonomy in INSTANCE_FREE else METRICS
 
 
 def metric_value(record: dict, name: str) -> float:
-    """A metric of a held-out record (NaN when absent or null)."""
-    path, scale = METRICS[name]
+    """A metric of a held-out record (NaN when absent or null), by its name in :data:`METRICS`
+    or :data:`METRICS_B`."""
+    path, scale = METRICS[name] if name in METRICS else METRICS_B[name]
     if path == ("_cost",):
         v = record.get("cost")
     else:

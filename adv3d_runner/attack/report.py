@@ -1,8 +1,9 @@
 """``adv3d report``: a markdown report of one or more attack runs.
 
 Sections: the paper's Table 1 (Original / Adv. open-loop / Adv. closed-loop, every shape
-evaluated in closed loop: AP, recall, minADE, meanADE, planning and driving comfort), as mean
-+- std over scenes, and the same metrics as paired per-scene changes against the original; per
+evaluated in closed loop: AP, recall, minADE, meanADE, planning and driving comfort; for runs
+against the instance-free Autonomy-B its lower block: occupancy mAP and Soft-IoU, flow-grounded
+mAP and Soft-IoU, flow EPE, planning and driving comfort), as mean +- std over scenes, and the same metrics as paired per-scene changes against the original; per
 algorithm the best cost against the number of queries and against wall
 time (table + ``convergence.png``) and a head-to-head comparison of algorithms at equal budget
 (wins per scene, Wilcoxon signed-rank test); the best shapes per scene as thumbnails (matplotlib renders
@@ -33,6 +34,14 @@ COLUMNS = (("Objective", ("_objective", "cost"), 1.0), ("AP", ("detection", "ap"
            ("minADE", ("prediction", "min_ade"), 1.0), ("meanADE", ("prediction", "mean_ade"), 1.0),
            ("Plan lat.", ("planning_comfort", "lat"), 1.0), ("Plan jerk", ("planning_comfort", "jerk"), 1.0),
            ("Drive lat.", ("driving_comfort", "lat"), 1.0), ("Drive jerk", ("driving_comfort", "jerk"), 1.0))
+#: Table 1's lower block (Autonomy-B, instance-free): occupancy instead of boxes and trajectories
+COLUMNS_B = (("Objective", ("_objective", "cost"), 1.0), ("Occ. mAP", ("occupancy", "map"), 100.0),
+             ("Occ. Soft-IoU", ("occupancy", "soft_iou"), 100.0),
+             ("Flow-gr. mAP", ("occupancy", "flow_grounded_map"), 100.0),
+             ("Flow-gr. Soft-IoU", ("occupancy", "flow_grounded_soft_iou"), 100.0),
+             ("EPE", ("occupancy", "epe"), 1.0),
+             ("Plan lat.", ("planning_comfort", "lat"), 1.0), ("Plan jerk", ("planning_comfort", "jerk"), 1.0),
+             ("Drive lat.", ("driving_comfort", "lat"), 1.0), ("Drive jerk", ("driving_comfort", "jerk"), 1.0))
 
 
 def run_label(run: dict) -> str:
@@ -118,8 +127,16 @@ def _cell(values: list[float], scale: float) -> str:
     return f"{v.mean():.3g} ± {v.std():.2g}" if len(v) > 1 else f"{v.mean():.3g}"
 
 
-def table1(runs: list[tuple[str, dict, list, dict]]) -> str:
-    """Markdown Table 1 over all scenes of all runs."""
+def is_instance_free(run: dict) -> bool:
+    """The run attacked an instance-free stack (its metrics are occupancy, not boxes)."""
+    from ..autonomy.stacks import INSTANCE_FREE
+
+    return run.get("autonomy") in INSTANCE_FREE
+
+
+def table1(runs: list[tuple[str, dict, list, dict]], columns=COLUMNS) -> str:
+    """Markdown Table 1 over all scenes of all runs (``columns``: :data:`COLUMNS`, or
+    :data:`COLUMNS_B` for Autonomy-B's runs)."""
     rows: dict[str, list[dict]] = {}
     seen_original: set[str] = set()
     for _, run, _, summary in runs:
@@ -136,7 +153,7 @@ def table1(runs: list[tuple[str, dict, list, dict]]) -> str:
                         {**ev["metrics"], "_objective": {"cost": ev["cost"]}, "_realism": {"jsd": _jsd(ev)}})
     if not rows:
         return "_No closed-loop evaluations in these runs._\n"
-    cols = COLUMNS + (("JSD", ("_realism", "jsd"), 1.0),)
+    cols = columns + (("JSD", ("_realism", "jsd"), 1.0),)
     head = "| | scenes | " + " | ".join(c for c, _, _ in cols) + " |\n"
     head += "|---|---:|" + "---:|" * len(cols) + "\n"
     order = sorted(rows, key=lambda k: (k != "Original", "closed" in k, k))
@@ -144,6 +161,13 @@ def table1(runs: list[tuple[str, dict, list, dict]]) -> str:
     for name in order:
         ms = rows[name]
         body += f"| {name} | {len(ms)} | " + " | ".join(_cell([_get(m, p) for m in ms], s) for _, p, s in cols) + " |\n"
+    jsd_note = ("JSD: the paper's realism figure of the best shape (largest over a scene's attacked actors; the "
+                "library's own vehicles score up to its leave-one-out maximum, docs/realism.md); ")
+    if columns is COLUMNS_B:
+        return head + body + ("\nObjective: Autonomy-B's Eq. 3 (l_det = -Soft-IoU of occupancy, l_pred = foreground "
+                              "flow EPE, lambda_pred 1.0) summed over the frames (higher = worse for the stack); mAP "
+                              "and Soft-IoU in %, EPE in m/s, lateral acceleration in m/s², jerk in m/s³; " + jsd_note +
+                              "mean ± std over scenes; every row evaluated in closed loop.\n")
     return head + body + ("\nObjective: Eq. 3-5 summed over the frames (higher = worse for the stack); AP and "
                           "recall in %, ADE in m, lateral acceleration in m/s², jerk in m/s³; JSD: the paper's "
                           "realism figure of the best shape (largest over a scene's attacked actors; the library's "
@@ -184,10 +208,10 @@ def per_scene(runs: list[tuple[str, dict, list, dict]]) -> str:
 
 
 # metrics where a lower value is worse for the stack (the others: higher is worse)
-LOWER_IS_WORSE = ("AP", "Recall")
+LOWER_IS_WORSE = ("AP", "Recall", "Occ. mAP", "Occ. Soft-IoU", "Flow-gr. mAP", "Flow-gr. Soft-IoU")
 
 
-def paired_deltas(runs: list[tuple[str, dict, list, dict]]) -> str:
+def paired_deltas(runs: list[tuple[str, dict, list, dict]], columns=COLUMNS) -> str:
     """Markdown table: per attack row, the per-scene change against the same scene's original
     (attacked - original), mean ± std over scenes, and on how many scenes it is worse for the
     stack. Pairing by scene removes the scene-to-scene spread that dominates Table 1."""
@@ -207,8 +231,8 @@ def paired_deltas(runs: list[tuple[str, dict, list, dict]]) -> str:
     rows = {name: by for name, by in rows.items() if by}
     if not rows:
         return ""
-    head = "| Δ against original | scenes | " + " | ".join(c for c, _, _ in COLUMNS) + " | JSD |\n"
-    head += "|---|---:|" + "---:|" * (len(COLUMNS) + 1) + "\n"
+    head = "| Δ against original | scenes | " + " | ".join(c for c, _, _ in columns) + " | JSD |\n"
+    head += "|---|---:|" + "---:|" * (len(columns) + 1) + "\n"
     body = ""
     for name in sorted(rows, key=lambda k: ("closed" in k, k)):
         by = rows[name]
@@ -220,7 +244,7 @@ def paired_deltas(runs: list[tuple[str, dict, list, dict]]) -> str:
             spread = f" ± {jsd[ok].std():.2g}" if ok.sum() > 1 else ""
             jsd_cell = f"{jsd[ok].mean():.3g}{spread} ({int(np.sum(jsd[ok] > limit[ok]))}/{int(ok.sum())})"
         cells = []
-        for col, path, scale in COLUMNS:
+        for col, path, scale in columns:
             d = np.array([_get(m, path) - _get(originals[sid], path) for sid, m in by.items()]) * scale
             d = d[np.isfinite(d)]
             worse = int(np.sum(d < -1e-9)) if col in LOWER_IS_WORSE else int(np.sum(d > 1e-9))
@@ -236,9 +260,12 @@ def paired_deltas(runs: list[tuple[str, dict, list, dict]]) -> str:
 
 def objective_label(run: dict) -> str:
     """The run's objective and its form: ``M0, pred sum`` (``pred_reduction``; a run.json without
-    it predates the option and used the horizon mean)."""
+    it predates the option and used the horizon mean); ``M0, pred flow EPE`` for an
+    instance-free stack, whose prediction term has no waypoints."""
     from .objective import LEGACY_PRED_REDUCTION
 
+    if is_instance_free(run):
+        return f"{run.get('objective')}, pred flow EPE"
     return f"{run.get('objective')}, pred {run.get('pred_reduction', LEGACY_PRED_REDUCTION)}"
 
 
@@ -612,13 +639,20 @@ def write_report(run_dirs: Sequence[str | Path], out: str | Path | None = None) 
         seed = f"{run.get('seed')}" + (" (per scene)" if run.get("scene_seeds") else "")
         lines.append(f"| {root} | {run_label(run)} | {run.get('mode')} | {run.get('budget')} | {seed} | "
                      f"{objective_label(run)} | {run.get('autonomy')} | {', '.join(run.get('scene_ids', []))} |")
-    lines += ["", "## Closed-loop evaluation (paper Table 1)", "", table1(runs), ""]
-    deltas = paired_deltas(runs)
-    if deltas:
-        lines += ["### Paired change against the original", "", deltas, ""]
-    split = objective_split(runs)
-    if split:
-        lines += ["### Objective terms, paired change", "", split, ""]
+    groups = [("", [r for r in runs if not is_instance_free(r[1])], COLUMNS),
+              ("Autonomy-B (instance-free): ", [r for r in runs if is_instance_free(r[1])], COLUMNS_B)]
+    for prefix, group, columns in groups:
+        if not group:
+            continue
+        title = "Closed-loop evaluation (paper Table 1)" if not prefix else \
+            "Closed-loop evaluation of Autonomy-B (paper Table 1, lower block)"
+        lines += ["", f"## {title}", "", table1(group, columns), ""]
+        deltas = paired_deltas(group, columns)
+        if deltas:
+            lines += [f"### {prefix}Paired change against the original", "", deltas, ""]
+        split = objective_split(group)
+        if split:
+            lines += [f"### {prefix}Objective terms, paired change", "", split, ""]
     ps = per_scene(runs)
     if ps:
         lines += ["### Per scene", "", ps, ""]

@@ -234,16 +234,39 @@ class Plan:
             raise ValueError("Plan.speed must have one value per trajectory pose")
 
 
+@runtime_checkable
+class OccupancyField(Protocol):
+    """An instance-free stack's perception and prediction of one frame (Autonomy-B): occupancy
+    and flow queried at any BEV point and future time, lazily (the evaluation and the replay
+    writer query it after the frame; the stack's own planner queries it during the frame).
+
+    Attributes:
+        pose: (3,) the frame's ego pose (map frame). horizon: s, queries cover t in [0, horizon].
+    """
+
+    pose: np.ndarray
+    horizon: float
+
+    def query(self, xy: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Map-frame points xy (Q, 2) at times t (Q,) s after the frame -> occupancy
+        probability (Q,) in [0, 1] and backward flow (Q, 2) m/s in the map frame
+        (:mod:`adv3d_runner.metrics.occupancy`)."""
+        ...
+
+
 @dataclass
 class AutonomyOutputs:
     """Everything a stack produces in one frame; ``timings`` holds seconds per stage
-    (e.g. ``{"detector": 0.02, "tracker": 0.001, ...}``)."""
+    (e.g. ``{"detector": 0.02, "tracker": 0.001, ...}``). An instance-free stack (Autonomy-B)
+    has no detections, tracks or predictions (empty) and gives its ``occupancy`` field instead;
+    it is None for instance-based stacks."""
 
     detections: Detections
     tracks: Tracks
     predictions: Predictions
     plan: Plan
     timings: dict[str, float] = field(default_factory=dict)
+    occupancy: OccupancyField | None = None
 
 
 @dataclass(frozen=True)

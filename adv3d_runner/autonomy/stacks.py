@@ -1,4 +1,4 @@
-"""Ready-made autonomy stacks for episodes: Autonomy-A and an oracle-perception stack.
+"""Ready-made autonomy stacks for episodes: Autonomy-A, Autonomy-B and an oracle-perception stack.
 
 * ``make_stack("A")``: :class:`~adv3d_runner.autonomy.modular.ModularStack` with the learned BEV
   detector (``adv3d_runner.autonomy.detector.load_detector``) and the learned predictor
@@ -7,6 +7,10 @@
   never silently replaced by something else.
 * ``make_stack("A-lanefollow")``: the learned detector with the lane-following predictor
   baseline (to tell detector problems from predictor problems).
+* ``make_stack("B")``: :class:`~.instance_free.OccupancyStack`, the instance-free Autonomy-B:
+  the learned implicit occupancy-and-flow model (``adv3d_runner.autonomy.occupancy.load_occupancy``,
+  weights in ``assets/models/occupancy/``) and the same sampling planner planning on its
+  occupancy. Missing weights raise :class:`~adv3d_runner.errors.ConfigError`, as for A.
 * ``make_stack("oracle")``: the same tracker and planner, but the detector is
   :class:`~.oracle.OracleDetector` (the ground-truth boxes of the actors the LiDAR actually hit)
   and the predictor is :class:`~.baselines.LaneFollowingPredictor`. Needs no torch and no
@@ -22,7 +26,9 @@ from pathlib import Path
 from ..errors import ConfigError
 from .oracle import OracleDetector
 
-AUTONOMY_CHOICES = ("A", "oracle", "A-lanefollow")
+AUTONOMY_CHOICES = ("A", "oracle", "A-lanefollow", "B")
+#: The stacks that plan on occupancy instead of detected and predicted actors.
+INSTANCE_FREE = ("B",)
 
 #: Detections below this score never start a track in Autonomy-A (they may still update an
 #: existing one). With a detector threshold of 0.1 (the first shipped model) its low-score
@@ -36,7 +42,8 @@ def make_stack(autonomy: str = "A", *, detector_options: dict | None = None,
     """Build a fresh stack (call once per worker; ``run_episode`` resets it per episode).
 
     Args:
-        autonomy: ``"A"`` (learned detector + learned predictor), ``"A-lanefollow"`` or ``"oracle"``.
+        autonomy: ``"A"`` (learned detector + learned predictor), ``"A-lanefollow"``, ``"oracle"``
+            or ``"B"`` (learned implicit occupancy model).
         detector_options: keyword arguments for ``load_detector`` (decoding overrides such as
             ``score_threshold``).
         track_min_score: learned-detector stacks: the tracker's ``min_score`` (see
@@ -51,6 +58,10 @@ def make_stack(autonomy: str = "A", *, detector_options: dict | None = None,
         from .baselines import LaneFollowingPredictor
 
         return ModularStack(OracleDetector(), LaneFollowingPredictor())
+    if autonomy == "B":
+        from .instance_free import OccupancyStack
+
+        return OccupancyStack(_load("occupancy", "load_occupancy", {}, stack="Autonomy-B"))
     if autonomy not in ("A", "A-lanefollow"):
         raise ConfigError(f"unknown autonomy {autonomy!r}; choose one of {', '.join(AUTONOMY_CHOICES)}")
     from .tracker import MultiObjectTracker, TrackerConfig
@@ -65,12 +76,12 @@ def make_stack(autonomy: str = "A", *, detector_options: dict | None = None,
     return ModularStack(detector, predictor, tracker=tracker)
 
 
-def _load(module: str, func: str, options: dict):
+def _load(module: str, func: str, options: dict, stack: str = "Autonomy-A"):
     """Import ``adv3d_runner.autonomy.<module>.<func>`` and call it, turning a missing module or
     missing weights into a ConfigError that says what to do."""
     import importlib
 
-    hint = (f"Autonomy-A needs the learned {module} and its weights in assets/models/{module}/ "
+    hint = (f"{stack} needs the learned {module} and its weights in assets/models/{module}/ "
             f"(train them with `adv3d train {module}`); use --autonomy oracle to run with oracle perception")
     try:
         mod = importlib.import_module(f"adv3d_runner.autonomy.{module}")

@@ -1,6 +1,6 @@
 """``adv3d simulate``: run one episode and write its metrics and replay.
 
-    adv3d simulate SCENE [--open-loop] [--seconds 5] [--reactive] [--autonomy A|oracle]
+    adv3d simulate SCENE [--open-loop] [--seconds 5] [--reactive] [--autonomy A|B|oracle|A-lanefollow]
                    [--points] [--seed S] [--start-frame F] [--library PATH|none] --out DIR
 
 Writes ``DIR/metrics.json`` (format "adv3d-episode-metrics") and ``DIR/replay.json.gz``
@@ -21,8 +21,9 @@ def register(subparsers) -> None:
     p.add_argument("--open-loop", action="store_true", help="the ego replays its log instead of following its plans")
     p.add_argument("--seconds", type=at.number(0.0, 3600.0, lo_open=True), default=5.0, help="episode length in s (default 5)")
     p.add_argument("--reactive", action="store_true", help="actors react to the ego (IDM/MOBIL) instead of replaying")
-    p.add_argument("--autonomy", choices=("A", "oracle", "A-lanefollow"), default="A",
-                   help="A: learned detector + predictor (needs the shipped weights); oracle: ground-truth "
+    p.add_argument("--autonomy", choices=("A", "B", "oracle", "A-lanefollow"), default="A",
+                   help="A: learned detector + predictor (needs the shipped weights); B: instance-free, the learned "
+                        "implicit occupancy-and-flow model + the same planner; oracle: ground-truth "
                         "boxes of the actors the LiDAR hits + lane-following prediction; A-lanefollow: learned detector + lane-following prediction (default A)")
     p.add_argument("--points", action="store_true", help="store the LiDAR points in the replay (large)")
     p.add_argument("--seed", type=at.seed, default=0, help="seed of the LiDAR noise (default 0)")
@@ -74,9 +75,15 @@ def _simulate(args) -> int:
     def f(x, fmt="{:.3f}"):
         return "n/a" if x is None else fmt.format(x)
 
+    if "occupancy" in metrics:  # instance-free: occupancy and flow instead of boxes and trajectories
+        o = metrics["occupancy"]
+        perception = (f"occupancy mAP {f(o['map'])} Soft-IoU {f(o['soft_iou'])} | flow-grounded mAP "
+                      f"{f(o['flow_grounded_map'])} Soft-IoU {f(o['flow_grounded_soft_iou'])} | EPE {f(o['epe'], '{:.2f}')} m/s")
+    else:
+        perception = (f"AP {f(d['ap'], '{:.3f}')} recall {f(d['recall'])} | "
+                      f"minADE {f(p['min_ade'], '{:.2f}')} meanADE {f(p['mean_ade'], '{:.2f}')}")
     status(f"{scene.id}: {'open' if args.open_loop else 'closed'} loop{' reactive' if args.reactive else ''}, "
-           f"{result.frames} frames | AP {f(d['ap'], '{:.3f}')} recall {f(d['recall'])} | "
-           f"minADE {f(p['min_ade'], '{:.2f}')} meanADE {f(p['mean_ade'], '{:.2f}')} | "
+           f"{result.frames} frames | {perception} | "
            f"plan lat {metrics['planning_comfort']['lat']:.3f} jerk {metrics['planning_comfort']['jerk']:.3f} | "
            f"drive lat {metrics['driving_comfort']['lat']:.3f} jerk {metrics['driving_comfort']['jerk']:.3f} | "
            f"collision {'yes' if c['collided'] else 'no'} off-road {'yes' if metrics['off_road'] else 'no'} | "

@@ -340,7 +340,8 @@ class Episode:
         t3 = time.perf_counter()
         self.ego = _follow(out, ego, k + 1, self.dt) if self.closed_loop else ego
         self.k = k + 1
-        seconds = {name: float(out.timings.get(name, 0.0)) for name in ("detector", "tracker", "predictor", "planner")}
+        seconds = {name: float(out.timings.get(name, 0.0))
+                   for name in ("detector", "tracker", "predictor", "occupancy", "planner")}
         seconds.update(lidar=t1 - t0, traffic=t3 - t2, total=time.perf_counter() - t_start)
         record = EpisodeFrame(k, ego, poses_k, frame, counts, out, seconds)
         for recorder in self.recorders:

@@ -11,6 +11,14 @@
   out. Averaged over all (frame, track) pairs.
 * **Planning comfort**: lateral acceleration and jerk of every chosen plan, averaged over the
   plans; **driving comfort**: of the executed ego trajectory (``metrics.comfort``).
+* **Occupancy** (instance-free stacks, Autonomy-B, whose outputs carry an occupancy field
+  instead of detections and predictions; :mod:`adv3d_runner.metrics.occupancy`): occupancy mAP
+  and Soft-IoU, flow-grounded mAP and Soft-IoU and foreground flow EPE on the query set of
+  :func:`occupancy_frames`: per frame a 1 m grid 0-50 m ahead of the ego and 12 m to either
+  side (the paper's ROI) at the times ``OCCUPANCY_TIMES`` (0-5 s), the grid carried forward at
+  the ego's current speed (x + v t: on a highway the traffic of the ROI moves with the ego, a
+  grid fixed in the current frame would at 5 s only hold cars that were 100-150 m behind, out of
+  sensor range). The detection and prediction blocks of such an episode are null.
 * **Collision** (footprint overlap with any actor), ``at_fault`` (the first collision is with
   an actor ahead of the ego: a replayed actor can drive into a slower ego from behind),
   minimum ego-actor footprint distance, **off road** (largest distance of an ego footprint
@@ -31,6 +39,7 @@ import numpy as np
 from ..geometry.boxes import box_corners, iou_pairwise
 from ..metrics.comfort import collisions, driving_comfort, planning_comfort
 from ..metrics.detection import ROI_AHEAD, evaluate_frames, roi_mask
+from ..metrics.occupancy import FLOW_LAG, OccupancySample, flow_grounded, occupancy_metrics, occupancy_targets
 from ..metrics.prediction import match_to_ground_truth, prediction_metrics
 from ..scene import lanes as lanegeo
 
@@ -38,6 +47,9 @@ METRICS_FORMAT = "adv3d-episode-metrics"
 METRICS_VERSION = 1
 MIN_GT_POINTS = 5
 OFF_ROAD_TOLERANCE = 0.3  # m a footprint corner may stray outside the lanes (onto the shoulder paint)
+OCCUPANCY_TIMES = (0.0, 1.0, 2.0, 3.0, 4.0, 5.0)  # s, query times of the occupancy metrics
+OCCUPANCY_LATERAL = 12.0  # m to either side of the ego (its lane and about two more each side)
+OCCUPANCY_SPACING = 1.0   # m between query points
 
 
 def detection_frames(result, min_gt_points: int = MIN_GT_POINTS, ahead: float = ROI_AHEAD
@@ -92,6 +104,59 @@ def prediction_pairs(result, ahead: float = ROI_AHEAD, max_distance: float = 3.0
     return out
 
 
+def occupancy_grid(ahead: float = ROI_AHEAD, lateral: float = OCCUPANCY_LATERAL,
+                   spacing: float = OCCUPANCY_SPACING) -> np.ndarray:
+    """(G, 2) ego-frame query points of the occupancy metrics at t = 0: x in [0, ahead],
+    |y| <= lateral, every ``spacing`` m."""
+    xs = np.arange(0.0, ahead + 1e-9, spacing)
+    ys = np.arange(-lateral, lateral + 1e-9, spacing)
+    return np.stack(np.meshgrid(xs, ys, indexing="ij"), axis=-1).reshape(-1, 2)
+
+
+def occupancy_frames(result, times: tuple[float, ...] = OCCUPANCY_TIMES) -> list[list[OccupancySample]] | None:
+    """Per frame, per query time, the query points of the occupancy metrics with their ground
+    truth (the episode's actor boxes, the adversarial ones with their substituted dimensions)
+    and the stack's prediction (its field queried once per frame); None when the stack gives no
+    occupancy. A time past the episode's ground truth is left out; the flow-grounded prediction
+    is None where the boxes ``FLOW_LAG`` s before the query time are before the episode."""
+    outs = result.outputs
+    if not outs or all(o.occupancy is None for o in outs):
+        return None
+    grid = occupancy_grid()
+    dt = float(result.dt)
+    lag = int(round(FLOW_LAG / dt))
+    n_gt = len(result.actor_poses)
+    frames: list[list[OccupancySample]] = []
+    for k, o in enumerate(outs):
+        field = o.occupancy
+        if field is None:
+            frames.append([])
+            continue
+        x0, y0, yaw = result.ego_poses[k]
+        v = float(result.ego_speeds[k])
+        c, s = np.cos(yaw), np.sin(yaw)
+        use = [t for t in times if k + int(round(t / dt)) < n_gt and t <= field.horizon + 1e-9]
+        pts, tq = [], []
+        for t in use:
+            lx, ly = grid[:, 0] + v * t, grid[:, 1]
+            pts.append(np.stack([x0 + c * lx - s * ly, y0 + s * lx + c * ly], axis=1))
+            tq.append(np.full(len(grid), t))
+        if not use:
+            frames.append([])
+            continue
+        occ_p, flow_p = field.query(np.concatenate(pts), np.concatenate(tq))
+        samples = []
+        for i, t in enumerate(use):
+            j = k + int(round(t / dt))
+            sl = slice(i * len(grid), (i + 1) * len(grid))
+            before = result.gt_boxes(j - lag) if j - lag >= 0 else None
+            occ, flow, fv = occupancy_targets(pts[i], result.gt_boxes(j), before, FLOW_LAG)
+            grounded = None if before is None else flow_grounded(occ_p[sl], flow_p[sl], pts[i], before, FLOW_LAG)
+            samples.append(OccupancySample(t, occ, occ_p[sl], flow, flow_p[sl], fv, grounded))
+        frames.append(samples)
+    return frames
+
+
 @dataclass(frozen=True, eq=False)
 class EpisodeEvaluation:
     """The per-frame inputs of the episode metrics and the attack objective, computed once.
@@ -102,16 +167,26 @@ class EpisodeEvaluation:
         prediction: T tuples (predictions (M, K, H, 2), true futures (M, H, 2), valid (M, H))
             (:func:`prediction_pairs`).
         min_gt_points: the visibility rule ``detection`` was made with.
+        occupancy: per frame the occupancy query slices (:func:`occupancy_frames`), or None for
+            a stack without occupancy output.
     """
 
     detection: list[tuple[np.ndarray, np.ndarray, np.ndarray]]
     prediction: list[tuple[np.ndarray, np.ndarray, np.ndarray]]
     min_gt_points: int = MIN_GT_POINTS
+    occupancy: list[list[OccupancySample]] | None = None
+
+    @property
+    def instance_free(self) -> bool:
+        """The stack gave occupancy instead of detections and predictions (Autonomy-B)."""
+        return self.occupancy is not None
 
 
 def episode_evaluation(result, min_gt_points: int = MIN_GT_POINTS) -> EpisodeEvaluation:
-    """Detection frames and prediction pairs of an episode, once (see :class:`EpisodeEvaluation`)."""
-    return EpisodeEvaluation(detection_frames(result, min_gt_points), prediction_pairs(result), int(min_gt_points))
+    """Detection frames, prediction pairs and occupancy slices of an episode, once (see
+    :class:`EpisodeEvaluation`)."""
+    return EpisodeEvaluation(detection_frames(result, min_gt_points), prediction_pairs(result), int(min_gt_points),
+                             occupancy_frames(result))
 
 
 def off_road_distance(lanes, boxes: np.ndarray) -> np.ndarray:
@@ -171,7 +246,7 @@ def episode_metrics(result, lanes, min_gt_points: int = MIN_GT_POINTS,
     path = float(np.sum(np.hypot(*np.diff(result.ego_poses[:, :2], axis=0).T))) if T > 1 else 0.0
     timing = {k: _f(1000 * np.mean(v)) for k, v in result.timings.items()}
     total = float(np.sum(result.timings.get("total", np.zeros(1))))
-    return {
+    doc = {
         "format": METRICS_FORMAT, "version": METRICS_VERSION,
         "scene": result.scene_id, "start_frame": result.start_frame, "frames": T, "dt": result.dt,
         "closed_loop": result.closed_loop, "reactive": result.reactive, "seed": result.seed,
@@ -191,3 +266,11 @@ def episode_metrics(result, lanes, min_gt_points: int = MIN_GT_POINTS,
         "progress_m": path, "mean_speed": _f(np.mean(result.ego_speeds)) if T else None,
         "ms_per_frame": timing, "fps": _f(T / total) if total > 0 else None,
     }
+    if evaluation.instance_free:  # no boxes, no trajectories: occupancy and flow instead
+        doc["detection"] = None
+        doc["prediction"] = None
+        occ = occupancy_metrics([s for frame in evaluation.occupancy for s in frame])
+        occ.update(roi_ahead_m=ROI_AHEAD, lateral_m=OCCUPANCY_LATERAL, spacing_m=OCCUPANCY_SPACING,
+                   flow_lag_s=FLOW_LAG)
+        doc["occupancy"] = occ
+    return doc

@@ -22,7 +22,7 @@ if TYPE_CHECKING:  # pragma: no cover - annotations only
     from .episode import Episode, EpisodeResult
 
 #: Stages of :attr:`~adv3d_runner.sim.episode.EpisodeResult.timings` (seconds per frame).
-STAGES = ("lidar", "detector", "tracker", "predictor", "planner", "traffic", "total")
+STAGES = ("lidar", "detector", "tracker", "predictor", "occupancy", "planner", "traffic", "total")
 
 
 @dataclass(frozen=True, eq=False)

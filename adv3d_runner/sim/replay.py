@@ -1,10 +1,14 @@
 """The replay file: one episode, frame by frame, for review (Blender add-on) and for reports.
 
-Contract "adv3d-replay", version 1 (documented in ``docs/formats.md``, section "Replay"):
+Contract "adv3d-replay", version 1 or 2 (documented in ``docs/formats.md``, section "Replay"):
 
 * ``NAME.json`` or ``NAME.json.gz``: header, how the episode was run, ego and actors (poses per
   frame, ``null`` where an actor is absent), and per frame the detections with scores, the
   confirmed tracks, the predicted trajectories (modes + probabilities) and the chosen plan;
+  version 2 adds, for a stack with occupancy output (Autonomy-B), per frame an
+  ``occupancy`` heat map: the predicted occupancy on a small grid around the attacked actors
+  (or ahead of the ego) at a few future times (:class:`OccupancyMap`). A file without maps is
+  written as version 1, exactly as before;
 * optionally ``points``: the name of a sibling ``.npz`` (``np.load(..., allow_pickle=False)``)
   with every frame's LiDAR points in the **ego frame**, concatenated: ``xyz_cm`` (P, 3) int16
   centimetres, ``intensity`` (P,) uint8 (intensity x 255), ``label`` (P,) int16 (index into the
@@ -31,8 +35,15 @@ from ..progress import Steps, run_steps
 from ..validate import Node, check_header, describe, read_npz_steps
 
 FORMAT = "adv3d-replay"
-VERSION = 1
+VERSION = 1             # a replay without occupancy maps (and the points file)
+VERSION_OCCUPANCY = 2   # a replay with occupancy maps
 POINTS_FORMAT = "adv3d-replay-points"
+#: occupancy maps: times (s after the frame), cell size (m), extent along / across the ego's
+#: heading (m), and how far ahead of the ego the map is centred when no actor is attacked
+MAP_TIMES = (0.0, 1.0, 2.0, 3.0)
+MAP_CELL = 0.5
+MAP_SIZE = (40.0, 16.0)
+MAP_AHEAD = 20.0
 POS, ANG, SPD, SCORE = 3, 4, 3, 4  # decimals
 #: Largest |value| of any number in a replay (m, m/s, rad): far beyond any scene (whose
 #: positions are bounded by 1e7 m), so a hostile 1e308 cannot overflow the quantisation.
@@ -81,6 +92,71 @@ class ReplayActor:
         self.adversarial = bool(self.adversarial)
 
 
+@dataclass(eq=False)
+class OccupancyMap:
+    """Predicted occupancy of one frame on small grids, one per time (map frame).
+
+    Grid k is centred at ``poses[k]`` (x, y) with its x axis along ``poses[k]`` yaw (the ego's
+    heading); cell (i, j) has its centre at local ((i + 0.5) cell - nx cell / 2,
+    (j + 0.5) cell - ny cell / 2).
+
+    Attributes:
+        times: (K,) s after the frame. poses: (K, 3) x, y, yaw. cell: m.
+        values: (K, nx, ny) uint8, occupancy probability x 255 (rounded).
+    """
+
+    times: np.ndarray
+    poses: np.ndarray
+    cell: float
+    values: np.ndarray
+
+    def __post_init__(self) -> None:
+        self.times = _q(np.asarray(self.times, float).reshape(-1), SCORE)
+        self.poses = _qpose(np.asarray(self.poses, float).reshape(-1, 3))
+        self.cell = float(_q(self.cell, POS))
+        v = np.asarray(self.values)
+        if v.ndim != 3 or len(v) != len(self.times) or len(self.poses) != len(self.times):
+            raise ValueError(f"occupancy values must be (K, nx, ny) for {len(self.times)} times, got {v.shape}")
+        if v.dtype != np.uint8:
+            v = np.clip(np.rint(np.asarray(v, dtype=np.float64)), 0, 255).astype(np.uint8)
+        self.values = v
+
+    @property
+    def probabilities(self) -> np.ndarray:
+        """(K, nx, ny) float64 in [0, 1]."""
+        return self.values / 255.0
+
+    def cell_centres(self, k: int) -> np.ndarray:
+        """(nx, ny, 2) map-frame centres of grid k's cells."""
+        nx, ny = self.values.shape[1:]
+        lx = (np.arange(nx) + 0.5) * self.cell - 0.5 * nx * self.cell
+        ly = (np.arange(ny) + 0.5) * self.cell - 0.5 * ny * self.cell
+        gx, gy = np.meshgrid(lx, ly, indexing="ij")
+        x, y, yaw = self.poses[k]
+        c, s = np.cos(yaw), np.sin(yaw)
+        return np.stack([x + c * gx - s * gy, y + s * gx + c * gy], axis=-1)
+
+    def equals(self, other: "OccupancyMap") -> bool:
+        return (np.array_equal(self.times, other.times) and np.array_equal(self.poses, other.poses)
+                and self.cell == other.cell and np.array_equal(self.values, other.values))
+
+
+def occupancy_map(field, centre: np.ndarray, yaw: float, speed: float, times=MAP_TIMES, cell: float = MAP_CELL,
+                  size: tuple[float, float] = MAP_SIZE) -> OccupancyMap:
+    """Query ``field`` (an ``OccupancyField``) on the map grids of one frame: grid k centred at
+    ``centre`` (2,) carried ``speed`` x t m along ``yaw`` (the traffic around moves with the
+    ego), aligned with ``yaw``."""
+    nx, ny = int(round(size[0] / cell)), int(round(size[1] / cell))
+    d = np.array([np.cos(yaw), np.sin(yaw)])
+    times = np.asarray(times, dtype=np.float64)
+    poses = np.array([[*(np.asarray(centre, float) + speed * t * d), yaw] for t in times]).reshape(-1, 3)
+    m = OccupancyMap(times, poses, cell, np.zeros((len(times), nx, ny), np.uint8))
+    pts = np.concatenate([m.cell_centres(k).reshape(-1, 2) for k in range(len(times))])
+    occ, _ = field.query(pts, np.repeat(m.times, nx * ny))
+    m.values = np.clip(np.rint(occ * 255.0), 0, 255).astype(np.uint8).reshape(len(times), nx, ny)
+    return m
+
+
 @dataclass
 class ReplayFrame:
     """The stack's outputs in one frame (map frame).
@@ -91,6 +167,7 @@ class ReplayFrame:
         pred_track_ids: (P,) int64; pred_trajectories: (P, K, H, 2); pred_probabilities: (P, K).
         plan: (S, 3) x, y, yaw of the chosen plan (index 0 = now); plan_speed: (S,);
         plan_label: str; plan_cost: float.
+        occupancy: the frame's :class:`OccupancyMap` (stacks with occupancy output), or None.
     """
 
     det_boxes: np.ndarray
@@ -105,6 +182,7 @@ class ReplayFrame:
     plan_speed: np.ndarray
     plan_label: str = ""
     plan_cost: float = 0.0
+    occupancy: OccupancyMap | None = None
 
     def __post_init__(self) -> None:
         self.det_boxes = _qbox(self.det_boxes)
@@ -189,22 +267,40 @@ def _quantise_points(p: np.ndarray) -> np.ndarray:
 
 # ------------------------------------------------------------------ from an episode
 
+def map_centre(result, k: int) -> np.ndarray:
+    """Where frame k's occupancy map is centred: the mean position of the attacked actors
+    present in frame k, else ``MAP_AHEAD`` m ahead of the ego. (2,) map frame."""
+    pos = result.actor_poses[k][np.asarray(result.adversarial, bool)]
+    pos = pos[np.isfinite(pos).all(axis=1)]
+    if len(pos):
+        return pos[:, :2].mean(axis=0)
+    x, y, yaw = result.ego_poses[k]
+    return np.array([x + MAP_AHEAD * np.cos(yaw), y + MAP_AHEAD * np.sin(yaw)])
+
+
 def replay_from_episode(result, *, autonomy: str = "", scene_file: str | None = None,
                         metadata: dict | None = None, meshes: dict[int, str] | None = None) -> Replay:
     """Build a :class:`Replay` from an :class:`~adv3d_runner.sim.episode.EpisodeResult`.
 
     ``meshes``: {actor id: path of its substituted mesh file, relative to the replay file}.
+    Frames whose outputs carry an occupancy field get an :class:`OccupancyMap` (around
+    :func:`map_centre`, at ``MAP_TIMES``).
     """
     T = result.frames
     actors = [ReplayActor(int(a), c, result.actor_dimensions[i], result.actor_poses[:T, i],
                           bool(result.adversarial[i]), (meshes or {}).get(int(a)))
               for i, (a, c) in enumerate(zip(result.actor_ids, result.actor_classes))]
     frames = []
-    for o in result.outputs:
+    for k, o in enumerate(result.outputs):
         p = o.predictions
+        occ = None
+        if o.occupancy is not None:
+            times = [t for t in MAP_TIMES if t <= o.occupancy.horizon + 1e-9]
+            occ = occupancy_map(o.occupancy, map_centre(result, k), float(result.ego_poses[k][2]),
+                                float(result.ego_speeds[k]), times)
         frames.append(ReplayFrame(o.detections.boxes, o.detections.scores, o.tracks.ids, o.tracks.boxes,
                                   o.tracks.velocities, p.track_ids, p.trajectories, p.probabilities,
-                                  o.plan.trajectory, o.plan.speed, o.plan.label, o.plan.cost))
+                                  o.plan.trajectory, o.plan.speed, o.plan.label, o.plan.cost, occ))
     return Replay(result.scene_id, result.dt, result.ego_dimensions, result.ego_poses, result.ego_speeds, actors,
                   frames, result.start_frame, result.closed_loop, result.reactive, result.seed, autonomy, scene_file,
                   result.points, dict(metadata or {}))
@@ -235,10 +331,17 @@ def points_path(path: str | Path) -> Path:
     return p.with_name(name + ".points.npz")
 
 
+def _occupancy_json(m: OccupancyMap) -> dict:
+    return {"times": _num(m.times), "poses": _num(m.poses), "cell": m.cell, "shape": list(m.values.shape[1:]),
+            "values": m.values.tolist()}
+
+
 def replay_to_dict(replay: Replay, points_file: str | None = None) -> dict:
-    """The JSON document (plain types, fixed field order)."""
-    return {
-        "format": FORMAT, "version": VERSION,
+    """The JSON document (plain types, fixed field order); version 2 when a frame has an
+    occupancy map, else version 1."""
+    has_maps = any(f.occupancy is not None for f in replay.frames)
+    doc = {
+        "format": FORMAT, "version": VERSION_OCCUPANCY if has_maps else VERSION,
         "scene": {"id": replay.scene_id, "file": replay.scene_file},
         "dt": replay.dt, "start_frame": int(replay.start_frame), "frames": replay.n_frames,
         "closed_loop": bool(replay.closed_loop), "reactive": bool(replay.reactive), "seed": int(replay.seed),
@@ -260,6 +363,10 @@ def replay_to_dict(replay: Replay, points_file: str | None = None) -> dict:
         "points": points_file,
         "metadata": replay.metadata,
     }
+    if has_maps:
+        for out, f in zip(doc["outputs"], replay.frames):
+            out["occupancy"] = None if f.occupancy is None else _occupancy_json(f.occupancy)
+    return doc
 
 
 def save_replay(replay: Replay, path: str | Path, *, indent: int | None = None) -> Path:
@@ -300,8 +407,8 @@ def _ids(node: Node, n: int | None = None) -> np.ndarray:
     return ids.astype(np.int64)
 
 
-def _frame(o: Node) -> ReplayFrame:
-    o.check_keys(("detections", "tracks", "predictions", "plan"))
+def _frame(o: Node, version: int = VERSION) -> ReplayFrame:
+    o.check_keys(("detections", "tracks", "predictions", "plan", "occupancy"))
     det = o["detections"]
     det.check_keys(("boxes", "scores"))
     boxes = det["boxes"].array((None, 5), limit=MAX_ABS)
@@ -320,8 +427,33 @@ def _frame(o: Node) -> ReplayFrame:
     pl.check_keys(("trajectory", "speed", "label", "cost"))
     plan = pl["trajectory"].array((None, 3), limit=MAX_ABS)
     speed = pl["speed"].array((len(plan),), limit=MAX_ABS)
+    occ = None
+    if "occupancy" in o:
+        if version < VERSION_OCCUPANCY:
+            o["occupancy"].fail(f"no occupancy map in a version {version} file (maps need version "
+                                f"{VERSION_OCCUPANCY})", "a map")
+        occ = _occupancy(o["occupancy"])
     return ReplayFrame(boxes, scores, tids, tboxes, tvel, pids, traj, probs, plan, speed,
-                       pl.get("label", "").string(empty=True), pl.get("cost", 0.0).number(lo=-MAX_ABS, hi=MAX_ABS))
+                       pl.get("label", "").string(empty=True), pl.get("cost", 0.0).number(lo=-MAX_ABS, hi=MAX_ABS),
+                       occ)
+
+
+def _occupancy(o: Node) -> OccupancyMap | None:
+    """A frame's ``occupancy`` heat map (version 2), or None for ``null``."""
+    if o.value is None:
+        return None
+    o.check_keys(("times", "poses", "cell", "shape", "values"))
+    times = o["times"].array((None,), limit=MAX_ABS)
+    if np.any(times < 0):
+        o["times"].fail("times >= 0 s", describe(o["times"].value))
+    poses = o["poses"].array((len(times), 3), limit=MAX_ABS)
+    cell = o["cell"].number(lo=1e-6, hi=MAX_ABS)
+    shape = o["shape"]
+    nxy = [n.integer(lo=1, hi=100_000) for n in shape.items("[nx, ny], two integers >= 1", length=2)]
+    values = o["values"].array((len(times), nxy[0], nxy[1]), limit=MAX_ABS)
+    if np.any(values != np.round(values)) or np.any(values < 0) or np.any(values > 255):
+        o["values"].fail("integers in [0, 255] (occupancy probability x 255)", describe(o["values"].value))
+    return OccupancyMap(times, poses, cell, values.astype(np.uint8))
 
 
 #: Frames validated per step of :func:`load_replay_steps`; points rows converted per step.
@@ -338,7 +470,7 @@ def replay_from_dict_steps(raw: Any, path: str | Path | None = None,
                            points: list[np.ndarray] | None = None) -> Steps[Replay]:
     """:func:`replay_from_dict` as a steps generator (``STEP_FRAMES`` frames per step)."""
     doc = Node(raw, "$", path)
-    check_header(doc, FORMAT, (VERSION,))
+    version = check_header(doc, FORMAT, (VERSION, VERSION_OCCUPANCY))
     doc.check_keys(_KEYS)
     scene = doc["scene"]
     scene.object()
@@ -364,7 +496,7 @@ def replay_from_dict_steps(raw: Any, path: str | Path | None = None,
                                   None if mesh.value is None else mesh.rel_path(inside="the replay's folder")))
     frames = []
     for o in doc["outputs"].items(f"a list of {T} frames", length=T):
-        frames.append(_frame(o))
+        frames.append(_frame(o, version))
         if len(frames) % STEP_FRAMES == 0:
             yield
     meta = doc.get("metadata", {}).object("a JSON object")
@@ -464,7 +596,9 @@ def replay_equal(a: Replay, b: Replay) -> bool:
         if not all(eq(getattr(x, f), getattr(y, f)) for f in ("id", "cls", "dimensions", "poses", "adversarial", "mesh")):
             return False
     for x, y in zip(a.frames, b.frames):
-        if not all(eq(getattr(x, f), getattr(y, f)) for f in ReplayFrame.__dataclass_fields__):
+        if not all(eq(getattr(x, f), getattr(y, f)) for f in ReplayFrame.__dataclass_fields__ if f != "occupancy"):
+            return False
+        if (x.occupancy is None) != (y.occupancy is None) or (x.occupancy is not None and not x.occupancy.equals(y.occupancy)):
             return False
     if (a.points is None) != (b.points is None):
         return False

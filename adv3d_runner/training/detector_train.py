@@ -112,14 +112,15 @@ def evaluate_detector(det: BevDetector, fs: FrameSet, min_points: int = DEFAULT_
     return out
 
 
-def val_loss(net: PixorNet, fs: FrameSet, cfg: DetectorConfig, min_points: int, batch: int = 16) -> tuple[float, float]:
+def val_loss(net: PixorNet, fs: FrameSet, cfg: DetectorConfig, min_points: int, batch: int = 16,
+             device="cpu") -> tuple[float, float]:
     net.eval()
     tot_c = tot_b = 0.0
     n = 0
     with torch.inference_mode():
         for k in range(0, len(fs), batch):
             idx = np.arange(k, min(k + batch, len(fs)))
-            x, s, w, r = make_batch(fs, idx, cfg, min_points)
+            x, s, w, r = (t.to(device) for t in make_batch(fs, idx, cfg, min_points))
             logits, box = net(x)
             c, b = detector_loss(logits, box, s, w, r)
             tot_c += float(c) * len(idx)
@@ -130,14 +131,16 @@ def val_loss(net: PixorNet, fs: FrameSet, cfg: DetectorConfig, min_points: int, 
 
 def train_detector(train: FrameSet, val: FrameSet | None, cfg: DetectorConfig, epochs: int = 12, batch: int = 8,
                    lr: float = 2e-3, weight_decay: float = 1e-4, seed: int = 0, min_points: int = DEFAULT_MIN_POINTS,
-                   threads: int = 1, log: Callable[[str], None] = print, time_limit_s: float | None = None
-                   ) -> tuple[BevDetector, dict]:
-    """Train a :class:`PixorNet` on ``train``; returns the detector and a history dict
-    (per-epoch train/val losses, seconds, stopped_early)."""
+                   threads: int = 1, log: Callable[[str], None] = print, time_limit_s: float | None = None,
+                   device="cpu") -> tuple[BevDetector, dict]:
+    """Train a :class:`PixorNet` on ``train`` (on ``device``: "cpu", the shipped weights, or a
+    ``torch.device``); returns the detector (on the CPU) and a history dict (per-epoch
+    train/val losses, seconds, stopped_early)."""
     torch.manual_seed(seed)
     torch.set_num_threads(threads)
+    device = torch.device(device)
     rng = np.random.default_rng([seed, 7])
-    net = PixorNet(cfg)
+    net = PixorNet(cfg).to(device)
     opt = torch.optim.AdamW(net.parameters(), lr=lr, weight_decay=weight_decay)
     steps_per_epoch = max(1, math.ceil(len(train) / batch))
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=lr, total_steps=epochs * steps_per_epoch,
@@ -157,7 +160,7 @@ def train_detector(train: FrameSet, val: FrameSet | None, cfg: DetectorConfig, e
         sc = sb = 0.0
         for k in range(0, len(order), batch):
             idx = order[k:k + batch]
-            x, s, w, r = make_batch(train, idx, cfg, min_points, mirror[k:k + batch])
+            x, s, w, r = (t.to(device) for t in make_batch(train, idx, cfg, min_points, mirror[k:k + batch]))
             logits, box = net(x)
             c, b = detector_loss(logits, box, s, w, r)
             loss = c + b
@@ -172,7 +175,7 @@ def train_detector(train: FrameSet, val: FrameSet | None, cfg: DetectorConfig, e
         hist["train_score_loss"].append(sc / len(train))
         hist["train_box_loss"].append(sb / len(train))
         if val_sub is not None:
-            vc, vb = val_loss(net, val_sub, cfg, min_points)
+            vc, vb = val_loss(net, val_sub, cfg, min_points, device=device)
         else:
             vc = vb = float("nan")
         hist["val_score_loss"].append(vc)
@@ -184,7 +187,7 @@ def train_detector(train: FrameSet, val: FrameSet | None, cfg: DetectorConfig, e
             hist["stopped_early"] = True
             log(f"time limit {time_limit_s:.0f} s reached: stopping after epoch {ep + 1}")
             break
-    net.eval()
+    net = net.cpu().eval()
     return BevDetector(cfg, net, threads=1), hist
 
 

@@ -49,8 +49,10 @@ def train_predictor(scenes: int = 240, val_scenes: int = 40, epochs: int = 20, s
                     command: str = "", cls_weight: float = 0.5, lane_dropout: float = 0.05,
                     time_limit_min: float | None = 40.0, real_train: Sequence[str | Path] = (),
                     real_eval: Sequence[str | Path] = (), real_weight: int = 10,
-                    real_info: dict | None = None) -> dict:
+                    real_info: dict | None = None, device="cpu") -> dict:
     """Train and evaluate the predictor; write weights, config, report and curves to ``out``.
+    ``device``: "cpu" (the shipped weights) or a ``torch.device`` (training only; the
+    evaluation and the saved weights are on the CPU).
 
     ``real_train``: real scene files added to the training data (each sample ``real_weight``
     times); ``real_eval``: real scene files evaluated as a second held-out set (never trained
@@ -65,6 +67,7 @@ def train_predictor(scenes: int = 240, val_scenes: int = 40, epochs: int = 20, s
     from ..scene.generate import check_split
     from ..autonomy.predictor import (DEFAULT_MODEL_DIR, NUM_FEATURES, PredictorConfig, _HIST_F, _AGENT_F, _LANE_F,
                             build_net, save_predictor)
+    from .device import device_info
     from .predictor_data import (ARRAYS, BASELINES, METRIC_COLUMNS, build_dataset, build_real_dataset, data_key,
                                  per_sample_metrics)
 
@@ -75,6 +78,7 @@ def train_predictor(scenes: int = 240, val_scenes: int = 40, epochs: int = 20, s
         raise ConfigError("too many training scenes: they would reach the held-out seeds")
     torch.manual_seed(seed)
     torch.set_num_threads(max(1, threads))
+    device = torch.device(device)
     t0 = time.perf_counter()
     data_stats: dict = {}
     train = build_dataset(range(seed, seed + scenes), cache, use_cache, desc="training scenes", stats=data_stats)
@@ -102,11 +106,11 @@ def train_predictor(scenes: int = 240, val_scenes: int = 40, epochs: int = 20, s
     full_mask = held["future_valid"].all(axis=1)
     held_full = {k: v[full_mask] for k, v in held.items()}
     cfg = PredictorConfig(num_features=NUM_FEATURES, num_modes=modes)
-    net = build_net(cfg)
-    X = torch.from_numpy(train["features"])
-    V = torch.from_numpy(train["prior"])
-    Y = torch.from_numpy(train["future"])
-    M = torch.from_numpy(train["future_valid"])
+    net = build_net(cfg).to(device)
+    X = torch.from_numpy(train["features"]).to(device)
+    V = torch.from_numpy(train["prior"]).to(device)
+    Y = torch.from_numpy(train["future"]).to(device)
+    M = torch.from_numpy(train["future_valid"]).to(device)
     n = len(X)
     steps_per_epoch = max(1, (n + batch - 1) // batch)
     opt = torch.optim.AdamW(net.parameters(), lr=lr, weight_decay=1e-4)
@@ -123,13 +127,13 @@ def train_predictor(scenes: int = 240, val_scenes: int = 40, epochs: int = 20, s
             status(f"time limit of {time_limit_min} min reached after {ep} epochs")
             break
         net.train()
-        perm = torch.randperm(n, generator=gen)
+        perm = torch.randperm(n, generator=gen).to(device)
         tot = reg_sum = cls_sum = 0.0
         for i in range(steps_per_epoch):
             idx = perm[i * batch:(i + 1) * batch]
             xb = X[idx].clone()
             # lane dropout: some samples see no map, so the model has a sensible no-lane fallback
-            drop = torch.rand(len(idx), generator=gen) < lane_dropout
+            drop = (torch.rand(len(idx), generator=gen) < lane_dropout).to(device)
             xb[drop, lane_lo:lane_hi] = 0.0
             traj, logits = net(xb, V[idx])
             reg, cls = _wta_losses(torch, traj, logits, Y[idx], M[idx])
@@ -143,7 +147,7 @@ def train_predictor(scenes: int = 240, val_scenes: int = 40, epochs: int = 20, s
             tot += float(loss.detach()) * k
             reg_sum += float(reg.detach()) * k
             cls_sum += float(cls.detach()) * k
-        vm, vl = _evaluate(torch, net, held_full, cls_weight)
+        vm, vl = _evaluate(torch, net, held_full, cls_weight, device)
         curves["epoch"].append(ep + 1)
         curves["train_loss"].append(tot / n)
         curves["train_reg_ade"].append(reg_sum / n)
@@ -154,7 +158,8 @@ def train_predictor(scenes: int = 240, val_scenes: int = 40, epochs: int = 20, s
                f"held-out minADE {vm:.3f} m")
     t_train = time.perf_counter() - t1
 
-    # held-out evaluation: the same samples for every model
+    # held-out evaluation: the same samples for every model (on the CPU, as the weights ship)
+    net = net.cpu().eval()
     table = _held_out_table(torch, net, held, modes, per_sample_metrics, BASELINES, METRIC_COLUMNS)
     table_real = None if held_real is None or len(held_real["features"]) == 0 else \
         _held_out_table(torch, net, held_real, modes, per_sample_metrics, BASELINES, METRIC_COLUMNS)
@@ -179,7 +184,8 @@ def train_predictor(scenes: int = 240, val_scenes: int = 40, epochs: int = 20, s
                               scenes_generated=real_stats.get("generated", 0),
                               scenes_from_cache=real_stats.get("cached", 0))},
         "training": {"epochs": epochs, "batch": batch, "lr": lr, "optimizer": "AdamW + one-cycle", "cls_weight": cls_weight,
-                     "lane_dropout": lane_dropout, "threads": threads, "seconds": round(t_train, 1),
+                     "lane_dropout": lane_dropout, "threads": threads, "device": device_info(device),
+                     "seconds": round(t_train, 1),
                      "epochs_run": len(curves["epoch"]), "stopped_by_time_limit": stopped_early,
                      "parameters": int(sum(p.numel() for p in net.parameters()))},
         "curves": curves,
@@ -235,13 +241,13 @@ def _held_out_table(torch, net, held: dict, modes: int, per_sample_metrics, base
     return table
 
 
-def _evaluate(torch, net, held, cls_weight) -> tuple[float, float]:
+def _evaluate(torch, net, held, cls_weight, device="cpu") -> tuple[float, float]:
     """Held-out minADE (mean over samples) and loss."""
     net.eval()
     with torch.inference_mode():
-        traj, logits = net(torch.from_numpy(held["features"]), torch.from_numpy(held["prior"]))
-        fut = torch.from_numpy(held["future"])
-        fval = torch.from_numpy(held["future_valid"])
+        traj, logits = net(torch.from_numpy(held["features"]).to(device), torch.from_numpy(held["prior"]).to(device))
+        fut = torch.from_numpy(held["future"]).to(device)
+        fval = torch.from_numpy(held["future_valid"]).to(device)
         reg, cls = _wta_losses(torch, traj, logits, fut, fval)
     return float(reg), float(reg + cls_weight * cls)
 

@@ -285,3 +285,27 @@ def offset_change_cost(offsets: np.ndarray, same_target: np.ndarray, previous_of
         pending = ~np.isclose(off, confirmed_offset) if confirmed else np.ones(off.shape, bool)
         cost = np.where(pending, cost * (1.0 + unconfirmed_factor), cost)
     return cost
+
+
+# ------------------------------------------------------------------ occupancy terms (Autonomy-B)
+# Inputs come from :mod:`.occupancy`: the ramped occupancy (:func:`.occupancy.occupancy_hit`) at
+# sample points on each candidate's footprint or buffer ring at the queried times.
+
+def occupancy_collision_cost(hit: np.ndarray, times: np.ndarray, horizon: float) -> np.ndarray:
+    """Collision likelihood from occupancy: per queried time the largest ramped occupancy over
+    the footprint samples, discounted from 1 (now) to 0.5 (``horizon``) as :func:`collision_cost`;
+    the worst time counts. hit (B, S, P) in [0, 1]; times (S,) s. Unit: collisions."""
+    if hit.shape[1] == 0 or hit.shape[2] == 0:
+        return np.zeros(hit.shape[0])
+    w = 1.0 - 0.5 * np.clip(np.asarray(times, dtype=np.float64) / max(horizon, 1e-9), 0.0, 1.0)
+    return np.max(hit.max(axis=2) * w[None], axis=1)
+
+
+def occupancy_buffer_cost(hit: np.ndarray) -> np.ndarray:
+    """Buffer intrusion from occupancy: per queried time the largest ramped occupancy over the
+    buffer-ring samples, averaged over time with weights falling from 1 now to 0.5 at the
+    horizon (normalised, as :func:`buffer_cost`). hit (B, S, P) in [0, 1]. Unit: (buffer
+    occupied) x (fraction of horizon)."""
+    if hit.shape[1] == 0 or hit.shape[2] == 0:
+        return np.zeros(hit.shape[0])
+    return (hit.max(axis=2) * _horizon_weights(hit.shape[1])[None]).mean(axis=1)

@@ -7,6 +7,13 @@
 of the chosen candidate; :meth:`SamplingPlanner.plan_with_scores` also returns every
 candidate and its :class:`~.scorer.ScoreTable` (for debugging, tests and the replay file).
 
+Two obstacle models, one scorer: from predicted actors (Autonomy-A: ``predictions`` and
+``tracks``; the ``collision`` and ``buffer`` terms), or from an occupancy field (Autonomy-B:
+``plan(ego_state, occupancy=field)``; the ``occupancy_collision`` and ``occupancy_buffer`` terms
+read the field along each candidate's footprint over time, and the proposals' IDM and the
+headway term follow the lane leaders the field shows, :mod:`.occupancy`). Every other term is
+the same.
+
 With no lane under the ego (empty map, or the ego far from every lane) the planner brakes to a
 stop along its heading: there is no road to plan on.
 """
@@ -21,6 +28,7 @@ from ...scene.corridor import DEFAULT_SPEED_LIMIT, CorridorSet
 from ...scene.lanemap import LaneMap
 from ..interface import EgoState, Plan, Predictions, Tracks
 from . import costs
+from . import occupancy as occmodel
 from .proposals import ActorForecast, Candidates, ProposalConfig, make_specs, rollout_candidates
 from .scorer import CostWeights, ScoreTable, score
 
@@ -47,6 +55,7 @@ class PlannerConfig:
         offset_confirm_factor: an in-lane offset change that was not already the (unsurcharged)
             choice of the previous plan costs this much more in the offset-change term
             (:func:`.costs.offset_change_cost`): nudges need two consecutive plans to agree.
+        occupancy: how an occupancy field is queried (Autonomy-B, :mod:`.occupancy`).
     """
 
     proposals: ProposalConfig = field(default_factory=ProposalConfig)
@@ -60,6 +69,7 @@ class PlannerConfig:
     off_lane_distance: float = 10.0
     exempt_rear_end: bool = True
     offset_confirm_factor: float = 4.0
+    occupancy: occmodel.OccupancyPlanConfig = field(default_factory=occmodel.OccupancyPlanConfig)
 
 
 def forecast_from(predictions: Predictions | None, tracks: Tracks | None, steps: int, dt: float,
@@ -152,7 +162,8 @@ class SamplingPlanner:
 
     def reset(self, lane_map: LaneMap) -> None:
         """Start an episode on ``lane_map`` (kept until the next reset) and forget the previous
-        plan's target (lane-change and offset hysteresis, offset confirmation)."""
+        plan's target (lane-change and offset hysteresis, offset confirmation) and, planning on
+        occupancy, the previous frame's lane leaders."""
         self.lane_map = lane_map
         self._forget()
 
@@ -160,13 +171,18 @@ class SamplingPlanner:
         self._prev_target_ids: frozenset[int] = frozenset()  # lane ids of the previous target corridor
         self._prev_offset: float | None = None
         self._confirmed_offset: float | None = None  # offset the previous plan wanted before confirmation
+        self._occ_leaders: np.ndarray | None = None  # Autonomy-B: the previous frame's lane leaders
 
-    def plan(self, ego: EgoState, predictions: Predictions | None = None, tracks: Tracks | None = None) -> Plan:
-        """The cheapest candidate as a :class:`Plan` (``cost_terms`` = its weighted breakdown)."""
-        return self.plan_with_scores(ego, predictions, tracks)[0]
+    def plan(self, ego: EgoState, predictions: Predictions | None = None, tracks: Tracks | None = None,
+             occupancy=None) -> Plan:
+        """The cheapest candidate as a :class:`Plan` (``cost_terms`` = its weighted breakdown).
+        ``occupancy``: an :class:`~adv3d_runner.autonomy.interface.OccupancyField` to plan on
+        instead of ``predictions`` / ``tracks`` (see module docstring)."""
+        return self.plan_with_scores(ego, predictions, tracks, occupancy)[0]
 
     def plan_with_scores(self, ego: EgoState, predictions: Predictions | None = None,
-                         tracks: Tracks | None = None) -> tuple[Plan, Candidates | None, ScoreTable | None]:
+                         tracks: Tracks | None = None, occupancy=None
+                         ) -> tuple[Plan, Candidates | None, ScoreTable | None]:
         lanes = self.lane_map
         if lanes is None:
             raise RuntimeError("SamplingPlanner.reset(lane_map) must be called before planning")
@@ -198,9 +214,12 @@ class SamplingPlanner:
                                                 default_speed_limit=cfg.default_speed_limit) for lid in chain_ids])
         limit_now = float(corridors.limit_at(np.array(0), np.array(cfg.corridor_behind)))
         spec = make_specs(corridors, names, limit_now, pc, current_index=0)
+        if occupancy is not None:  # instance-free: the lane leaders the occupancy shows
+            forecast, self._occ_leaders = occmodel.occupancy_leaders(occupancy, corridors, ego.pose[:2], ego.length,
+                                                                     T, dt, cfg.occupancy, self._occ_leaders)
         cands = rollout_candidates(ego.pose, ego.speed, ego.acceleration, spec, corridors, forecast,
                                    ego.length, ego.width, pc, params)
-        table = self.score_candidates(cands, corridors, forecast, ego, limit_now)
+        table = self.score_candidates(cands, corridors, forecast, ego, limit_now, occupancy)
         i = table.best
         # what this plan would have chosen without the confirmation surcharge: a change to that
         # offset is confirmed for the next plan
@@ -219,8 +238,9 @@ class SamplingPlanner:
         return plan, cands, table
 
     def score_candidates(self, cands: Candidates, corridors: CorridorSet, forecast: ActorForecast, ego: EgoState,
-                         limit_now: float) -> ScoreTable:
-        """All named cost terms of every candidate, weighted (see :mod:`.scorer`)."""
+                         limit_now: float, occupancy=None) -> ScoreTable:
+        """All named cost terms of every candidate, weighted (see :mod:`.scorer`); with
+        ``occupancy`` the collision and buffer terms come from the field (module docstring)."""
         cfg = self.config
         dims = (ego.length, ego.width)
         poses, speeds = cands.poses, cands.speeds
@@ -230,7 +250,11 @@ class SamplingPlanner:
                                                   cfg.buffer + 0.5, cfg.time_headway, cfg.min_gap)
         fc = forecast.subset(near_clear)
         fh = forecast.subset(near_head)
-        dist = costs.clearance(poses, dims, fc.poses, fc.dims, max_distance=cfg.buffer + 0.5)
+        if occupancy is not None:
+            interaction = self._occupancy_terms(occupancy, cands, ego)
+        else:
+            interaction = None
+            dist = costs.clearance(poses, dims, fc.poses, fc.dims, max_distance=cfg.buffer + 0.5)
         travelled = np.concatenate([np.zeros((len(cands), 1)),
                                     np.cumsum(0.5 * (speeds[:, 1:] + speeds[:, :-1]) * cands.dt, axis=1)], axis=1)
         s_start = np.array([float(corridors.project(ci, ego.pose[:2])[0]) for ci in range(len(corridors))])
@@ -243,13 +267,18 @@ class SamplingPlanner:
                          for c in cands.spec.corridor])
         # being rear-ended while keeping the lane is not the ego's fault (as nuPlan's at-fault
         # collisions); changing lanes in front of a faster car is
-        exempt = None
-        if cfg.exempt_rear_end and len(fc):
-            exempt = costs.from_behind(poses, fc.poses) & (cands.spec.corridor == 0)[:, None, None, None]
+        if interaction is not None:  # the same order of terms as below (the sum is order-sensitive)
+            (k_col, collision), (k_buf, buffer) = interaction
+        else:
+            exempt = None
+            if cfg.exempt_rear_end and len(fc):
+                exempt = costs.from_behind(poses, fc.poses) & (cands.spec.corridor == 0)[:, None, None, None]
+            k_col, collision = "collision", costs.collision_cost(dist, fc.probs, exempt)
+            k_buf, buffer = "buffer", costs.buffer_cost(dist, fc.probs, cfg.buffer, exempt)
         raw = {
-            "collision": costs.collision_cost(dist, fc.probs, exempt),
+            k_col: collision,
             "drivable_area": costs.drivable_area_cost(excess),
-            "buffer": costs.buffer_cost(dist, fc.probs, cfg.buffer, exempt),
+            k_buf: buffer,
             "headway": costs.headway_cost(poses, speeds, dims, fh.poses, fh.dims, fh.probs,
                                           cfg.time_headway, cfg.min_gap),
             "speed_limit": costs.speed_limit_cost(speeds, limits),
@@ -262,6 +291,20 @@ class SamplingPlanner:
             "lat_accel": costs.lateral_accel_cost(speeds[:, :-1], cands.curvature),
         }
         return score(raw, cfg.weights)
+
+    def _occupancy_terms(self, occupancy, cands: Candidates, ego: EgoState) -> tuple[tuple[str, np.ndarray], ...]:
+        """(name, (B,) raw cost) of the occupancy collision and buffer terms (:mod:`.occupancy`)."""
+        cfg = self.config
+        oc = cfg.occupancy
+        steps = occmodel.query_steps(cands.poses.shape[1] - 1, oc.query_every)
+        inside, ring = occmodel.footprint_samples(ego.length, ego.width, oc.buffer_gap)
+        exempt = (cands.spec.corridor == 0) if cfg.exempt_rear_end else None
+        occ = occmodel.candidate_occupancy(occupancy, cands.poses, np.concatenate([inside, ring]), steps, cands.dt,
+                                           exempt)
+        horizon = cands.dt * (cands.poses.shape[1] - 1)
+        hit = occmodel.occupancy_hit(occ, steps * cands.dt, horizon, oc.ramp, oc.ramp_end)
+        return (("occupancy_collision", costs.occupancy_collision_cost(hit[..., :len(inside)], steps * cands.dt, horizon)),
+                ("occupancy_buffer", costs.occupancy_buffer_cost(hit[..., len(inside):])))
 
     def _stop_plan(self, ego: EgoState, params: BicycleParams) -> Plan:
         pc = self.config.proposals

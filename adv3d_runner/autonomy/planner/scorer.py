@@ -16,7 +16,13 @@ lane_change       2     starting a lane change
 offset_change     1     moving the in-lane target offset by 1 m from the previous plan's
 jerk            0.3     1 m/s^3 mean |jerk|
 lat_accel       1.0     1 m/s^2 mean |lateral acceleration|
+occupancy_collision 1000 a footprint surely occupied now (Autonomy-B; discounted later)
+occupancy_buffer     30 the buffer ring surely occupied over the whole horizon (Autonomy-B)
 ============== ======== ==========================================================
+
+Autonomy-A plans with ``collision`` and ``buffer`` (from predicted actors); Autonomy-B, which
+has no actors, with ``occupancy_collision`` and ``occupancy_buffer`` (from the occupancy field,
+:mod:`.occupancy`) at the same weights, and every other term the same.
 
 Safety terms dominate by orders of magnitude so that comfort and progress only choose among
 safe candidates; progress (20 for a full horizon) outweighs a lane change (2) plus the lateral
@@ -30,7 +36,11 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 TERMS = ("collision", "drivable_area", "buffer", "headway", "speed_limit", "progress", "lane_center",
-         "lane_change", "offset_change", "jerk", "lat_accel")
+         "lane_change", "offset_change", "jerk", "lat_accel", "occupancy_collision", "occupancy_buffer")
+#: The terms only an instance-based plan has (from predicted actors) and only an
+#: occupancy-based plan has (from the occupancy field); a plan has one pair, not both.
+ACTOR_TERMS = ("collision", "buffer")
+OCCUPANCY_TERMS = ("occupancy_collision", "occupancy_buffer")
 
 
 @dataclass(frozen=True)
@@ -46,6 +56,8 @@ class CostWeights:
     offset_change: float = 1.0
     jerk: float = 0.3
     lat_accel: float = 1.0
+    occupancy_collision: float = 1000.0
+    occupancy_buffer: float = 30.0
 
     def as_dict(self) -> dict[str, float]:
         return asdict(self)
