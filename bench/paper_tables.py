@@ -148,9 +148,16 @@ TABLES: dict[str, TableSpec] = {
         rows={"Original": "original", "Unconstrained": ("unconstrained", "closed"), "Realistic preset": ("realistic", "closed")},
         comparisons=(("Unconstrained", "Realistic preset"), ("Realistic preset", "Original"))),
     "transfer": TableSpec(
-        "transfer", "Transfer: shapes found against A evaluated on B and the reverse",
-        settings={}, rows={}, comparisons=(),
-        needs="Autonomy-B (issue 15, --autonomy B) and a cross-stack held-out evaluation of the kept best shapes"),
+        "transfer", "Transfer: Table 1's best shapes found against the other stack, evaluated on this one",
+        settings={"shapes": {}},
+        rows={"Original": "original", "Adv. open-loop (other stack's shapes)": ("shapes", "open"),
+              "Adv. closed-loop (other stack's shapes)": ("shapes", "closed")},
+        comparisons=(("Adv. closed-loop (other stack's shapes)", "Original"),
+                     ("Adv. open-loop (other stack's shapes)", "Original"),
+                     ("Adv. closed-loop (other stack's shapes)", "Adv. open-loop (other stack's shapes)")),
+        note="No search: the kept best shapes of table1 for --source-autonomy (default: the other of A and B) are "
+             "evaluated with --autonomy on the same held-out seeds; compare with table1 of --autonomy, whose "
+             "originals have the same seeds."),
 }
 
 
@@ -242,6 +249,46 @@ def protocol_doc(spec: TableSpec, args, scenes) -> dict:
 PROTOCOL_KEYS = ("autonomy", "budget", "n_initial", "seconds", "batch", "eval_seeds", "pred_reduction")
 
 
+def run_transfer(spec: TableSpec, args) -> Path:
+    """The transfer table: table1's kept best shapes of the source stack re-evaluated with the
+    target stack (``--autonomy``) on the same held-out seeds; no search. Kept like a table's runs
+    (``runs/shapes/seed<k>/<scene>/``: the source's summary.json, its run.json with ``autonomy``
+    set to the target and ``transfer_from``, and the new heldout.json.gz)."""
+    from adv3d_runner.attack.config import AttackConfig
+    from adv3d_runner.attack.protocol import HeldoutStore, heldout_tasks, run_heldout
+    from adv3d_runner.errors import ConfigError
+    from adv3d_runner.fileio import write_json
+
+    src = args.source_autonomy or ("B" if args.autonomy == "A" else "A")
+    if src == args.autonomy:
+        raise ConfigError("transfer: --source-autonomy must differ from --autonomy")
+    source = Path(args.results) / TABLES["table1"].folder(src, args.budget)
+    kept = load_kept(source)
+    if not kept:
+        raise ConfigError(f"transfer: no kept table1 runs of Autonomy-{src} in {source}; run table1 --autonomy {src} "
+                          f"--budget {args.budget} first")
+    results = Path(args.results) / spec.folder(args.autonomy, args.budget)
+    proto = json.loads((source / "protocol.json").read_text())
+    proto.update(table="transfer", autonomy=args.autonomy, transfer_from=src, source_folder=source.name)
+    results.mkdir(parents=True, exist_ok=True)
+    write_json(results / "protocol.json", proto)
+    compute = Compute(results / "compute.json", "python bench/paper_tables.py " + shlex.join(sys.argv[1:]))
+    compute.update()
+    k_eval = int(proto["eval_seeds"])
+    for k in kept:
+        run = {**k["run"], "autonomy": args.autonomy, "transfer_from": src}
+        cfg = AttackConfig.from_run_json(run)
+        keep_dir = results / "runs" / "shapes" / f"seed{k['seed']}" / k["scene"]
+        keep_dir.mkdir(parents=True, exist_ok=True)
+        write_json(keep_dir / "run.json", run)
+        write_json(keep_dir / "summary.json", k["summary"])
+        store = HeldoutStore(keep_dir / "heldout.json.gz")
+        n_new = run_heldout(heldout_tasks(k["summary"], k["seed"], k_eval), cfg.settings, store, workers=args.workers)
+        compute.update(heldout=n_new)
+        print(f"[transfer {src}->{args.autonomy}] seed{k['seed']}/{k['scene']}: {n_new} held-out evaluations", flush=True)
+    return build_table(spec, args.autonomy, Path(args.results), args.budget)
+
+
 def run_table(spec: TableSpec, args) -> Path:
     from adv3d_runner.attack.driver import run_attack
     from adv3d_runner.attack.protocol import HeldoutStore, heldout_tasks, run_heldout, select_scenes
@@ -250,6 +297,8 @@ def run_table(spec: TableSpec, args) -> Path:
 
     if spec.needs:
         raise ConfigError(f"{spec.name} cannot run yet: {spec.needs}")
+    if spec.name == "transfer":
+        return run_transfer(spec, args)
     folder = spec.folder(args.autonomy, args.budget)
     results = Path(args.results) / folder
     work = Path(args.work) / folder
@@ -576,6 +625,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--work", default=str(REPO / "runs" / "paper"), help="run folders (default runs/paper)")
     p.add_argument("--results", default=str(REPO / "docs" / "results"), help="kept files (default docs/results)")
     p.add_argument("--table-only", action="store_true", help="rebuild table.md/json from the kept files, run nothing")
+    p.add_argument("--source-autonomy", default=None,
+                   help="transfer: the stack whose table1 shapes are evaluated (default: the other of A and B)")
     args = p.parse_args(argv)
     if args.list or not args.table:
         print(list_tables())

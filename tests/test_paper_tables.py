@@ -84,6 +84,13 @@ def test_driver_smoke_run_resume_and_rebuild(tmp_path):
     a, b = json.loads(before), json.loads((folder / "table.json").read_text())
     a.pop("compute"), b.pop("compute")
     assert a == b
+    # transfer: the kept best shapes evaluated with another stack on the same held-out seeds
+    assert mod.main(["transfer", "--autonomy", "oracle", "--source-autonomy", "A", "--budget", "2",
+                     "--results", str(tmp_path / "res")]) == 0
+    moved = json.loads((tmp_path / "res" / "transfer_oracle_b2" / "table.json").read_text())
+    assert moved["protocol"]["transfer_from"] == "A" and moved["rows"]["Original"]["n_scenes"] == 1
+    tk = tmp_path / "res" / "transfer_oracle_b2" / "runs" / "shapes" / "seed0" / "highway-benchmark-000000"
+    assert sorted(read_json(tk / "heldout.json.gz")["evaluations"]) == sorted(evals)   # same keys, same seeds
     # growing the table with other protocol values is refused (another budget is another folder)
     with pytest.raises(ConfigError, match="seconds"):
         mod.main([*args[:11], "--seconds", "0.4", *args[13:]])
@@ -95,4 +102,4 @@ def test_tables_listed_with_what_they_need(capsys):
     out = capsys.readouterr().out
     for name in ("table1", "table2", "table3", "table4", "table5", "table6", "realism", "transfer"):
         assert out.count(f"{name}:") == 1
-    assert "needs the paper's worst-case protocol" in out and "needs Autonomy-B" in out
+    assert "needs the paper's worst-case protocol" in out and "transfer:" in out
