@@ -112,6 +112,53 @@ def test_workers_give_the_same_journal(tmp_path):
     assert strip_times(lines(tmp_path / "serial")) == strip_times(lines(tmp_path / "pool"))
 
 
+def test_scenes_run_concurrently_and_the_journal_does_not_depend_on_workers(tmp_path, monkeypatch):
+    """Three scenes x two modes, one query asked at a time: two workers both evaluate queries
+    (the searches run concurrently), and the finished run's journal, summary and best-shape
+    files are the serial run's, byte for byte up to wall times."""
+    from attack_synthetic import SyntheticWithBest
+
+    scenes = ["synthetic:peak", "synthetic:bowl", "synthetic:ridge"]
+    c = cfg(scenes=scenes, mode="both", budget=6, batch=1, n_initial=3)
+    run_attack(c, tmp_path / "serial", workers=1, show_progress=False, evaluator=SyntheticWithBest)
+    pids = tmp_path / "pids"
+    pids.mkdir()
+    monkeypatch.setenv("ADV3D_TEST_PID_DIR", str(pids))
+    run_attack(c, tmp_path / "pool", workers=2, show_progress=False, evaluator=SyntheticWithBest)
+    assert len(list(pids.iterdir())) == 2  # both workers evaluated queries
+
+    def text(run, name):
+        return (tmp_path / run / name).read_text()
+
+    def strip(line):
+        return line[:line.rindex(',"wall_s"')]
+
+    serial, pool = (text(r, "queries.jsonl").splitlines() for r in ("serial", "pool"))
+    assert len(serial) == 3 * 2 * 6 and [strip(x) for x in serial] == [strip(x) for x in pool]
+    assert [(r["scene"], r["mode"]) for r in lines(tmp_path / "pool")][::6] == \
+        [(s, m) for s in scenes for m in ("open", "closed")]
+    a, b = (json.loads(text(r, "summary.json")) for r in ("serial", "pool"))
+    a.pop("wall_s"), b.pop("wall_s")
+    assert a == b and list(b["scenes"]) == scenes and list(b["scenes"]["synthetic:bowl"]["modes"]) == ["open", "closed"]
+    assert all("original" in e and e["modes"]["closed"]["closed_loop_eval"] for e in b["scenes"].values())
+    for s in ("peak", "bowl", "ridge"):
+        for m in ("open", "closed"):
+            f = f"scenes/synthetic:{s}/{m}/best.txt"
+            assert text("serial", f) == text("pool", f)
+
+
+def test_journal_canonical_order_after_a_resume(tmp_path):
+    """A run stopped part-way and resumed ends with the journal of an uninterrupted run."""
+    c = cfg(scenes=["synthetic:peak", "synthetic:bowl"], budget=6, batch=1, n_initial=3)
+    run_attack(c, tmp_path / "full", show_progress=False)
+    run_attack(c, tmp_path / "part", show_progress=False, stop_after=8)
+    # as a run with several workers leaves it: lines in completion order, not canonical
+    path = tmp_path / "part" / "queries.jsonl"
+    path.write_text("".join(reversed(path.read_text().splitlines(keepends=True))))
+    run_attack(c, tmp_path / "part", show_progress=False)
+    assert strip_times(lines(tmp_path / "part")) == strip_times(lines(tmp_path / "full"))
+
+
 def test_journal_corrupt_middle_line_is_an_error(tmp_path):
     j = Journal(tmp_path)
     j.start({"seed": 0})

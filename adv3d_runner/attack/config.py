@@ -37,6 +37,9 @@ class QuerySettings:
     seed: int = 0
     reactive: bool = False
     shape_space: str | None = None
+    #: how, not what: reuse the static LiDAR hits between the queries of a scene
+    #: (``sensors.incremental``); the results are identical either way.
+    incremental: bool = True
 
     @property
     def weights(self) -> ObjectiveWeights:
@@ -73,8 +76,9 @@ def _load_shape_space(path: str, stamp: tuple[int, int] | None):
 class AttackConfig:
     """Everything that determines an attack's results (``run.json``; see the CLI options).
 
-    ``scenes`` is kept as a tuple (a list is accepted). ``batch`` is the number of queries asked
-    at once (the first run's worker count; a resume keeps it).
+    ``scenes`` is kept as a tuple (a list is accepted). ``batch`` is the number of queries a
+    search asks at once (``--batch``; independent of the number of workers, which does not
+    change results; a resume must use the stored one).
     """
 
     scenes: tuple[str, ...]
@@ -100,7 +104,7 @@ class AttackConfig:
         if self.seconds <= 0:
             raise ConfigError(f"--seconds must be > 0, got {self.seconds}")
         if self.batch < 1:
-            raise ConfigError(f"batch (workers) must be >= 1, got {self.batch}")
+            raise ConfigError(f"--batch must be >= 1, got {self.batch}")
         parse_objective(self.objective)  # validate early
 
     @property

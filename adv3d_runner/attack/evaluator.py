@@ -129,16 +129,31 @@ def run_query(evaluator: QueryEvaluator, query: Query) -> QueryResult:
 
 # ============================================================================ episodes
 
+_STACKS: dict[str, Any] = {}
+
+
+def stack_for(autonomy: str):
+    """This process's autonomy stack of that name (loaded once: a stack is reset at the start of
+    every episode, so the scenes of a process share it)."""
+    if autonomy not in _STACKS:
+        from ..autonomy.stacks import make_stack
+
+        _STACKS[autonomy] = make_stack(autonomy)
+    return _STACKS[autonomy]
+
+
 class SceneWorkspace:
-    """What one process needs to evaluate queries on a scene: the scene, its LiDAR world and its
-    lane map (each built once), the autonomy stack, the shape space, the targets and the
-    objective weights."""
+    """What one process needs to evaluate queries on a scene: the scene, its LiDAR world and rig
+    and its lane map (each built once), the autonomy stack, the shape space, the targets and the
+    objective weights; with ``settings.incremental``, the scene's
+    :class:`~adv3d_runner.sensors.incremental.StaticRayCache` (the attacked actors are its
+    dynamic actors), which every episode of the scene shares."""
 
     def __init__(self, scene_path: str, settings: QuerySettings):
         from ..autonomy.interface import SceneContext
-        from ..autonomy.stacks import make_stack
         from ..scene.schema import load_scene
-        from ..sensors.world import world_from_scene
+        from ..sensors.incremental import StaticRayCache
+        from ..sensors.world import rig_from_scene, world_from_scene
         from ..sim.episode import default_library
         from .targets import select_targets
 
@@ -146,18 +161,22 @@ class SceneWorkspace:
         self.scene = load_scene(scene_path)
         self.space = settings.load_shape_space()
         self.world = world_from_scene(self.scene, default_library(), scene_dir=Path(scene_path).parent)
+        self.rig = rig_from_scene(self.scene, path=scene_path)
         self.context = SceneContext.from_scene(self.scene)
-        self.stack = make_stack(settings.autonomy)
+        self.stack = stack_for(settings.autonomy)
         self.targets = select_targets(self.scene, settings.actors)
         self.weights = settings.weights
+        self.lidar_cache = None
+        if settings.incremental:
+            self.lidar_cache = StaticRayCache(self.world, [self.world.actor_index(int(a)) for a in self.targets])
 
     def episode(self, overrides: dict | None, closed_loop: bool, record_points: bool = False) -> "EpisodeResult":
         from ..sim.episode import run_episode
 
         s = self.settings
         return run_episode(self.scene, self.stack, seconds=s.seconds, closed_loop=closed_loop, reactive=s.reactive,
-                           world=self.world, actor_overrides=overrides, seed=s.seed, record_points=record_points,
-                           context=self.context)
+                           world=self.world, rig=self.rig, actor_overrides=overrides, seed=s.seed,
+                           record_points=record_points, context=self.context, lidar_cache=self.lidar_cache)
 
     def evaluate(self, u: np.ndarray | None, closed_loop: bool,
                  record_points: bool = False) -> tuple[QueryResult, "EpisodeResult"]:
@@ -184,15 +203,22 @@ class SceneWorkspace:
 
 
 _WORKSPACES: dict[tuple[str, QuerySettings], SceneWorkspace] = {}
+#: Scenes a process keeps built at once (the driver sends a scene's queries to the same worker
+#: where it can; two cover a worker that moves on to a new scene while finishing another).
+WORKSPACES_PER_PROCESS = 2
 
 
 def workspace_for(scene_ref: str, settings: QuerySettings) -> SceneWorkspace:
-    """This process's context of a scene (built on first use; one scene at a time)."""
+    """This process's context of a scene (built on first use; the least recently used one is
+    dropped beyond :data:`WORKSPACES_PER_PROCESS`, which keeps memory flat)."""
     key = (scene_ref, settings)
-    if key not in _WORKSPACES:
-        _WORKSPACES.clear()  # one scene at a time per worker keeps memory flat
-        _WORKSPACES[key] = SceneWorkspace(scene_ref, settings)
-    return _WORKSPACES[key]
+    ws = _WORKSPACES.pop(key, None)
+    if ws is None:
+        while len(_WORKSPACES) >= WORKSPACES_PER_PROCESS:
+            _WORKSPACES.pop(next(iter(_WORKSPACES)))
+        ws = SceneWorkspace(scene_ref, settings)
+    _WORKSPACES[key] = ws  # most recently used last
+    return ws
 
 
 class EpisodeEvaluator:

@@ -164,6 +164,30 @@ class Journal:
             os.fsync(fh.fileno())
         self.records.append(json.loads(line))
 
+    def canonicalize(self, order: list[tuple[str, str]]) -> bool:
+        """Rewrite ``queries.jsonl`` (atomically) with its lines in the canonical order: the
+        (scene, mode) pairs in ``order``, each by query index; lines of other pairs keep their
+        place after them. Lines are appended as queries finish, so a run with several workers
+        writes them interleaved; this makes a finished run's journal independent of that.
+        Returns True when the file was rewritten (False: already in order)."""
+        rank = {pair: k for k, pair in enumerate(order)}
+
+        def key(item):
+            pos, rec = item
+            pair = (rec.get("scene"), rec.get("mode"))
+            return (rank.get(pair, len(rank)), int(rec["index"]) if pair in rank else 0, pos)
+
+        ordered = [rec for _, rec in sorted(enumerate(self.records), key=key)]
+        if all(a is b for a, b in zip(ordered, self.records)):
+            return False
+        from ..fileio import atomic_write_bytes
+
+        data = b"".join((json.dumps(_clean(r), allow_nan=False, separators=(",", ":")) + "\n").encode("utf-8")
+                        for r in ordered)
+        atomic_write_bytes(self.path, data)
+        self.records = ordered
+        return True
+
     def finished(self, scene: str, mode: str) -> dict[int, dict]:
         """{query index: record} already journalled for a scene and mode."""
         return {int(r["index"]): r for r in self.records if r.get("scene") == scene and r.get("mode") == mode}
