@@ -48,7 +48,18 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+#: Commands that choose their own threads (training uses every core); every other command runs
+#: its numerical libraries on one thread (``machine.limit_threads``; bench/threads.py).
+OWN_THREADS = ("train",)
+
+
 def main(argv: list[str] | None = None) -> int:
+    words = sys.argv[1:] if argv is None else list(argv)
+    command = next((w for w in words if not w.startswith("-")), None)
+    if command not in OWN_THREADS:
+        from .machine import limit_threads
+
+        limit_threads()  # before numpy and torch load (building the parser imports numpy)
     parser = build_parser()
     args = parser.parse_args(argv)
     set_quiet(args.quiet)

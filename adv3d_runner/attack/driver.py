@@ -39,6 +39,7 @@ from __future__ import annotations
 import concurrent.futures as cf
 import multiprocessing as mp
 import os
+import sys
 import tempfile
 import time
 from dataclasses import dataclass, field, replace
@@ -145,13 +146,16 @@ class RayExecutor:
         self.ray = ray
         self._own = not ray.is_initialized()
         if self._own:
-            ray.init(address=address, log_to_driver=False, ignore_reinit_error=True,
-                     runtime_env={"env_vars": single_thread_env()})
+            ray.init(address=address, log_to_driver=False, ignore_reinit_error=True)
         cpus = int(ray.cluster_resources().get("CPU", 1))
         n = cpus if workers is None else min(int(workers), cpus)
         if n < 1:
             raise ConfigError(f"the Ray cluster at {address} has no CPU to run on")
-        actor = ray.remote(num_cpus=1)(_RayWorker)
+        # The workers import the code from the driver's import path where a node has it (a
+        # shared or identical checkout; else the node's installed adv3d), one thread each.
+        path = os.pathsep.join(p for p in sys.path if p and os.path.isdir(p))
+        env = {**single_thread_env(), "PYTHONPATH": path}
+        actor = ray.remote(num_cpus=1, runtime_env={"env_vars": env})(_RayWorker)
         self.actors = [actor.remote() for _ in range(n)]
         self.slots = n
 
