@@ -130,7 +130,47 @@ class MountedLidar:
         radius = xy_radius * (1.0 + 1e-6) + _RADIUS_PAD
         if dist <= radius:  # sensor inside the bounding circle: every ray may hit
             return None
-        rho0, rho1 = dist - radius, dist + radius
+        half = math.asin(radius / dist) + _ANGLE_PAD
+        center = math.atan2(-rel_xy[1], -rel_xy[0]) - ego_yaw
+        return self._window_rays(dist - radius, dist + radius, z_range, center, half)
+
+    def footprint_rays(self, rel_xy: np.ndarray, actor_yaw: float, ego_yaw: float,
+                       footprint: tuple[float, float, float, float],
+                       z_range: tuple[float, float]) -> np.ndarray | None:
+        """Flat indices of the rays that can hit a mesh inside a vertical box: its footprint
+        ``(xmin, xmax, ymin, ymax)`` in the actor's frame (yaw ``actor_yaw``, origin at
+        ``-rel_xy`` from the sensor, map frame) by ``z_range``. Tighter than the bounding
+        cylinder of :meth:`candidate_rays` (a car seen from behind spans a third of its
+        circle's azimuths), the same reasoning: a ray can only hit points whose azimuth lies in
+        the arc the footprint spans from the sensor and whose elevation lies between the
+        box's lowest and highest point at its nearest and farthest horizontal distance.
+        Padded like :meth:`candidate_rays`. Returns None for "all rays" (the sensor is above
+        the footprint)."""
+        ca, sa = math.cos(actor_yaw), math.sin(actor_yaw)
+        sx = ca * rel_xy[0] + sa * rel_xy[1]  # the sensor in the actor's frame
+        sy = -sa * rel_xy[0] + ca * rel_xy[1]
+        x0, x1, y0, y1 = footprint
+        pad_x = 1e-6 * max(abs(x0), abs(x1)) + _RADIUS_PAD
+        pad_y = 1e-6 * max(abs(y0), abs(y1)) + _RADIUS_PAD
+        x0, x1, y0, y1 = x0 - pad_x, x1 + pad_x, y0 - pad_y, y1 + pad_y
+        if x0 <= sx <= x1 and y0 <= sy <= y1:
+            return None
+        rho0 = math.hypot(max(x0 - sx, 0.0, sx - x1), max(y0 - sy, 0.0, sy - y1))
+        corners = ((x0, y0), (x1, y0), (x1, y1), (x0, y1))
+        rho1 = max(math.hypot(cx - sx, cy - sy) for cx, cy in corners)
+        # the sensor is outside the convex footprint: its corners span an arc of less than pi
+        # around the direction to its centre
+        mid = math.atan2(0.5 * (y0 + y1) - sy, 0.5 * (x0 + x1) - sx)
+        deltas = [(math.atan2(cy - sy, cx - sx) - mid + math.pi) % _TWO_PI - math.pi for cx, cy in corners]
+        lo, hi = min(deltas), max(deltas)
+        center = mid + 0.5 * (lo + hi) + actor_yaw - ego_yaw
+        half = 0.5 * (hi - lo) + _ANGLE_PAD
+        return self._window_rays(rho0, rho1, z_range, center, half)
+
+    def _window_rays(self, rho0: float, rho1: float, z_range: tuple[float, float], center: float,
+                     half: float) -> np.ndarray:
+        """The rays within ``half`` of azimuth ``center`` (ego frame) that pass between heights
+        ``z_range`` somewhere between horizontal distances ``rho0`` > 0 and ``rho1``."""
         z_lo = z_range[0] - self.position[2] - _RADIUS_PAD
         z_hi = z_range[1] - self.position[2] + _RADIUS_PAD
         e_lo = math.atan(z_lo / (rho0 if z_lo < 0 else rho1)) - _ANGLE_PAD
@@ -138,8 +178,6 @@ class MountedLidar:
         rows = np.flatnonzero((self.row_elevation[:, 1] >= e_lo) & (self.row_elevation[:, 0] <= e_hi))
         if rows.size == 0:
             return np.zeros(0, np.intp)
-        half = math.asin(radius / dist) + _ANGLE_PAD
-        center = math.atan2(-rel_xy[1], -rel_xy[0]) - ego_yaw
         if self._common_azimuth is not None:
             az = self._common_azimuth
             cols = [np.arange(np.searchsorted(az, lo, "left"), np.searchsorted(az, hi, "right"))
@@ -400,7 +438,7 @@ class _Cast:
         rel = self.sensor_map[:2] - (pose[0], pose[1])  # actor -> sensor, map frame
         if np.hypot(rel[0], rel[1]) - bvh.xy_radius - _RADIUS_PAD > self.model.max_range:
             return False
-        rays = self.sensor.candidate_rays(rel, self.ego[2], bvh.xy_radius, bvh.z_range)
+        rays = self.sensor.footprint_rays(rel, float(pose[2]), self.ego[2], bvh.footprint, bvh.z_range)
         if rays is not None and rays.size == 0:
             return False
         return rays
