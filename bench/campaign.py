@@ -22,8 +22,12 @@ told: ~35 ms per query averaged over 100, ``bench/attack.py``), and that the wor
 (the driver runs the scenes concurrently; with W workers and N >= W scenes every worker has a
 scene). Runs with different worker counts must give the same journal (checked here).
 
+The same with CPU time (local runs: this process and its worker processes): core-hours of the
+protocol = 100 x (2 x 100 + 3) x C / E for C CPU seconds of the run; on W otherwise idle cores
+the wall time is about core-hours / W (the driver's own work is small).
+
 Writes ``bench/results/campaign.json``. The machine is shared: wall times include other jobs'
-load (the load average is recorded); CPU seconds of the local runs are given too.
+load (the load average is recorded), which the CPU-time extrapolation does not.
 """
 from __future__ import annotations
 
@@ -96,6 +100,8 @@ def run_once(scenes: list[str], budget: int, seconds: float, autonomy: str, work
             "cpu_s": None if ray_address else cpu, "cpu_s_per_episode": None if ray_address else cpu / episodes,
             "load_average_before": list(load0), "load_average_after": list(os.getloadavg()),
             "extrapolated_100_scenes_h": extrapolated / 3600,
+            "extrapolated_100_scenes_core_h": None if ray_address else
+            PROTOCOL_SCENES * (2 * PROTOCOL_BUDGET + 3) * cpu / episodes / 3600,
             "journal": [line[:line.rindex(',"wall_s"')] for line in lines]}
 
 
@@ -132,10 +138,13 @@ def main() -> None:
     base = next((r for r in rows if r["executor"] == "local" and r["workers"] == 1), rows[0])
     print(f"\nTable 1 protocol (mode both, BO), {len(scenes)} scenes x budget {args.budget}, {args.seconds:g} s "
           f"episodes, autonomy {args.autonomy}; journals identical across runs: {same}")
-    print(f"{'executor':8s} {'workers':>7s} {'wall s':>8s} {'s/episode':>9s} {'speed-up':>8s} {'100 scenes h':>12s}")
+    print(f"{'executor':8s} {'workers':>7s} {'wall s':>8s} {'s/episode':>9s} {'speed-up':>8s} {'100 scenes h':>12s} "
+          f"{'CPU s/episode':>13s} {'core-h':>7s}")
     for r in rows:
+        cpu = "" if r["cpu_s_per_episode"] is None else f"{r['cpu_s_per_episode']:13.2f} " \
+                                                       f"{r['extrapolated_100_scenes_core_h']:7.1f}"
         print(f"{r['executor']:8s} {r['workers']:7d} {r['wall_s']:8.1f} {r['wall_s_per_episode']:9.2f} "
-              f"{base['wall_s_per_episode'] / r['wall_s_per_episode']:8.2f} {r['extrapolated_100_scenes_h']:12.2f}")
+              f"{base['wall_s_per_episode'] / r['wall_s_per_episode']:8.2f} {r['extrapolated_100_scenes_h']:12.2f} {cpu}")
     for r in rows:
         r.pop("journal")
     doc = {"format": "adv3d.bench", "topic": "campaign", "command": " ".join([Path(sys.executable).name] + sys.argv),

@@ -79,6 +79,13 @@ def test_cache_memory_bound():
     for dx in (0.0, 1.0, 2.0):
         simulate_frame(world, rig, EGO + [dx, 0, 0], poses, None, cache=cache)
     assert len(cache) == 1 and cache.nbytes <= cache.max_bytes  # least recently used dropped
+    # a frame served again outlives frames never served again (segmented LRU): the open-loop
+    # path stays while diverged closed-loop frames come and go
+    cache = StaticRayCache(world, [4], max_bytes=int(2.5 * one.nbytes))
+    for dx in (0.0, 0.0, 1.0, 2.0, 3.0):
+        simulate_frame(world, rig, EGO + [dx, 0, 0], poses, None, cache=cache)
+    simulate_frame(world, rig, EGO, poses, None, cache=cache)
+    assert len(cache) == 2 and cache.hits == 2
 
 
 def _journal(path):
