@@ -195,6 +195,13 @@ def test_cli_attack_and_report(tmp_path, repo_root):
     assert run["scenes"] == [str(scene)] and run["autonomy"] == "oracle" and run["seconds"] == 0.3
     assert AttackConfig.from_run_json(run) == AttackConfig([str(scene)], algo="random", budget=2, seconds=0.3,
                                                           autonomy="oracle")
+    # resuming: --workers may change, --batch is kept from run.json (a different one is refused)
+    before = (out / "queries.jsonl").read_text()
+    assert main(["-q", "attack", str(scene), "--algo", "random", "--budget", "2", "--seconds", "0.3",
+                 "--autonomy", "oracle", "--workers", "2", "--out", str(out)]) == 0
+    assert (out / "queries.jsonl").read_text() == before
+    assert main(["-q", "attack", str(scene), "--algo", "random", "--budget", "2", "--seconds", "0.3",
+                 "--autonomy", "oracle", "--batch", "2", "--out", str(out)]) == 1
     assert main(["-q", "report", str(out)]) == 0
     text = (out / "report.md").read_text()
     assert "highway-benchmark-000000" in text and "random" in text
