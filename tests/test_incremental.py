@@ -10,7 +10,7 @@ import pytest
 from adv3d_runner.sensors.beams import get_model
 from adv3d_runner.sensors.incremental import StaticRayCache
 from adv3d_runner.sensors.lidar import LidarRig, MountedLidar, simulate_frame
-from tests.test_lidar import EGO, assert_frames_equal, box_mesh, crowded_world_and_poses, small_sensor, to_world
+from tests.test_lidar import EGO, assert_frames_equal, box_mesh, crowded_world_and_poses, small_sensor
 
 
 def _rig():
