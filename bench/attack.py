@@ -200,9 +200,9 @@ def query_stages(scenes: list[str], autonomy: str, queries: int, seconds: float 
             same = all(len({(c, json.dumps(m, sort_keys=True)) for _, c, m in v}) == 1 for v in results.values())
             cache = {}
             for (name, flag), ws in spaces.items():
-                c = getattr(ws, "lidar_cache", None)
-                if c is not None:
-                    cache[name] = {"hits": c.hits, "misses": c.misses, "megabytes": c.nbytes / 2**20}
+                for loop, c in getattr(ws, "lidar_caches", {}).items():
+                    cache[f"{'closed' if loop else 'open'}/{name}"] = {"hits": c.hits, "misses": c.misses,
+                                                                      "megabytes": c.nbytes / 2**20}
             out["scenes"].append({"scene": Path(scene).name, "targets": spaces[variants[0]].targets,
                                   "actors": len(spaces[variants[0]].scene.actors),
                                   "results_identical_across_variants": same, "lidar_cache": cache})
