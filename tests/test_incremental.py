@@ -78,14 +78,15 @@ def test_cache_memory_bound():
     cache = StaticRayCache(world, [4], max_bytes=int(1.5 * one.nbytes))
     for dx in (0.0, 1.0, 2.0):
         simulate_frame(world, rig, EGO + [dx, 0, 0], poses, None, cache=cache)
-    assert len(cache) == 1 and cache.nbytes <= cache.max_bytes  # least recently used dropped
-    # a frame served again outlives frames never served again (segmented LRU): the open-loop
-    # path stays while diverged closed-loop frames come and go
+    assert len(cache) == 1 and cache.nbytes <= cache.max_bytes  # the newest unused frame dropped
+    # a frame served again outlives frames never served again, and the first frames stored stay
+    # (every closed-loop query shares them) while the ones of diverged paths come and go
     cache = StaticRayCache(world, [4], max_bytes=int(2.5 * one.nbytes))
     for dx in (0.0, 0.0, 1.0, 2.0, 3.0):
         simulate_frame(world, rig, EGO + [dx, 0, 0], poses, None, cache=cache)
     simulate_frame(world, rig, EGO, poses, None, cache=cache)
-    assert len(cache) == 2 and cache.hits == 2
+    simulate_frame(world, rig, EGO + [1.0, 0, 0], poses, None, cache=cache)
+    assert len(cache) == 2 and cache.hits == 3
 
 
 def _journal(path):

@@ -134,7 +134,7 @@ _STACKS: dict[str, Any] = {}
 #: path of a 133k-ray HDL-64E with 30 actors takes about 90 MB; closed-loop episodes reuse only
 #: the frames before they diverge.
 OPEN_LOOP_CACHE_BYTES = 128 * 2**20
-CLOSED_LOOP_CACHE_BYTES = 48 * 2**20
+CLOSED_LOOP_CACHE_BYTES = 64 * 2**20
 
 
 def stack_for(autonomy: str):

@@ -66,8 +66,8 @@ class StaticRayCache:
     Args:
         world: the world it caches (its background, ego body and static actors' meshes).
         dynamic: world rows (labels) of the actors whose meshes change between episodes.
-        max_bytes: memory bound; frames never served from the cache are dropped first, then the
-            least recently used ones.
+        max_bytes: memory bound; frames never served from the cache are dropped first (the
+            newest first), then the least recently used ones.
 
     Attributes:
         hits, misses: frames served from the cache / simulated and stored.
@@ -123,9 +123,12 @@ class StaticRayCache:
         self._entries[key] = entry
         self._bytes += entry.nbytes
         while self._bytes > self.max_bytes:
-            # Frames never served again go first (a closed-loop path after it diverged from
-            # every earlier one), then the least recently used: a segmented LRU.
-            victim = next((k for k, e in self._entries.items() if e.used == 0 and k != key), None)
+            # Frames never served yet go first, the newest of them first: once a closed-loop
+            # path has diverged from every earlier one its frames are not seen again, while
+            # the first frames, which every query shares, were stored first. Then the least
+            # recently used frame. (Frames never served keep their insertion order here: only
+            # a hit moves an entry.)
+            victim = next((k for k in reversed(self._entries) if self._entries[k].used == 0), None)
             if victim is None:
                 victim = next(iter(self._entries))
             self._bytes -= self._entries.pop(victim).nbytes
