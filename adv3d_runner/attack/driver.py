@@ -210,8 +210,8 @@ class _Search:
     """One scene and mode: its searcher, the batch in flight and the outcome so far."""
 
     def __init__(self, journal: Journal, config: AttackConfig, evaluator: QueryEvaluator, ref: str, scene_id: str,
-                 mode: str, order: tuple[int, int], targets: list[int], dim: int):
-        self.ref, self.scene_id, self.mode, self.order = ref, scene_id, mode, order
+                 mode: str, targets: list[int], dim: int):
+        self.ref, self.scene_id, self.mode = ref, scene_id, mode
         self.config, self.journal, self.evaluator, self.dim = config, journal, evaluator, dim
         self.run = SceneRun(scene_id, mode, targets)
         self.searcher = None
@@ -373,15 +373,15 @@ def run_attack(config: AttackConfig, out: str | Path, *, workers: int | None = 1
 
     # every search of the run, in canonical order (skipped scenes recorded as such)
     pending: list[_Search] = []
-    for si, (ref, sid) in enumerate(zip(config.scenes, ids)):
+    for ref, sid in zip(config.scenes, ids):
         try:
             targets, dim = ev.targets(ref)
         except ConfigError as exc:  # e.g. no actor in front of the ego: skip, keep going
             status(f"skipping {sid}: {exc}")
             summary["scenes"][sid] = {"ref": ref, "skipped": str(exc)}
             continue
-        for mi, mode in enumerate(config.modes):
-            pending.append(_Search(journal, config, ev, ref, sid, mode, (si, mi), targets, dim))
+        for mode in config.modes:
+            pending.append(_Search(journal, config, ev, ref, sid, mode, targets, dim))
     journal.write_summary(_ordered_summary(summary, config, ids))
     original_claimed: set[str] = set()
 
