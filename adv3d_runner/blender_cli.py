@@ -6,11 +6,12 @@ The runner never imports bpy in its own process: building calls Blender's own ex
 install/register check and the renders run in a child ``python -m blender_addon...`` process.
 
 How adv3d_runner gets into Blender: the build packs it as a wheel made from this repository
-(``adv3d-<version>-py3-none-any.whl``, only the ``adv3d_runner`` package, no dependency
-metadata), next to the wheels of the third-party packages the add-on's code paths need and
-Blender lacks (trimesh, scikit-image for marching cubes, lazy_loader). numpy is excluded: Blender
-ships it. Wheels are pinned to the versions installed here (the versions the tests ran with)
-and fetched once with ``pip download`` into a cache folder.
+(``adv3d-<version>-py3-none-any.whl``: the parts of ``adv3d_runner`` the add-on runs, no
+dependency metadata), next to the wheels of the third-party packages the add-on's code paths
+need and Blender lacks (trimesh; scikit-image for marching cubes, with lazy_loader and packaging;
+libigl and scipy for Build shape space). numpy is excluded: Blender ships it. Wheels are pinned
+to the versions installed here (the versions the tests ran with) and fetched once with
+``pip download`` into a cache folder.
 """
 from __future__ import annotations
 
@@ -28,6 +29,7 @@ import tempfile
 import zipfile
 from pathlib import Path
 
+from . import argtypes as at
 from .errors import ConfigError, Adv3dError
 from .fileio import REPO_ROOT
 
@@ -35,14 +37,32 @@ ADDON_DIR = REPO_ROOT / "blender_addon"
 EXTENSION_ID = "adv3d"
 
 #: (distribution name, wheel file prefix) of the third-party packages the add-on imports
-#: in-process. Only what the numpy-only shapes/scene code paths need: marching cubes needs
-#: scikit-image (and its lazy_loader), meshes need trimesh. scipy is not needed by those paths.
+#: in-process: meshes need trimesh; decoding needs scikit-image's marching cubes (which imports
+#: lazy_loader and packaging, not scikit-image's other dependencies); Build shape space needs
+#: libigl (winding numbers, distances), scipy (ndimage: cavity fill) and embreex (the SDF's
+#: visibility orientation of CAD panels casts rays, issue 13). tqdm is not shipped: progress
+#: bars are optional (``adv3d_runner.progress``).
 EXTENSION_DEPENDENCIES = (
     ("trimesh", "trimesh"),
     ("scikit-image", "scikit_image"),
     ("lazy_loader", "lazy_loader"),
     ("packaging", "packaging"),
+    ("libigl", "libigl"),
+    ("scipy", "scipy"),
+    ("embreex", "embreex"),
 )
+
+#: The Blender releases whose Python (3.11) the cp311 wheels load in: 4.2 (the first with
+#: extensions) up to 5.0; Blender 5.1 moved to Python 3.13. The manifest's maximum is exclusive.
+BLENDER_VERSION_MIN = "4.2.0"
+BLENDER_VERSION_MAX = "5.1.0"
+
+#: The parts of adv3d_runner the add-on runs (its wheel holds only these): the ground floor,
+#: shapes, scene and the replay loader. Attack, autonomy, sensors and training (torch, Embree)
+#: run in the runner process ("Attack this scene" starts it), never inside Blender.
+RUNNER_PARTS = ("__init__.py", "errors.py", "fileio.py", "progress.py", "machine.py", "validate.py",
+                "vehicle_classes.py", "geometry/", "dynamics/", "metrics/", "shapes/", "scene/",
+                "sim/__init__.py", "sim/replay.py")
 
 #: Blender platform name -> pip ``--platform`` tags (newest first; pip takes any of them).
 PLATFORM_TAGS = {
@@ -52,8 +72,10 @@ PLATFORM_TAGS = {
     "macos-x64": ["macosx_10_13_x86_64", "macosx_10_9_x86_64"],
 }
 
-# Files of blender_addon/ that go into the extension (tests and caches stay out).
+# Files of blender_addon/ that go into the extension; the build-time self check and the
+# headless renderer are tools of this repository, not of the add-on.
 _ADDON_GLOBS = ("*.py", "blender_manifest.toml")
+DEV_ONLY = ("selfcheck.py", "render.py")
 
 
 def default_wheel_cache() -> Path:
@@ -92,14 +114,17 @@ def register(subparsers) -> None:
     b.set_defaults(func=cmd_build)
 
     r = sub.add_parser("render", help="render the library grid, a latent sweep, a scene or a review frame to PNG")
-    r.add_argument("--what", choices=("library", "sweep", "scene", "review"), required=True)
+    r.add_argument("--what", choices=("library", "sweep", "shapes", "scene", "review"), required=True)
+    r.add_argument("--panel", action="store_true",
+                   help="draw the panel's state (its list, sliders, settings) in a column beside the picture")
+    r.add_argument("--u", default=None, help="shapes: unit vector z1,..,zK,width,length in [0, 1] (default 0.5s)")
     r.add_argument("--out", type=Path, required=True, help="PNG file to write")
     r.add_argument("--library", type=Path, default=None, help="library.json (default: the shipped library)")
     r.add_argument("--space", type=Path, default=None, help="shape-space .npz (default: the shipped one)")
-    r.add_argument("--dim", type=int, default=0, help="sweep: latent dimension (0-based; K, K+1 = width, length)")
-    r.add_argument("--steps", type=int, default=5, help="sweep: number of shapes")
+    r.add_argument("--dim", type=at.count, default=0, help="sweep: latent dimension (0-based; K, K+1 = width, length)")
+    r.add_argument("--steps", type=at.integer(1, 100), default=5, help="sweep: number of shapes")
     r.add_argument("--scene", type=Path, default=None, help="scene: scene file")
-    r.add_argument("--frame", type=int, default=None, help="scene / review: frame to show (default 0 / the middle)")
+    r.add_argument("--frame", type=at.count, default=None, help="scene / review: frame to show (default 0 / the middle)")
     r.add_argument("--run", type=Path, default=None,
                    help="review: run bundle folder (runs/NAME), adv3d simulate output folder, or a replay file")
     r.add_argument("--replay", default=None,
@@ -126,9 +151,20 @@ def cmd_render(args) -> int:
     try:
         w, h = (int(v) for v in args.size.lower().split("x"))
     except ValueError:
-        raise ConfigError(f"--size: expected WxH such as 1280x720, got {args.size!r}") from None
+        w = h = 0
+    if not (16 <= w <= 8192 and 16 <= h <= 8192):
+        raise ConfigError(f"--size: expected WxH such as 1280x720 (16 to 8192 pixels each), got {args.size!r}")
+    # Paths mean what they mean where the user typed them: made absolute here, before the child
+    # (which runs with the repository on its path) sees them.
+    for name in ("out", "library", "space", "scene", "run"):
+        if getattr(args, name, None) is not None:
+            setattr(args, name, Path(getattr(args, name)).expanduser().absolute())
     cmd = [sys.executable, "-m", "blender_addon.render", "--what", args.what, "--out", str(args.out),
            "--size", f"{w}x{h}", "--engine", args.engine, "--dim", str(args.dim), "--steps", str(args.steps)]
+    if args.panel:
+        cmd += ["--panel"]
+    if args.u:
+        cmd += ["--u", args.u]
     if args.library:
         cmd += ["--library", str(args.library)]
     if args.space:
@@ -138,7 +174,9 @@ def cmd_render(args) -> int:
             raise ConfigError("--what scene needs --scene FILE")
         cmd += ["--scene", str(args.scene), "--frame", str(args.frame or 0)]
     if args.what == "review":
-        if args.run is None:
+        if args.run is None or not Path(args.run).exists():
+            if args.run is not None:
+                raise ConfigError(f"--run {args.run}: no such run bundle or replay file")
             raise ConfigError("--what review needs --run BUNDLE (a run bundle folder or a replay file)")
         cmd += ["--run", str(args.run)]
         if args.frame is not None:
@@ -159,8 +197,9 @@ def _child_env() -> dict:
 
 
 def _run_child(cmd: list[str], what: str, timeout: float = 600) -> str:
-    """Run a bpy child process; its exit status 2 carries a user-facing message on stderr."""
-    proc = subprocess.run(cmd, cwd=REPO_ROOT, env=_child_env(), capture_output=True, text=True, timeout=timeout)
+    """Run a bpy child process in the caller's folder; its exit status 2 carries a user-facing
+    message on stderr."""
+    proc = subprocess.run(cmd, env=_child_env(), capture_output=True, text=True, timeout=timeout)
     if proc.returncode != 0:
         lines = [ln for ln in proc.stderr.strip().splitlines() if ln.strip()]
         msg = lines[-1] if lines else f"exit status {proc.returncode}"
@@ -185,7 +224,9 @@ def runner_wheel(out_dir: Path) -> Path:
     files: list[tuple[str, bytes]] = []
     pkg = REPO_ROOT / "adv3d_runner"
     for path in sorted(pkg.rglob("*.py")):
-        if "__pycache__" in path.parts:
+        rel = path.relative_to(pkg).as_posix()
+        if "__pycache__" in path.parts or not any(rel == p or (p.endswith("/") and rel.startswith(p))
+                                                  for p in RUNNER_PARTS):
             continue
         files.append((path.relative_to(REPO_ROOT).as_posix(), path.read_bytes()))
     metadata = (f"Metadata-Version: 2.1\nName: adv3d\nVersion: {__version__}\n"
@@ -262,6 +303,10 @@ def fetch_wheels(platform: str, cache: Path, offline: bool = False) -> list[Path
 def _manifest_text(wheels: list[str], platforms: list[str]) -> str:
     """The source manifest with the ``wheels`` list and ``platforms`` filled in."""
     text = (ADDON_DIR / "blender_manifest.toml").read_text()
+    for key, value in (("blender_version_min", BLENDER_VERSION_MIN), ("blender_version_max", BLENDER_VERSION_MAX)):
+        if not re.search(rf'(?m)^{key} = "{re.escape(value)}"$', text):
+            raise Adv3dError(f"blender_addon/blender_manifest.toml: expected {key} = \"{value}\" "
+                             "(the Blender releases the cp311 wheels load in)")
     listed = "wheels = [\n" + "".join(f'  "./wheels/{w}",\n' for w in wheels) + "]\n"
     text, n = re.subn(r"(?ms)^wheels = \[.*?^\]\n", listed, text)
     if n != 1:
@@ -310,7 +355,8 @@ def build_extension(out: Path, platforms: list[str] | None = None, wheel_cache: 
             (stage / "wheels").mkdir(parents=True)
             for pattern in _ADDON_GLOBS:
                 for src in sorted(ADDON_DIR.glob(pattern)):
-                    shutil.copy2(src, stage / src.name)
+                    if src.name not in DEV_ONLY:
+                        shutil.copy2(src, stage / src.name)
             wheels = [runner_wheel(stage / "wheels")]
             for whl in fetch_wheels(platform, cache, offline):
                 wheels.append(Path(shutil.copy2(whl, stage / "wheels" / whl.name)))
@@ -370,7 +416,28 @@ def check_manifest(manifest: dict, names: set[str], where: str) -> list[str]:
             problems.append(f"{where}: wheels: {w} must not be shipped (Blender provides numpy; no torch/bpy)")
     if "__init__.py" not in names:
         problems.append(f"{where}: __init__.py missing")
+    if manifest.get("blender_version_max") != BLENDER_VERSION_MAX:
+        problems.append(f"{where}: blender_version_max: expected \"{BLENDER_VERSION_MAX}\" (cp311 wheels: "
+                        "Blender 5.1 and later run Python 3.13)")
+    plats = manifest.get("platforms")
+    binary = [Path(w).name for w in wheels if not Path(w).name.endswith("-none-any.whl")]
+    if binary and (not isinstance(plats, list) or len(plats) != 1):
+        problems.append(f"{where}: platforms: expected exactly the one platform the binary wheels are for")
+    for w in binary:
+        if "cp311" not in w:
+            problems.append(f"{where}: wheels: {w} is not built for CPython 3.11")
+        elif isinstance(plats, list) and len(plats) == 1 and not _wheel_platform_ok(w, plats[0]):
+            problems.append(f"{where}: wheels: {w} does not load on {plats[0]}")
+    for name in sorted(names):
+        if name in DEV_ONLY or name.startswith(("tests/", "bench/")) or "__pycache__" in name:
+            problems.append(f"{where}: {name}: a development file in the extension")
     return problems
+
+
+def _wheel_platform_ok(wheel: str, platform: str) -> bool:
+    plat = wheel[:-4].split("-")[-1]
+    return platform in PLATFORM_TAGS and any(t in PLATFORM_TAGS[platform] or _compatible_tag(t, platform)
+                                             for t in plat.split("."))
 
 
 def validate_extension_zip(path: Path, bpy_check: bool = True) -> None:

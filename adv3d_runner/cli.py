@@ -11,6 +11,7 @@ import importlib
 import sys
 
 from . import __version__
+from .argtypes import axis
 from .errors import Adv3dError
 from .progress import set_quiet
 
@@ -29,8 +30,26 @@ COMMAND_MODULES = (
 )
 
 
+class Parser(argparse.ArgumentParser):
+    """``ArgumentParser`` whose usage errors are one line (``adv3d attack: error: argument
+    --seed: expected ...``, exit code 2), like every other error of the tool; subcommand parsers
+    are of this class too (argparse makes them with the parent's class)."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def _leaf_parsers(parser: argparse.ArgumentParser):
+    """Every parser under ``parser`` (itself included), depth first."""
+    yield parser
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in dict.fromkeys(action.choices.values()):  # aliases map to the same parser
+                yield from _leaf_parsers(sub)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = Parser(
         prog="adv3d",
         description="Generate safety-critical 3D vehicle shapes for LiDAR autonomy by closed-loop simulation.",
     )
@@ -45,12 +64,35 @@ def build_parser() -> argparse.ArgumentParser:
                 continue
             raise
         module.register(subparsers)
+    # Every command takes -q/--quiet, before or after the subcommand (SUPPRESS: a subcommand
+    # that is not given -q leaves the top-level value alone).
+    for sub in _leaf_parsers(parser):
+        if sub is not parser and "--quiet" not in sub._option_string_actions:
+            sub.add_argument("-q", "--quiet", action="store_true", default=argparse.SUPPRESS,
+                             help="no progress bars or status lines")
     return parser
 
 
 #: Commands that choose their own threads (training uses every core); every other command runs
 #: its numerical libraries on one thread (``machine.limit_threads``; bench/threads.py).
 OWN_THREADS = ("train",)
+
+
+def _join_axis_values(parser: argparse.ArgumentParser, argv: list[str]) -> list[str]:
+    """``--up -y`` -> ``--up=-y`` for options of type :func:`adv3d_runner.argtypes.axis`
+    (argparse would take ``-y`` for an option)."""
+    flags = {flag for sub in _leaf_parsers(parser) for flag, action in sub._option_string_actions.items()
+             if action.type is axis}
+    out: list[str] = []
+    i = 0
+    while i < len(argv):
+        if argv[i] in flags and i + 1 < len(argv) and argv[i + 1][:1] == "-" and len(argv[i + 1]) == 2:
+            out.append(f"{argv[i]}={argv[i + 1]}")
+            i += 2
+        else:
+            out.append(argv[i])
+            i += 1
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -61,7 +103,8 @@ def main(argv: list[str] | None = None) -> int:
 
         limit_threads()  # before numpy and torch load (building the parser imports numpy)
     parser = build_parser()
-    args = parser.parse_args(argv)
+    argv = list(sys.argv[1:] if argv is None else argv)
+    args = parser.parse_args(_join_axis_values(parser, argv))  # usage errors: one line, SystemExit(2)
     set_quiet(args.quiet)
     if not getattr(args, "func", None):
         parser.print_help()

@@ -18,29 +18,34 @@ DEMO_SCENE = REPO_ROOT / "scenes" / "highway" / "highway-benchmark-000000.json.g
 
 
 def register(subparsers) -> None:
+    from . import argtypes as at
+
     parser = subparsers.add_parser("demo", help="run the main job on the bundled defaults")
     parser.add_argument("--out", type=Path, default=Path("out/demo"), help="output folder (default out/demo)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the random shape sample and the attack")
+    parser.add_argument("--seed", type=at.seed, default=0, help="seed of the random shape sample and the attack")
     parser.add_argument("--scene", type=Path, default=DEMO_SCENE, help=f"scene to attack (default {DEMO_SCENE})")
-    parser.add_argument("--budget", type=int, default=16, help="attack queries (default 16; the paper uses 100)")
-    parser.add_argument("--seconds", type=float, default=3.0, help="episode length in seconds (default 3)")
+    parser.add_argument("--budget", type=at.integer(1, 1_000_000), default=16, help="attack queries (default 16; the paper uses 100)")
+    parser.add_argument("--seconds", type=at.number(0.0, 3600.0, lo_open=True), default=3.0, help="episode length in seconds (default 3)")
     parser.add_argument("--no-attack", action="store_true", help="only decode the sample vehicles")
+    parser.add_argument("--library", default=None,
+                        help="vehicle library of the scene's actors (default: the bundled one; 'none': boxes)")
     parser.set_defaults(func=run_demo)
 
 
 def run_demo(args: argparse.Namespace) -> int:
     from .progress import status
-    from .shapes.library import load_library
+    from .shapes.library import load_library, resolve_library
     from .shapes.mesh_io import write_mesh
     from .shapes.shape_space import DEFAULT_SHAPE_SPACE, ShapeSpace, build_shape_space
 
-    library = load_library()
-    status(f"vehicle library: {len(library.assets)} assets, {len(library.shape_space_assets())} in the shape space")
+    library = resolve_library(getattr(args, "library", None))
+    if library is not None:
+        status(f"vehicle library: {len(library.assets)} assets, {len(library.shape_space_assets())} in the shape space")
     if DEFAULT_SHAPE_SPACE.exists():
         space = ShapeSpace.load(DEFAULT_SHAPE_SPACE)
     else:
         status(f"{DEFAULT_SHAPE_SPACE} is missing: building it (adv3d shapes build)")
-        space = build_shape_space(library)
+        space = build_shape_space(load_library())  # the shipped space is the bundled library's
         space.save(DEFAULT_SHAPE_SPACE)
     status(f"shape space: K={space.k}, explained variance {np.round(space.explained_variance_ratio, 3).tolist()}")
 
@@ -70,7 +75,7 @@ def run_demo_attack(args: argparse.Namespace) -> None:
     run_dir = args.out / "attack"
     config = AttackConfig(scenes=[str(args.scene)], algo="bo", budget=args.budget, mode="closed",
                           seconds=args.seconds, seed=args.seed, autonomy="A",
-                          n_initial=min(11, max(2, args.budget // 3)))
+                          n_initial=min(11, max(2, args.budget // 3)), library=getattr(args, "library", None))
     status(f"attacking {args.scene.name}: BO, {args.budget} queries, {args.seconds:g} s closed-loop episodes "
            f"(a run that is stopped resumes from {run_dir}/queries.jsonl)")
     run_attack(config, run_dir, workers=1)

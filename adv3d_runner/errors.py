@@ -41,8 +41,21 @@ class EmptySurfaceError(InvalidQueryError):
     """A latent decodes to a field with no zero level set (no surface to extract)."""
 
 
+class RunFailedError(Adv3dError):
+    """A command ran but produced nothing usable (every attack query failed, or every scene was
+    skipped); the message says why."""
+
+
 class ConfigError(Adv3dError):
     """Bad command-line or configuration value."""
+
+
+class UnknownIdError(ConfigError, KeyError):
+    """An id (asset, actor, lane) that is not there; a ``KeyError`` too, for callers that look
+    things up, and a ``ConfigError``, so the CLI reports it in one line."""
+
+    def __str__(self) -> str:  # KeyError would print the message with quotes
+        return str(self.args[0]) if self.args else ""
 
 
 def _short(value: object, limit: int = 60) -> str:

@@ -126,7 +126,7 @@ def actor_meshes():
 
         library = load_library(ROOT / "assets" / "vehicles" / "library.json")
         for cls, dims in (("sedan", DIMS["car"]), ("suv", DIMS["suv"]), ("truck", DIMS["truck"])):
-            asset = choose_asset(library, cls, np.array(dims))
+            asset = choose_asset(library, cls, np.array(dims), rule="nearest-size")
             if asset is not None:
                 mesh = actor_mesh(library, asset, np.array(dims))
                 out.append((f"{cls}:{asset}", np.asarray(mesh.vertices), np.asarray(mesh.faces)))

@@ -15,7 +15,6 @@ Prints a table and writes ``bench/results/planner[.quick].json``.
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import sys
 import time

@@ -1,16 +1,30 @@
-"""Sanity of the closed loop on the bundled benchmark scenes (issue 4, acceptance 5).
+"""Sanity of the closed loop on the bundled benchmarks: the generated highways and the real
+NGSIM US-101 recordings (issue 4 acceptance 5, issue 17 acceptance 3-4).
 
-Every scene of ``scenes/highway/``: a 5 s closed-loop episode (actors replay their logs), the
-full LiDAR simulation (the scene's 64-beam rig, library meshes) and the chosen stack. Reports
-the share of scenes where the ego neither collides nor leaves the road, and the Table-1
-metrics (AP / recall in the ROI, minADE / meanADE, planning and driving comfort) next to the
-paper's "Original" row for Autonomy-A.
+Every scene: a 5 s closed-loop episode (actors replay their logs), the full LiDAR simulation
+(the scene's 64-beam rig, library meshes) and the chosen stack. Two sets:
 
-    .venv/bin/python bench/sanity.py [--quick] [--autonomy A|oracle] [--workers 2] [--seconds 5]
+* **generated**: the 100 scenes of ``scenes/highway/`` (``--quick``: every 10th);
+* **real**: the *benchmark* part of ``scenes/real/`` (``scenes/real/split.json``, recordings
+  held out from every training and tuning step; ``--real-part train`` runs the training part,
+  which is what the planner's comfort limits were tuned on).
+
+Reported per set, next to the paper's "Original" row for Autonomy-A: the share of scenes where
+the ego neither collides nor leaves the road, collisions and whether the ego was at fault (the
+first contact is with an actor ahead of it), AP / recall in the ROI, minADE / meanADE, planning
+and driving comfort (mean |lateral acceleration|, mean |jerk| and the peak |jerk| of each
+episode). For real scenes also: the ego's progress against the logged driver's over the same
+frames, its slowest speed and hardest braking against the log's, and minADE / meanADE over the
+recorded future only (the ``--extend``-ed tail of a recording is IDM, not real traffic). The
+issue-17 targets on the real benchmark are checked at the end.
+
+    .venv/bin/python bench/sanity.py [--quick] [--sets generated,real] [--real-part benchmark|train]
+                                     [--autonomy A|oracle|A-lanefollow] [--workers 2] [--seconds 5]
 
 ``--autonomy A`` needs the trained detector and predictor (assets/models/); without them use
-``--autonomy oracle`` (ground-truth boxes of the actors the LiDAR hits + lane-following
-prediction). Writes ``bench/results/sanity[.<autonomy>][.quick].json``.
+``--autonomy oracle``. Writes ``bench/results/sanity[.<autonomy>][.quick].json`` when both sets
+run (the generated set under ``summary`` / ``rows`` as before, the real one under ``real``), and
+``bench/results/sanity.real-<part>[.<autonomy>].json`` for ``--sets real``.
 """
 from __future__ import annotations
 
@@ -31,13 +45,15 @@ sys.path.insert(0, str(ROOT))
 
 PAPER_ORIGINAL_A = {"ap": 0.882, "recall": 0.894, "min_ade": 2.14, "mean_ade": 4.90, "plan_lat": 0.203,
                     "plan_jerk": 0.336, "drive_lat": 0.194, "drive_jerk": 0.331}
+# issue 17, acceptance 4: on the real benchmark part
+REAL_TARGETS = {"min_ade_max": 2.0, "drive_jerk_max": 1.0, "at_fault_collisions_max": 0, "progress_ratio_min": 0.8}
 
 _STACK = None
 _LIB = None
 
 
-def _run(job: tuple[str, str, float]) -> dict:
-    path, autonomy, seconds = job
+def _run(job: tuple[str, str, float, bool]) -> dict:
+    path, autonomy, seconds, real = job
     global _STACK, _LIB
     from adv3d_runner.scene import load_scene
     from adv3d_runner.sensors.world import world_from_scene
@@ -60,40 +76,133 @@ def _run(job: tuple[str, str, float]) -> dict:
     for o in result.outputs:
         lab = o.plan.label.split("/")[0] if o.plan.label else "?"
         m["plans"][lab] = m["plans"].get(lab, 0) + 1
+    m["ego"] = _ego_against_log(scene, result)
+    if real:
+        m["prediction_recorded"] = _recorded_prediction(scene, result)
     return m
 
 
+def _ego_against_log(scene, result) -> dict:
+    """The driven ego against the logged driver over the same frames: path length (m) and
+    their ratio, slowest speed (m/s), hardest braking (m/s^2, from speed differences), time
+    spent below 0.5 m/s (s)."""
+    T, a = result.frames, result.start_frame
+    log = scene.ego_poses()[a:a + T, :2]
+    log_v = scene.ego_speeds()[a:a + T]
+    logged = float(np.sum(np.hypot(*np.diff(log, axis=0).T)))
+    driven = float(np.sum(np.hypot(*np.diff(result.ego_poses[:, :2], axis=0).T)))
+    v = result.ego_speeds
+    return {"progress_m": driven, "logged_progress_m": logged,
+            "progress_ratio": driven / logged if logged > 1e-6 else None,
+            "min_speed": float(v.min()), "logged_min_speed": float(log_v.min()),
+            "min_accel": float(np.min(np.diff(v)) / result.dt) if T > 1 else 0.0,
+            "logged_min_accel": float(np.min(np.diff(log_v)) / result.dt) if T > 1 else 0.0,
+            "standstill_s": float(np.sum(v < 0.5) * result.dt)}
+
+
+def _recorded_prediction(scene, result) -> dict:
+    """minADE / meanADE (m) with the ground truth restricted to recorded frames: an actor's
+    pose counts only where its track is not ``synthetic`` (a recording's ``--extend``-ed tail)."""
+    from dataclasses import replace
+
+    from adv3d_runner.metrics.prediction import prediction_metrics
+    from adv3d_runner.sim.evaluate import prediction_pairs
+
+    F = scene.frames
+    frames = result.start_frame + np.arange(len(result.actor_poses))
+    recorded = np.zeros((len(frames), len(result.actor_ids)), bool)
+    inside = frames < F
+    for i, aid in enumerate(result.actor_ids):
+        recorded[inside, i] = ~scene.actor_synthetic(int(aid))[frames[inside]]
+    masked = replace(result, actor_poses=np.where(recorded[..., None], result.actor_poses, np.nan))
+    pairs = [p for p in prediction_pairs(masked) if len(p[0])]
+    if not pairs:
+        return {"min_ade": None, "mean_ade": None, "n": 0}
+    pm = prediction_metrics(np.concatenate([p for p, _, _ in pairs]), np.concatenate([g for _, g, _ in pairs]),
+                            np.concatenate([v for _, _, v in pairs]))
+    f = lambda x: float(x) if np.isfinite(x) else None  # noqa: E731
+    return {"min_ade": f(pm.min_ade), "mean_ade": f(pm.mean_ade), "n": int(sum(len(p) for p, _, _ in pairs))}
+
+
+def _get(row: dict, keys: tuple[str, ...]):
+    v = row
+    for k in keys:
+        v = v.get(k) if isinstance(v, dict) else None
+    return v
+
+
 def _mean(rows, *keys) -> float | None:
-    vals = []
-    for r in rows:
-        v = r
-        for k in keys:
-            v = v.get(k) if isinstance(v, dict) else None
-        if v is not None and np.isfinite(v):
-            vals.append(v)
+    vals = [v for v in (_get(r, keys) for r in rows) if v is not None and np.isfinite(v)]
     return float(np.mean(vals)) if vals else None
 
 
-def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="10 scenes instead of 100")
-    ap.add_argument("--autonomy", choices=("A", "oracle", "A-lanefollow"), default="A")
-    ap.add_argument("--workers", type=int, default=2)
-    ap.add_argument("--seconds", type=float, default=5.0)
-    args = ap.parse_args()
-    paths = sorted((ROOT / "scenes" / "highway").glob("highway-benchmark-*.json*"))
-    if args.quick:
-        paths = paths[::10]
-    from adv3d_runner.autonomy.stacks import make_stack
+def _max(rows, *keys) -> float | None:
+    vals = [v for v in (_get(r, keys) for r in rows) if v is not None and np.isfinite(v)]
+    return float(np.max(vals)) if vals else None
 
-    make_stack(args.autonomy)  # fail early (e.g. no weights) before starting workers
-    jobs = [(str(p), args.autonomy, args.seconds) for p in paths]
-    t0 = time.time()
+
+def _min(rows, *keys) -> float | None:
+    vals = [v for v in (_get(r, keys) for r in rows) if v is not None and np.isfinite(v)]
+    return float(np.min(vals)) if vals else None
+
+
+def summarise(rows: list[dict], real: bool) -> dict:
+    """Means over the scenes (peaks: mean of the per-episode peaks and the largest one)."""
+    collided = [r["collision"]["collided"] for r in rows]
+    at_fault = [r["collision"]["at_fault"] for r in rows]
+    off = [r["off_road"] for r in rows]
+    s = {
+        "scenes": len(rows),
+        "ok_rate": float(np.mean([not c and not o for c, o in zip(collided, off)])),
+        "ok_rate_at_fault_only": float(np.mean([not c and not o for c, o in zip(at_fault, off)])),
+        "collision_rate": float(np.mean(collided)), "at_fault_collision_rate": float(np.mean(at_fault)),
+        "collisions": int(np.sum(collided)), "at_fault_collisions": int(np.sum(at_fault)),
+        "off_road_rate": float(np.mean(off)),
+        "ap": _mean(rows, "detection", "ap"), "recall": _mean(rows, "detection", "recall"),
+        "min_ade": _mean(rows, "prediction", "min_ade"), "mean_ade": _mean(rows, "prediction", "mean_ade"),
+        "plan_lat": _mean(rows, "planning_comfort", "lat"), "plan_jerk": _mean(rows, "planning_comfort", "jerk"),
+        "plan_peak_jerk": _mean(rows, "planning_comfort", "max_jerk"),
+        "drive_lat": _mean(rows, "driving_comfort", "lat"), "drive_jerk": _mean(rows, "driving_comfort", "jerk"),
+        "drive_peak_jerk": _mean(rows, "driving_comfort", "max_jerk"),
+        "drive_peak_jerk_max": _max(rows, "driving_comfort", "max_jerk"),
+        "min_accel_min": _min(rows, "ego", "min_accel"),
+        "progress_ratio_mean": _mean(rows, "ego", "progress_ratio"),
+        "progress_ratio_min": _min(rows, "ego", "progress_ratio"),
+        "fps_mean": _mean(rows, "fps"),
+        "failures": [{"scene": r["scene"], "collided": r["collision"]["collided"], "at_fault": r["collision"]["at_fault"],
+                      "first_frame": r["collision"]["first_frame"], "actors": r["collision"]["actors"],
+                      "off_road_m": r["off_road_m"]} for r in rows if r["collision"]["collided"] or r["off_road"]],
+    }
+    if real:
+        s["min_ade_recorded"] = _mean(rows, "prediction_recorded", "min_ade")
+        s["mean_ade_recorded"] = _mean(rows, "prediction_recorded", "mean_ade")
+    return s
+
+
+def check_targets(s: dict) -> dict:
+    """Issue 17's targets on a real summary: name -> {value, target, met}."""
+    t = REAL_TARGETS
+    rows = {
+        "min_ade": (s["min_ade"], f"<= {t['min_ade_max']}", s["min_ade"] is not None and s["min_ade"] <= t["min_ade_max"]),
+        "min_ade_recorded": (s.get("min_ade_recorded"), f"<= {t['min_ade_max']}",
+                             s.get("min_ade_recorded") is not None and s["min_ade_recorded"] <= t["min_ade_max"]),
+        "drive_jerk": (s["drive_jerk"], f"<= {t['drive_jerk_max']}",
+                       s["drive_jerk"] is not None and s["drive_jerk"] <= t["drive_jerk_max"]),
+        "at_fault_collisions": (s["at_fault_collisions"], f"<= {t['at_fault_collisions_max']}",
+                                s["at_fault_collisions"] <= t["at_fault_collisions_max"]),
+        "progress_ratio_min": (s["progress_ratio_min"], f">= {t['progress_ratio_min']}",
+                               s["progress_ratio_min"] is not None and s["progress_ratio_min"] >= t["progress_ratio_min"]),
+    }
+    return {k: {"value": v, "target": tt, "met": bool(ok)} for k, (v, tt, ok) in rows.items()}
+
+
+def _run_set(paths: list[Path], autonomy: str, seconds: float, workers: int, real: bool) -> list[dict]:
+    jobs = [(str(p), autonomy, seconds, real) for p in paths]
     rows = []
-    if args.workers > 1:
+    if workers > 1:
         import multiprocessing as mp
 
-        with mp.get_context("spawn").Pool(args.workers) as pool:
+        with mp.get_context("spawn").Pool(workers) as pool:
             for m in pool.imap(_run, jobs):
                 rows.append(m)
                 _line(m, len(rows), len(jobs))
@@ -101,61 +210,114 @@ def main() -> int:
         for job in jobs:
             rows.append(_run(job))
             _line(rows[-1], len(rows), len(jobs))
+    return rows
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="10 generated scenes instead of 100 (the real set is small)")
+    ap.add_argument("--sets", default="generated,real", help="comma-separated: generated, real")
+    ap.add_argument("--real-part", choices=("benchmark", "train"), default="benchmark",
+                    help="part of scenes/real/ (split.json); tune only on train")
+    ap.add_argument("--autonomy", choices=("A", "oracle", "A-lanefollow"), default="A")
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--seconds", type=float, default=5.0)
+    args = ap.parse_args()
+    sets = [s.strip() for s in args.sets.split(",") if s.strip()]
+    if not sets or set(sets) - {"generated", "real"}:
+        ap.error("--sets takes generated and/or real")
+    from adv3d_runner.autonomy.stacks import make_stack
+    from adv3d_runner.scene.real import load_real_split
+
+    make_stack(args.autonomy)  # fail early (e.g. no weights) before starting workers
+    t0 = time.time()
+    out: dict = {}
+    if "generated" in sets:
+        paths = sorted((ROOT / "scenes" / "highway").glob("highway-benchmark-*.json*"))
+        if args.quick:
+            paths = paths[::10]
+        print(f"generated benchmark: {len(paths)} scenes")
+        rows = _run_set(paths, args.autonomy, args.seconds, args.workers, real=False)
+        out["generated"] = (summarise(rows, real=False), rows)
+    if "real" in sets:
+        split = load_real_split()
+        paths = split.paths(args.real_part)
+        print(f"real {args.real_part} part: {len(paths)} scenes (recordings {list(split.recordings[args.real_part])})")
+        rows = _run_set(paths, args.autonomy, args.seconds, args.workers, real=True)
+        summary = summarise(rows, real=True)
+        summary["part"] = args.real_part
+        summary["recordings"] = list(split.recordings[args.real_part])
+        summary["targets"] = check_targets(summary)
+        out["real"] = (summary, rows)
     wall = time.time() - t0
-    n = len(rows)
-    collided = [r["collision"]["collided"] for r in rows]
-    at_fault = [r["collision"]["at_fault"] for r in rows]
-    off = [r["off_road"] for r in rows]
-    summary = {
-        "scenes": n, "autonomy": args.autonomy, "seconds": args.seconds,
-        "ok_rate": float(np.mean([not c and not o for c, o in zip(collided, off)])),
-        "ok_rate_at_fault_only": float(np.mean([not c and not o for c, o in zip(at_fault, off)])),
-        "collision_rate": float(np.mean(collided)), "at_fault_collision_rate": float(np.mean(at_fault)),
-        "off_road_rate": float(np.mean(off)),
-        "ap": _mean(rows, "detection", "ap"), "recall": _mean(rows, "detection", "recall"),
-        "min_ade": _mean(rows, "prediction", "min_ade"), "mean_ade": _mean(rows, "prediction", "mean_ade"),
-        "plan_lat": _mean(rows, "planning_comfort", "lat"), "plan_jerk": _mean(rows, "planning_comfort", "jerk"),
-        "drive_lat": _mean(rows, "driving_comfort", "lat"), "drive_jerk": _mean(rows, "driving_comfort", "jerk"),
-        "fps_mean": _mean(rows, "fps"), "wall_s": wall,
-        "failures": [{"scene": r["scene"], "collided": r["collision"]["collided"], "at_fault": r["collision"]["at_fault"],
-                      "first_frame": r["collision"]["first_frame"], "actors": r["collision"]["actors"],
-                      "off_road_m": r["off_road_m"]} for r in rows if r["collision"]["collided"] or r["off_road"]],
-    }
-    s = summary
-    f = lambda x, p=3: "n/a" if x is None else f"{x:.{p}f}"  # noqa: E731
-    print(f"\n{n} scenes, {args.seconds:g} s closed loop, autonomy {args.autonomy}: "
-          f"ok (no collision, on road) {100 * s['ok_rate']:.0f}% | collisions {100 * s['collision_rate']:.0f}% "
-          f"(ego at fault {100 * s['at_fault_collision_rate']:.0f}%) | off road {100 * s['off_road_rate']:.0f}% | "
-          f"{wall:.0f} s wall with {args.workers} workers")
-    print("\n| | AP | recall | minADE | meanADE | plan lat | plan jerk | drive lat | drive jerk |")
-    print("|---|---|---|---|---|---|---|---|---|")
-    print(f"| this run ({args.autonomy}) | {f(s['ap'])} | {f(s['recall'])} | {f(s['min_ade'], 2)} | {f(s['mean_ade'], 2)} | "
-          f"{f(s['plan_lat'])} | {f(s['plan_jerk'])} | {f(s['drive_lat'])} | {f(s['drive_jerk'])} |")
-    p = PAPER_ORIGINAL_A
-    print(f"| paper Table 1, Autonomy-A, Original | {p['ap']:.3f} | {p['recall']:.3f} | {p['min_ade']:.2f} | "
-          f"{p['mean_ade']:.2f} | {p['plan_lat']:.3f} | {p['plan_jerk']:.3f} | {p['drive_lat']:.3f} | {p['drive_jerk']:.3f} |")
-    for fail in s["failures"]:
-        print("failure:", fail)
+    _print(out, args)
     from adv3d_runner.fileio import write_json
 
-    name = "sanity" + ("" if args.autonomy == "A" else f".{args.autonomy}") + (".quick" if args.quick else "")
-    out = ROOT / "bench" / "results" / f"{name}.json"
-    write_json(out, {"format": "adv3d-bench", "version": 1, "topic": "sanity",
-                     "command": " ".join(["bench/sanity.py"] + sys.argv[1:]),
-                     "machine": {"python": platform.python_version(), "platform": platform.platform(),
-                                 "processor": platform.processor(), "cpus": os.cpu_count()},
-                     "paper_original_autonomy_a": PAPER_ORIGINAL_A, "summary": summary,
-                     "rows": [{k: v for k, v in r.items() if k not in ("format", "version")} for r in rows]})
-    print(f"wrote {out.relative_to(ROOT)}")
+    tag = "" if args.autonomy == "A" else f".{args.autonomy}"
+    if "generated" in out:
+        name = "sanity" + tag + (".quick" if args.quick else "")
+    else:
+        name = f"sanity.real-{args.real_part}" + tag
+    doc = {"format": "adv3d-bench", "version": 1, "topic": "sanity",
+           "command": " ".join(["bench/sanity.py"] + sys.argv[1:]),
+           "machine": {"python": platform.python_version(), "platform": platform.platform(),
+                       "processor": platform.processor(), "cpus": os.cpu_count()},
+           "paper_original_autonomy_a": PAPER_ORIGINAL_A, "wall_s": wall}
+    strip = lambda rows: [{k: v for k, v in r.items() if k not in ("format", "version")} for r in rows]  # noqa: E731
+    if "generated" in out:
+        s, rows = out["generated"]
+        doc["summary"] = dict(s, autonomy=args.autonomy, seconds=args.seconds)
+        doc["rows"] = strip(rows)
+    if "real" in out:
+        s, rows = out["real"]
+        doc["real"] = {"summary": dict(s, autonomy=args.autonomy, seconds=args.seconds), "rows": strip(rows)}
+    path = ROOT / "bench" / "results" / f"{name}.json"
+    write_json(path, doc)
+    print(f"wrote {path.relative_to(ROOT)} ({wall:.0f} s wall with {args.workers} workers)")
     return 0
 
 
+def _print(out: dict, args) -> None:
+    f = lambda x, p=3: "n/a" if x is None else f"{x:.{p}f}"  # noqa: E731
+    print(f"\n{args.seconds:g} s closed loop, autonomy {args.autonomy}\n")
+    print("| set | scenes | ok | collisions (at fault) | AP | recall | minADE | meanADE | plan lat | plan jerk | "
+          "plan peak jerk | drive lat | drive jerk | drive peak jerk (max) | progress vs log (min) |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for key, label in (("generated", "generated benchmark"), ("real", f"real, {args.real_part} part")):
+        if key not in out:
+            continue
+        s = out[key][0]
+        ade = f"{f(s['min_ade'], 2)}" + (f" ({f(s['min_ade_recorded'], 2)} rec.)" if "min_ade_recorded" in s else "")
+        print(f"| {label} | {s['scenes']} | {100 * s['ok_rate']:.0f}% | {s['collisions']} ({s['at_fault_collisions']}) | "
+              f"{f(s['ap'])} | {f(s['recall'])} | {ade} | {f(s['mean_ade'], 2)} | {f(s['plan_lat'])} | {f(s['plan_jerk'])} | "
+              f"{f(s['plan_peak_jerk'], 2)} | {f(s['drive_lat'])} | {f(s['drive_jerk'])} | "
+              f"{f(s['drive_peak_jerk'], 2)} ({f(s['drive_peak_jerk_max'], 1)}) | "
+              f"{f(s['progress_ratio_mean'], 2)} ({f(s['progress_ratio_min'], 2)}) |")
+    p = PAPER_ORIGINAL_A
+    print(f"| paper Table 1, Autonomy-A, Original | - | - | - | {p['ap']:.3f} | {p['recall']:.3f} | {p['min_ade']:.2f} | "
+          f"{p['mean_ade']:.2f} | {p['plan_lat']:.3f} | {p['plan_jerk']:.3f} | - | {p['drive_lat']:.3f} | "
+          f"{p['drive_jerk']:.3f} | - | - |")
+    for key in out:
+        for fail in out[key][0]["failures"]:
+            print(f"failure ({key}):", fail)
+    if "real" in out:
+        print(f"\nissue-17 targets on the real {args.real_part} part:")
+        for name, t in out["real"][0]["targets"].items():
+            v = t["value"]
+            print(f"  {name}: {v if v is None or isinstance(v, int) else round(v, 3)} (target {t['target']}): "
+                  f"{'met' if t['met'] else 'NOT met'}")
+
+
 def _line(m: dict, i: int, n: int) -> None:
-    d, c = m["detection"], m["collision"]
-    print(f"[{i}/{n}] {m['scene']:28s} coll={int(c['collided'])} fault={int(c['at_fault'])} "
+    d, c, e = m["detection"], m["collision"], m["ego"]
+    rec = m.get("prediction_recorded")
+    print(f"[{i}/{n}] {m['scene']:30s} coll={int(c['collided'])} fault={int(c['at_fault'])} "
           f"off={m['off_road_m']:.2f} AP={d['ap'] if d['ap'] is None else round(d['ap'], 3)} "
-          f"minADE={m['prediction']['min_ade'] and round(m['prediction']['min_ade'], 2)} "
-          f"drive_lat={m['driving_comfort']['lat']:.3f} drive_jerk={m['driving_comfort']['jerk']:.3f} "
+          f"minADE={m['prediction']['min_ade'] and round(m['prediction']['min_ade'], 2)}"
+          + (f" (rec {rec['min_ade'] and round(rec['min_ade'], 2)})" if rec else "")
+          + f" drive_jerk={m['driving_comfort']['jerk']:.3f} peak={m['driving_comfort']['max_jerk']:.1f} "
+          f"progress={e['progress_ratio'] and round(e['progress_ratio'], 2)} vmin={e['min_speed']:.1f}"
+          f"/{e['logged_min_speed']:.1f} amin={e['min_accel']:.1f}/{e['logged_min_accel']:.1f} "
           f"fps={m['fps']:.1f}", flush=True)
 
 

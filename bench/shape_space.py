@@ -9,8 +9,13 @@
     without the asset, the asset's SDF projected on it and decoded; symmetric mean surface
     distance (cm) to the asset's own surface at the same resolution (so only the PCA error
     is measured). K = 0 is the mean shape.
+    Also the share of left-out vehicles whose latent (K = 3) lies inside the latent box of
+    the others (the box the attack searches).
 (c) decode time (unit vector -> metric mesh arrays, one core) against resolution.
 (d) time to build the whole library's shape space at the default resolution (full mode).
+(e) the real-CAD-like hard-case suite (``tests/cad_hardcases.py``) at 64^3: decoded length,
+    width, height error against the source mesh, solid outside the body, CPU time per vehicle,
+    for ``winding`` (visibility-oriented) against ``winding-outward`` (shape space v1).
 
 Prints the tables and writes ``bench/results/shape_space.json`` (``shape_space.quick.json``
 with --quick) with machine info and the command.
@@ -33,8 +38,10 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from adv3d_runner.machine import machine_info as _machine_info  # noqa: E402
+from adv3d_runner.shapes.cleaning import clean_mesh  # noqa: E402
+from adv3d_runner.shapes.decode import extract_surface  # noqa: E402
 from adv3d_runner.shapes.library import load_asset_mesh, load_library  # noqa: E402
-from adv3d_runner.shapes.sdf import METHODS, GridSpec, sdf_volume  # noqa: E402
+from adv3d_runner.shapes.sdf import METHODS, GridSpec, grid_for_dimensions, sdf_volume  # noqa: E402
 from adv3d_runner.shapes.shape_space import (  # noqa: E402
     DEFAULT_RESOLUTION,
     fit_pca,
@@ -114,22 +121,22 @@ def part_a(library, grid64: GridSpec, asset_ids: list[str], resolutions: list[in
     for aid in asset_ids:
         mesh = mesh_of(library, aid)
         ref_grid = GridSpec(ref_res, grid64.extent_m, grid64.ground_z, grid64.truncation)
-        t0 = time.perf_counter()
+        t0 = time.process_time()
         ref = sdf_volume(mesh.vertices, mesh.faces, ref_grid, "winding")
-        t_ref = time.perf_counter() - t0
+        t_ref = time.process_time() - t0
         ref_surf = surface_unit(ref, ref_grid)
         lo, hi = ref_surf[0].min(axis=0) - 0.02, ref_surf[0].max(axis=0) + 0.02
         print(f"  reference {aid} at {ref_res}^3: {t_ref:.1f} s", flush=True)
         for method in METHODS:
             for n in resolutions:
                 g = GridSpec(n, grid64.extent_m, grid64.ground_z, grid64.truncation)
-                t0 = time.perf_counter()
+                t0 = time.process_time()
                 try:
                     f = sdf_volume(mesh.vertices, mesh.faces, g, method)
                 except Exception as exc:  # noqa: BLE001 - a method failing on an asset is a result
                     rows.append({"asset": aid, "method": method, "resolution": n, "error": str(exc)})
                     continue
-                dt = time.perf_counter() - t0
+                dt = time.process_time() - t0
                 iou = volume_iou(f, ref, np.stack([lo, hi]), rng)
                 msd = mean_surface_distance(surface_unit(f, g), ref_surf, rng) * grid64.extent_m * 1000
                 rows.append({"asset": aid, "method": method, "resolution": n, "sdf_time_s": dt, "iou": iou,
@@ -149,6 +156,9 @@ def part_b(sdfs: np.ndarray, ids: list[str], grid: GridSpec, kmax: int, rng) -> 
         mean, comps, _, _, rank = fit_pca(rest, kk)
         x = flat[i].astype(np.float64) - mean
         z = comps @ x
+        # inside the K = 3 latent box of the others (the box the attack's unit vectors span)
+        z_rest = (rest.astype(np.float64) - mean) @ comps[:3].T
+        inside_box = bool(np.all((z[:3] >= z_rest.min(axis=0)) & (z[:3] <= z_rest.max(axis=0))))
         for k in range(0, kk + 1):
             field = (mean + z[:k] @ comps[:k]).astype(np.float32).reshape(sdfs.shape[1:])
             try:
@@ -156,7 +166,7 @@ def part_b(sdfs: np.ndarray, ids: list[str], grid: GridSpec, kmax: int, rng) -> 
                 err = mean_surface_distance(rec, own[i], rng, 8000) * grid.extent_m * 100
             except (ValueError, RuntimeError):
                 err = float("nan")
-            rows.append({"asset": ids[i], "k": k, "loo_mean_surface_distance_cm": err})
+            rows.append({"asset": ids[i], "k": k, "loo_mean_surface_distance_cm": err, "inside_k3_box": inside_box})
     return rows
 
 
@@ -169,9 +179,9 @@ def part_c(spaces: dict[int, object], rng, repeats: int = 15) -> list[dict]:
             sp.decode_arrays(u)  # warm
             ts = []
             for _ in range(repeats):
-                t0 = time.perf_counter()
+                t0 = time.process_time()
                 v, f = sp.decode_arrays(u)
-                ts.append(time.perf_counter() - t0)
+                ts.append(time.process_time() - t0)
             times.append(float(np.median(ts)))
             tris.append(len(f))
         rows.append({"resolution": n, "decode_ms_median": 1000 * float(np.median(times)),
@@ -193,6 +203,49 @@ def summarise_a(rows: list[dict]) -> list[dict]:
     return out
 
 
+def part_e(resolution: int = 64) -> dict:
+    """The hard-case suite: decoded dimensions and solid outside the body, winding vs v1."""
+    from tests.cad_hardcases import CASES, hardcase_car
+
+    grid = grid_for_dimensions([(5.5, 2.0, 1.9)], resolution)
+    voxel_m = grid.voxel * grid.extent_m
+    rows = []
+    for case in CASES:
+        for seed in (0, 1):
+            car = hardcase_car(case, seed=seed)
+            import trimesh
+
+            mesh, report = clean_mesh(trimesh.Trimesh(car.vertices, car.faces, process=False))
+            for method in ("winding", "winding-outward"):
+                t0 = time.process_time()
+                field = sdf_volume(mesh.vertices, mesh.faces, grid, method)
+                cpu = time.process_time() - t0
+                v, _ = extract_surface(field, grid)
+                err = np.ptp(v, axis=0) - np.asarray(car.dimensions)
+                nodes = grid.to_metric(grid.points())
+                inside = field.ravel() < 0
+                outside_by = car.outside_distance(nodes[inside])
+                rows.append({"case": case, "seed": seed, "method": method, "parts": car.parts,
+                             "boundary_edges": report["boundary_edges"], "dims_error_m": err.tolist(),
+                             "max_abs_dims_error_m": float(np.abs(err).max()),
+                             "solid_nodes_outside_body": int(np.sum(outside_by > voxel_m)),
+                             "max_solid_outside_m": float(outside_by.max()) if len(outside_by) else 0.0,
+                             "sdf_cpu_s": cpu})
+                print(f"  {case:13s} {seed} {method:16s} dims err {np.round(err, 3)} outside "
+                      f"{rows[-1]['solid_nodes_outside_body']:3d} cpu {cpu:5.2f} s", flush=True)
+    summary = []
+    for method in ("winding", "winding-outward"):
+        rs = [r for r in rows if r["method"] == method]
+        summary.append({"method": method, "cars": len(rs),
+                        "passed": int(sum(r["max_abs_dims_error_m"] <= 0.05 and r["solid_nodes_outside_body"] == 0
+                                          for r in rs)),
+                        "mean_abs_dims_error_cm": 100 * float(np.mean([np.abs(r["dims_error_m"]) for r in rs])),
+                        "max_abs_dims_error_cm": 100 * float(np.max([r["max_abs_dims_error_m"] for r in rs])),
+                        "cars_with_solid_outside": int(sum(r["solid_nodes_outside_body"] > 0 for r in rs)),
+                        "sdf_cpu_s_mean": float(np.mean([r["sdf_cpu_s"] for r in rs]))})
+    return {"resolution": resolution, "voxel_m": voxel_m, "summary": summary, "rows": rows}
+
+
 def summarise_b(rows: list[dict]) -> list[dict]:
     out = []
     for k in sorted({r["k"] for r in rows}):
@@ -200,6 +253,13 @@ def summarise_b(rows: list[dict]) -> list[dict]:
         out.append({"k": k, "loo_msd_cm_mean": float(np.nanmean(e)), "loo_msd_cm_median": float(np.nanmedian(e)),
                     "loo_msd_cm_max": float(np.nanmax(e)), "failed": int(np.isnan(e).sum())})
     return out
+
+
+def inside_box_share(rows: list[dict]) -> dict:
+    per_asset = {r["asset"]: r["inside_k3_box"] for r in rows}
+    return {"assets": len(per_asset), "inside": int(sum(per_asset.values())),
+            "share": float(np.mean(list(per_asset.values()))),
+            "outside_assets": sorted(a for a, v in per_asset.items() if not v)}
 
 
 def main() -> int:
@@ -213,20 +273,21 @@ def main() -> int:
     resolutions = [32, 48, 64] if quick else [32, 48, 64, 100, 128]
     ref_res = 128 if quick else 192
     lib_res = 32 if quick else DEFAULT_RESOLUTION
-    result: dict = {"command": " ".join([Path(sys.executable).name] + sys.argv), "quick": quick, "machine": machine_info()}
+    result: dict = {"command": " ".join([Path(sys.executable).name] + sys.argv), "quick": quick, "machine": machine_info(),
+                    "times": "CPU time of this process (time.process_time), one BLAS/OpenMP thread; machine shared"}
 
     library = load_library(args.library) if args.library else load_library()
     assets = library.shape_space_assets()
     print(f"library: {len(assets)} shape-space assets", flush=True)
 
     # (d) whole-library build at the default resolution (also gives the SDFs for (b)).
-    t0 = time.perf_counter()
+    t0 = time.process_time()
     grid, assets, sdfs, _ = library_sdfs(library, lib_res, progress=False, mesh_loader=mesh_of)
-    t_sdf = time.perf_counter() - t0
-    t1 = time.perf_counter()
+    t_sdf = time.process_time() - t0
+    t1 = time.process_time()
     space = shape_space_from_sdfs(sdfs, [a.id for a in assets], grid, 3)
     blob = space.to_bytes()
-    t_pca = time.perf_counter() - t1
+    t_pca = time.process_time() - t1
     result["d_build"] = {"resolution": lib_res, "assets": len(assets), "sdf_s": t_sdf, "pca_and_serialise_s": t_pca,
                          "total_s": t_sdf + t_pca, "file_bytes": len(blob),
                          "explained_variance_ratio": space.explained_variance_ratio.tolist()}
@@ -236,7 +297,12 @@ def main() -> int:
     # (b) K against leave-one-out error.
     print("(b) leave-one-out reconstruction ...", flush=True)
     rows_b = part_b(sdfs, [a.id for a in assets], grid, 8, rng)
-    result["b_k_loo"] = {"resolution": lib_res, "summary": summarise_b(rows_b), "rows": rows_b}
+    result["b_k_loo"] = {"resolution": lib_res, "summary": summarise_b(rows_b),
+                         "left_out_inside_k3_box": inside_box_share(rows_b), "rows": rows_b}
+
+    # (e) hard-case suite, winding against the v1 method.
+    print("(e) real-CAD-like hard cases ...", flush=True)
+    result["e_hardcases"] = part_e() if not quick else part_e(48)
 
     # (a) SDF method x resolution on a few assets spread over the library.
     grid64 = GridSpec(64, grid.extent_m, grid.ground_z, grid.truncation)
@@ -247,6 +313,8 @@ def main() -> int:
     for ids in by_source.values():
         pick += ids[:1] if quick else ids[:2]
     pick = pick[:2] if quick else pick[:4]
+    if not quick and "openmaterial-examples.coupe" in [a.id for a in assets]:
+        pick.append("openmaterial-examples.coupe")  # the CAD-like one: 41k triangles, interior, open panels
     print(f"(a) SDF methods x resolutions on {pick}, reference winding {ref_res}^3 ...", flush=True)
     rows_a = part_a(library, grid64, pick, resolutions, ref_res, rng)
     result["a_sdf"] = {"reference": f"winding {ref_res}^3", "assets": pick, "summary": summarise_a(rows_a), "rows": rows_a}
@@ -275,6 +343,13 @@ def main() -> int:
     print(f"{'N':>5s} {'median ms':>10s} {'max ms':>8s} {'triangles':>10s}")
     for r in rows_c:
         print(f"{r['resolution']:5d} {r['decode_ms_median']:10.2f} {r['decode_ms_max_over_u']:8.2f} {r['triangles_median']:10d}")
+    box = result["b_k_loo"]["left_out_inside_k3_box"]
+    print(f"left-out vehicles inside the others' K=3 latent box: {box['inside']}/{box['assets']} ({box['share']:.0%})")
+    print("\n(e) hard-case suite (dims within 5 cm and no solid outside the body)")
+    for r in result["e_hardcases"]["summary"]:
+        print(f"{r['method']:16s} passed {r['passed']}/{r['cars']}  mean |dims err| {r['mean_abs_dims_error_cm']:.1f} cm  "
+              f"max {r['max_abs_dims_error_cm']:.1f} cm  cars with solid outside {r['cars_with_solid_outside']}  "
+              f"SDF CPU {r['sdf_cpu_s_mean']:.2f} s")
     d = result["d_build"]
     print(f"\n(d) whole library ({d['assets']} assets) at {d['resolution']}^3: {d['total_s']:.1f} s "
           f"(SDF {d['sdf_s']:.1f} s), file {d['file_bytes'] / 1e6:.2f} MB")

@@ -16,8 +16,9 @@ import numpy as np
 from bpy.props import EnumProperty, FloatProperty, StringProperty
 from bpy_extras.io_utils import ImportHelper
 
-from . import meshdata, runner
-from .props import VEHICLE_CLASSES
+from adv3d_runner.vehicle_classes import VEHICLE_CLASSES, plausibility_warning
+
+from . import meshdata, places, prefs, runner, uiutil
 
 ASSET_COLLECTION = "Adv3D Library"
 
@@ -51,7 +52,7 @@ def library_from_props(lib_props):
     """The library file with the panel's edits applied (not written)."""
     from adv3d_runner.shapes.library import load_library
 
-    library = load_library(bpy.path.abspath(lib_props.path))
+    library = load_library(library_path(lib_props))
     for item in lib_props.assets:
         try:
             asset = library.get(item.asset_id)
@@ -70,7 +71,7 @@ def save_library_props(lib_props) -> Path:
     from adv3d_runner.shapes.library import save_library
 
     library = library_from_props(lib_props)
-    path = save_library(library, bpy.path.abspath(lib_props.path))
+    path = save_library(library, library_path(lib_props))
     fill_props(lib_props, library)
     return path
 
@@ -109,17 +110,17 @@ class ADV3D_OT_library_load(bpy.types.Operator):
 
     filepath: StringProperty(subtype="FILE_PATH", options={"SKIP_SAVE"})
 
+    @uiutil.reported
     def execute(self, context):
         from adv3d_runner.shapes.library import load_library
 
         lib_props = context.scene.adv3d.library
         if self.filepath:
             lib_props.path = self.filepath
-        try:
-            library = load_library(bpy.path.abspath(lib_props.path))
-        except runner.Adv3dError as exc:
-            self.report({"ERROR"}, str(exc))
-            return {"CANCELLED"}
+        if not library_path(lib_props):
+            raise runner.Adv3dError("choose a library.json (or a default in the add-on preferences)")
+        library = load_library(library_path(lib_props))
+        lib_props.path = lib_props.path or library_path(lib_props)
         fill_props(lib_props, library)
         self.report({"INFO"}, f"{len(library.assets)} assets")
         return {"FINISHED"}
@@ -132,12 +133,9 @@ class ADV3D_OT_library_save(bpy.types.Operator):
     bl_label = "Save library"
     bl_options = {"REGISTER"}
 
+    @uiutil.reported
     def execute(self, context):
-        try:
-            path = save_library_props(context.scene.adv3d.library)
-        except runner.Adv3dError as exc:
-            self.report({"ERROR"}, str(exc))
-            return {"CANCELLED"}
+        path = save_library_props(context.scene.adv3d.library)
         self.report({"INFO"}, f"Wrote {path}")
         return {"FINISHED"}
 
@@ -151,21 +149,15 @@ class ADV3D_OT_library_show(bpy.types.Operator):
 
     asset_id: StringProperty(options={"SKIP_SAVE"})
 
+    @uiutil.reported
     def execute(self, context):
-        from adv3d_runner.shapes.library import load_asset_mesh
-
         lib_props = context.scene.adv3d.library
         asset_id = self.asset_id
         if not asset_id:
             if not lib_props.assets:
-                self.report({"ERROR"}, "Load a library first")
-                return {"CANCELLED"}
+                raise runner.Adv3dError("load a library first")
             asset_id = lib_props.assets[lib_props.active_index].asset_id
-        try:
-            obj = show_asset(context.scene, lib_props, asset_id)
-        except (runner.Adv3dError, KeyError) as exc:
-            self.report({"ERROR"}, str(exc))
-            return {"CANCELLED"}
+        obj = show_asset(context.scene, lib_props, asset_id)
         for other in context.view_layer.objects:
             other.select_set(False)
         obj.select_set(True)
@@ -191,33 +183,94 @@ def asset_mesh_object(library, asset_id: str, collection) -> "bpy.types.Object":
     return obj
 
 
+SHOW_GAP_M = 1.5  # between shown assets, along +x
+
+
 def show_asset(scene, lib_props, asset_id: str) -> "bpy.types.Object":
+    """Show a library asset in the Library panel's collection and place: shown assets stand in a
+    row along +x (front to the right), each once."""
     from adv3d_runner.shapes.library import load_library
 
-    library = load_library(bpy.path.abspath(lib_props.path))
-    library.get(asset_id)  # KeyError with the known ids
-    coll = meshdata.get_collection(ASSET_COLLECTION, scene.collection)
-    for obj in list(coll.objects):
+    library = load_library(library_path(lib_props))
+    asset = library.get(asset_id)  # KeyError with the known ids
+    coll = places.panel_collection(scene, ASSET_COLLECTION)
+    shown = [o for o in coll.objects if o.adv3d.role == "ASSET"]
+    for obj in shown:
         if obj.adv3d.key == asset_id:
             return obj
-    return asset_mesh_object(library, asset_id, coll)
+    place = places.place_of(coll)
+    x = 0.0
+    if place is None:
+        place = places.make_place(scene, coll, np.array([0.0, -2.0, 6.0, 2.0]))
+    else:
+        x = float(place["adv3d_bounds"][2]) + SHOW_GAP_M
+    obj = asset_mesh_object(library, asset_id, coll)
+    length, width = float(asset.dimensions[0]), float(asset.dimensions[1])
+    obj.parent = place
+    obj.location = (x + length / 2.0, 0.0, 0.0)
+    places.grow_place(place, np.array([x, -width / 2.0, x + length, width / 2.0]))
+    return obj
 
 
 # --------------------------------------------------------------------------- import through Blender
 
-_IMPORTERS = {
-    ".glb": lambda path: bpy.ops.import_scene.gltf(filepath=path),
-    ".gltf": lambda path: bpy.ops.import_scene.gltf(filepath=path),
-    ".obj": lambda path: bpy.ops.wm.obj_import(filepath=path, forward_axis="NEGATIVE_Z", up_axis="Y"),
-    ".fbx": lambda path: bpy.ops.import_scene.fbx(filepath=path),
-    ".ply": lambda path: bpy.ops.wm.ply_import(filepath=path),
-    ".stl": lambda path: bpy.ops.wm.stl_import(filepath=path),
-}
-IMPORT_SUFFIXES = tuple(_IMPORTERS) + (".blend",)
-_FORWARD = {"X": "+x", "NEG_X": "-x", "Y": "+y", "NEG_Y": "-y"}
+# Axis choices named as Blender's own importers name them (OBJ / PLY / STL importers).
+AXES = [("X", "X", ""), ("Y", "Y", ""), ("Z", "Z", ""),
+        ("NEGATIVE_X", "-X", ""), ("NEGATIVE_Y", "-Y", ""), ("NEGATIVE_Z", "-Z", "")]
+UP_ITEMS = [("AUTO", "Auto", "As Blender's importer does for the format: OBJ Y up, FBX as the file declares, "
+                             "glTF Y up (the standard), PLY / STL / .blend Z up")] + AXES
+FRONT_ITEMS = [("AUTO", "Auto", "The longest horizontal axis (its sign is a guess: use Turn front if the "
+                                "vehicle faces backwards)")] + AXES
+_AXIS_VECTORS = {"X": (1, 0, 0), "Y": (0, 1, 0), "Z": (0, 0, 1),
+                 "NEGATIVE_X": (-1, 0, 0), "NEGATIVE_Y": (0, -1, 0), "NEGATIVE_Z": (0, 0, -1)}
+# Where a file's axes land after Blender's importer (blender = M @ file): OBJ / PLY / STL are
+# imported with forward -> Y, up -> Z (no conversion) so the user's file axes apply as they are;
+# the glTF importer always turns glTF's y-up into z-up ((x, y, z) -> (x, -z, y)); FBX with
+# given axes is read with a manual identity orientation, with Auto axes as the file declares
+# them (z up afterwards); a .blend is in Blender's frame.
+_IDENTITY = np.eye(3)
+_GLTF_TO_BLENDER = np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])
+_AUTO_UP = {".obj": "Y", ".fbx": "Y", ".ply": "Z", ".stl": "Z", ".glb": "Y", ".gltf": "Y", ".blend": "Z"}
+IMPORT_SUFFIXES = (".glb", ".gltf", ".obj", ".fbx", ".ply", ".stl", ".blend")
 
 
-def _import_objects(path: Path) -> list:
+def _importer(path: Path, manual_axes: bool):
+    """(call, M): the Blender importer for ``path`` and where the file's axes land (see above)."""
+    p = str(path)
+    suffix = path.suffix.lower()
+    if suffix in (".glb", ".gltf"):
+        return (lambda: bpy.ops.import_scene.gltf(filepath=p)), _GLTF_TO_BLENDER
+    if suffix == ".obj":
+        return (lambda: bpy.ops.wm.obj_import(filepath=p, forward_axis="Y", up_axis="Z")), _IDENTITY
+    if suffix == ".ply":
+        return (lambda: bpy.ops.wm.ply_import(filepath=p, forward_axis="Y", up_axis="Z")), _IDENTITY
+    if suffix == ".stl":
+        return (lambda: bpy.ops.wm.stl_import(filepath=p, forward_axis="Y", up_axis="Z")), _IDENTITY
+    if suffix == ".fbx":
+        if manual_axes:
+            return (lambda: bpy.ops.import_scene.fbx(filepath=p, use_manual_orientation=True, axis_forward="Y",
+                                                     axis_up="Z")), _IDENTITY
+        return (lambda: bpy.ops.import_scene.fbx(filepath=p)), None  # the file's own axes: z up after it
+    return None, _IDENTITY  # .blend
+
+
+def blender_axes(path: Path, up: str, front: str) -> tuple[str, str | None]:
+    """The file's up and front axes (the operator's choices) as axes of the imported objects
+    (``"+z"``, ``"-y"``... for ``convert_vehicle``; front None = guess it)."""
+    suffix = path.suffix.lower()
+    _, m = _importer(path, manual_axes=up != "AUTO" or front != "AUTO")
+    if m is None:  # FBX read with its declared axes: up is Blender's +z
+        return "+z", None
+
+    def name(axis: str) -> str:
+        v = m @ np.array(_AXIS_VECTORS[axis], dtype=np.float64)
+        i = int(np.argmax(np.abs(v)))
+        return ("+" if v[i] > 0 else "-") + "xyz"[i]
+
+    return name(_AUTO_UP[suffix] if up == "AUTO" else up), None if front == "AUTO" else name(front)
+
+
+def _import_objects(path: Path, manual_axes: bool = False) -> list:
     """Import a file with Blender's own importer; returns the new objects (a .blend's objects
     are appended)."""
     before = set(bpy.data.objects)
@@ -230,11 +283,14 @@ def _import_objects(path: Path) -> list:
             for obj in new:
                 bpy.context.scene.collection.objects.link(obj)
         else:
-            result = _IMPORTERS[suffix](str(path))
+            call, _ = _importer(path, manual_axes)
+            result = call()
             if "FINISHED" not in result:
                 raise runner.Adv3dError(f"{path}: Blender's importer did not finish ({result})")
             new = [o for o in bpy.data.objects if o not in before]
     except (RuntimeError, OSError) as exc:  # Blender importers raise RuntimeError on bad files
+        new = [o for o in bpy.data.objects if o not in before]
+        _remove_objects(new)
         raise _mesh_error(f"{path}: cannot import ({str(exc).strip().splitlines()[-1] if str(exc).strip() else exc})")
     return new
 
@@ -277,87 +333,71 @@ def _remove_objects(objects) -> None:
             bpy.data.meshes.remove(data)
 
 
-def import_vehicle_file(lib_props, path: Path, vehicle_class: str, forward: str, length: float,
-                        licence_name: str = "", licence_file: str = "", asset_id: str = "", pack: str = ""):
-    """Import one vehicle file through Blender into the library (mesh written, library saved).
+def blender_reader(up: str = "AUTO", front: str = "AUTO", length: float = 0.0):
+    """A ``MeshReader`` for ``add_asset``: the file through Blender's own importer, then the
+    runner's conversion and cleaning (``mesh_io.convert_vehicle``), so an asset added here is
+    stored exactly like one added by ``adv3d assets import``.
 
-    The mesh goes through the runner's own conversion and cleaning
-    (``mesh_io.to_convention``, ``cleaning.clean_mesh``), so an asset added here is stored
-    exactly like one added by ``adv3d assets import``.
+    Args:
+        up, front: the file's up axis and the axis the vehicle's front points along, named as
+            in Blender's importers (``"Y"``, ``"NEGATIVE_Z"``) or ``"AUTO"``.
+        length: real length in m to scale to (uniformly); 0 keeps the file's size.
+    """
+    import trimesh
+    from adv3d_runner.shapes.mesh_io import convert_vehicle
+
+    def read(path: Path):
+        up_b, front_b = blender_axes(path, up, front)
+        objects = _import_objects(path, manual_axes=up != "AUTO" or front != "AUTO")
+        try:
+            vertices, faces = objects_arrays(objects)
+        finally:
+            _remove_objects(objects)
+        raw = trimesh.Trimesh(vertices=vertices, faces=faces, process=False)
+        # Blender's importers brought the model to metres; the axes are mapped above
+        return convert_vehicle(raw, "blender", path.suffix.lower()[1:], up=up_b, forward=front_b,
+                               unit="m", length=length if length > 0 else None)
+
+    return read
+
+
+def library_path(lib_props) -> str:
+    """The panel's library.json, else the preferences' default ('' when neither is set)."""
+    return bpy.path.abspath(lib_props.path) if lib_props.path else prefs.default_library()
+
+
+def import_vehicle_file(lib_props, path: Path, vehicle_class: str, up: str, front: str, length: float,
+                        licence_name: str = "", licence_file: str = "", asset_id: str = "", pack: str = ""):
+    """Import one vehicle file through Blender into the library (``add_asset``: mesh written,
+    library saved) and show the library with the new asset active.
 
     Returns:
         the new ``VehicleAsset``.
     """
-    import shutil
-
-    import trimesh
     from adv3d_runner.errors import ConfigError
-    from adv3d_runner.shapes.cleaning import clean_mesh
-    from adv3d_runner.shapes.library import VehicleAsset, VehicleLibrary, load_library, save_library
-    from adv3d_runner.shapes.library_cli import find_licence, licence_name_from_text, slug
-    from adv3d_runner.shapes.mesh_io import (
-        mesh_dimensions, read_library_mesh, scale_to_dimensions, to_convention, write_library_glb)
+    from adv3d_runner.shapes.library import add_asset, load_or_new_library
 
-    lib_path = Path(bpy.path.abspath(lib_props.path))
-    if not lib_props.path:
-        raise ConfigError("set the library file (library.json) first")
-    library = load_library(lib_path) if lib_path.exists() else VehicleLibrary(root=lib_path.parent)
+    if not library_path(lib_props):
+        raise ConfigError("set the library file (library.json) first, or a default in the add-on preferences")
+    lib_path = Path(library_path(lib_props))
+    lib_props.path = str(lib_path)
+    library = load_or_new_library(lib_path)
     if path.suffix.lower() not in IMPORT_SUFFIXES:
         raise _mesh_error(f"{path}: unsupported file type (use {', '.join(IMPORT_SUFFIXES)})")
-    if not path.is_file():
-        raise _mesh_error(f"{path}: no such file")
-    lic_src = Path(licence_file) if licence_file else find_licence(path.parent)
-    if lic_src is None or not lic_src.is_file():
-        raise ConfigError(f"{path}: no licence file beside it; choose one (licences travel with meshes)")
-    lic_name = licence_name or licence_name_from_text(lic_src.read_text(errors="replace"))
-    if not lic_name:
-        raise ConfigError(f"{lic_src}: cannot tell the licence from its text; enter its name")
-
-    objects = _import_objects(path)
-    try:
-        vertices, faces = objects_arrays(objects)
-    finally:
-        _remove_objects(objects)
-    raw = trimesh.Trimesh(vertices=vertices, faces=faces, process=False)
-    # Blender's importers already brought the model to Z up and metres.
-    mesh, curation = to_convention(raw, up="+z", forward=_FORWARD[forward], unit="m")
-    curation = {"reader": "blender", "file_format": path.suffix.lower()[1:], **curation,
-                "size_after_unit_conversion": [round(v, 4) for v in mesh_dimensions(mesh)]}
-    mesh, report = clean_mesh(mesh)
-    if length > 0:
-        size = np.array(mesh_dimensions(mesh))
-        mesh, scaled = scale_to_dimensions(mesh, tuple(size * (length / size[0])))
-        curation.update(scaled)
-        curation["scaled_to_length"] = float(length)
-    pack = slug(pack or path.parent.name)
-    asset_id = asset_id or f"{pack}.{slug(path.stem)}"
-    rel_file = f"{pack}/{slug(path.stem)}.glb"
-    target = library.root / rel_file
-    write_library_glb(mesh, target)
-    stored = read_library_mesh(target)
-    lic_rel = f"{pack}/{lic_src.name}"
-    if (library.root / lic_rel).resolve() != lic_src.resolve():
-        (library.root / pack).mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(lic_src, library.root / lic_rel)
-    asset = VehicleAsset(
-        id=asset_id, file=rel_file, vehicle_class=vehicle_class,
-        dimensions=tuple(round(v, 4) for v in mesh_dimensions(stored)),
-        source={"pack": pack, "file": path.name}, licence={"name": lic_name, "file": lic_rel},
-        triangle_count=int(len(stored.faces)), cleaning=report, curation=curation, in_shape_space=True,
-    )
-    library.put(asset)
-    save_library(library, lib_path)
+    asset = add_asset(library, lib_path, path, vehicle_class, blender_reader(up, front, length),
+                      asset_id=asset_id or None, pack=pack or None, licence_file=licence_file or None,
+                      licence_name=licence_name or None)
     fill_props(lib_props, library)
-    lib_props.active_index = library.ids().index(asset_id)
+    lib_props.active_index = library.ids().index(asset.id)
     return asset
 
 
 def _edit_asset_mesh(lib_props, asset_id: str, edit, note: dict):
     """Apply ``edit(vertices) -> vertices`` to a stored asset mesh and update the library."""
-    from adv3d_runner.shapes.library import load_library, save_library
+    from adv3d_runner.shapes.library import save_library
     from adv3d_runner.shapes.mesh_io import mesh_dimensions, read_library_mesh, write_library_glb
 
-    lib_path = Path(bpy.path.abspath(lib_props.path))
+    lib_path = Path(library_path(lib_props))
     library = library_from_props(lib_props)  # keep unsaved panel edits
     asset = library.get(asset_id)
     mesh = read_library_mesh(library.path_of(asset))
@@ -385,22 +425,36 @@ class ADV3D_OT_library_import(bpy.types.Operator, ImportHelper):
     bl_options = {"REGISTER"}  # writes files: Blender undo cannot take that back
 
     filter_glob: StringProperty(default="*.glb;*.gltf;*.obj;*.fbx;*.ply;*.stl;*.blend", options={"HIDDEN"})
+    vehicle_class: EnumProperty(name="Class", items=[(c, c, "") for c in VEHICLE_CLASSES], default="sedan")
+    axis_up: EnumProperty(name="Up", items=UP_ITEMS, default="AUTO", description="The file's up axis")
+    axis_forward: EnumProperty(name="Front", items=FRONT_ITEMS, default="AUTO",
+                               description="The file axis the vehicle's front points along")
+    length: FloatProperty(name="Real length", min=0.0, soft_max=20.0, unit="LENGTH", default=0.0,
+                          description="Scale the model to this length (0: keep the file's size)")
     asset_id: StringProperty(name="Id", description="Asset id (default: <folder>.<file name>)")
     licence_name: StringProperty(name="Licence", description="SPDX name such as CC0-1.0 (default: from the licence text)")
     licence_file: StringProperty(name="Licence file", subtype="FILE_PATH",
                                  description="Licence text (default: License.txt or similar beside the file)")
 
+    def draw(self, context):
+        layout = self.layout
+        layout.use_property_split = True
+        for name in ("vehicle_class", "axis_forward", "axis_up", "length", "asset_id", "licence_name",
+                     "licence_file"):
+            layout.prop(self, name)
+
+    @uiutil.reported
     def execute(self, context):
         lib_props = context.scene.adv3d.library
-        try:
-            asset = import_vehicle_file(lib_props, Path(self.filepath), lib_props.import_class,
-                                        lib_props.import_forward, lib_props.import_length,
-                                        self.licence_name, bpy.path.abspath(self.licence_file), self.asset_id)
-        except runner.Adv3dError as exc:
-            self.report({"ERROR"}, str(exc))
-            return {"CANCELLED"}
+        asset = import_vehicle_file(lib_props, Path(self.filepath), self.vehicle_class, self.axis_up,
+                                    self.axis_forward, self.length, self.licence_name,
+                                    bpy.path.abspath(self.licence_file) if self.licence_file else "", self.asset_id)
         L, W, H = asset.dimensions
         self.report({"INFO"}, f"{asset.id}: {L:.2f} x {W:.2f} x {H:.2f} m, {asset.triangle_count} triangles")
+        warning = plausibility_warning(asset.vehicle_class, asset.dimensions,
+                                       hint="consider Real length or Set real size")
+        if warning:
+            self.report({"WARNING"}, warning)
         return {"FINISHED"}
 
 
@@ -425,19 +479,16 @@ class ADV3D_OT_library_rescale(bpy.types.Operator):
                 self.length = item.length
         return context.window_manager.invoke_props_dialog(self)
 
+    @uiutil.reported
     def execute(self, context):
         lib_props = context.scene.adv3d.library
-        try:
-            asset = library_from_props(lib_props).get(self.asset_id)
-            L, W, H = asset.dimensions
-            s = self.length / L
-            factors = np.array([s, self.width / W if self.width > 0 else s, self.height / H if self.height > 0 else s])
-            _edit_asset_mesh(lib_props, self.asset_id, lambda v: v * factors,
-                             {"scale": [round(float(f), 6) for f in factors],
-                              "dimensions": [float(self.length), float(self.width or W * s), float(self.height or H * s)]})
-        except (runner.Adv3dError, KeyError) as exc:
-            self.report({"ERROR"}, str(exc))
-            return {"CANCELLED"}
+        asset = library_from_props(lib_props).get(self.asset_id)
+        L, W, H = asset.dimensions
+        s = self.length / L
+        factors = np.array([s, self.width / W if self.width > 0 else s, self.height / H if self.height > 0 else s])
+        _edit_asset_mesh(lib_props, self.asset_id, lambda v: v * factors,
+                         {"scale": [round(float(f), 6) for f in factors],
+                          "dimensions": [float(self.length), float(self.width or W * s), float(self.height or H * s)]})
         return {"FINISHED"}
 
 
@@ -455,15 +506,12 @@ class ADV3D_OT_library_turn(bpy.types.Operator):
     def invoke(self, context, event):
         return context.window_manager.invoke_props_dialog(self)
 
+    @uiutil.reported
     def execute(self, context):
         a = np.radians(float(self.angle))
         rot = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
-        try:
-            _edit_asset_mesh(context.scene.adv3d.library, self.asset_id, lambda v: v @ rot.T,
-                             {"turn_deg": int(self.angle)})
-        except (runner.Adv3dError, KeyError) as exc:
-            self.report({"ERROR"}, str(exc))
-            return {"CANCELLED"}
+        _edit_asset_mesh(context.scene.adv3d.library, self.asset_id, lambda v: v @ rot.T,
+                         {"turn_deg": int(self.angle)})
         return {"FINISHED"}
 
 

@@ -19,14 +19,13 @@ itself (the output of ``adv3d simulate``) are offered.
 """
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import bpy
 import numpy as np
 from bpy.props import StringProperty
 
-from . import review, runner
+from . import jobs, review, runner, uiutil
 
 DETECTION_HEIGHT = 1.6  # m; the replay's boxes are 2-D (BEV), drawn with a nominal height
 REPLAY_NAMES = ("replay.json.gz", "replay.json")
@@ -49,14 +48,20 @@ def find_replays(path: str | Path) -> list[tuple[str, Path]]:
     summary = p / "summary.json"
     if summary.is_file():
         try:
-            doc = json.loads(summary.read_text())
+            from adv3d_runner.fileio import read_json
+
+            doc = read_json(summary)  # bounded read
             for sid, entry in sorted(doc.get("scenes", {}).items()):
                 for mode, m in sorted(entry.get("modes", {}).items()):
                     rel = (m.get("files") or {}).get("replay")
-                    if rel and (p / rel).is_file():
-                        found.append((f"{sid} / {mode}", p / rel))
-        except (ValueError, AttributeError, TypeError):
-            found = []  # a damaged summary: fall back to the folder layout below
+                    if not rel:
+                        continue
+                    # the summary's paths stay inside the run folder (symlinks included)
+                    target = runner_resolve_inside(p, rel, summary, f"$.scenes.{sid}.modes.{mode}.files.replay")
+                    if target.is_file():
+                        found.append((f"{sid} / {mode}", target))
+        except (runner.FileFormatError, ValueError, AttributeError, TypeError):
+            found = []  # a damaged summary (or a path leading out of the folder): use the folder layout
     if not found:
         for name in REPLAY_NAMES:
             for f in sorted(p.glob(f"scenes/*/*/{name}")):
@@ -71,13 +76,21 @@ def find_replays(path: str | Path) -> list[tuple[str, Path]]:
 
 # --------------------------------------------------------------------------- conversion
 
-def _actor_mesh(replay_dir: Path, rel: str | None):
-    """(V, 3), (F, 3) of an actor's substituted shape (convention frame), or None."""
+def runner_resolve_inside(root: Path, rel, file: Path, field: str) -> Path:
+    """``root / rel`` checked to stay inside ``root`` (``adv3d_runner.fileio.resolve_inside``)."""
+    from adv3d_runner.fileio import resolve_inside
+
+    return resolve_inside(root, rel, file=file, field=field)
+
+
+def _actor_mesh(replay_dir: Path, rel: str | None, index: int = 0):
+    """(V, 3), (F, 3) of an actor's substituted shape (convention frame), or None. The file
+    stays inside the replay's folder (symlinks included)."""
     if not rel:
         return None
     from adv3d_runner.shapes.mesh_io import read_library_mesh
 
-    mesh = read_library_mesh(replay_dir / rel)
+    mesh = read_library_mesh(runner_resolve_inside(replay_dir, rel, replay_dir / "replay", f"$.actors[{index}].mesh"))
     return np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64)
 
 
@@ -91,8 +104,8 @@ def replay_to_review(replay, replay_dir: str | Path) -> tuple[review.ReviewData,
     origin = np.floor(first[0, :2]) if len(first) else np.zeros(2)
     shift = np.array([origin[0], origin[1], 0.0])
     actors = []
-    for a in replay.actors:
-        mesh = _actor_mesh(replay_dir, a.mesh) if a.adversarial else None
+    for i, a in enumerate(replay.actors):
+        mesh = _actor_mesh(replay_dir, a.mesh, i) if a.adversarial else None
         actors.append(review.ReviewActor(a.id, a.poses - shift, np.asarray(a.dimensions, float),
                                          None if mesh is None else mesh[0], None if mesh is None else mesh[1],
                                          adversarial=a.adversarial))
@@ -115,63 +128,181 @@ def replay_to_review(replay, replay_dir: str | Path) -> tuple[review.ReviewData,
     return data, origin
 
 
-def load_review(bscene, path: str | Path) -> dict:
-    """Load a replay file (and its points) and build the review in ``bscene``.
+HASH_STEP_BYTES = 1 << 23  # hashed per step (~20 ms)
+
+
+def replay_files(path: Path) -> list[Path]:
+    """The files a replay is made of: the JSON and, when there, its points file."""
+    from adv3d_runner.sim.replay import points_path
+
+    pts = points_path(path)
+    return [path] + ([pts] if pts.is_file() else [])
+
+
+def replay_key_steps(path: str | Path):
+    """Steps generator -> the key of a replay: its absolute path and the SHA-256 of its files
+    (``"/abs/replay.json.gz#sha256:..."``). Raises ``FileFormatError`` for a missing file."""
+    import hashlib
+
+    path = Path(path).expanduser().resolve()
+    if not path.is_file():
+        raise runner.FileFormatError(path, "$", "an existing replay file", "file not found")
+    h = hashlib.sha256()
+    for f in replay_files(path):
+        h.update(f.name.encode() + b"\0")
+        with open(f, "rb") as fh:
+            while chunk := fh.read(HASH_STEP_BYTES):
+                h.update(chunk)
+                yield 0.0, f"hashing {f.name}"
+    return f"{path}#sha256:{h.hexdigest()}"
+
+
+def key_path(key: str) -> Path:
+    return Path(key.rsplit("#sha256:", 1)[0])
+
+
+def load_review_steps(bscene, path: str | Path):
+    """Steps generator: read a replay file (and its points) in pieces, then build the review in
+    ``bscene`` (the last step). Returns the counts of what was built.
 
     Raises:
-        Adv3dError (FileFormatError, MeshImportError) for bad files.
+        Adv3dError (FileFormatError, MeshImportError) for bad files; nothing is built then.
     """
-    from adv3d_runner.sim.replay import load_replay
+    from adv3d_runner.progress import span
+    from adv3d_runner.sim.replay import load_replay_steps
 
     path = Path(path).expanduser()
-    replay = load_replay(path, points=True)
+    yield from jobs.import_steps(("scipy.spatial", "trimesh"))  # adversarial shapes are glb files
+    key = yield from span(replay_key_steps(path), 0.0, 0.05, f"hashing {path.name}")
+    replay = yield from span(load_replay_steps(path, points=True), 0.05, 0.95, f"reading {path.name}")
+    yield 0.95, "building the review"
     data, origin = replay_to_review(replay, path.parent)
-    counts = review.build_review(bscene, data)
+    counts = review.build_review(bscene, data, key)
     coll = bpy.data.collections[review.REVIEW_COLLECTION]
     coll["adv3d_origin"] = [float(origin[0]), float(origin[1])]
-    coll["adv3d_replay"] = str(path)
     coll["adv3d_scene_id"] = replay.scene_id
+    bscene.adv3d.review.loaded = str(path)
     bscene.render.fps = max(1, int(round(1.0 / replay.dt)))
     counts["points"] = replay.points is not None
     return counts
 
 
-def reattach(bscene) -> bool:
-    """After opening a .blend that holds a review: read its replay again so the per-frame
-    geometry follows the timeline (the arrays are not saved in the .blend). False when the
-    scene holds no review or its replay file is gone or changed shape (the objects then keep
-    the last frame shown)."""
-    from adv3d_runner.sim.replay import load_replay
+def load_review(bscene, path: str | Path) -> dict:
+    """Load a replay file (and its points) and build the review in ``bscene`` (all at once)."""
+    from adv3d_runner.progress import run_steps
 
-    coll = bpy.data.collections.get(review.REVIEW_COLLECTION)
-    if coll is None or "adv3d_replay" not in coll or bscene.name in review._LOADED:
+    return run_steps(load_review_steps(bscene, path))
+
+
+def needs_reattach(bscene) -> bool:
+    """The scene shows a review whose replay is not in memory (a .blend just opened, an undo)."""
+    props = bscene.adv3d.review
+    return bool(props.key) and props.key not in review._CACHE and not props.stale
+
+
+def reattach_steps(bscenes):
+    """Steps generator: read again the replays of the scenes that show a review (the arrays are
+    not saved in a .blend), checking each file is the one the review was made from (same
+    content hash). A scene whose replay is gone or changed gets ``review.stale`` set and its
+    per-frame geometry emptied: nothing from another file is ever drawn. Returns
+    {scene name: True (attached) / message (stale)}."""
+    from adv3d_runner.progress import span
+    from adv3d_runner.sim.replay import load_replay_steps
+
+    done = {}
+    for bscene in bscenes:
+        props = bscene.adv3d.review
+        key = props.key
+        path = key_path(key)
+        coll = bpy.data.collections.get(review.REVIEW_COLLECTION)
+        yield from jobs.import_steps(("scipy.spatial", "trimesh"))
+        try:
+            now = yield from span(replay_key_steps(path), 0.0, 0.05, f"checking {path.name}")
+            if now != key:
+                raise runner.Adv3dError(f"{path}: the replay file changed since the review was loaded")
+            replay = yield from span(load_replay_steps(path, points=True), 0.05, 1.0, f"reading {path.name}")
+            data, origin = replay_to_review(replay, path.parent)
+            if coll is None or not np.allclose(origin, list(coll.get("adv3d_origin", origin))):
+                raise runner.Adv3dError(f"{path}: the review objects do not match the replay")
+        except (runner.Adv3dError, OSError, ValueError) as exc:
+            props.stale = f"{exc}; use Load review to read it again"
+            review.blank_frame()
+            done[bscene.name] = props.stale
+            continue
+        review.attach(bscene, data, key)
+        review.update_frame(bscene, bscene.frame_current)
+        done[bscene.name] = True
+    return done
+
+
+def reattach(bscene) -> bool:
+    """Reattach one scene's review at once (see :func:`reattach_steps`); True when attached."""
+    from adv3d_runner.progress import run_steps
+
+    if not needs_reattach(bscene):
         return False
-    path = Path(coll["adv3d_replay"])
-    try:
-        replay = load_replay(path, points=True)
-        data, origin = replay_to_review(replay, path.parent)
-    except (runner.Adv3dError, OSError, ValueError):
-        return False
-    if not np.allclose(origin, list(coll.get("adv3d_origin", origin))):
-        return False
-    review.attach(bscene, data)
-    return True
+    return run_steps(reattach_steps([bscene])).get(bscene.name) is True
+
+
+def _reattach_pending() -> None:
+    """Start reading the replays of scenes that need it: modally in the UI (progress in the
+    status bar), at once in background mode (scripts, tests)."""
+    scenes = [s for s in bpy.data.scenes if hasattr(s, "adv3d") and needs_reattach(s)]
+    if not scenes:
+        return None
+    if bpy.app.background:
+        from adv3d_runner.progress import run_steps
+
+        run_steps(reattach_steps(scenes))
+        return None
+    wm = bpy.context.window_manager
+    window = wm.windows[0] if wm and wm.windows else None
+    if window is None:
+        return None
+    with bpy.context.temp_override(window=window):
+        bpy.ops.adv3d.review_reattach("INVOKE_DEFAULT")
+    return None
 
 
 @bpy.app.handlers.persistent
 def on_load_post(*_args) -> None:
-    for bscene in bpy.data.scenes:
-        reattach(bscene)
+    # another file: nothing in memory belongs to it
+    review.forget_all()
+    if bpy.app.background:
+        _reattach_pending()
+    elif not bpy.app.timers.is_registered(_reattach_pending):
+        bpy.app.timers.register(_reattach_pending, first_interval=0.0)  # after the file is shown
+
+
+@bpy.app.handlers.persistent
+def on_undo_post(*_args) -> None:
+    # an undo / redo may bring back a review (undo of Clear) or take one away (undo of Load)
+    review.prune()
+    if bpy.app.background:
+        _reattach_pending()
+    elif not bpy.app.timers.is_registered(_reattach_pending):
+        bpy.app.timers.register(_reattach_pending, first_interval=0.0)
+
+
+_HANDLERS = (("load_post", on_load_post), ("undo_post", on_undo_post), ("redo_post", on_undo_post))
 
 
 def add_handlers() -> None:
-    if on_load_post not in bpy.app.handlers.load_post:
-        bpy.app.handlers.load_post.append(on_load_post)
+    for name, fn in _HANDLERS:
+        lst = getattr(bpy.app.handlers, name)
+        if fn not in lst:
+            lst.append(fn)
+    review.add_handler()
 
 
 def remove_handlers() -> None:
-    while on_load_post in bpy.app.handlers.load_post:
-        bpy.app.handlers.load_post.remove(on_load_post)
+    for name, fn in _HANDLERS:
+        lst = getattr(bpy.app.handlers, name)
+        while fn in lst:
+            lst.remove(fn)
+    review.remove_handler()
+    if bpy.app.timers.is_registered(_reattach_pending):
+        bpy.app.timers.unregister(_reattach_pending)
 
 
 # --------------------------------------------------------------------------- operators
@@ -194,40 +325,56 @@ def replay_items(self, context):
     return _ITEMS
 
 
-class ADV3D_OT_review_load(bpy.types.Operator):
-    """Load a run bundle's replay (or one replay file): ego, actors, points, detections, predictions, plan"""
+class ADV3D_OT_review_load(jobs.JobOperator, bpy.types.Operator):
+    """Load a run bundle's replay (or one replay file): ego, actors, points, detections,
+    predictions, plan (reads in the background: progress in the status bar, Esc cancels)"""
 
     bl_idname = "adv3d.review_load"
     bl_label = "Load review"
     bl_options = {"REGISTER", "UNDO"}
+    job_label = "Load review"
 
     filepath: StringProperty(subtype="FILE_PATH", options={"SKIP_SAVE"},
                              description="Replay file or run bundle folder (default: the panel's)")
     replay: StringProperty(options={"SKIP_SAVE"},
                            description="Which replay of the bundle (default: the panel's choice, else the first)")
 
-    def execute(self, context):
+    def start_job(self, context):
         props = context.scene.adv3d.review
         path = bpy.path.abspath(self.filepath or props.path)
         if not path:
-            self.report({"ERROR"}, "Choose a run bundle folder or a replay file")
-            return {"CANCELLED"}
-        try:
-            found = find_replays(path)
-            # the panel's choice lists the panel's bundle; an explicit filepath has its own
-            want = self.replay or ("" if self.filepath else props.replay)
-            want = "" if want == NO_REPLAY else want
-            chosen = next((p for label, p in found if want and (str(p) == want or label == want)), found[0][1])
-            counts = load_review(context.scene, chosen)
-        except runner.Adv3dError as exc:
-            self.report({"ERROR"}, str(exc))
-            return {"CANCELLED"}
-        except (OSError, ValueError) as exc:  # e.g. an unreadable mesh the importer rejects
-            self.report({"ERROR"}, f"{path}: {exc}")
-            return {"CANCELLED"}
-        props.loaded = str(chosen)
-        self.report({"INFO"}, f"{chosen.name}: {counts['frames']} frames, {counts['actors']} actors "
+            raise runner.Adv3dError("choose a run bundle folder or a replay file")
+        found = find_replays(path)
+        # the panel's choice lists the panel's bundle; an explicit filepath has its own
+        want = self.replay or ("" if self.filepath else props.replay)
+        want = "" if want == NO_REPLAY else want
+        self._chosen = next((p for label, p in found if want and (str(p) == want or label == want)), found[0][1])
+        return load_review_steps(context.scene, self._chosen)
+
+    def finish_job(self, context, job):
+        counts = job.result
+        self.report({"INFO"}, f"{self._chosen.name}: {counts['frames']} frames, {counts['actors']} actors "
                               f"({counts['adversarial']} adversarial)" + (", points" if counts["points"] else ""))
+        return {"FINISHED"}
+
+
+class ADV3D_OT_review_reattach(jobs.JobOperator, bpy.types.Operator):
+    """Read again the replays of reviews whose data is not in memory (after opening a .blend or
+    an undo)"""
+
+    bl_idname = "adv3d.review_reattach"
+    bl_label = "Read review replays"
+    bl_options = {"INTERNAL"}
+    job_label = "Reading the review's replay"
+
+    def start_job(self, context):
+        scenes = [s for s in bpy.data.scenes if needs_reattach(s)]
+        return reattach_steps(scenes) if scenes else None
+
+    def finish_job(self, context, job):
+        for name, result in job.result.items():
+            if result is not True:
+                self.report({"WARNING"}, f"{name}: {result}")
         return {"FINISHED"}
 
 
@@ -238,10 +385,11 @@ class ADV3D_OT_review_clear(bpy.types.Operator):
     bl_label = "Clear review"
     bl_options = {"REGISTER", "UNDO"}
 
+    @uiutil.reported
     def execute(self, context):
         review.clear_review(context.scene)
         context.scene.adv3d.review.loaded = ""
         return {"FINISHED"}
 
 
-classes = (ADV3D_OT_review_load, ADV3D_OT_review_clear)
+classes = (ADV3D_OT_review_load, ADV3D_OT_review_reattach, ADV3D_OT_review_clear)

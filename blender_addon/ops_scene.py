@@ -20,11 +20,11 @@ from pathlib import Path
 
 import bpy
 import numpy as np
-from bpy.props import StringProperty
+from bpy.props import BoolProperty, EnumProperty, StringProperty
 from bpy_extras import anim_utils
-from bpy_extras.io_utils import ExportHelper
+from bpy_extras.io_utils import ImportHelper
 
-from . import meshdata, runner
+from . import meshdata, places, runner, uiutil
 
 ROOT_COLLECTION = "Adv3D Scene"
 INTERP_CONSTANT, INTERP_LINEAR = 0, 1  # Keyframe.interpolation enum order
@@ -227,7 +227,8 @@ def load_scene_objects(bscene, path: str, library=None) -> dict:
     scene = Scene.from_dict(doc, path)  # validates; FileFormatError names the bad field
     clear_scene_objects(bscene)
     origin = _origin_of(scene)
-    root = meshdata.get_collection(ROOT_COLLECTION, bscene.collection)
+    root = places.panel_collection(bscene, ROOT_COLLECTION)
+    place = places.make_place(bscene, root, _scene_bounds(scene, origin))
     root["adv3d_origin"] = [float(origin[0]), float(origin[1])]
     text = bpy.data.texts.new(f"adv3d_scene {scene.id}.json")
     text.write(json.dumps(doc, indent=1))
@@ -279,8 +280,19 @@ def load_scene_objects(bscene, path: str, library=None) -> dict:
         obj["adv3d_dimensions"] = [float(d) for d in actor.dimensions]
         _animate_track(obj, actor.track, origin)
         counts["actors"] += 1
+    places.adopt(root, place)
     bscene.frame_set(0)
     return counts
+
+
+def _scene_bounds(scene, origin: np.ndarray, margin: float = 30.0) -> np.ndarray:
+    """x0, y0, x1, y1 (m, origin-shifted) around the lanes and every track, plus ``margin``
+    (the road's shoulders and background)."""
+    pts = [lane.centerline for lane in scene.lanes]
+    for track in [scene.ego.track] + [a.track for a in scene.actors]:
+        pts.append(np.c_[track.x[track.valid], track.y[track.valid]])
+    xy = np.concatenate([p for p in pts if len(p)]) - origin
+    return np.r_[xy.min(axis=0) - margin, xy.max(axis=0) + margin]
 
 
 def clear_scene_objects(bscene) -> None:
@@ -402,51 +414,66 @@ def export_scene(bscene):
 
 # --------------------------------------------------------------------------- operators
 
-class ADV3D_OT_scene_load(bpy.types.Operator):
+class ADV3D_OT_scene_load(bpy.types.Operator, ImportHelper):
     """Load a scene file as objects: road, lanes, ego and actors with keyframed tracks, sensors"""
 
     bl_idname = "adv3d.scene_load"
     bl_label = "Load scene"
     bl_options = {"REGISTER", "UNDO"}
 
-    filepath: StringProperty(subtype="FILE_PATH", options={"SKIP_SAVE"})
+    filter_glob: StringProperty(default="*.json;*.json.gz", options={"HIDDEN"})
+    browse: BoolProperty(default=False, options={"HIDDEN", "SKIP_SAVE"},
+                         description="Always choose the file in the file browser (File > Import)")
 
+    def invoke(self, context, event):
+        if not self.browse and (self.filepath or context.scene.adv3d.scene.path):
+            return self.execute(context)
+        return ImportHelper.invoke(self, context, event)
+
+    @uiutil.reported
     def execute(self, context):
         props = context.scene.adv3d.scene
         path = bpy.path.abspath(self.filepath or props.path)
         if not path:
-            self.report({"ERROR"}, "Choose a scene file")
-            return {"CANCELLED"}
-        try:
-            library = _library_or_none(context)
-            counts = load_scene_objects(context.scene, path, library)
-        except runner.Adv3dError as exc:
-            self.report({"ERROR"}, str(exc))
-            return {"CANCELLED"}
+            raise runner.Adv3dError("choose a scene file")
+        library = _library_or_none(context)
+        counts = load_scene_objects(context.scene, path, library)
         self.report({"INFO"}, ", ".join(f"{v} {k}" for k, v in counts.items()))
         return {"FINISHED"}
 
 
-class ADV3D_OT_scene_export(bpy.types.Operator, ExportHelper):
+SCENE_FORMATS = {"JSON_GZ": ".json.gz", "JSON": ".json"}
+
+
+class ADV3D_OT_scene_export(bpy.types.Operator, uiutil.FormatExportHelper):
     """Write the loaded scene with the edits made in Blender (unedited data is kept exactly)"""
 
     bl_idname = "adv3d.scene_export"
     bl_label = "Export scene"
     bl_options = {"REGISTER"}
 
-    filename_ext = ".json"
+    FORMATS = SCENE_FORMATS
+    file_format: EnumProperty(name="Format", default="JSON",
+                              items=[("JSON", "JSON (.json)", "Plain JSON"),
+                                     ("JSON_GZ", "Compressed JSON (.json.gz)", "gzip-compressed JSON, "
+                                                                                "as the bundled scenes")])
     filter_glob: StringProperty(default="*.json;*.json.gz", options={"HIDDEN"})
 
+    def invoke(self, context, event):
+        props = context.scene.adv3d.scene
+        if not self.filepath and props.path:  # start from the loaded file's name and format
+            self.filepath = bpy.path.abspath(props.path)
+            self.file_format = self.format_of(self.filepath) or "JSON"
+        return super().invoke(context, event)
+
+    @uiutil.reported
     def execute(self, context):
         from adv3d_runner.scene.schema import save_scene
 
-        try:
-            scene, summary = export_scene(context.scene)
-            save_scene(scene, self.filepath)
-        except runner.Adv3dError as exc:
-            self.report({"ERROR"}, str(exc))
-            return {"CANCELLED"}
-        self.report({"INFO"}, f"Wrote {self.filepath}: {summary['frames']} edited frames, "
+        path = self.target_path()
+        scene, summary = export_scene(context.scene)
+        save_scene(scene, path)
+        self.report({"INFO"}, f"Wrote {path}: {summary['frames']} edited frames, "
                               f"{summary['assets']} asset changes, {summary['sensors']} sensor changes")
         return {"FINISHED"}
 
@@ -463,29 +490,28 @@ class ADV3D_OT_scene_apply_asset(bpy.types.Operator):
         obj = context.active_object
         return obj is not None and obj.adv3d.role == "ACTOR"
 
+    @uiutil.reported
     def execute(self, context):
         obj = context.active_object
         asset_id = obj.adv3d.asset_id
-        try:
-            library = _library_or_none(context)
-            if asset_id and (library is None or asset_id not in library.ids()):
-                raise runner.Adv3dError(f"asset {asset_id!r} is not in the loaded library "
-                                        "(load one in the Library panel)")
-            dims = obj.get("adv3d_dimensions", [4.5, 1.8, 1.5])
-            obj.data = _vehicle_mesh(obj.name, dims, asset_id or None, library)
-        except runner.Adv3dError as exc:
-            self.report({"ERROR"}, str(exc))
-            return {"CANCELLED"}
+        library = _library_or_none(context)
+        if asset_id and (library is None or asset_id not in library.ids()):
+            raise runner.Adv3dError(f"asset {asset_id!r} is not in the loaded library "
+                                    "(load one in the Library panel)")
+        dims = obj.get("adv3d_dimensions", [4.5, 1.8, 1.5])
+        obj.data = _vehicle_mesh(obj.name, dims, asset_id or None, library)
         return {"FINISHED"}
 
 
 def _library_or_none(context):
-    lib_path = context.scene.adv3d.library.path
-    if not lib_path or not Path(bpy.path.abspath(lib_path)).exists():
+    from .ops_library import library_path
+
+    lib_path = library_path(context.scene.adv3d.library)
+    if not lib_path or not Path(lib_path).exists():
         return None
     from adv3d_runner.shapes.library import load_library
 
-    return load_library(bpy.path.abspath(lib_path))
+    return load_library(lib_path)
 
 
 classes = (

@@ -4,6 +4,9 @@ The latent sliders are properties whose ``update`` callback calls ``schedule_pre
 while Blender runs interactively the update is coalesced with a ``bpy.app.timers`` callback
 (every slider event inside ``DEBOUNCE_S`` collapses into one decode), in background mode (tests,
 scripts) it runs at once. The preview mesh is written in place with ``foreach_set``.
+
+Realism (docs/realism.md): each update also measures the cheap figures of the slider shape
+(JSD, Mahalanobis, dimensions against a class; ~2 ms), the full report is an operator.
 """
 from __future__ import annotations
 
@@ -12,10 +15,9 @@ from pathlib import Path
 
 import bpy
 import numpy as np
-from bpy.props import StringProperty
-from bpy_extras.io_utils import ExportHelper
+from bpy.props import EnumProperty, StringProperty
 
-from . import meshdata, runner
+from . import jobs, meshdata, places, prefs, runner, uiutil
 from .props import MAX_LATENT
 
 DEBOUNCE_S = 0.03
@@ -39,14 +41,12 @@ def preview_object(scene: "bpy.types.Scene", create: bool = True) -> "bpy.types.
             return obj
     if not create:
         return None
-    coll = bpy.data.collections.get(PREVIEW_COLLECTION)
-    if coll is None:
-        coll = bpy.data.collections.new(PREVIEW_COLLECTION)
-    if coll.name not in scene.collection.children:
-        scene.collection.children.link(coll)
+    coll = places.panel_collection(scene, PREVIEW_COLLECTION)
     obj = bpy.data.objects.new(PREVIEW_NAME, bpy.data.meshes.new(PREVIEW_NAME))
     coll.objects.link(obj)
     obj.adv3d.role = "PREVIEW"
+    # a vehicle-sized place of its own (a shape-space car fits in 8 m x 4 m)
+    obj.parent = places.make_place(scene, coll, np.array([-4.0, -2.0, 4.0, 2.0]))
     return obj
 
 
@@ -57,16 +57,36 @@ def update_preview(scene: "bpy.types.Scene") -> float:
         wall time of decode + mesh update, in milliseconds.
     """
     shapes = scene.adv3d.shapes
-    space = runner.load_space(bpy.path.abspath(shapes.space_path))
+    space = runner.load_space(space_path(shapes))
     if shapes.k != space.k:
         shapes.k = space.k
     t0 = time.perf_counter()
-    vertices, faces = space.decode_arrays(current_unit(shapes))
+    u = current_unit(shapes)
+    vertices, faces = space.decode_arrays(u)
     obj = preview_object(scene)
     meshdata.set_mesh_arrays(obj.data, vertices, faces)
     ms = (time.perf_counter() - t0) * 1000.0
     shapes.last_update_ms = ms
+    shapes.realism_full = ""  # the full report described the previous shape
+    if shapes.show_realism:
+        t1 = time.perf_counter()
+        try:
+            lines = runner.live_realism(space, u, vertices, faces, realism_class(shapes), _library_path(scene))
+        except runner.Adv3dError as exc:
+            lines = [f"Realism: {exc}"]
+        shapes.realism_live = "\n".join(lines)
+        shapes.realism_ms = (time.perf_counter() - t1) * 1000.0
     return ms
+
+
+def realism_class(shapes) -> str | None:
+    """The class the panel checks dimensions against (None: the nearest library vehicle's)."""
+    return None if shapes.realism_class == "AUTO" else shapes.realism_class
+
+
+def _library_path(scene) -> str | None:
+    path = scene.adv3d.library.path
+    return bpy.path.abspath(path) if path else None
 
 
 def _run_pending() -> None:
@@ -86,7 +106,7 @@ def schedule_preview_update(context) -> None:
     """Slider callback: regenerate the preview now (background) or coalesced (interactive)."""
     scene = context.scene
     shapes = scene.adv3d.shapes
-    if _state["suspend"] or not shapes.live or not shapes.space_path:
+    if _state["suspend"] or not shapes.live or not space_path(shapes):
         return
     _state["scene"] = scene.name
     if bpy.app.background:
@@ -94,6 +114,11 @@ def schedule_preview_update(context) -> None:
         return
     if not bpy.app.timers.is_registered(_run_pending):
         bpy.app.timers.register(_run_pending, first_interval=DEBOUNCE_S)
+
+
+def space_path(shapes) -> str:
+    """The panel's shape space, else the preferences' default ('' when neither is set)."""
+    return bpy.path.abspath(shapes.space_path) if shapes.space_path else prefs.default_space()
 
 
 def cancel_timers() -> None:
@@ -143,20 +168,21 @@ class ADV3D_OT_shapes_load(bpy.types.Operator):
 
     filepath: StringProperty(subtype="FILE_PATH", options={"SKIP_SAVE"})
 
+    @uiutil.reported
     def execute(self, context):
         shapes = context.scene.adv3d.shapes
         if self.filepath:
             shapes.space_path = self.filepath
-        try:
-            space = runner.load_space(bpy.path.abspath(shapes.space_path))
-            if space.k > MAX_LATENT:
-                raise runner.Adv3dError(f"shape space has K={space.k} > {MAX_LATENT} supported sliders")
-            shapes.k = space.k
-            shapes.variance_text = _explained_variance_text(space)
-            ms = update_preview(context.scene)
-        except runner.Adv3dError as exc:
-            self.report({"ERROR"}, str(exc))
-            return {"CANCELLED"}
+        elif not shapes.space_path and prefs.default_space():
+            shapes.space_path = prefs.default_space()
+        if not space_path(shapes):
+            raise runner.Adv3dError("choose a shape-space .npz (or a default in the add-on preferences)")
+        space = runner.load_space(space_path(shapes))
+        if space.k > MAX_LATENT:
+            raise runner.Adv3dError(f"shape space has K={space.k} > {MAX_LATENT} supported sliders")
+        shapes.k = space.k
+        shapes.variance_text = _explained_variance_text(space)
+        ms = update_preview(context.scene)
         self.report({"INFO"}, f"Shape space K={space.k}; preview in {ms:.1f} ms")
         return {"FINISHED"}
 
@@ -168,10 +194,11 @@ class ADV3D_OT_shapes_reset(bpy.types.Operator):
     bl_label = "Reset sliders"
     bl_options = {"REGISTER", "UNDO"}
 
+    @uiutil.reported
     def execute(self, context):
         shapes = context.scene.adv3d.shapes
         set_unit(shapes, np.full(shapes.k + 2, 0.5))
-        return _refresh(self, context)
+        return _refresh(context)
 
 
 class ADV3D_OT_shapes_random(bpy.types.Operator):
@@ -181,18 +208,15 @@ class ADV3D_OT_shapes_random(bpy.types.Operator):
     bl_label = "Random sample"
     bl_options = {"REGISTER", "UNDO"}
 
+    @uiutil.reported
     def execute(self, context):
         shapes = context.scene.adv3d.shapes
-        try:
-            space = runner.load_space(bpy.path.abspath(shapes.space_path))
-            shapes.k = space.k
-            u = np.asarray(space.sample_unit(np.random.default_rng(shapes.seed)), dtype=np.float64)
-        except runner.Adv3dError as exc:
-            self.report({"ERROR"}, str(exc))
-            return {"CANCELLED"}
+        space = runner.load_space(space_path(shapes))
+        shapes.k = space.k
+        u = np.asarray(space.sample_unit(np.random.default_rng(shapes.seed)), dtype=np.float64)
         set_unit(shapes, u)
         shapes.seed += 1
-        return _refresh(self, context)
+        return _refresh(context)
 
 
 class ADV3D_OT_shapes_nearest(bpy.types.Operator):
@@ -202,15 +226,12 @@ class ADV3D_OT_shapes_nearest(bpy.types.Operator):
     bl_label = "Nearest library asset"
     bl_options = {"REGISTER"}
 
+    @uiutil.reported
     def execute(self, context):
         shapes = context.scene.adv3d.shapes
-        try:
-            space = runner.load_space(bpy.path.abspath(shapes.space_path))
-            shapes.k = space.k
-            found = space.nearest_asset(current_unit(shapes))
-        except runner.Adv3dError as exc:
-            self.report({"ERROR"}, str(exc))
-            return {"CANCELLED"}
+        space = runner.load_space(space_path(shapes))
+        shapes.k = space.k
+        found = space.nearest_asset(current_unit(shapes))
         # nearest_asset may return the id alone or (id, distance).
         if isinstance(found, (tuple, list)):
             asset_id, dist = str(found[0]), float(found[1])
@@ -221,81 +242,121 @@ class ADV3D_OT_shapes_nearest(bpy.types.Operator):
         return {"FINISHED"}
 
 
-class ADV3D_OT_shapes_export(bpy.types.Operator, ExportHelper):
-    """Export the decoded preview vehicle as a mesh file (metres, +x front, origin on the ground)"""
+class ADV3D_OT_shapes_realism(bpy.types.Operator):
+    """Measure every realism figure of the preview shape (JSD, nearest vehicle, Mahalanobis,
+    parts, genus, thinnest wall, dimensions); takes a fraction of a second"""
 
-    bl_idname = "adv3d.shapes_export"
-    bl_label = "Export mesh"
+    bl_idname = "adv3d.shapes_realism"
+    bl_label = "Full realism report"
     bl_options = {"REGISTER"}
-
-    filename_ext = ".glb"
-    filter_glob: StringProperty(default="*.glb;*.obj;*.ply;*.stl", options={"HIDDEN"})
 
     def execute(self, context):
         shapes = context.scene.adv3d.shapes
-        path = Path(self.filepath)
         try:
-            import trimesh
-            from adv3d_runner.shapes.mesh_io import write_mesh  # same writer as `adv3d shapes decode`
-
             space = runner.load_space(bpy.path.abspath(shapes.space_path))
             shapes.k = space.k
-            vertices, faces = space.decode_arrays(current_unit(shapes))
-            write_mesh(trimesh.Trimesh(vertices=vertices, faces=faces, process=False), path)
+            rep, lines = runner.full_realism(space, current_unit(shapes), realism_class(shapes),
+                                             _library_path(context.scene))
         except runner.Adv3dError as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
+        shapes.realism_full = "\n".join(lines)
+        self.report({"INFO"}, "Realistic" if rep["realistic"] else "Fails: " + ", ".join(rep["flags"]))
+        return {"FINISHED"}
+
+
+MESH_FORMATS = {"GLB": ".glb", "GLTF": ".gltf", "OBJ": ".obj", "PLY": ".ply", "STL": ".stl"}
+
+
+class ADV3D_OT_shapes_export(bpy.types.Operator, uiutil.FormatExportHelper):
+    """Export the decoded preview vehicle as a mesh file (metres, +x front, origin on the ground)"""
+
+    bl_idname = "adv3d.shapes_export"
+    bl_label = "Export shape"
+    bl_options = {"REGISTER"}
+
+    FORMATS = MESH_FORMATS
+    file_format: EnumProperty(
+        name="Format", default="GLB",
+        items=[("GLB", "glTF binary (.glb)", "One file, y up (glTF's frame: opens upright anywhere)"),
+               ("GLTF", "glTF (.gltf)", "JSON glTF, y up"),
+               ("OBJ", "Wavefront (.obj)", "z up, +x front (adv3d's frame)"),
+               ("PLY", "Stanford (.ply)", "z up, +x front"),
+               ("STL", "STL (.stl)", "z up, +x front")])
+    filter_glob: StringProperty(default="*.glb;*.gltf;*.obj;*.ply;*.stl", options={"HIDDEN"})
+
+    @uiutil.reported
+    def execute(self, context):
+        import trimesh
+        from adv3d_runner.shapes.mesh_io import write_mesh  # same writer as `adv3d shapes decode`
+
+        shapes = context.scene.adv3d.shapes
+        path = self.target_path()
+        space = runner.load_space(space_path(shapes))
+        shapes.k = space.k
+        vertices, faces = space.decode_arrays(current_unit(shapes))
+        write_mesh(trimesh.Trimesh(vertices=vertices, faces=faces, process=False), path)
         self.report({"INFO"}, f"Wrote {path} ({len(faces)} triangles)")
         return {"FINISHED"}
 
 
-class ADV3D_OT_shapes_build(bpy.types.Operator):
-    """Build the shape space from the library's included assets and load it (takes a while)"""
+def build_steps(library, out: str, options: dict):
+    """Steps of Build: the runner's stepwise build (SDF per asset in pieces, PCA), then the
+    atomic write. Cancelling before the write leaves the old file untouched."""
+    from adv3d_runner.shapes.shape_space import build_shape_space_steps
+
+    yield from jobs.import_steps()
+    space = yield from build_shape_space_steps(library, **options)
+    yield 1.0, f"writing {Path(out).name}"
+    runner.save_space(space, out)
+    return space
+
+
+class ADV3D_OT_shapes_build(jobs.JobOperator, bpy.types.Operator):
+    """Build the shape space from the library's included assets and load it (runs in the
+    background: progress in the status bar, Esc cancels)"""
 
     bl_idname = "adv3d.shapes_build"
     bl_label = "Build shape space"
-    bl_options = {"REGISTER"}
+    bl_options = {"REGISTER"}  # writes a file: Blender undo cannot take that back
+    job_label = "Build shape space"
 
-    def execute(self, context):
+    def start_job(self, context):
+        from .ops_library import library_from_props, library_path, save_library_props
+
         settings = context.scene.adv3d
         shapes = settings.shapes
-        lib_path = bpy.path.abspath(settings.library.path)
-        out = bpy.path.abspath(shapes.space_path)
+        lib_path = library_path(settings.library)
+        out = space_path(shapes)
         if not lib_path or not out:
-            self.report({"ERROR"}, "Set the library file and the shape-space output path first")
-            return {"CANCELLED"}
-        wm = context.window_manager
-        try:
-            from .ops_library import library_from_props, save_library_props
+            raise runner.Adv3dError("set the library file and the shape-space output path first")
+        uiutil.writable_target(out)
+        if not settings.library.path:
+            settings.library.path = lib_path
+        if settings.library.dirty:  # build from what the panel shows
+            save_library_props(settings.library)
+        library = library_from_props(settings.library)
+        options = {"k": shapes.build_k}
+        if shapes.build_resolution:
+            options["resolution"] = shapes.build_resolution
+        self._out = out
+        return build_steps(library, out, options)
 
-            if settings.library.dirty:  # build from what the panel shows
-                save_library_props(settings.library)
-            library = library_from_props(settings.library)
-            kwargs = {"k": shapes.build_k}
-            if shapes.build_resolution:
-                kwargs["resolution"] = shapes.build_resolution
-            wm.progress_begin(0, 1000)
-            try:
-                space = runner.build_space(library, kwargs,
-                                           lambda done, total: wm.progress_update(int(1000 * done / max(total, 1))))
-            finally:
-                wm.progress_end()
-            runner.save_space(space, out)
-        except runner.Adv3dError as exc:
-            self.report({"ERROR"}, str(exc))
-            return {"CANCELLED"}
-        return bpy.ops.adv3d.shapes_load()
+    def finish_job(self, context, job):
+        shapes = context.scene.adv3d.shapes
+        if not shapes.space_path:
+            shapes.space_path = self._out
+        result = bpy.ops.adv3d.shapes_load()
+        space = job.result
+        self.report({"INFO"}, f"Built {Path(self._out).name}: {len(space.asset_ids)} assets, K={space.k} "
+                              f"in {time.perf_counter() - job.started:.1f} s")
+        return result
 
 
-def _refresh(op, context):
+def _refresh(context):
     shapes = context.scene.adv3d.shapes
-    if not shapes.space_path:
-        return {"FINISHED"}
-    try:
+    if space_path(shapes):
         update_preview(context.scene)
-    except runner.Adv3dError as exc:
-        op.report({"ERROR"}, str(exc))
-        return {"CANCELLED"}
     return {"FINISHED"}
 
 
@@ -304,6 +365,7 @@ classes = (
     ADV3D_OT_shapes_reset,
     ADV3D_OT_shapes_random,
     ADV3D_OT_shapes_nearest,
+    ADV3D_OT_shapes_realism,
     ADV3D_OT_shapes_export,
     ADV3D_OT_shapes_build,
 )

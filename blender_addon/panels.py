@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import bpy
 
-from . import ops_shapes
+from . import jobs, ops_shapes, prefs
 from .ops_library import cleaning_lines
 
 
@@ -34,6 +34,8 @@ class ADV3D_PT_library(_Adv3dPanel, bpy.types.Panel):
         row = layout.row(align=True)
         row.prop(lib, "path", text="")
         row.operator("adv3d.library_load", text="", icon="FILE_REFRESH")
+        if not lib.path and prefs.default_library():
+            layout.label(text=f"Default: {prefs.default_library()}", icon="PREFERENCES")
         layout.template_list("ADV3D_UL_assets", "", lib, "assets", lib, "active_index", rows=4)
         row = layout.row(align=True)
         row.operator("adv3d.library_save", icon="FILE_TICK")
@@ -58,12 +60,7 @@ class ADV3D_PT_library(_Adv3dPanel, bpy.types.Panel):
             col.scale_y = 0.8
             for line in cleaning_lines(item.cleaning_report):
                 col.label(text=line)
-        box = layout.box()
-        box.label(text="Import vehicle file", icon="IMPORT")
-        box.prop(lib, "import_class")
-        box.prop(lib, "import_forward")
-        box.prop(lib, "import_length")
-        box.operator("adv3d.library_import", icon="FILEBROWSER")
+        layout.operator("adv3d.library_import", text="Import vehicle file...", icon="IMPORT")
 
 
 class ADV3D_PT_shapes(_Adv3dPanel, bpy.types.Panel):
@@ -77,11 +74,13 @@ class ADV3D_PT_shapes(_Adv3dPanel, bpy.types.Panel):
         row = layout.row(align=True)
         row.prop(shapes, "space_path", text="")
         row.operator("adv3d.shapes_load", text="", icon="FILE_REFRESH")
+        if not shapes.space_path and prefs.default_space():
+            layout.label(text=f"Default: {prefs.default_space()}", icon="PREFERENCES")
         box = layout.box()
         row = box.row(align=True)
         row.prop(shapes, "build_k")
         row.prop(shapes, "build_resolution")
-        box.operator("adv3d.shapes_build", icon="MOD_REMESH")
+        _job_button(box, "adv3d.shapes_build", "MOD_REMESH")
         if shapes.variance_text:
             box.label(text="Explained variance:")
             box.label(text=shapes.variance_text)
@@ -106,7 +105,27 @@ class ADV3D_PT_shapes(_Adv3dPanel, bpy.types.Panel):
         row.operator("adv3d.shapes_nearest", icon="VIEWZOOM")
         if shapes.nearest_asset:
             layout.label(text=f"Nearest: {shapes.nearest_asset}")
+        _draw_realism(layout, shapes)
         layout.operator("adv3d.shapes_export", icon="EXPORT")
+
+
+def _draw_realism(layout, shapes) -> None:
+    """The realism box: live figures of the slider shape, the full report on demand."""
+    box = layout.box()
+    row = box.row(align=True)
+    row.prop(shapes, "show_realism")
+    row.prop(shapes, "realism_class", text="")
+    if shapes.show_realism and shapes.realism_live:
+        col = box.column(align=True)
+        col.scale_y = 0.8
+        for line in shapes.realism_live.splitlines():
+            col.label(text=line, icon="ERROR" if "OUT" in line else "NONE")
+    box.operator("adv3d.shapes_realism", icon="VIEWZOOM")
+    if shapes.realism_full:
+        col = box.column(align=True)
+        col.scale_y = 0.8
+        for line in shapes.realism_full.splitlines():
+            col.label(text=line)
 
 
 class ADV3D_PT_scenes(_Adv3dPanel, bpy.types.Panel):
@@ -122,6 +141,16 @@ class ADV3D_PT_scenes(_Adv3dPanel, bpy.types.Panel):
         if sc.scene_id:
             layout.label(text=f"Scene {sc.scene_id}")
             layout.operator("adv3d.scene_export", icon="EXPORT")
+            box = layout.box()
+            box.label(text="Attack this scene", icon="PLAY")
+            col = box.column(align=True)
+            for name in ("attack_algo", "attack_budget", "attack_seconds", "attack_autonomy", "attack_seed"):
+                col.prop(sc, name)
+            _job_button(box, "adv3d.scene_attack", "PLAY")
+            if not prefs.runner_command():
+                box.label(text="No adv3d runner: set one in the preferences", icon="ERROR")
+            if sc.last_run:
+                box.label(text=f"Run: {sc.last_run}", icon="FILE_FOLDER")
         obj = context.active_object
         if obj is not None and obj.adv3d.role in {"ACTOR", "EGO"}:
             box = layout.box()
@@ -142,13 +171,32 @@ class ADV3D_PT_review(_Adv3dPanel, bpy.types.Panel):
         layout.prop(rv, "path", text="")
         layout.prop(rv, "replay", text="")
         row = layout.row(align=True)
-        row.operator("adv3d.review_load", icon="PLAY")
+        _job_button(row, "adv3d.review_load", "PLAY")
         row.operator("adv3d.review_clear", text="", icon="X")
+        if rv.stale:
+            layout.label(text=rv.stale, icon="ERROR")
+        elif rv.key and rv.key not in _review_cache():
+            layout.label(text="Reading the replay...", icon="SORTTIME")
         if rv.loaded:
             box = layout.box()
             box.label(text=" / ".join(rv.loaded.replace("\\", "/").split("/")[-3:]), icon="FILE")
             box.label(text="Red: adversarial shapes; green: detections with scores")
             box.label(text="Scrub the timeline to step through the episode")
+
+
+def _job_button(layout, idname: str, icon: str) -> None:
+    """An operator button, or its progress while its job runs (Esc cancels)."""
+    job = jobs.JobOperator._active.get(idname.replace("adv3d.", "ADV3D_OT_"))
+    if job is None:
+        layout.operator(idname, icon=icon)
+    else:
+        layout.label(text=f"{job.message or job.label}  {100 * job.fraction:.0f}%  (Esc)", icon="SORTTIME")
+
+
+def _review_cache():
+    from . import review
+
+    return review._CACHE
 
 
 classes = (

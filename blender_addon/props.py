@@ -18,21 +18,15 @@ from bpy.props import (
     StringProperty,
 )
 
+# The class menus use the runner's one class list (pure Python, instant to import).
+from adv3d_runner.vehicle_classes import DIMENSION_RANGES, VEHICLE_CLASSES
+
+from .ops_attack import ALGORITHMS
+
 # Room for the latent sliders: K shape dimensions (the paper uses K = 3); the width and length
 # scales have their own properties. A vector property has a fixed size at registration, so it is
 # sized for the largest K we support and the panel shows only the first K entries.
 MAX_LATENT = 16
-
-VEHICLE_CLASSES = ("sedan", "hatchback", "sports", "suv", "van", "pickup", "truck", "bus", "ambulance",
-                   "fire_truck", "garbage_truck", "police", "taxi", "other")
-
-FORWARD_AXES = [
-    ("X", "+X", "The model's front points along +X (adv3d convention)"),
-    ("NEG_X", "-X", "The model's front points along -X"),
-    ("Y", "+Y", "The model's front points along +Y (common in glTF/Blender exports)"),
-    ("NEG_Y", "-Y", "The model's front points along -Y"),
-]
-
 
 class ADV3D_PG_asset(bpy.types.PropertyGroup):
     """One library asset as shown in the Library panel (mirror of a ``VehicleAsset``)."""
@@ -58,12 +52,6 @@ class ADV3D_PG_library(bpy.types.PropertyGroup):
     assets: CollectionProperty(type=ADV3D_PG_asset)
     active_index: IntProperty(name="Active asset", default=0)
     dirty: BoolProperty(default=False, options={"HIDDEN"})
-    # Import options (applied by the "Import vehicle" operator).
-    import_forward: EnumProperty(name="Front", items=FORWARD_AXES, default="X",
-                                 description="Which axis the imported model's front points along")
-    import_class: EnumProperty(name="Class", items=[(c, c, "") for c in VEHICLE_CLASSES], default="sedan")
-    import_length: FloatProperty(name="Real length", min=0.0, soft_max=20.0, unit="LENGTH", default=0.0,
-                                 description="Scale the model to this length (0: keep the file's size)")
 
 
 def _latent_update(self, context):
@@ -93,6 +81,16 @@ class ADV3D_PG_shapes(bpy.types.PropertyGroup):
     last_update_ms: FloatProperty(name="Last update", default=0.0, options={"HIDDEN"})
     nearest_asset: StringProperty(name="Nearest asset", options={"HIDDEN"})
     variance_text: StringProperty(options={"HIDDEN"})
+    # Realism of the slider shape (docs/realism.md): live cheap figures, the full report on demand.
+    show_realism: BoolProperty(name="Realism", default=True, update=_latent_update,
+                               description="Measure the preview's realism (JSD, Mahalanobis, dimensions) live")
+    realism_class: EnumProperty(
+        name="Class", items=[("AUTO", "Nearest", "The class of the nearest library vehicle")]
+        + [(c, c, "") for c in DIMENSION_RANGES], default="AUTO", update=_latent_update,
+        description="Vehicle class whose real dimensions the shape is checked against")
+    realism_live: StringProperty(options={"HIDDEN"})
+    realism_full: StringProperty(options={"HIDDEN"})
+    realism_ms: FloatProperty(name="Realism time", default=0.0, options={"HIDDEN"})
 
 
 class ADV3D_PG_scene(bpy.types.PropertyGroup):
@@ -100,6 +98,19 @@ class ADV3D_PG_scene(bpy.types.PropertyGroup):
     scene_id: StringProperty(name="Scene id", options={"HIDDEN"})
     text_name: StringProperty(options={"HIDDEN"},
                               description="Text datablock holding the scene file as loaded")
+    # "Attack this scene" settings (the `adv3d attack` options of the same names)
+    attack_algo: EnumProperty(name="Search", items=[(a, a, "") for a in ALGORITHMS], default="bo",
+                              description="Search algorithm (--algo)")
+    attack_budget: IntProperty(name="Budget", default=16, min=1, soft_max=200,
+                               description="Queries to evaluate (--budget)")
+    attack_seconds: FloatProperty(name="Seconds", default=3.0, min=0.1, soft_max=20.0,
+                                  description="Episode length in s (--seconds)")
+    attack_autonomy: EnumProperty(name="Autonomy", default="A",
+                                  items=[("A", "Autonomy-A", "The shipped detector and predictor (torch, in the runner)"),
+                                         ("oracle", "Oracle", "Ground-truth perception (fast)")],
+                                  description="Stack under attack (--autonomy)")
+    attack_seed: IntProperty(name="Seed", default=0, min=0, description="Search seed (--seed)")
+    last_run: StringProperty(name="Last run", subtype="DIR_PATH", options={"HIDDEN"})
 
 
 def _review_items(self, context):
@@ -114,6 +125,10 @@ class ADV3D_PG_review(bpy.types.PropertyGroup):
     replay: EnumProperty(name="Replay", items=_review_items,
                          description="Scene and mode of the bundle to review")
     loaded: StringProperty(name="Loaded replay", options={"HIDDEN"})
+    key: StringProperty(options={"HIDDEN"},
+                        description="The replay the review shows: its path and content hash")
+    stale: StringProperty(options={"HIDDEN"},
+                          description="Why the review's replay could not be read again (file gone or changed)")
 
 
 class ADV3D_PG_settings(bpy.types.PropertyGroup):
@@ -132,6 +147,7 @@ OBJECT_ROLES = [
     ("LANE", "Lane", "A lane centre line"),
     ("PREVIEW", "Preview", "The shape-space preview vehicle"),
     ("ASSET", "Asset", "A library asset"),
+    ("PLACE", "Place", "Where a panel's objects are (their parent)"),
 ]
 
 

@@ -6,6 +6,11 @@
 
 ``adv3d blender render`` starts this module so the runner process never imports bpy. Exit
 status 2 with a one-line message on stderr for user errors (bad file, unknown dimension).
+
+``--panel`` puts the panel's state beside the picture: the bpy module has no window to draw
+Blender's UI in, so the column is drawn (Pillow) from the values of the panel's properties after
+its operators ran: the library list, the slider values, the scene and attack settings, the
+loaded replay. Each picture is thus a panel in use: what it shows and what it made.
 """
 from __future__ import annotations
 
@@ -146,7 +151,12 @@ def _camera_fit(lo: np.ndarray, hi: np.ndarray, elevation_deg: float = 35.0, azi
     _ = Matrix
 
 
-def _render(out: Path) -> None:
+PANEL_WIDTH = 330  # px, the sidebar column of --panel
+
+
+def _render(out: Path, panel: tuple[str, list] | None = None) -> None:
+    """Render the scene's camera to ``out``; ``panel`` = (title, lines) puts a sidebar column
+    with the panel's state on the left (lines: text, or ("slider", label, value in [0, 1]))."""
     import bpy
 
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -156,19 +166,64 @@ def _render(out: Path) -> None:
     try:  # an adaptive 256-colour palette: a third of the size, indistinguishable here
         from PIL import Image
 
-        Image.open(tmp).convert("RGB").quantize(colors=256, method=Image.Quantize.MEDIANCUT).save(tmp, optimize=True)
+        img = Image.open(tmp).convert("RGB")
+        if panel is not None:
+            img = _with_panel(img, *panel)
+        img.quantize(colors=256, method=Image.Quantize.MEDIANCUT).save(tmp, optimize=True)
     except ImportError:
-        pass
+        if panel is not None:
+            raise SystemExit(_fail("--panel needs Pillow"))
     tmp.replace(out)
+
+
+def _with_panel(img, title: str, lines: list):
+    """``img`` with a sidebar column on its left drawn in Blender's dark theme colours."""
+    from PIL import Image, ImageDraw, ImageFont
+
+    font = ImageFont.load_default(size=13)
+    bold = ImageFont.load_default(size=15)
+    out = Image.new("RGB", (img.width + PANEL_WIDTH, img.height), (48, 48, 48))
+    out.paste(img, (PANEL_WIDTH, 0))
+    d = ImageDraw.Draw(out)
+    d.rectangle([0, 0, PANEL_WIDTH - 1, 26], fill=(61, 61, 61))
+    d.text((10, 5), title, font=bold, fill=(230, 230, 230))
+    y = 34
+    for line in lines:
+        if y > img.height - 18:
+            d.text((10, y), "...", font=font, fill=(200, 200, 200))
+            break
+        if isinstance(line, tuple) and line[0] == "slider":  # a Blender slider: filled in blue
+            _, label, value = line
+            d.rounded_rectangle([10, y, PANEL_WIDTH - 10, y + 18], 4, fill=(84, 84, 84))
+            w = int((PANEL_WIDTH - 20) * min(max(value, 0.0), 1.0))
+            if w > 4:
+                d.rounded_rectangle([10, y, 10 + w, y + 18], 4, fill=(71, 114, 179))
+            d.text((16, y + 2), label, font=font, fill=(235, 235, 235))
+            d.text((PANEL_WIDTH - 56, y + 2), f"{value:.3f}", font=font, fill=(235, 235, 235))
+            y += 22
+        elif isinstance(line, tuple) and line[0] == "button":
+            d.rounded_rectangle([10, y, PANEL_WIDTH - 10, y + 20], 4, fill=(84, 84, 84))
+            d.text((PANEL_WIDTH // 2, y + 3), line[1], font=font, fill=(235, 235, 235), anchor="mt")
+            y += 25
+        elif isinstance(line, tuple) and line[0] == "head":
+            y += 4
+            d.text((10, y), line[1], font=bold, fill=(220, 220, 220))
+            y += 21
+        else:
+            d.text((10, y), str(line)[:50], font=font, fill=(205, 205, 205))
+            y += 18
+    return out
 
 
 # --------------------------------------------------------------------------- what to render
 
-def render_library(library_path: Path | None, out: Path, width: int, height: int, engine: str) -> None:
+def render_library(library_path: Path | None, out: Path, width: int, height: int, engine: str,
+                   panel: bool = False) -> None:
     """All library assets on a grid (rows by class order in the file), labelled with their ids."""
     from adv3d_runner.shapes.library import DEFAULT_LIBRARY, load_asset_mesh, load_library
 
     library = load_library(library_path or DEFAULT_LIBRARY)
+    state = _library_panel(library_path or DEFAULT_LIBRARY, width, height, engine) if panel else None
     if not library.assets:
         raise SystemExit(_fail(f"{library_path}: the library has no assets"))
     _reset(width, height, engine)
@@ -200,7 +255,35 @@ def render_library(library_path: Path | None, out: Path, width: int, height: int
             hi = np.maximum(hi, v.max(axis=0))
     _ground(lo, hi)
     _camera_fit(lo, hi, elevation_deg=65.0, azimuth_deg=-90.0)
-    _render(out)
+    _render(out, state)
+
+
+def _library_panel(path: Path, width: int, height: int, engine: str) -> tuple[str, list]:
+    """The Library panel after Load library (through its operator): the asset list, the active
+    asset's box and its cleaning report."""
+    import bpy
+
+    import blender_addon
+    from blender_addon.ops_library import cleaning_lines
+
+    _reset(width, height, engine)
+    blender_addon.register()
+    try:
+        bpy.ops.adv3d.library_load(filepath=str(path))
+        lib = bpy.context.scene.adv3d.library
+        lines: list = [f"{Path(lib.path).parent.name}/{Path(lib.path).name}: {len(lib.assets)} assets"]
+        for item in list(lib.assets)[:13]:
+            lines.append(f"{'[x]' if item.in_shape_space else '[  ]'} {item.asset_id[:30]:<31}{item.vehicle_class}")
+        if len(lib.assets) > 13:
+            lines.append(f"... {len(lib.assets) - 13} more ([x]: in the shape space)")
+        item = lib.assets[lib.active_index]
+        lines += [("head", item.asset_id), f"Size {item.length:.2f} x {item.width:.2f} x {item.height:.2f} m",
+                  f"{item.triangle_count} triangles, licence {item.licence}", ("head", "Cleaning report")]
+        lines += cleaning_lines(item.cleaning_report)[:8]
+        lines += [("button", "Import vehicle file...")]
+    finally:
+        blender_addon.unregister()
+    return "Adv3D  >  Library", lines
 
 
 def render_sweep(space_path: Path | None, out: Path, dim: int, steps: int, width: int, height: int,
@@ -244,8 +327,50 @@ def render_sweep(space_path: Path | None, out: Path, dim: int, steps: int, width
     _render(out)
 
 
+def render_shapes(space_path: Path | None, out: Path, unit: list[float] | None, width: int, height: int,
+                  engine: str, panel: bool = False) -> None:
+    """The Shape space panel in use: the space loaded and the sliders set through its operators,
+    the preview vehicle it decoded (and the panel's sliders beside it with ``panel``)."""
+    import bpy
+    import numpy as np
+
+    import blender_addon
+    from adv3d_runner.shapes.shape_space import DEFAULT_SHAPE_SPACE
+    from blender_addon import ops_shapes
+
+    scene = _reset(width, height, engine)
+    blender_addon.register()
+    try:
+        bpy.ops.adv3d.shapes_load(filepath=str(space_path or DEFAULT_SHAPE_SPACE))
+        shapes = scene.adv3d.shapes
+        if unit is not None:
+            if len(unit) != shapes.k + 2:
+                raise SystemExit(_fail(f"--u needs {shapes.k + 2} values (K={shapes.k} latents, width, length)"))
+            ops_shapes.set_unit(shapes, np.asarray(unit, dtype=np.float64))
+        ops_shapes.update_preview(scene)
+        bpy.ops.adv3d.shapes_nearest()
+        preview = ops_shapes.preview_object(scene, create=False)
+        v = np.array([c.co for c in preview.data.vertices]) + np.array(preview.matrix_world.translation)
+        f = np.array([p.vertices[:] for p in preview.data.polygons])
+        bpy.data.objects.remove(preview)  # drawn again with a colour attribute
+        _mesh_object("preview", v, f, SWEEP)
+        lines: list = [Path(shapes.space_path).name, ("head", "Explained variance"),
+                       *shapes.variance_text.split("  ")]
+        lines += [("slider", f"z{i + 1}", shapes.latent[i]) for i in range(shapes.k)]
+        lines += [("slider", "Width scale", shapes.width_scale), ("slider", "Length scale", shapes.length_scale),
+                  f"Live: decode + mesh update {shapes.last_update_ms:.1f} ms",
+                  ("button", "Random sample"), f"Nearest: {shapes.nearest_asset}", ("button", "Export shape"),
+                  ("button", "Build shape space")]
+    finally:
+        blender_addon.unregister()
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    _ground(lo, hi)
+    _camera_fit(lo - [0.5, 0.5, 0.0], hi + [0.5, 0.5, 0.0], elevation_deg=25.0, azimuth_deg=-60.0)
+    _render(out, ("Adv3D  >  Shape space", lines) if panel else None)
+
+
 def render_scene(scene_path: Path, library_path: Path | None, out: Path, frame: int, width: int, height: int,
-                 engine: str) -> None:
+                 engine: str, panel: bool = False) -> None:
     """A scene loaded through the add-on's Scenes panel code, at one frame, around the ego."""
     import bpy
 
@@ -291,12 +416,20 @@ def render_scene(scene_path: Path, library_path: Path | None, out: Path, frame: 
     cam.location = centre - 16.0 * fwd + np.array([0.0, 0.0, 9.0])
     target = Vector((centre + 18.0 * fwd).tolist())
     cam.rotation_euler = (target - cam.location).to_track_quat("-Z", "Y").to_euler()
+    sc = scene.adv3d.scene
+    lines: list = [f"{Path(scene_path).name}", ("head", f"Scene {sc.scene_id}"),
+                   f"frame {frame} of {scene.frame_end + 1} ({scene.render.fps} fps)",
+                   f"{sum(o.adv3d.role == 'ACTOR' for o in scene.objects)} actors, "
+                   f"{sum(o.adv3d.role == 'LANE' for o in scene.objects)} lanes",
+                   ("button", "Export scene"), ("head", "Attack this scene")]
+    lines += [f"{name}: {getattr(sc, 'attack_' + name)}" for name in ("algo", "budget", "seconds", "autonomy")]
+    lines += [("button", "Attack this scene"), "Edit keyframes / assets, then Export"]
     blender_addon.unregister()
-    _render(out)
+    _render(out, ("Adv3D  >  Scenes", lines) if panel else None)
 
 
 def render_review(run_path: Path, replay: str | None, out: Path, frame: int | None, width: int, height: int,
-                  engine: str) -> None:
+                  engine: str, panel: bool = False) -> None:
     """One frame of a run bundle's replay, loaded through the Review panel code: ego (blue),
     actors (grey, the adversarial shape red), LiDAR points, detection boxes with scores, the
     predicted trajectories and the plan, from a camera behind and above the ego."""
@@ -354,7 +487,18 @@ def render_review(run_path: Path, replay: str | None, out: Path, frame: int | No
             obj.data.size = 1.5
             obj.color = (0.0, 0.45, 0.08, 1.0)
             obj.rotation_euler = (math.radians(55.0), 0.0, yaw - math.pi / 2)
-    _render(out)
+    rv = scene.adv3d.review
+    data = ops_review.review.data_of(scene)
+    dets = data.detections[frame] if data is not None and data.detections is not None else np.zeros((0, 7))
+    lines: list = [f"{Path(run_path).name}", [label for label, p in found if p == chosen[0]][0],
+                   ("button", "Load review"), ("head", f"Frame {frame} of {counts['frames']}"),
+                   f"{counts['actors']} actors ({counts['adversarial']} adversarial, red)",
+                   f"{len(data.points[frame]) if data is not None and data.points else 0} LiDAR points",
+                   f"{len(dets)} detections, scores " + " ".join(f"{v:.2f}" for v in sorted(dets[:, 6])[::-1][:4]),
+                   f"{len(data.predictions[frame]) if data is not None else 0} predicted trajectories (purple)",
+                   "plan (yellow)", "Scrub the timeline to step through",
+                   f"replay sha256 {rv.key.rsplit(':', 1)[-1][:12]}..."]
+    _render(out, ("Adv3D  >  Review", lines) if panel else None)
     blender_addon.unregister()
 
 
@@ -365,7 +509,9 @@ def _fail(message: str) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m blender_addon.render")
-    parser.add_argument("--what", choices=("library", "sweep", "scene", "review"), required=True)
+    parser.add_argument("--what", choices=("library", "sweep", "shapes", "scene", "review"), required=True)
+    parser.add_argument("--panel", action="store_true", help="the panel's state in a column beside the picture")
+    parser.add_argument("--u", default=None, help="shapes: unit vector z1,..,zK,width,length (default: 0.5s)")
     parser.add_argument("--scene", type=Path, default=None)
     parser.add_argument("--frame", type=int, default=None)
     parser.add_argument("--run", type=Path, default=None)
@@ -383,15 +529,18 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         if args.what == "library":
-            render_library(args.library, args.out, width, height, args.engine)
+            render_library(args.library, args.out, width, height, args.engine, args.panel)
+        elif args.what == "shapes":
+            unit = [float(v) for v in args.u.split(",")] if args.u else None
+            render_shapes(args.space, args.out, unit, width, height, args.engine, args.panel)
         elif args.what == "scene":
             if args.scene is None:
                 return _fail("--what scene needs --scene FILE")
-            render_scene(args.scene, args.library, args.out, args.frame or 0, width, height, args.engine)
+            render_scene(args.scene, args.library, args.out, args.frame or 0, width, height, args.engine, args.panel)
         elif args.what == "review":
             if args.run is None:
                 return _fail("--what review needs --run BUNDLE (or a replay file)")
-            render_review(args.run, args.replay, args.out, args.frame, width, height, args.engine)
+            render_review(args.run, args.replay, args.out, args.frame, width, height, args.engine, args.panel)
         else:
             render_sweep(args.space, args.out, args.dim, args.steps, width, height, args.engine)
     except Adv3dError as exc:

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 import bpy
 import numpy as np
 
-from . import meshdata
+from . import meshdata, places
 
 REVIEW_COLLECTION = "Adv3D Review"
 ADVERSARIAL_RGBA = (0.95, 0.1, 0.1, 1.0)
@@ -29,9 +29,14 @@ LABEL_COLLECTION = "Adv3D Review scores"
 MAX_LABELS = 64  # score labels shown per frame (the highest-scoring first)
 POINT_RADIUS = 0.05  # m, display size of a LiDAR point
 
-# scene name -> the ReviewData shown in it (not saved in .blend files: ops_review.reattach reads
-# the replay again when a .blend with a review is opened)
-_LOADED: dict[str, "ReviewData"] = {}
+# Review data in memory, keyed by the replay it came from (``ops_review.replay_key``: the file's
+# path and content hash); a scene shows the entry its ``adv3d.review.key`` property names (saved
+# with the .blend and restored by undo), so a scene never draws another file's replay. Not saved
+# in .blend files: opening one, or an undo that brings a review back, reads the replay again
+# (``ops_review`` handlers). Besides the entries scenes name, the one released last is kept, so
+# undoing "Clear review" or a new load is instant.
+_CACHE: dict[str, "ReviewData"] = {}
+_RELEASED = {"key": ""}
 
 
 @dataclass
@@ -127,15 +132,20 @@ def _show_as_points(obj) -> None:
     mod.node_group = group
 
 
-def build_review(bscene, data: ReviewData) -> dict:
+def build_review(bscene, data: ReviewData, key: str = "") -> dict:
     """Create the review objects in ``bscene`` (replacing a previous review) and show frame 0.
+
+    Args:
+        key: the replay the data came from (``ops_review.replay_key``); '' for data made in
+            memory (a key unique to this object).
 
     Returns:
         counts of what was created.
     """
-    clear_review(bscene)
     _validate(data)
-    root = meshdata.get_collection(REVIEW_COLLECTION, bscene.collection)
+    clear_review(bscene)
+    root = places.panel_collection(bscene, REVIEW_COLLECTION)
+    place = places.make_place(bscene, root, _review_bounds(data))
     bscene.frame_start = 0
     bscene.frame_end = data.frames - 1
     ego = meshdata.new_mesh_object("review ego", *meshdata.box_arrays(*data.ego_dimensions), root)
@@ -174,15 +184,57 @@ def build_review(bscene, data: ReviewData) -> dict:
             obj = bpy.data.objects.new(f"review score {i}", curve)
             labels.objects.link(obj)
             _colour(obj, (0.0, 0.45, 0.1, 1.0))
-    attach(bscene, data)
+    places.adopt(root, place)
+    attach(bscene, data, key or f"memory:{id(data)}")
     bscene.frame_set(0)
     return {"frames": data.frames, "actors": len(data.actors),
             "adversarial": sum(a.adversarial for a in data.actors)}
 
 
-def attach(bscene, data: ReviewData) -> None:
-    """Make the frame handler draw ``data`` in ``bscene`` (its objects already exist)."""
-    _LOADED[bscene.name] = data
+def _review_bounds(data: ReviewData, margin: float = 30.0) -> np.ndarray:
+    """x0, y0, x1, y1 (m) around the ego's and the actors' poses, plus ``margin``."""
+    poses = np.concatenate([data.ego_poses[:, :2]] + [a.poses[:, :2] for a in data.actors])
+    poses = poses[np.isfinite(poses).all(axis=1)]
+    if not len(poses):
+        return np.array([-margin, -margin, margin, margin])
+    return np.r_[poses.min(axis=0) - margin, poses.max(axis=0) + margin]
+
+
+def attach(bscene, data: ReviewData, key: str) -> None:
+    """Make the frame handler draw ``data`` in ``bscene`` (its objects already exist) and record
+    on the scene which replay it shows."""
+    props = bscene.adv3d.review
+    old = props.key
+    _CACHE[key] = data
+    props.key = key
+    props.stale = ""
+    if old and old != key:
+        _RELEASED["key"] = old
+    prune()
+    add_handler()
+
+
+def data_of(bscene) -> "ReviewData | None":
+    """The review data ``bscene`` shows (None when it has none in memory)."""
+    key = bscene.adv3d.review.key
+    return _CACHE.get(key) if key else None
+
+
+def prune() -> None:
+    """Drop the data no scene shows (but the one released last, for undo)."""
+    used = {s.adv3d.review.key for s in bpy.data.scenes if hasattr(s, "adv3d")}
+    for key in list(_CACHE):
+        if key not in used and key != _RELEASED["key"]:
+            del _CACHE[key]
+
+
+def forget_all() -> None:
+    """Drop every review in memory (another .blend file was opened)."""
+    _CACHE.clear()
+    _RELEASED["key"] = ""
+
+
+def add_handler() -> None:
     if on_frame_change not in bpy.app.handlers.frame_change_post:
         bpy.app.handlers.frame_change_post.append(on_frame_change)
 
@@ -201,7 +253,13 @@ def _validate(data: ReviewData) -> None:
 
 
 def clear_review(bscene) -> None:
-    _LOADED.pop(bscene.name, None)
+    """Remove the review objects; the data stays in memory as the last released (undo)."""
+    props = bscene.adv3d.review
+    if props.key:
+        _RELEASED["key"] = props.key
+    props.key = ""
+    props.stale = ""
+    prune()
     coll = bpy.data.collections.get(REVIEW_COLLECTION)
     if coll is not None:
         for obj in list(coll.objects):
@@ -213,8 +271,6 @@ def clear_review(bscene) -> None:
                     bpy.data.actions.remove(action)
         meshdata.remove_collection(LABEL_COLLECTION)
         meshdata.remove_collection(REVIEW_COLLECTION)
-    if not _LOADED:
-        remove_handler()
 
 
 def remove_handler() -> None:
@@ -264,8 +320,9 @@ def _set_polylines(curve, lines: list[np.ndarray], z: float = 0.3) -> None:
 
 
 def update_frame(bscene, frame: int) -> None:
-    """Write frame ``frame``'s points, detection boxes, predictions and plan into the objects."""
-    data = _LOADED.get(bscene.name)
+    """Write frame ``frame``'s points, detection boxes, predictions and plan into the objects
+    (nothing when the scene's replay is not in memory)."""
+    data = data_of(bscene) if hasattr(bscene, "adv3d") else None
     if data is None:
         return
     f = int(np.clip(frame, 0, data.frames - 1))
@@ -299,6 +356,20 @@ def _set_labels(dets: np.ndarray) -> None:
         if shown:
             obj.data.body = f"{d[i, 6]:.2f}"
             obj.location = (d[i, 0], d[i, 1], d[i, 5] + 0.4)
+
+
+def blank_frame() -> None:
+    """Empty the per-frame geometry (points, boxes, curves, labels): shown when the replay a
+    review came from is missing or changed, so nothing stale is drawn."""
+    objs = bpy.data.objects
+    if "review lidar" in objs:
+        _set_points(objs["review lidar"].data, np.zeros((0, 3), np.float32))
+    if "review detections" in objs:
+        meshdata.set_mesh_arrays(objs["review detections"].data, np.zeros((0, 3)), np.zeros((0, 3), int))
+    for name in ("review predictions", "review plan"):
+        if name in objs:
+            objs[name].data.splines.clear()
+    _set_labels(np.zeros((0, 7)))
 
 
 @bpy.app.handlers.persistent

@@ -14,7 +14,8 @@ import numpy as np
 
 from adv3d_runner.errors import Adv3dError, FileFormatError
 
-__all__ = ["Adv3dError", "FileFormatError", "load_space", "clear_space_cache"]
+__all__ = ["Adv3dError", "FileFormatError", "load_space", "clear_space_cache", "realism_reference", "live_realism",
+           "full_realism"]
 
 # Loaded shape spaces keyed by absolute path; the file's mtime and size invalidate an entry, so
 # a rebuild on disk is picked up without restarting Blender.
@@ -52,38 +53,83 @@ def unit_vector(latent: np.ndarray | list[float], k: int, width_scale: float, le
     return np.clip(u, 0.0, 1.0)
 
 
-def build_space(library, options: dict, callback) -> Any:
-    """``build_shape_space(library, **options)`` reporting per-asset progress to
-    ``callback(done, total)`` (the Blender progress bar) instead of a terminal bar.
-
-    The runner's builder takes ``progress: bool`` and wraps its per-asset loop in
-    ``adv3d_runner.progress.progress``; that function is swapped for the duration of the call.
-    """
-    import adv3d_runner.progress as runner_progress
-    from adv3d_runner.shapes.shape_space import build_shape_space
-
-    original = runner_progress.progress
-
-    def report(iterable, desc, total=None, unit="it"):
-        items = list(iterable)
-
-        def gen():
-            for i, item in enumerate(items):
-                callback(i, len(items))
-                yield item
-            callback(len(items), len(items))
-
-        return gen()
-
-    runner_progress.progress = report
-    try:
-        return build_shape_space(library, progress=True, **options)
-    finally:
-        runner_progress.progress = original
-
-
 def save_space(space, path: str | os.PathLike) -> Path:
     """Write a shape space atomically and drop any cached copy of that path."""
     out = space.save(Path(path))
     _SPACES.pop(str(Path(path).expanduser().resolve()), None)
     return out
+
+
+# Realism references keyed by shape-space content hash (docs/realism.md): the shipped file for
+# the shipped space, else built once from the panel's library (the space's CAD models).
+_REFERENCES: dict[str, Any] = {}
+
+
+def realism_reference(space, library_path: str | os.PathLike | None = None) -> Any:
+    """The realism reference of ``space``: the shipped one when it matches, else built from the
+    library file ``library_path`` (a few seconds, once per space).
+
+    Raises:
+        Adv3dError: no reference for this space and no library that holds its assets.
+    """
+    from adv3d_runner.shapes import realism
+
+    key = space.content_hash
+    if key in _REFERENCES:
+        return _REFERENCES[key]
+    try:
+        ref = realism.default_reference(space)
+    except Adv3dError:
+        if not library_path:
+            raise
+        from adv3d_runner.shapes.library import load_library
+
+        try:
+            ref = realism.build_reference(load_library(Path(library_path)), space)
+        except KeyError as exc:
+            raise Adv3dError(f"no realism reference: the library lacks the shape space's asset {exc}") from None
+    _REFERENCES[key] = ref
+    return ref
+
+
+def _flag(ok: bool) -> str:
+    return "ok" if ok else "OUT"
+
+
+def live_realism(space, u: np.ndarray, vertices: np.ndarray, faces: np.ndarray, vehicle_class: str | None = None,
+                 library_path: str | os.PathLike | None = None) -> list[str]:
+    """The realism lines the Shape space panel shows while a slider moves: the cheap measures
+    without the nearest-CAD-model search (``quick_measures(chamfer=False)``: JSD, Mahalanobis,
+    dimensions against the class; ~2 ms, docs/realism.md "Per query and live")."""
+    from adv3d_runner.shapes import realism
+
+    ref = realism_reference(space, library_path)
+    z, _ = space.unit_to_latent(u)
+    q = realism.quick_measures(vertices, faces, ref, latent=z, latents=space.latents, vehicle_class=vehicle_class,
+                               chamfer=False)
+    dims = " x ".join(f"{x:.2f}" for x in q["dimensions_m"])
+    lines = [f"JSD {q['jsd']:.3f} (library <= {ref.jsd_limit:.3f}) {_flag('jsd' not in q['flags'])}",
+             f"Mahalanobis {q['mahalanobis']:.2f} (library <= {ref.mahalanobis_limit:.2f}) "
+             f"{_flag('mahalanobis' not in q['flags'])}"]
+    if q["dimension_excess"] is not None:
+        worst = 100 * max(q["dimension_excess"])
+        lines.append(f"{dims} m vs real {q['dimension_class']}: {'ok' if worst == 0 else f'+{worst:.0f} % OUT'}")
+    plausible = realism.plausible_classes(q["dimensions_m"])
+    lines.append("Real classes of this size: " + (", ".join(plausible) if plausible else "none"))
+    return lines
+
+
+def full_realism(space, u: np.ndarray, vehicle_class: str | None = None,
+                 library_path: str | os.PathLike | None = None) -> tuple[dict, list[str]]:
+    """The whole realism report of the slider shape (``realism.realism_report``; 0.1-0.3 s in
+    Blender) and the lines the panel shows for it."""
+    from adv3d_runner.shapes import realism
+
+    ref = realism_reference(space, library_path)
+    rep = realism.realism_report(space, u, ref, vehicle_class=vehicle_class)
+    lines = [f"JSD {rep['jsd']:.3f}, nearest {rep['nearest_asset']} ({rep['nearest_chamfer_m']:.3f} m)",
+             f"Mahalanobis {rep['mahalanobis']:.2f}; parts {rep['parts_before_cleanup']} "
+             f"(dropped {100 * rep['dropped_volume_fraction']:.2f} % vol.)",
+             f"Genus {rep['genus']}/{rep['genus_robust']} (raw/robust); thinnest wall {rep['thinnest_wall_m']:.2f} m",
+             "Realistic" if rep["realistic"] else "Fails: " + ", ".join(rep["flags"])]
+    return rep, lines

@@ -52,6 +52,9 @@ class SyntheticEvaluator:
     def scene_id(self, ref: str) -> str:
         return ref
 
+    def scene_digest(self, ref: str) -> str:
+        return ref  # an analytic scene is its name
+
     def targets(self, ref: str) -> tuple[list[int], int]:
         ids = list(range(self.settings.actors))
         return ids, PER_ACTOR * len(ids)

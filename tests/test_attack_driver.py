@@ -206,7 +206,9 @@ def test_cli_attack_and_report(tmp_path, repo_root):
     text = (out / "report.md").read_text()
     assert "highway-benchmark-000000" in text and "random" in text
     assert (out / "convergence.png").exists()
-    assert main(["-q", "attack", str(scene), "--budget", "0", "--out", str(tmp_path / "z")]) == 1
+    with pytest.raises(SystemExit) as exc:  # refused by the argument type: one usage line, exit 2
+        main(["-q", "attack", str(scene), "--budget", "0", "--out", str(tmp_path / "z")])
+    assert exc.value.code == 2 and not (tmp_path / "z").exists()
 
 
 def test_report_of_a_run_without_closed_loop_evaluations(tmp_path):
@@ -285,3 +287,30 @@ def test_scene_without_targets_is_skipped(tmp_path):
                    show_progress=False, evaluator=NoTargets)
     assert "skipped" in s["scenes"]["synthetic:empty"]
     assert {r["scene"] for r in lines(tmp_path / "s")} == {"synthetic:peak"}  # the next scene still ran
+
+
+def test_run_records_the_library_fingerprint_and_a_resume_checks_it(tmp_path):
+    """run.json (version 2) records the vehicle library's fingerprint; a resume with another
+    library, or of a version 1 run (made before fingerprints), is refused; v1 runs still read."""
+    import json
+
+    from adv3d_runner.attack.config import library_fingerprint_of
+    from adv3d_runner.attack.journal import read_run
+    from adv3d_runner.errors import ConfigError
+
+    out = tmp_path / "run"
+    cfg = AttackConfig(scenes=("a", "b"), algo="random", budget=3, seed=1)
+    run_attack(cfg, out, evaluator=SyntheticEvaluator, show_progress=False)
+    run = json.loads((out / "run.json").read_text())
+    assert run["version"] == 2 and run["library"] is None
+    assert run["library_fingerprint"] == library_fingerprint_of(None) and run["library_fingerprint"].startswith("sha256:")
+    run_attack(cfg, out, evaluator=SyntheticEvaluator, show_progress=False)  # same library: resumes
+    with pytest.raises(ConfigError, match="another vehicle library"):
+        run_attack(AttackConfig(scenes=("a", "b"), algo="random", budget=3, seed=1, library="none"), out,
+                   evaluator=SyntheticEvaluator, show_progress=False)
+    run["version"] = 1
+    del run["library"], run["library_fingerprint"]
+    (out / "run.json").write_text(json.dumps(run))
+    assert read_run(out)[0]["version"] == 1  # a v1 run is still read (reports)
+    with pytest.raises(ConfigError, match="version 1"):
+        run_attack(cfg, out, evaluator=SyntheticEvaluator, show_progress=False)

@@ -12,11 +12,11 @@ from attack_synthetic import SyntheticEvaluator
 
 from adv3d_runner.attack.config import AttackConfig, QuerySettings
 from adv3d_runner.attack.evaluator import EpisodeEvaluator, Query, QueryEvaluator, QueryResult, run_query
-from adv3d_runner.errors import ConfigError
+from adv3d_runner.errors import ConfigError, FileFormatError
 
 #: run.json's config keys in their order (docs/formats.md, "Run bundle"): the file contract.
 RUN_JSON_KEYS = ["scenes", "algo", "budget", "actors", "mode", "seconds", "seed", "objective", "autonomy",
-                 "reactive", "batch", "n_initial", "shape_space"]
+                 "reactive", "batch", "n_initial", "shape_space", "library"]
 
 
 def test_attack_config_is_frozen_and_round_trips_through_run_json():
@@ -36,9 +36,13 @@ def test_attack_config_is_frozen_and_round_trips_through_run_json():
                               reactive=True, shape_space="space.npz")
     assert hash(s) == hash(dataclasses.replace(s))  # workers key their scene contexts on it
     assert s.weights.det == 1.0 and s.weights.pred == 0.0 and s.weights.beta == 2.0
-    with pytest.raises(ConfigError):
+    with pytest.raises(FileFormatError, match=r"\$\.scenes"):  # run.json is a file: its errors name the field
         AttackConfig.from_run_json({"algo": "bo"})
-    for bad in (dict(mode="sideways"), dict(budget=0), dict(seconds=0.0), dict(batch=0), dict(objective="M9")):
+    with pytest.raises(FileFormatError, match=r"run.json: \$\.budget"):
+        AttackConfig.from_run_json({**doc, "budget": "many"}, "run.json")
+    for bad in (dict(mode="sideways"), dict(budget=0), dict(seconds=0.0), dict(batch=0), dict(objective="M9"),
+                dict(actors=0), dict(seed=-1), dict(seconds=float("nan")), dict(n_initial=-3), dict(algo="magic"),
+                dict(budget=True), dict(autonomy="B")):
         with pytest.raises(ConfigError):
             AttackConfig(["a.json.gz"], **bad)
 

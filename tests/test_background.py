@@ -78,25 +78,75 @@ class _Asset:
 class _Library:
     def __init__(self, assets):
         self.assets = assets
+        self.root = "fake"
 
     def by_class(self, cls):
         return [a for a in self.assets if a.vehicle_class == cls]
 
+    def ids(self):
+        return [a.id for a in self.assets]
 
-def test_assignment_by_class_and_closest_dimensions(scene):
+
+def test_nearest_size_rule_by_class_and_closest_dimensions(scene):
+    """The rule of shape space v1 (kept to record the shipped scenes' meshes)."""
     lib = _Library([_Asset("z-small", "sedan", (4.2, 1.7, 1.4)), _Asset("a-big", "sedan", (5.2, 1.9, 1.5)),
                     _Asset("suv1", "suv", (4.8, 1.95, 1.75)), _Asset("tr", "truck", (14, 2.5, 3.9))])
-    assert choose_asset(lib, "sedan", np.array([4.3, 1.7, 1.4])) == "z-small"
-    assert choose_asset(lib, "sedan", np.array([5.0, 1.9, 1.5])) == "a-big"
-    assert choose_asset(lib, "pickup", np.array([5.5, 2.0, 1.9])) == "suv1"  # fallback class
-    assert choose_asset(lib, "bus", np.array([12, 2.5, 3.2])) == "tr"
-    assert choose_asset(_Library([]), "sedan", np.ones(3)) is None
+    near = "nearest-size"
+    assert choose_asset(lib, "sedan", np.array([4.3, 1.7, 1.4]), rule=near) == "z-small"
+    assert choose_asset(lib, "sedan", np.array([5.0, 1.9, 1.5]), rule=near) == "a-big"
+    assert choose_asset(lib, "pickup", np.array([5.5, 2.0, 1.9]), rule=near) == "suv1"  # fallback class
+    assert choose_asset(lib, "bus", np.array([12, 2.5, 3.2]), rule=near) == "tr"
+    assert choose_asset(_Library([]), "sedan", np.ones(3), rule=near) is None
     # order of the library does not matter
     rev = _Library(lib.assets[::-1])
-    out1, out2 = assign_assets(scene, lib), assign_assets(scene, rev)
+    out1, out2 = assign_assets(scene, lib, rule=near), assign_assets(scene, rev, rule=near)
     assert [a.asset for a in out1.actors] == [a.asset for a in out2.actors]
     assert all(a.asset is not None for a in out1.actors)
     assert all(a.asset is None for a in scene.actors)  # input untouched
+
+
+def test_draw_rule_uses_every_asset_of_the_class_seeded_by_scene_and_actor():
+    from collections import Counter
+
+    from adv3d_runner.errors import ConfigError
+
+    sedans = [_Asset(f"sedan-{i}", "sedan", (4.2 + 0.1 * i, 1.8, 1.45)) for i in range(6)]
+    lib = _Library(sedans + [_Asset("suv1", "suv", (4.8, 1.95, 1.75))])
+    keys = [f"scene-{s}/{a}" for s in range(40) for a in range(1, 26)]
+    picks = [choose_asset(lib, "sedan", key=k) for k in keys]
+    counts = Counter(picks)
+    assert set(counts) == {a.id for a in sedans}  # every sedan appears, no suv
+    assert max(counts.values()) < 2.0 * len(keys) / len(sedans)  # roughly uniform
+    assert picks == [choose_asset(_Library(lib.assets[::-1]), "sedan", key=k) for k in keys]  # order-free
+    assert choose_asset(lib, "pickup", key="s/1") == "suv1"  # fallback class
+    # adding an asset changes only the actors the new asset wins
+    grown = _Library(lib.assets + [_Asset("sedan-new", "sedan", (4.5, 1.8, 1.45))])
+    after = [choose_asset(grown, "sedan", key=k) for k in keys]
+    changed = [(a, b) for a, b in zip(picks, after) if a != b]
+    assert changed and all(b == "sedan-new" for _, b in changed)
+    assert len(changed) < 2.0 * len(keys) / 7
+    with pytest.raises(ConfigError, match="key"):
+        choose_asset(lib, "sedan")
+    with pytest.raises(ConfigError, match="rule"):
+        choose_asset(lib, "sedan", key="a/1", rule="closest")
+
+
+def test_recorded_assets_are_kept_and_checked(scene):
+    from adv3d_runner.errors import ConfigError
+
+    lib = _Library([_Asset("s1", "sedan", (4.5, 1.8, 1.45)), _Asset("s2", "sedan", (4.6, 1.8, 1.45)),
+                    _Asset("suv1", "suv", (4.8, 1.95, 1.75)), _Asset("tr", "truck", (14, 2.5, 3.9)),
+                    _Asset("v1", "van", (5.2, 2.0, 2.1)), _Asset("p1", "pickup", (5.5, 2.0, 1.9))])
+    drawn = assign_assets(scene, lib)
+    keys = [f"{scene.id}/{a.id}" for a in scene.actors]
+    assert [a.asset for a in drawn.actors] == [choose_asset(lib, a.cls, key=k) for a, k in zip(scene.actors, keys)]
+    pinned = assign_assets(scene, lib)
+    pinned.actors[0].asset = "s2" if pinned.actors[0].asset != "s2" else "s1"
+    again = assign_assets(pinned, lib)  # a recorded asset stays
+    assert again.actors[0].asset == pinned.actors[0].asset
+    pinned.actors[0].asset = "gone"
+    with pytest.raises(ConfigError, match=r"actor .* uses asset 'gone'"):
+        assign_assets(pinned, lib)
 
 
 def test_actor_mesh_fits_box(tmp_path):
@@ -112,3 +162,34 @@ def test_actor_mesh_fits_box(tmp_path):
     mesh = actor_mesh(lib, asset.id, np.array([4.5, 1.8, 1.5]))
     assert isinstance(mesh, trimesh.Trimesh)
     np.testing.assert_allclose(mesh.bounds, [[-2.25, -0.9, 0.0], [2.25, 0.9, 1.5]], atol=1e-9)
+
+
+def test_generated_scenes_record_drawn_assets_and_keep_them(tmp_path):
+    """`scenes generate` records the drawn asset per actor; `assign-assets` keeps what is
+    recorded unless told to overwrite."""
+    from adv3d_runner.cli import main
+    from adv3d_runner.shapes.library import load_library
+
+    lib = load_library()
+    assert main(["-q", "scenes", "generate", "--out", str(tmp_path), "--count", "2"]) == 0
+    files = sorted(tmp_path.glob("*.json.gz"))
+    scenes = [load_scene(f) for f in files]
+    for s in scenes:
+        assert all(a.asset in lib.ids() for a in s.actors)
+        assert [a.asset for a in s.actors] == [choose_asset(lib, a.cls, key=f"{s.id}/{a.id}") for a in s.actors]
+    before = [f.read_bytes() for f in files]
+    assert main(["-q", "scenes", "assign-assets", str(tmp_path), "--rule", "nearest-size"]) == 0
+    assert [f.read_bytes() for f in files] == before  # recorded assets are kept
+    assert main(["-q", "scenes", "assign-assets", str(tmp_path), "--rule", "nearest-size", "--overwrite"]) == 0
+    assert [f.read_bytes() for f in files] != before
+
+
+def test_shipped_scenes_record_the_meshes_they_were_simulated_with():
+    """The benchmark and real scenes record the v1 (nearest-size) assignment, so the library's
+    growth does not change them (docs/scenes.md); every recorded asset is in the library."""
+    from adv3d_runner.shapes.library import load_library
+
+    lib = load_library()
+    for path in sorted((REPO / "scenes").rglob("*.json.gz"))[::10]:
+        scene = load_scene(path)
+        assert all(a.asset in lib.ids() for a in scene.actors), path

@@ -206,13 +206,12 @@ def test_library_import_through_blender(ctx, lib_copy, tmp_path):
     mesh.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, (0, 0, 1)))  # front along +y
     # OBJ files are Y up (Blender's OBJ importer maps file (x, y, z) to Blender (x, -z, y)).
     mesh.vertices = np.asarray(mesh.vertices) @ np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]]).T
-    mesh.export(src / "Little Car.obj")
+    mesh.export(src / "Little Car.obj")  # front along -z of the file, y up
     bpy.ops.adv3d.library_load(filepath=str(lib_copy))
     lib = ctx.scene.adv3d.library
-    lib.import_class = "hatchback"
-    lib.import_forward = "Y"
-    lib.import_length = 3.9
-    assert bpy.ops.adv3d.library_import(filepath=str(src / "Little Car.obj")) == {"FINISHED"}
+    # Up: Auto (OBJ is y up, as Blender's OBJ importer assumes); Front: the file's -Z axis
+    assert bpy.ops.adv3d.library_import(filepath=str(src / "Little Car.obj"), vehicle_class="hatchback",
+                                        axis_forward="NEGATIVE_Z", length=3.9) == {"FINISHED"}
     library = load_library(lib_copy)
     asset = library.get("mypack.little-car")
     L, W, H = asset.dimensions
@@ -221,6 +220,134 @@ def test_library_import_through_blender(ctx, lib_copy, tmp_path):
     assert asset.vehicle_class == "hatchback" and asset.licence["name"] == "CC0-1.0"
     assert (lib_copy.parent / asset.file).is_file() and asset.cleaning["triangles"] == asset.triangle_count
     assert lib.assets[lib.active_index].asset_id == asset.id
+
+
+@pytest.mark.parametrize("suffix", [".obj", ".ply", ".stl", ".glb"])
+def test_import_axis_options(ctx, lib_copy, tmp_path, suffix):
+    """A file in adv3d's own frame (z up, +x front) imports upright with Up Z / Front X; an OBJ
+    read with OBJ's default y-up lands on its side (what the Up option is for); glTF is y up by
+    the standard, so a .glb comes in upright with Auto."""
+    from adv3d_runner.shapes.library import load_library
+
+    src = tmp_path / "zup"
+    src.mkdir()
+    (src / "License.txt").write_text(CC0)
+    mesh = _vehicle_mesh(4.4, 1.8, 1.4, 0.5)
+    if suffix == ".glb":
+        from adv3d_runner.shapes.mesh_io import write_mesh  # writes glTF's y-up frame
+
+        write_mesh(mesh, src / f"car{suffix}")
+    else:
+        mesh.export(src / f"car{suffix}")
+    bpy.ops.adv3d.library_load(filepath=str(lib_copy))
+    up = "AUTO" if suffix == ".glb" else "Z"
+    assert bpy.ops.adv3d.library_import(filepath=str(src / f"car{suffix}"), axis_up=up, axis_forward="X",
+                                        asset_id="zup.car") == {"FINISHED"}
+    assert load_library(lib_copy).get("zup.car").dimensions == pytest.approx((4.4, 1.8, 1.4), abs=2e-3)
+    if suffix == ".obj":  # Auto = y up for OBJ: this z-up file lies on its side
+        bpy.ops.adv3d.library_import(filepath=str(src / f"car{suffix}"), asset_id="zup.side")
+        L, W, H = load_library(lib_copy).get("zup.side").dimensions
+        assert H == pytest.approx(1.8, abs=2e-3)  # the width stands up
+
+
+def test_export_keeps_the_chosen_format(ctx, data, tmp_path):
+    """The file browser's extension check keeps a typed known extension (selecting its format)
+    and adds the chosen format's extension to a bare name; .json.gz is one extension."""
+    from blender_addon.ops_scene import ADV3D_OT_scene_export
+    from blender_addon.ops_shapes import ADV3D_OT_shapes_export
+
+    assert ADV3D_OT_shapes_export.format_of("car.OBJ") == "OBJ"
+    assert ADV3D_OT_scene_export.format_of("a.json.gz") == "JSON_GZ"
+    assert ADV3D_OT_scene_export.format_of("a.json") == "JSON"
+    assert ADV3D_OT_scene_export.format_of("a.gz") is None
+    bpy.ops.adv3d.scene_load(filepath=str(data["scene"]))
+    out = tmp_path / "edited.json.gz"
+    assert bpy.ops.adv3d.scene_export(filepath=str(out)) == {"FINISHED"}
+    import gzip
+
+    assert gzip.decompress(out.read_bytes()) == Path(data["scene"]).read_bytes()
+    # a bare name gets the chosen format's extension
+    assert bpy.ops.adv3d.scene_export(filepath=str(tmp_path / "bare"), file_format="JSON_GZ") == {"FINISHED"}
+    assert (tmp_path / "bare.json.gz").is_file()
+    bpy.ops.adv3d.shapes_load(filepath=str(data["space"]))
+    assert bpy.ops.adv3d.shapes_export(filepath=str(tmp_path / "car"), file_format="STL") == {"FINISHED"}
+    assert (tmp_path / "car.stl").is_file()
+
+
+@pytest.mark.parametrize("target", ["folder", "missing_dir", "readonly"])
+def test_export_errors_are_reports(ctx, data, tmp_path, target):
+    """A folder, a missing folder or an unwritable file: one reported line, no traceback."""
+    import os
+
+    bpy.ops.adv3d.scene_load(filepath=str(data["scene"]))
+    bpy.ops.adv3d.shapes_load(filepath=str(data["space"]))
+    if target == "folder":
+        path = tmp_path / "adir.json"
+        path.mkdir()
+        path.with_suffix(".glb").mkdir()
+    elif target == "missing_dir":
+        path = tmp_path / "no" / "such" / "x.json"
+    elif os.geteuid() == 0:  # root may write anywhere on disk, but not into /proc
+        path = Path("/proc/adv3d-export-test.json")
+    else:
+        ro = tmp_path / "ro"
+        ro.mkdir()
+        path = ro / "x.json"
+        os.chmod(ro, 0o555)
+    for op, p in ((bpy.ops.adv3d.scene_export, path), (bpy.ops.adv3d.shapes_export, path.with_suffix(".glb"))):
+        with pytest.raises(RuntimeError) as info:
+            op(filepath=str(p))
+        assert "Traceback" not in str(info.value) and "internal error" not in str(info.value)
+    with pytest.raises(RuntimeError, match="choose a file name"):
+        bpy.ops.adv3d.scene_export(filepath=str(tmp_path) + "/")
+
+
+def test_menus_and_preferences(ctx, data, tmp_path, addon):
+    """File > Import / Export list the add-on's entries; the preferences' default paths are used
+    when a panel has none."""
+    from blender_addon import prefs
+
+    assert addon.menu_import in bpy.types.TOPBAR_MT_file_import._dyn_ui_initialize()
+    assert addon.menu_export in bpy.types.TOPBAR_MT_file_export._dyn_ui_initialize()
+    entry = bpy.context.preferences.addons.get(prefs.PACKAGE) or bpy.context.preferences.addons.new()
+    entry.module = prefs.PACKAGE
+    try:
+        p = prefs.get()
+        p.default_space = str(data["space"])
+        p.runner = "/usr/bin/python3"
+        assert prefs.runner_command() == ["/usr/bin/python3", "-m", "adv3d_runner.cli"]
+        assert bpy.ops.adv3d.shapes_load() == {"FINISHED"}  # no path in the panel: the default
+        assert ctx.scene.adv3d.shapes.space_path == str(data["space"])
+    finally:
+        bpy.context.preferences.addons.remove(entry)
+
+
+def test_panels_have_their_own_collections_and_places(ctx, data, lib_copy):
+    """Library row, shape preview and scene each in their own collection, parented to a place,
+    and no two places' content overlap."""
+    from blender_addon import places
+
+    bpy.ops.adv3d.library_load(filepath=str(lib_copy))
+    bpy.ops.adv3d.library_show(asset_id="fx.van")
+    bpy.ops.adv3d.library_show(asset_id="fx.sedan")
+    bpy.ops.adv3d.shapes_load(filepath=str(data["space"]))
+    bpy.ops.adv3d.scene_load(filepath=str(data["scene"]))
+    boxes = {}
+    for name in ("Adv3D Library", "Adv3D Shape preview", "Adv3D Scene"):
+        coll = bpy.data.collections[name]
+        place = places.place_of(coll)
+        assert place is not None and place.name in coll.objects
+        for obj in coll.all_objects:
+            assert obj is place or obj.parent is not None  # everything hangs off the place
+        boxes[name] = places._world_bounds(place)
+    names = list(boxes)
+    for i, a in enumerate(names):
+        for b in names[i + 1:]:
+            ba, bb = boxes[a], boxes[b]
+            apart = ba[2] <= bb[0] or bb[2] <= ba[0] or ba[3] <= bb[1] or bb[3] <= ba[1]
+            assert apart, (a, b, ba, bb)
+    van, sedan = bpy.data.objects["fx.van"], bpy.data.objects["fx.sedan"]
+    assert sedan.matrix_world.translation.x > van.matrix_world.translation.x + 4.0  # side by side
 
 
 def test_library_rescale_and_turn(ctx, lib_copy):
@@ -356,6 +483,42 @@ def test_nearest_asset_and_export(ctx, data, tmp_path):
         bpy.ops.adv3d.shapes_export(filepath=str(tmp_path / "shape.xyz"))
 
 
+def test_live_realism_of_the_slider_shape(ctx, data):
+    """The Shape space panel measures the preview's realism at every slider change (JSD,
+    Mahalanobis, dimensions against the chosen class) with the same numbers as the runner, and
+    the full report on demand; the reference of a custom space is built from the library."""
+    from adv3d_runner.shapes import realism
+    from adv3d_runner.shapes.library import load_library
+    from adv3d_runner.shapes.shape_space import ShapeSpace
+    from blender_addon import ops_shapes
+
+    ctx.scene.adv3d.library.path = str(data["library"])
+    assert bpy.ops.adv3d.shapes_load(filepath=str(data["space"])) == {"FINISHED"}
+    shapes = ctx.scene.adv3d.shapes
+    space = ShapeSpace.load(data["space"])
+    ref = realism.build_reference(load_library(data["library"]), space)
+    ops_shapes.set_unit(shapes, space.asset_unit("fx.van"))
+    shapes.realism_class = "van"                      # the update runs at once in background mode
+    u = ops_shapes.current_unit(shapes)
+    v, f = space.decode_arrays(u)
+    q = realism.quick_measures(v, f, ref, latent=space.unit_to_latent(u)[0], latents=space.latents,
+                               vehicle_class="van", chamfer=False)
+    live = shapes.realism_live.splitlines()
+    assert live[0].startswith(f"JSD {q['jsd']:.3f}") and f"Mahalanobis {q['mahalanobis']:.2f}" in live[1]
+    assert "vs real van" in live[2] and shapes.realism_ms > 0
+    shapes.latent[0] = 1.0 - shapes.latent[0]         # another shape: new figures
+    assert shapes.realism_live.splitlines() != live
+    assert bpy.ops.adv3d.shapes_realism() == {"FINISHED"}
+    full = realism.realism_report(space, ops_shapes.current_unit(shapes), ref, vehicle_class="van")
+    assert shapes.realism_full.splitlines()[0].startswith(f"JSD {full['jsd']:.3f}, nearest {full['nearest_asset']}")
+    shapes.latent[1] = 0.3
+    assert shapes.realism_full == ""                  # the full report described the previous shape
+    shapes.show_realism = False
+    shapes.realism_live = ""
+    shapes.latent[1] = 0.4
+    assert shapes.realism_live == ""
+
+
 def test_missing_or_corrupt_shape_space_is_reported(ctx, tmp_path):
     with pytest.raises(RuntimeError, match="not found|existing"):
         bpy.ops.adv3d.shapes_load(filepath=str(tmp_path / "none.npz"))
@@ -376,6 +539,34 @@ def test_build_shape_space_operator(ctx, lib_copy, tmp_path):
     space = ShapeSpace.load(tmp_path / "built.npz")
     assert space.k == 2 and sorted(space.asset_ids) == sorted(FIXTURE_CARS)
     assert shapes.k == 2 and len(_preview_arrays(ctx.scene)[0]) > 0
+
+
+def test_build_job_steps_are_short_and_esc_cancels(ctx, lib_copy, tmp_path):
+    """The modal Build's work driven as Blender's timer drives it: progress in the status bar,
+    no step near half a second, the same bytes as the runner's one-call build; Esc leaves no
+    file behind."""
+    from adv3d_runner.shapes.library import load_library
+    from adv3d_runner.shapes.shape_space import build_shape_space
+    from blender_addon import jobs, ops_shapes
+
+    out = tmp_path / "job.npz"
+    job = jobs.Job("Build shape space", ops_shapes.build_steps(load_library(lib_copy), str(out),
+                                                               {"k": 2, "resolution": 24}))
+    texts = []
+    while jobs.handle_event(ctx, job, "TIMER", slice_s=0.0) == jobs.RUNNING:
+        texts.append(job.status_text())
+    assert job.state == jobs.DONE and job.n_steps > 2 * len(FIXTURE_CARS)
+    assert job.max_step_s < jobs.MAX_STEP_S
+    assert any("SDF 24^3 of fx.van" in t for t in texts) and "Esc" in texts[0]
+    ref = build_shape_space(load_library(lib_copy), resolution=24, k=2, progress=False)
+    assert out.read_bytes() == ref.to_bytes()
+    out.unlink()
+    job = jobs.Job("Build shape space", ops_shapes.build_steps(load_library(lib_copy), str(out),
+                                                               {"k": 2, "resolution": 24}))
+    for _ in range(5):
+        jobs.handle_event(ctx, job, "TIMER", slice_s=0.0)
+    assert jobs.handle_event(ctx, job, "ESC") == jobs.CANCELLED and not out.exists()
+    jobs.show_progress(ctx, None)
 
 
 # --------------------------------------------------------------------------- scenes
@@ -474,37 +665,17 @@ def test_manifest_checks_catch_problems():
     from adv3d_runner.blender_cli import check_manifest
 
     good = {"schema_version": "1.0.0", "id": "adv3d", "version": "0.1.0", "name": "Adv3D", "tagline": "t",
-            "maintainer": "m", "type": "add-on", "blender_version_min": "4.2.0", "license": ["SPDX:MIT"],
-            "wheels": ["./wheels/adv3d-0.1.0-py3-none-any.whl"]}
+            "maintainer": "m", "type": "add-on", "blender_version_min": "4.2.0", "blender_version_max": "5.1.0",
+            "license": ["SPDX:MIT"], "wheels": ["./wheels/adv3d-0.1.0-py3-none-any.whl"]}
     names = {"__init__.py", "blender_manifest.toml", "wheels/adv3d-0.1.0-py3-none-any.whl"}
     assert check_manifest(good, names, "z") == []
     assert any("not in the archive" in p for p in check_manifest(good, names - {"wheels/adv3d-0.1.0-py3-none-any.whl"}, "z"))
     bad = dict(good, wheels=good["wheels"] + ["./wheels/numpy-1.26.4-cp311-cp311-linux_x86_64.whl"])
     assert any("must not be shipped" in p for p in check_manifest(bad, names | {bad["wheels"][1][2:]}, "z"))
     assert any("schema_version" in p for p in check_manifest(dict(good, schema_version="0.9"), names, "z"))
-
-
-def test_built_zip_validates(tmp_path):
-    """Build the real extension (dependency wheels from the user cache, downloaded once) and
-    validate it: Blender's validator, our manifest checks, install + register in a bpy child."""
-    import zipfile
-
-    from adv3d_runner.blender_cli import build_extension, default_wheel_cache
-    from adv3d_runner.errors import ConfigError
-
-    try:
-        zips = build_extension(tmp_path, wheel_cache=default_wheel_cache())
-    except ConfigError as exc:
-        if "pip download" in str(exc):
-            pytest.skip(f"dependency wheels unavailable offline: {exc}")
-        raise
-    assert len(zips) == 1
-    with zipfile.ZipFile(zips[0]) as zf:
-        names = set(zf.namelist())
-    assert "blender_manifest.toml" in names and "__init__.py" in names
-    assert any(n.startswith("wheels/adv3d-") for n in names)
-    assert any(n.startswith("wheels/scikit_image-") for n in names)
-    assert not any("numpy" in n or "torch" in n for n in names)
+    assert any("blender_version_max" in p for p in check_manifest({**good, "blender_version_max": ""}, names, "z"))
+    assert any("development file" in p for p in check_manifest(good, names | {"selfcheck.py"}, "z"))
+    # (the real zip: tests/test_blender_stock.py)
 
 
 # --------------------------------------------------------------------------- review engine
@@ -555,7 +726,7 @@ def test_review_objects_follow_the_timeline(ctx):
             assert actor.location.x == pytest.approx(data.actors[0].poses[frame, 0], abs=1e-4)
     review.clear_review(ctx.scene)
     assert "review lidar" not in bpy.data.objects
-    assert review.on_frame_change not in bpy.app.handlers.frame_change_post
+    assert not ctx.scene.adv3d.review.key and review.data_of(ctx.scene) is None
 
 
 def test_review_rejects_inconsistent_data(ctx):
@@ -630,3 +801,25 @@ def test_panels_draw_with_existing_properties_and_operators(ctx, data, lib_copy)
         panel.draw(SimpleNamespace(layout=_Layout(seen)), ctx)
     for expected in ("adv3d.library_import", "adv3d.shapes_random", "adv3d.scene_export", "latent", "asset_id"):
         assert expected in seen
+
+
+def test_render_resolves_relative_paths_against_the_callers_folder(data, tmp_path, repo_root):
+    """``adv3d blender render`` run from another folder: ``--out`` and ``--space`` mean the
+    caller's paths; ``--panel`` adds the panel column (drawn from the panel's properties)."""
+    import os
+    import subprocess
+    import sys
+
+    from PIL import Image
+
+    shutil.copy(data["space"], tmp_path / "space.npz")
+    env = dict(os.environ, PYTHONPATH=str(repo_root))
+    cmd = [sys.executable, "-m", "adv3d_runner.cli", "--quiet", "blender", "render", "--what", "shapes", "--panel",
+           "--space", "space.npz", "--u", "0.2,0.8,0.5,0.5,0.5", "--size", "200x120", "--out", "pics/shape.png"]
+    done = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
+    img = Image.open(tmp_path / "pics" / "shape.png")
+    assert img.size == (200 + 330, 120)
+    assert not (repo_root / "pics").exists()
+    bad = subprocess.run(cmd[:-1] + ["out.png", "--u", "0.5"], cwd=tmp_path, env=env, capture_output=True, text=True)
+    assert bad.returncode != 0 and "--u needs 5 values" in bad.stderr

@@ -275,6 +275,11 @@ def test_render_review_frame(bundle, tmp_path, repo_root):
     assert bad.returncode == 2 and "--frame must be in [0, 11]" in bad.stderr
 
 
+def _lidar_map(scene, frame: int) -> np.ndarray:
+    scene.frame_set(frame)
+    return _world_points(bpy.data.objects["review lidar"]) + _origin()
+
+
 def test_review_follows_the_timeline_after_reopening_the_blend(ctx, bundle, tmp_path):
     from blender_addon import review
 
@@ -282,11 +287,98 @@ def test_review_follows_the_timeline_after_reopening_the_blend(ctx, bundle, tmp_
     assert bpy.ops.adv3d.review_load(filepath=str(path)) == {"FINISHED"}
     blend = tmp_path / "review.blend"
     bpy.ops.wm.save_as_mainfile(filepath=str(blend))
-    review._LOADED.clear()  # as in a fresh Blender
+    review.forget_all()  # as in a fresh Blender
     bpy.ops.wm.open_mainfile(filepath=str(blend))
     scene = bpy.context.scene
-    assert scene.name in review._LOADED
-    scene.frame_set(6)
+    assert review.data_of(scene) is not None and not scene.adv3d.review.stale
     lidar = bpy.data.objects["review lidar"]
-    assert len(lidar.data.vertices) == len(replay.points[6])
+    assert len(_lidar_map(scene, 6)) == len(replay.points[6])
     np.testing.assert_allclose(_world_points(lidar) + _origin(), replay.points_in_map(6), atol=2e-3)
+
+
+def test_opening_another_file_never_shows_its_review(ctx, tmp_path):
+    """a.blend and b.blend both have a scene called "Scene" reviewing different replays: after
+    File > Open, every frame shows the opened file's own points, never the other's."""
+    from blender_addon import review
+
+    runs = {}
+    for name, seed in (("a", 1), ("b", 2)):
+        runs[name] = write_bundle(tmp_path / f"run_{name}", make_replay(seed=seed))
+    for name in ("a", "b"):
+        bpy.ops.wm.read_factory_settings(use_empty=True)
+        assert bpy.context.scene.name == "Scene"
+        assert bpy.ops.adv3d.review_load(filepath=str(runs[name][0])) == {"FINISHED"}
+        bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / f"{name}.blend"))
+    for name in ("a", "b", "a"):
+        bpy.ops.wm.open_mainfile(filepath=str(tmp_path / f"{name}.blend"))
+        scene = bpy.context.scene
+        assert len(review._CACHE) == 1  # only the opened file's replay is in memory
+        want = runs[name][1]
+        for f in (5, 2):
+            np.testing.assert_allclose(_lidar_map(scene, f), want.points_in_map(f), atol=2e-3)
+
+
+def test_undo_of_clear_brings_a_live_review_back(ctx, bundle):
+    """Clear review, then undo: the objects come back and still follow the timeline."""
+    from blender_addon import review
+
+    root, path, replay = bundle
+    bpy.ops.ed.undo_push(message="start")
+    assert bpy.ops.adv3d.review_load(filepath=str(path)) == {"FINISHED"}
+    bpy.ops.ed.undo_push(message="Load review")
+    key = ctx.scene.adv3d.review.key
+    assert bpy.ops.adv3d.review_clear() == {"FINISHED"}
+    bpy.ops.ed.undo_push(message="Clear review")
+    assert "review lidar" not in bpy.data.objects and not bpy.context.scene.adv3d.review.key
+    bpy.ops.ed.undo()
+    scene = bpy.context.scene
+    assert "review lidar" in bpy.data.objects and scene.adv3d.review.key == key
+    for f in (3, 8):
+        np.testing.assert_allclose(_lidar_map(scene, f), replay.points_in_map(f), atol=2e-3)
+    # undo once more (before the load): the review is gone and nothing is drawn
+    bpy.ops.ed.undo()
+    assert "review lidar" not in bpy.data.objects and not bpy.context.scene.adv3d.review.key
+    assert review.data_of(bpy.context.scene) is None
+
+
+def test_a_changed_replay_is_not_reattached(ctx, tmp_path):
+    """Save, change the replay file on disk, reopen: the review is marked stale and its
+    per-frame geometry emptied (the old points would be another replay's)."""
+    from blender_addon import review
+
+    path, _ = write_bundle(tmp_path / "run", make_replay(seed=3))
+    assert bpy.ops.adv3d.review_load(filepath=str(path)) == {"FINISHED"}
+    bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "r.blend"))
+    from adv3d_runner.sim.replay import save_replay
+
+    save_replay(make_replay(seed=4), path)  # another episode under the same name
+    bpy.ops.wm.open_mainfile(filepath=str(tmp_path / "r.blend"))
+    scene = bpy.context.scene
+    assert "changed" in scene.adv3d.review.stale and review.data_of(scene) is None
+    scene.frame_set(5)
+    assert len(bpy.data.objects["review lidar"].data.vertices) == 0
+    assert len(bpy.data.objects["review plan"].data.splines) == 0
+    # the panel's Load review reads it again
+    assert bpy.ops.adv3d.review_load(filepath=str(path)) == {"FINISHED"}
+    assert not scene.adv3d.review.stale and review.data_of(scene) is not None
+
+
+def test_review_load_runs_in_short_steps_and_cancels(ctx, bundle):
+    """The modal Load review's work, driven as Blender's timer drives it: every step is short,
+    the status bar shows progress, Esc cancels and nothing is built."""
+    from blender_addon import jobs, ops_review
+
+    root, path, replay = bundle
+    job = jobs.Job("Load review", ops_review.load_review_steps(ctx.scene, path))
+    states = [jobs.handle_event(ctx, job, "TIMER", slice_s=0.0)]  # one step per tick
+    assert states[0] == jobs.RUNNING and "Load review" in job.status_text()
+    while states[-1] == jobs.RUNNING:
+        states.append(jobs.handle_event(ctx, job, "TIMER", slice_s=0.0))
+    assert states[-1] == jobs.DONE and job.result["frames"] == T and len(states) > 3
+    assert job.max_step_s < jobs.MAX_STEP_S
+    bpy.ops.adv3d.review_clear()
+    job = jobs.Job("Load review", ops_review.load_review_steps(ctx.scene, path))
+    jobs.handle_event(ctx, job, "TIMER", slice_s=0.0)
+    assert jobs.handle_event(ctx, job, "ESC") == jobs.CANCELLED
+    assert "Adv3D Review" not in bpy.data.collections
+    jobs.show_progress(ctx, None)

@@ -4,7 +4,7 @@ import pytest
 
 from adv3d_runner.cli import main
 from adv3d_runner.errors import FileFormatError
-from adv3d_runner.fileio import check_header, read_json, write_json
+from adv3d_runner.fileio import read_json, write_json
 
 
 def test_help_lists_commands(capsys):
@@ -32,14 +32,6 @@ def test_write_json_is_atomic_and_round_trips(tmp_path):
         write_json(target, {"a": float("nan")})
     assert read_json(target) == {"a": [1, 2.5]}
     assert [p.name for p in tmp_path.iterdir()] == ["x.json.gz"]
-
-
-def test_check_header_rejects_wrong_format():
-    with pytest.raises(FileFormatError, match=r"\$\.format"):
-        check_header({"format": "other", "version": 1}, "f.json", "adv3d-scene", (1,))
-    with pytest.raises(FileFormatError, match=r"\$\.version"):
-        check_header({"format": "adv3d-scene", "version": 9}, "f.json", "adv3d-scene", (1,))
-    assert check_header(json.loads('{"format": "adv3d-scene", "version": 1}'), None, "adv3d-scene", (1,)) == 1
 
 
 def test_atomic_write_gives_a_normal_file_mode(tmp_path):

@@ -184,7 +184,7 @@ def test_shipped_detector_finds_car_20m_ahead():
     world = LidarWorld(v, f, np.asarray(REFLECTIVITY, np.float32)[kind])
     lib = load_library()
     dims = np.array([4.7, 1.85, 1.45])
-    mesh = actor_mesh(lib, choose_asset(lib, "sedan", dims), dims)
+    mesh = actor_mesh(lib, choose_asset(lib, "sedan", dims, rule="nearest-size"), dims)
     world.add_actor(1, np.asarray(mesh.vertices), np.asarray(mesh.faces))
     ego = scene.ego_poses()[0]
     c, s = np.cos(ego[2]), np.sin(ego[2])
@@ -214,5 +214,10 @@ def test_train_cli_writes_model_and_report(tmp_path):
     report = json.loads((out / "training_report.json").read_text())
     assert report["format"] == "adv3d-detector-training-report" and report["data"]["train_frames"] == 4
     assert len(report["history"]["epoch"]) == 1
+    # the actors drew their meshes from the whole bundled library, recorded by fingerprint
+    from adv3d_runner.shapes.library import library_fingerprint, load_library
+
+    assert report["data"]["library_fingerprint"] == library_fingerprint(load_library())
+    assert all("-lib-" in p.name for p in (tmp_path / "cache").rglob("*.npz"))
     det = load_detector(out)
     assert det.cfg.resolution == 0.4

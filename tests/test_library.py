@@ -12,9 +12,11 @@ from adv3d_runner.cli import main
 from adv3d_runner.errors import FileFormatError
 from adv3d_runner.shapes.library import (DEFAULT_LIBRARY, VehicleAsset, VehicleLibrary, load_asset_mesh,
                                          load_library, save_library)
-from adv3d_runner.shapes.library_cli import TYPICAL_DIMENSIONS, check_library
+from adv3d_runner.shapes.library_cli import check_library
+from adv3d_runner.vehicle_classes import TYPICAL_DIMENSIONS
 
-# Every road vehicle of the three source packs (race cars are recorded as excluded).
+# Every road vehicle body of the ten source packs (variants, race cars and wheel-less shells are
+# recorded as excluded, with the reason).
 EXPECTED_SOURCES = {
     ("quaternius-cars", f) for f in ("Cop.blend", "NormalCar1.blend", "NormalCar2.blend", "SUV.blend",
                                      "SportsCar.blend", "SportsCar2.blend", "Taxi.blend")
@@ -24,7 +26,26 @@ EXPECTED_SOURCES = {
     ("kenney-car-kit", f + ".glb") for f in ("ambulance", "delivery", "delivery-flat", "firetruck", "garbage-truck",
                                              "hatchback-sports", "police", "sedan", "sedan-sports", "suv",
                                              "suv-luxury", "taxi", "truck", "truck-flat", "van")
+} | {
+    ("quaternius-cars-bundle", "car-pickup.glb"),
+    ("quaternius-car-pack-2016", "Car.blend"), ("quaternius-car-pack-2016", "SimpleCar.blend"),
+    ("quaternius-car-pack-2016", "Truck.blend"),
+    ("quaternius-basic-car-pack-2017", "BasicCar.blend"), ("quaternius-basic-car-pack-2017", "SimpleCarHigh.blend"),
+    ("kaykit-city-builder-bits", "car_hatchback.gltf"), ("kaykit-city-builder-bits", "car_sedan.gltf"),
+    ("kaykit-city-builder-bits", "car_stationwagon.gltf"),
+    ("khronos-cesium-milk-truck", "CesiumMilkTruck.glb"),
+    ("openmaterial-examples", "vehicle_example.gltf"), ("openmaterial-examples", "truck_example.gltf"),
 }
+EXPECTED_EXCLUDED = {
+    ("kenney-car-kit", "race.glb"), ("kenney-car-kit", "race-future.glb"),
+    ("quaternius-basic-car-pack-2017", "SimpleCarShort.blend"), ("quaternius-basic-car-pack-2017", "Taxi.blend"),
+    ("quaternius-basic-car-pack-2017", "CopCar.blend"), ("quaternius-basic-car-pack-2017", "RaceCar.blend"),
+    ("kaykit-city-builder-bits", "car_taxi.gltf"), ("kaykit-city-builder-bits", "car_police.gltf"),
+    ("godot-truck-town", "meshes.glb"),
+}
+#: Licences of the packs; attribution and share-alike travel with the files (their texts are
+#: copied beside the meshes).
+PACK_LICENCES = {"khronos-cesium-milk-truck": "LicenseRef-CC-BY-TM", "openmaterial-examples": "CC-BY-SA-4.0"}
 PAPER_CLASSES = {"sedan", "hatchback", "sports", "suv", "van", "pickup"}
 
 
@@ -39,7 +60,8 @@ def test_shipped_library_has_every_road_vehicle(shipped):
     sources = {(a.source["pack"], a.source["file"]) for a in shipped.assets}
     assert sources == EXPECTED_SOURCES
     excluded = {(e["pack"], e["file"]) for e in shipped.excluded}
-    assert excluded == {("kenney-car-kit", "race.glb"), ("kenney-car-kit", "race-future.glb")}
+    assert excluded == EXPECTED_EXCLUDED
+    assert all(len(e["reason"]) > 20 for e in shipped.excluded)
 
 
 def test_shipped_meshes_load_and_match_their_records(shipped):
@@ -79,8 +101,10 @@ def test_curated_kenney_assets_record_what_was_done(shipped):
             assert "scale_factors" in a.curation and "size_before_scaling" in a.curation
             assert a.curation["scaled_to_dimensions"] == pytest.approx(list(a.dimensions), abs=1e-3)
             assert a.curation.get("note")
-        assert a.licence["name"] == "CC0-1.0"
+        assert a.licence["name"] == PACK_LICENCES.get(a.source["pack"], "CC0-1.0")
         assert (shipped.root / a.licence["file"]).is_file()
+        if a.source["pack"] not in ("kenney-car-kit", "quaternius-cars", "quaternius-transport"):
+            assert (shipped.root / a.source["pack"] / "SOURCE.txt").is_file()  # provenance travels too
 
 
 def test_load_asset_mesh_front_is_plus_x(shipped):
@@ -255,11 +279,65 @@ def test_build_script_reproduces_the_shipped_library_byte_for_byte(repo_root, tm
         pytest.skip(f"source packs not found at {packs}")
     env = {**__import__("os").environ, "ADV3D_LIBRARY_DIR": str(tmp_path), "OMP_NUM_THREADS": "1"}
     subprocess.run(["bash", str(repo_root / "assets/vehicles/build_library.sh"), str(packs)],
-                   check=True, env=env, capture_output=True, timeout=600)
+                   check=True, env=env, capture_output=True, timeout=1200)
     shipped_files = sorted(p.relative_to(DEFAULT_LIBRARY.parent) for p in DEFAULT_LIBRARY.parent.rglob("*")
-                           if p.is_file() and p.suffix in (".json", ".glb", ".txt"))
+                           if p.is_file() and p.suffix in (".json", ".glb", ".txt", ".md"))
     built_files = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*")
-                         if p.is_file() and p.suffix in (".json", ".glb", ".txt"))
+                         if p.is_file() and p.suffix in (".json", ".glb", ".txt", ".md"))
     assert built_files == shipped_files
     for rel in shipped_files:
         assert (tmp_path / rel).read_bytes() == (DEFAULT_LIBRARY.parent / rel).read_bytes(), rel
+
+
+# ----------------------------------------------------------------------------- add_asset (CLI and add-on)
+
+def test_add_asset_checks_before_reading_and_stores_like_the_cli(tmp_path):
+    from adv3d_runner.errors import ConfigError, MeshImportError
+    from adv3d_runner.shapes.library import add_asset, load_or_new_library
+    from adv3d_runner.shapes.mesh_io import import_vehicle
+
+    src = tmp_path / "src" / "Toy Pack"
+    src.mkdir(parents=True)
+    _write_car_cm(src / "ToyCar.obj")
+    reads = []
+
+    def read(path):
+        reads.append(path)
+        return import_vehicle(path, up="+z", forward="+x")
+
+    lib_path = tmp_path / "lib" / "library.json"
+    library = load_or_new_library(lib_path)
+    with pytest.raises(ConfigError, match="licence"):
+        add_asset(library, lib_path, src / "ToyCar.obj", "sedan", read)
+    (src / "LICENSE.txt").write_text("CC0 1.0 Universal\n")
+    with pytest.raises(ConfigError, match="class"):
+        add_asset(library, lib_path, src / "ToyCar.obj", "Sedan!", read)
+    with pytest.raises(ConfigError, match="asset id"):
+        add_asset(library, lib_path, src / "ToyCar.obj", "sedan", read, asset_id="Bad Id")
+    with pytest.raises(MeshImportError, match="nothing.obj"):
+        add_asset(library, lib_path, src / "nothing.obj", "sedan", read)
+    assert reads == [] and not lib_path.exists()  # refused before any work, nothing written
+
+    asset = add_asset(library, lib_path, src / "ToyCar.obj", "sedan", read, note="why", author="me")
+    assert reads == [src / "ToyCar.obj"]
+    assert (asset.id, asset.file) == ("toy-pack.toycar", "toy-pack/toycar.glb")
+    assert asset.source == {"pack": "toy-pack", "file": "ToyCar.obj", "author": "me", "url": ""}
+    assert asset.licence == {"name": "CC0-1.0", "file": "toy-pack/LICENSE.txt"}
+    assert asset.curation["note"] == "why" and asset.in_shape_space
+    assert load_library(lib_path).assets == [asset]
+    assert load_asset_mesh(load_library(lib_path), asset.id).extents == pytest.approx(asset.dimensions, abs=1e-4)
+
+    # a second id from the same file gets its own mesh file; the same id replaces in place
+    other = add_asset(library, lib_path, src / "ToyCar.obj", "hatchback", read, asset_id="toy-pack.small",
+                      in_shape_space=False)
+    assert other.file == "toy-pack/small.glb" and (lib_path.parent / other.file).is_file()
+    again = add_asset(library, lib_path, src / "ToyCar.obj", "suv", read)
+    assert load_library(lib_path).ids() == ["toy-pack.toycar", "toy-pack.small"]
+    assert load_library(lib_path).get("toy-pack.toycar") == again
+
+    # the CLI runs the same pipeline: same record, same bytes
+    cli_lib = tmp_path / "cli" / "library.json"
+    assert main(["-q", "assets", "import", str(src / "ToyCar.obj"), "--class", "sedan", "--library", str(cli_lib),
+                 "--up=+z", "--forward=+x", "--note", "why", "--author", "me"]) == 0
+    assert load_library(cli_lib).assets == [asset]
+    assert (cli_lib.parent / asset.file).read_bytes() == (tmp_path / "lib" / asset.file).read_bytes()

@@ -245,3 +245,113 @@ def test_runner_modules_never_import_bpy():
         "sys.exit(1 if 'bpy' in sys.modules or 'torch' in sys.modules else 0)"
     )
     assert subprocess.run([sys.executable, "-c", code]).returncode == 0
+
+
+# ----------------------------------------------------------------------------- datasets' conventions
+
+def _apollo_json(path, mesh, car_type="3x"):
+    """Write ``mesh`` (convention frame) as an ApolloCar3D car model: camera frame x right,
+    y down, z forward; faces numbered from 1."""
+    import json
+
+    v = np.asarray(mesh.vertices)
+    cam = np.c_[-v[:, 1], -v[:, 2], v[:, 0]]  # right = -left, down = -up, forward = +x
+    path.write_text(json.dumps({"car_type": car_type, "vertices": cam.tolist(),
+                                "faces": (np.asarray(mesh.faces) + 1).tolist()}))
+    return path
+
+
+def test_apollocar3d_json_is_read_upright_with_front_and_left_kept(tmp_path):
+    path = _apollo_json(tmp_path / "dazhongmaiteng.json", car_like())
+    out, cur, rep = mesh_io.import_vehicle(path)
+    _check_convention(out, (4.5 + 0.2, 1.8 + 0.2, 1.5))
+    assert out.vertices[np.argmax(out.vertices[:, 0]), 2] == pytest.approx(0.5 - 0.1, abs=0.11)  # the nose
+    assert _mirror_on_left(out)
+    assert cur["convention"] == "apollocar3d" and cur["car_type"] == "3x"
+    assert cur["up"].startswith("-y") and cur["forward"].startswith("+z")
+    assert cur["reader"] == "apollocar3d-json" and rep["triangles"] == len(car_like().faces)
+
+
+def test_apollocar3d_json_faces_must_be_numbered_from_one(tmp_path):
+    import json
+
+    from adv3d_runner.errors import FileFormatError
+
+    path = _apollo_json(tmp_path / "car.json", car_like())
+    doc = json.loads(path.read_text())
+    doc["faces"][5] = [0, 1, 2]  # 0 is not a vertex number
+    path.write_text(json.dumps(doc))
+    with pytest.raises(FileFormatError, match=r"car\.json.*\$\.faces\[5\].*numbered from 1"):
+        mesh_io.import_vehicle(path)
+    doc["faces"][5] = [1, 2]
+    path.write_text(json.dumps(doc))
+    with pytest.raises(FileFormatError, match=r"\$\.faces"):
+        mesh_io.import_vehicle(path)
+
+
+def test_shapenet_obj_convention_and_real_dimensions(tmp_path):
+    """ShapeNetCore v2 ``model_normalized.obj``: +y up, front -z, unit diagonal."""
+    m = car_like()
+    v = np.asarray(m.vertices)
+    sn = np.c_[-v[:, 1], v[:, 2], -v[:, 0]]  # x right (= -left), y up, z back (front at -z)
+    sn = (sn - sn.mean(axis=0)) / np.linalg.norm(np.ptp(sn, axis=0))
+    folder = tmp_path / "02958343" / "abc123" / "models"
+    folder.mkdir(parents=True)
+    path = folder / "model_normalized.obj"
+    trimesh.Trimesh(sn, m.faces, process=False).export(path)
+    with pytest.raises(ConfigError, match="dimensions"):
+        mesh_io.import_vehicle(path)
+    out, cur, _ = mesh_io.import_vehicle(path, dimensions=(4.7, 2.0, 1.5))
+    _check_convention(out, (4.7, 2.0, 1.5), tol=1e-4)
+    assert cur["convention"] == "shapenet" and cur["forward"].startswith("-z")
+    assert out.vertices[np.argmax(out.vertices[:, 0]), 2] < 0.7  # the nose is in front
+    assert _mirror_on_left(out)
+    # the same file under another name follows the plain OBJ default (+z up) unless told
+    other = tmp_path / "car.obj"
+    trimesh.Trimesh(sn * 4.0, m.faces, process=False).export(other)
+    with pytest.raises(MeshImportError, match="taller than long"):
+        mesh_io.import_vehicle(other)
+    out2, _, _ = mesh_io.import_vehicle(other, convention="shapenet", dimensions=(4.7, 2.0, 1.5))
+    assert np.allclose(out2.bounds, out.bounds, atol=1e-4)
+
+
+def test_rotated_extents_are_refused_naming_the_axes(tmp_path):
+    """A Y-up car read with the assumed +z up would stand on its nose: refused, and the
+    message names the file axes and what to pass."""
+    m = car_like()
+    v = np.asarray(m.vertices)
+    path = tmp_path / "yup.ply"
+    trimesh.Trimesh(np.c_[v[:, 1], v[:, 2], v[:, 0]], m.faces, process=False).export(path)  # x left, y up, z front
+    with pytest.raises(MeshImportError) as exc:
+        mesh_io.import_vehicle(path)
+    msg = str(exc.value)
+    assert "yup.ply" in msg and "taller than long" in msg and "height 4.7 along z" in msg
+    assert "--up" in msg and "--forward +z" in msg
+    out, _, _ = mesh_io.import_vehicle(path, up="+y", forward="+z")
+    _check_convention(out, (4.5 + 0.2, 1.8 + 0.2, 1.5))
+
+
+def test_up_minus_y_works_as_the_docs_write_it(tmp_path, capsys):
+    """``--up -y`` (space, not ``=``) reaches the importer: argparse alone reads ``-y`` as an option."""
+    from adv3d_runner.cli import main
+
+    m = car_like()
+    v = np.asarray(m.vertices)
+    pack = tmp_path / "pack"
+    pack.mkdir()
+    (pack / "License.txt").write_text("Creative Commons Zero, CC0")
+    path = pack / "down.ply"
+    # file frame: x front, y down, z left (right-handed)
+    trimesh.Trimesh(np.c_[v[:, 0], -v[:, 2], v[:, 1]], m.faces, process=False).export(path)
+    lib = tmp_path / "lib" / "library.json"
+    rc = main(["-q", "assets", "import", str(path), "--class", "sedan", "--up", "-y", "--forward", "+x",
+               "--library", str(lib)])
+    assert rc == 0, capsys.readouterr().err
+    from adv3d_runner.shapes.library import load_asset_mesh, load_library
+
+    library = load_library(lib)
+    asset = library.assets[0]
+    assert asset.curation["up"] == "-y (given)"
+    out = load_asset_mesh(library, asset.id)
+    _check_convention(out, (4.5 + 0.2, 1.8 + 0.2, 1.5), tol=1e-5)
+    assert _mirror_on_left(out)

@@ -358,3 +358,71 @@ def test_one_frame_obstacle_does_not_make_the_offset_dither():
     assert offsets({2}) == ["d+0.0"] * 6
     # seen for good, the nudge is taken one plan after it first appears, and kept
     assert offsets(set(range(2, 6))) == ["d+0.0"] * 3 + ["d-0.5"] * 3
+
+
+# ------------------------------------------------------------------ real traffic (issue 17)
+
+def test_forecast_heading_ignores_jitter_of_slow_actors():
+    """A slow actor's predicted path jitters by centimetres from step to step; its heading must
+    not (10-30 degrees step to step made a truck in the next lane overlap the ego)."""
+    rng = np.random.default_rng(0)
+    t = np.arange(1, 61) * DT
+    traj = np.zeros((2, 1, 60, 2))
+    traj[0, 0, :, 0] = 3.0 * t + rng.normal(0, 0.04, 60)   # 3 m/s along +x, jittering sideways and back
+    traj[0, 0, :, 1] = rng.normal(0, 0.04, 60)
+    traj[1, 0] = 50.0 + rng.normal(0, 0.04, (60, 2))       # standing still, jittering
+    boxes = np.array([[0.0, 0.0, 14.0, 2.6, 0.0], [50.0, 50.0, 4.6, 1.9, 0.3]])
+    tracks = Tracks(np.array([1, 2]), boxes, np.zeros((2, 2)), np.ones(2), np.zeros(2, np.int64),
+                    np.zeros((2, 1, 3)), np.ones((2, 1), bool))
+    f = forecast_from(Predictions(np.array([1, 2]), traj, np.ones((2, 1))), tracks, steps=50, dt=0.1)
+    assert np.degrees(np.abs(f.poses[0, 0, :, 2])).max() < 3.0
+    assert np.allclose(f.poses[1, 0, :, 2], 0.3)
+    # a plain step-by-step heading of the same path is far off (what the chord is for)
+    d = np.diff(traj[0, 0], axis=0)
+    assert np.degrees(np.abs(np.arctan2(d[:, 1], d[:, 0]))).max() > 10.0
+
+
+def _leader_inputs(jitter, rng):
+    """A leader 32 m ahead at 15 m/s (near the IDM equilibrium gap), its predicted path jittering by
+    ``jitter`` m per step."""
+    t = np.arange(1, 61) * DT
+    x = 32.0 + 15.0 * t + rng.normal(0.0, jitter, 60)
+    return actor_inputs(np.array([[32.0, 0.0, 4.6, 1.9, 0.0]]), np.stack([x, 0 * t], -1)[None])
+
+
+def test_leader_speed_is_averaged_so_prediction_jitter_does_not_shake_the_ego():
+    """Centimetres of jitter in a leader's predicted path, one-step differenced, are +-0.3 m/s of
+    leader speed, which the IDM turned into a different first-step acceleration every frame."""
+    from adv3d_runner.autonomy.planner import PlannerConfig, ProposalConfig
+
+    ego = EgoState(np.array([0.0, 0.0, 0.0]), 15.0, length=4.8, width=1.9)
+    spread = {}
+    for window in (0.1, 1.5):
+        pc = ProposalConfig(leader_speed_window=window, max_jerk=10.0, max_release_jerk=10.0, max_brake_jerk=10.0)
+        firsts = []
+        for seed in range(6):
+            planner = planner_on(straight_lanes(1), SamplingPlanner(PlannerConfig(proposals=pc)))
+            tracks, preds = _leader_inputs(0.03, np.random.default_rng(seed))
+            plan = planner.plan(ego, preds, tracks)
+            firsts.append(plan.acceleration[0])
+        spread[window] = np.ptp(firsts)
+    assert spread[0.1] > 0.3 and spread[1.5] < 0.3 * spread[0.1]
+
+
+def test_firm_braking_builds_up_faster_than_comfortable_changes():
+    from adv3d_runner.autonomy.planner import ProposalConfig
+
+    planner = planner_on(straight_lanes(1))
+    pc = planner.config.proposals
+    assert pc.max_brake_jerk > pc.max_jerk
+    ego = EgoState(np.array([0.0, 0.0, 0.0]), 15.0, length=4.8, width=1.9)
+    # a standing car 30 m ahead: the IDM asks for more than idm_decel at once
+    tracks, preds = actor_inputs(np.array([[30.0, 0.0, 4.6, 1.9, 0.0]]), np.tile([[30.0, 0.0]], (60, 1))[None])
+    plan = planner.plan(ego, preds, tracks)
+    assert plan.acceleration[0] == pytest.approx(-pc.max_brake_jerk * DT)
+    # a slightly slower car far ahead: a comfortable change, at most max_jerk per second
+    t = np.arange(1, 61) * DT
+    tracks, preds = actor_inputs(np.array([[60.0, 0.0, 4.6, 1.9, 0.0]]), np.stack([60 + 13.0 * t, 0 * t], -1)[None])
+    plan = planner.plan(ego, preds, tracks)
+    assert abs(plan.acceleration[0]) <= pc.max_jerk * DT + 1e-9
+    assert ProposalConfig().max_brake_jerk * DT <= ProposalConfig().max_decel

@@ -154,10 +154,10 @@ def test_save_load_roundtrip_and_bad_files(tmp_path):
     t, _ = straight_track(d, nrm, 20.0)
     a = predict_on(p, t, lanes)
     with torch.inference_mode():
-        from adv3d_runner.autonomy.predictor import encode, to_map_frame
+        from adv3d_runner.autonomy.predictor import encode, no_reversing, to_map_frame
         f, prior = encode(t, LaneMap(lanes))
         traj, _ = net.eval()(torch.from_numpy(f), torch.from_numpy(prior))
-    assert np.allclose(a.trajectories, to_map_frame(traj.numpy().astype(float), t.boxes), atol=1e-4)
+    assert np.allclose(a.trajectories, to_map_frame(no_reversing(traj.numpy().astype(float)), t.boxes), atol=1e-4)
     with pytest.raises(FileFormatError):
         load_predictor(tmp_path / "missing")
     (tmp_path / "m" / WEIGHTS_NAME).write_bytes(b"not a torch file")
@@ -258,3 +258,16 @@ def test_train_cli_quick(tmp_path):
     assert load_predictor(out).num_modes == 6
     # the cache is reused on a second run (same data, no regeneration needed)
     assert any((tmp_path / "cache").rglob("*.npz"))
+
+
+def test_no_reversing_keeps_forward_progress():
+    from adv3d_runner.autonomy.predictor import no_reversing
+
+    local = np.zeros((1, 2, 5, 2))
+    local[0, 0, :, 0] = [0.5, 0.3, 1.0, 0.8, 2.0]     # jitters backwards
+    local[0, 1, :, 0] = [-0.2, -0.5, -1.0, -2.0, -3.0]  # rolls back
+    local[..., 1] = 0.1
+    out = no_reversing(local)
+    assert out[0, 0, :, 0].tolist() == [0.5, 0.5, 1.0, 1.0, 2.0]
+    assert out[0, 1, :, 0].tolist() == [0.0] * 5
+    assert np.all(out[..., 1] == 0.1) and local[0, 1, 0, 0] == -0.2  # lateral kept, input untouched

@@ -12,13 +12,17 @@ import trimesh
 from adv3d_runner.cli import main as adv3d_main
 from adv3d_runner.errors import ConfigError, FileFormatError
 from adv3d_runner.shapes import realism as R
-from adv3d_runner.shapes.library import VEHICLE_CLASSES, load_library
+from adv3d_runner.shapes.library import load_library
+from adv3d_runner.vehicle_classes import VEHICLE_CLASSES
 from adv3d_runner.shapes.shape_space import ShapeSpace
 
-# Best closed-loop shapes of the shipped 10-scene BO run (docs/results/bo100/summary.json):
-# scene 000000's 2.9 x 1.3 x 0.9 m blob at a corner of the box, scene 000004's 7.4 m flatbed.
-BLOB_U = [1.0, 0.6457628700042313, 0.0, 0.0, 0.0]
-FLATBED_U = [0.0, 0.7797, 0.5332, 0.9544, 1.0]
+# Corners of the shipped (v2, 28-vehicle) latent box like the best shapes of the v1 BO run
+# (a low blob and a long flatbed; those unit vectors decode differently in v2): a 2.7 x 1.5 x
+# 0.8 m blob (JSD just past the limit) and a 7.4 x 3.0 x 2.1 m slab. Found by scanning the
+# realism reports of the latent box's corners and mid-points (3^5 unit vectors).
+BLOB_U = [1.0, 1.0, 1.0, 0.0, 0.0]
+FLATBED_U = [0.0, 1.0, 0.0, 1.0, 1.0]
+PINCHED_U = [0.0, 1.0, 1.0, 0.0, 0.0]  # raw marching-cubes genus 7, robust genus 0
 
 
 @pytest.fixture(scope="module")
@@ -114,7 +118,7 @@ def test_jsd_is_scipys_jensenshannon():
 
 def test_jsd_realistic_and_unrealistic(space, ref):
     limit = ref.jsd_limit
-    assert 0.45 < limit < 0.6  # the library's own leave-one-out maximum (docs/realism.md)
+    assert 0.45 < limit < 0.65  # the library's own leave-one-out maximum (0.603 for the v2 library; docs/realism.md)
 
     def score(v, f):
         return R.jsd(R.bev_histogram(R.sample_surface(v, f, R.N_POINTS, 0)), ref.histogram)
@@ -122,9 +126,12 @@ def test_jsd_realistic_and_unrealistic(space, ref):
     for aid in ("kenney-car-kit.sedan", "quaternius-cars.suv", "kenney-car-kit.van"):
         assert score(*space.decode_arrays(space.asset_unit(aid))) <= limit, aid
     assert score(*space.decode_arrays([0.5] * 5)) <= limit  # the centre of the latent box
-    assert score(*space.decode_arrays(BLOB_U)) > limit + 0.03
+    assert score(*space.decode_arrays(BLOB_U)) > limit
     assert score(*space.decode_arrays(FLATBED_U)) > limit + 0.1
-    for dims in ((3.0, 1.3, 0.9), (7.4, 2.7, 2.1)):
+    # (the v1 library's limit, 0.56, also caught a 3.0 x 1.3 x 0.9 m box; with 28 vehicles of
+    # more styles the leave-one-out maximum is 0.603 and that box scores 0.584: the BEV JSD
+    # alone is a weaker filter in v2, the other measures flag it)
+    for dims in ((2.5, 1.2, 0.8), (7.4, 2.7, 2.1)):
         b = box_mesh(*dims)
         assert score(b.vertices, b.faces) > limit, dims
 
@@ -184,13 +191,13 @@ def test_chamfer_distance_is_the_mean_surface_gap():
 
 def test_nearest_library_vehicle_realistic_and_unrealistic(space, ref):
     limit = ref.chamfer_limit_m
-    for aid in ("kenney-car-kit.sedan", "quaternius-cars.taxi", "kenney-car-kit.truck"):
+    for aid in ("quaternius-car-pack-2016.car", "quaternius-cars.sportscar", "kenney-car-kit.truck"):
         v, f = space.decode_arrays(space.asset_unit(aid))
         d = ref.chamfer_distances(R.sample_surface(v, f, R.N_POINTS, 0))
         assert d.min() <= limit, aid
         assert ref.asset_ids[int(np.argmin(d))].split(".")[0] == aid.split(".")[0]  # same pack's style
     v, f = space.decode_arrays(FLATBED_U)
-    assert ref.chamfer_distances(R.sample_surface(v, f, R.N_POINTS, 0)).min() > 2 * limit
+    assert ref.chamfer_distances(R.sample_surface(v, f, R.N_POINTS, 0)).min() > 1.5 * limit
     b = box_mesh(7.4, 2.7, 2.1)
     assert ref.chamfer_distances(R.sample_surface(b.vertices, b.faces, R.N_POINTS, 0)).min() > 3 * limit
 
@@ -269,7 +276,7 @@ def test_genus_of_hole_and_of_library(space):
     assert R.robust_genus(to_field(space, tunnel), space.grid) == (1, 1)
     # a library vehicle and the BO blob: marching-cubes pinches give a raw genus > 0 that
     # does not survive half-voxel level offsets
-    for u in (space.asset_unit("quaternius-cars.normalcar2"), BLOB_U):
+    for u in (space.asset_unit("quaternius-cars.normalcar2"), PINCHED_U):
         z, sc = space.unit_to_latent(u)
         raw, robust = R.robust_genus(space.decode_sdf(z), space.grid, sc)
         assert raw > 0 and robust == 0
@@ -314,7 +321,7 @@ def test_wall_thickness(space):
 
 
 def test_dimension_table_covers_the_project_classes():
-    assert set(VEHICLE_CLASSES) <= set(R.DIMENSION_RANGES)
+    assert set(VEHICLE_CLASSES) - {"other"} <= set(R.DIMENSION_RANGES)  # "other" has no real range
     for cls, axes in R.DIMENSION_RANGES.items():
         for lo, hi in axes:
             assert 0 < lo < hi, cls
@@ -350,7 +357,7 @@ def test_report_library_vehicle_is_realistic(space, ref):
 def test_report_flags_the_attack_shapes(space, ref):
     blob = R.realism_report(space, BLOB_U, ref)
     assert {"jsd", "dimension_excess"} <= set(blob["flags"]) and not blob["realistic"]
-    assert blob["dimensions_m"][0] == pytest.approx(2.93, abs=0.05)
+    assert blob["dimensions_m"][0] == pytest.approx(2.71, abs=0.05)
     flat = R.realism_report(space, FLATBED_U, ref)
     assert {"jsd", "nearest_chamfer_m", "dimension_excess"} <= set(flat["flags"])
     extreme = R.latent_realism_report(space, 3.0 * space.latent_max, (1.0, 1.0), ref)

@@ -263,9 +263,11 @@ def test_double_walled_shell_is_filled_solid():
 
 def test_double_walled_shell_without_fill_would_be_hollow():
     """The fill step is what makes the shell solid: the raw winding number says 'outside'."""
-    from adv3d_runner.shapes.sdf import orient_faces, winding_numbers
+    from adv3d_runner.shapes.cleaning import orient_faces
+    from adv3d_runner.shapes.sdf import winding_numbers
 
     mesh = double_walled_body()
     v = GRID.to_unit(mesh.vertices)
-    w = winding_numbers(v, orient_faces(v, np.asarray(mesh.faces)), GRID.to_unit(np.array([[0.0, 0.0, 0.6]])))
+    faces, _ = orient_faces(v, np.asarray(mesh.faces), rule="outward")  # the rule sdf_volume uses
+    w = winding_numbers(v, faces, GRID.to_unit(np.array([[0.0, 0.0, 0.6]])))
     assert abs(w[0]) < 0.1

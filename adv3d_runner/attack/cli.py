@@ -9,7 +9,9 @@ DEFAULT_BATCH = 1
 
 
 def register(subparsers) -> None:
-    from .config import MODES
+    from .. import argtypes as at
+    from .config import MODES, SHAPE_MODELS
+    from .realism_constraints import PRESETS
     from .search import ALGORITHMS
 
     p = subparsers.add_parser(
@@ -19,19 +21,19 @@ def register(subparsers) -> None:
                     "running the same command again resumes a killed run without redoing queries.")
     p.add_argument("scenes", nargs="+", metavar="SCENE", help="scene files (.json/.json.gz)")
     p.add_argument("--algo", choices=ALGORITHMS, default="bo", help="search algorithm (default bo)")
-    p.add_argument("--budget", type=int, default=100, help="queries per scene and mode (default 100)")
-    p.add_argument("--actors", type=int, default=1, help="attack the m closest actors in front of the ego (default 1)")
+    p.add_argument("--budget", type=at.integer(1, 1_000_000), default=100, help="queries per scene and mode (default 100)")
+    p.add_argument("--actors", type=at.integer(1, 64), default=1, help="attack the m closest actors in front of the ego (default 1)")
     p.add_argument("--mode", choices=MODES, default="closed",
                    help="closed: attack in closed loop; open: attack with the ego on its log, then evaluate "
                         "in closed loop; both: the two (paper Table 1)")
-    p.add_argument("--seconds", type=float, default=5.0, help="episode length in s (default 5)")
-    p.add_argument("--workers", type=int, default=None,
+    p.add_argument("--seconds", type=at.number(0.0, 3600.0, lo_open=True), default=5.0, help="episode length in s (default 5)")
+    p.add_argument("--workers", type=at.integer(1, 256), default=None,
                    help="local worker processes (default 1), or with --ray-address the Ray workers "
                         "(default: one per CPU of the cluster); the results do not depend on it")
-    p.add_argument("--batch", type=int, default=None,
+    p.add_argument("--batch", type=at.integer(1, 4096), default=None,
                    help="queries asked of a search at once (default 1, or the stored value when resuming); "
                         "part of the run's configuration: the results depend on it, not on --workers")
-    p.add_argument("--seed", type=int, default=0, help="search and LiDAR-noise seed (default 0)")
+    p.add_argument("--seed", type=at.seed, default=0, help="search and LiDAR-noise seed (default 0)")
     p.add_argument("--out", required=True, help="run folder, e.g. runs/NAME")
     p.add_argument("--ray-address", default=None, metavar="ADDR",
                    help="evaluate queries on an existing Ray cluster (e.g. 127.0.0.1:6379 or auto)")
@@ -41,11 +43,30 @@ def register(subparsers) -> None:
     p.add_argument("--autonomy", default="A", choices=("A", "oracle"),
                    help="stack under test: A (learned detector + predictor) or oracle perception")
     p.add_argument("--reactive", action="store_true", help="actors react to the ego (IDM/MOBIL)")
-    p.add_argument("--n-initial", type=int, default=11, help="BO initial queries (default 11)")
+    p.add_argument("--n-initial", type=at.integer(1, 1_000_000), default=11, help="BO initial queries (default 11)")
     p.add_argument("--shape-space", default=None, help="shape space .npz (default: the shipped one)")
     p.add_argument("--no-incremental", action="store_true",
                    help="simulate every LiDAR ray of every frame instead of reusing the static hits between "
                         "the queries of a scene (same results, slower; for checks)")
+    p.add_argument("--library", default=None,
+                   help="vehicle library of the benign actors' meshes (default: the bundled one; 'none': boxes); "
+                        "its fingerprint is recorded in run.json and checked on resume")
+    g = p.add_argument_group("shape model and realism (docs/realism.md)")
+    g.add_argument("--shape-model", choices=SHAPE_MODELS, default="latent",
+                   help="latent: the shape space (default); vd: vertex deformation of the actor's own mesh "
+                        "(the paper's baseline)")
+    g.add_argument("--vd-bound", type=float, default=None, metavar="M",
+                   help="vd: l-infinity bound of every vertex displacement in m (paper: 0.1, 0.2, 0.5, 1.0; default 0.5)")
+    g.add_argument("--vd-lattice", default=None, metavar="NX,NY,NZ",
+                   help="vd: control lattice nodes along length, width, height (default 6,3,3: 162 dimensions)")
+    g.add_argument("--max-mahalanobis", type=float, default=None, metavar="R",
+                   help="search only latents within Mahalanobis distance R of the library mean (inside the box)")
+    g.add_argument("--class-scales", action="store_true", default=None,
+                   help="search only width/length scales that keep the actor's class within real dimensions")
+    g.add_argument("--realism-weight", type=float, default=None, metavar="W",
+                   help="maximise objective - W x (JSD excess over the library's leave-one-out maximum); default 0")
+    g.add_argument("--realism-preset", choices=sorted(PRESETS), default=None,
+                   help="named setting of the three realism knobs (explicit knobs override it)")
     p.set_defaults(func=_attack)
 
     r = subparsers.add_parser("report", help="markdown report of attack runs",
@@ -57,21 +78,18 @@ def register(subparsers) -> None:
 
 
 def _attack(args: argparse.Namespace) -> int:
-    from ..errors import ConfigError
     from ..progress import is_quiet, status
     from .config import AttackConfig
-    from .driver import run_attack
+    from .driver import check_outcome, run_attack, stored_batch
+    from .journal import read_run
 
-    from .driver import stored_batch
-
-    if args.workers is not None and args.workers < 1:
-        raise ConfigError(f"--workers must be >= 1, got {args.workers}")
     workers = args.workers if args.workers is not None or args.ray_address else 1
     batch = args.batch if args.batch is not None else (stored_batch(args.out) or DEFAULT_BATCH)
     cfg = AttackConfig(scenes=tuple(args.scenes), algo=args.algo, budget=args.budget, actors=args.actors,
                        mode=args.mode, seconds=args.seconds, seed=args.seed, objective=args.objective,
                        autonomy=args.autonomy, reactive=args.reactive, batch=batch,
-                       n_initial=args.n_initial, shape_space=args.shape_space)
+                       n_initial=args.n_initial, shape_space=args.shape_space, library=args.library,
+                       **_shape_options(args))
     summary = run_attack(cfg, args.out, workers=workers, ray_address=args.ray_address,
                          show_progress=not is_quiet(), incremental=not args.no_incremental)
     for sid, entry in summary.get("scenes", {}).items():
@@ -79,7 +97,30 @@ def _attack(args: argparse.Namespace) -> int:
             status(f"{sid} [{mode}]: best cost {m.get('best_cost')} at query {m.get('best_index')} "
                    f"({m.get('n_failed', 0)} failed of {m.get('n_queries')})")
     status(f"run bundle: {args.out}  (adv3d report {args.out})")
+    check_outcome(summary, read_run(args.out)[1])  # exit 1 saying why when nothing worked
     return 0
+
+
+def _shape_options(args: argparse.Namespace) -> dict:
+    """The AttackConfig fields of the shape-model and realism options: a preset first, then the
+    knobs given explicitly; options left out keep their defaults."""
+    from ..errors import ConfigError
+    from .realism_constraints import preset_knobs
+
+    out: dict = {"shape_model": args.shape_model}
+    if args.realism_preset:
+        out.update(preset_knobs(args.realism_preset))
+    for key in ("max_mahalanobis", "class_scales", "realism_weight", "vd_bound"):
+        if getattr(args, key) is not None:
+            out[key] = getattr(args, key)
+    if args.vd_lattice is not None:
+        try:
+            out["vd_lattice"] = tuple(int(x) for x in args.vd_lattice.split(","))
+        except ValueError:
+            raise ConfigError(f"--vd-lattice must be NX,NY,NZ integers, got {args.vd_lattice!r}") from None
+    if args.shape_model != "vd" and ("vd_bound" in out or "vd_lattice" in out):
+        raise ConfigError("--vd-bound and --vd-lattice need --shape-model vd")
+    return out
 
 
 def _report(args: argparse.Namespace) -> int:

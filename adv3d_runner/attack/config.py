@@ -8,18 +8,40 @@ the new one key by key (``attack.journal.Journal.start``).
 
 The shape space of a run is loaded in one place, :meth:`QuerySettings.load_shape_space` (once
 per process and file).
+
+The shape model and realism knobs (issue 14: ``shape_model``, ``vd_bound``, ``vd_lattice``,
+``max_mahalanobis``, ``class_scales``, ``realism_weight``) came after run.json version 1; they are
+written only when set (``vd_*`` with ``shape_model`` ``vd``), so a run that uses none of them
+writes the run.json it always wrote, and older runs resume and compare equal.
 """
 from __future__ import annotations
 
 import functools
+import math
 from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
 from typing import Any, Mapping
 
+import numpy as np
+
+from ..argtypes import SEED_MAX
 from ..errors import ConfigError
+from ..validate import Node
 from .objective import ObjectiveWeights, parse_objective
+from .vertex_deform import DEFAULT_LATTICE, check_lattice
 
 MODES = ("closed", "open", "both")
+#: How a query becomes shapes: the shape space's latents (the paper's attack) or vertex
+#: deformation of the actor's own mesh (the paper's baseline); see attack/shape_models.py.
+SHAPE_MODELS = ("latent", "vd")
+#: Knobs added after run.json version 1, with the value that leaves them out of run.json.
+_OPTIONAL_KEYS = {"shape_model": "latent", "max_mahalanobis": None, "class_scales": False, "realism_weight": 0.0}
+_VD_KEYS = ("vd_bound", "vd_lattice")
+AUTONOMY = ("A", "oracle")
+#: Bounds of the options (the CLI's argument types use the same ones).
+MAX_ACTORS = 64
+MAX_SECONDS = 3600.0
+MAX_BUDGET = 1_000_000
 
 
 @dataclass(frozen=True)
@@ -37,9 +59,19 @@ class QuerySettings:
     seed: int = 0
     reactive: bool = False
     shape_space: str | None = None
+    shape_model: str = "latent"
+    vd_bound: float = 0.5
+    vd_lattice: tuple[int, int, int] = DEFAULT_LATTICE
+    max_mahalanobis: float | None = None
+    class_scales: bool = False
+    realism_weight: float = 0.0
+    library: str | None = None
     #: how, not what: reuse the static LiDAR hits between the queries of a scene
     #: (``sensors.incremental``); the results are identical either way.
     incremental: bool = True
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "vd_lattice", check_lattice(self.vd_lattice))  # hashable tuple
 
     @property
     def weights(self) -> ObjectiveWeights:
@@ -63,6 +95,31 @@ class QuerySettings:
         except OSError:
             stamp = None  # missing: ShapeSpace.load says so
         return _load_shape_space(str(path), stamp)
+
+    def load_library(self):
+        """The vehicle library the benign actors take their meshes from: ``library`` (a
+        library.json, or ``"none"`` for boxes), or the bundled one when None (None when the
+        bundled one is not there). Loaded once per process and path."""
+        return _load_library(self.library)
+
+
+@functools.lru_cache(maxsize=4)
+def _load_library(arg: str | None):
+    if arg is None:
+        from ..sim.episode import default_library
+
+        return default_library()
+    from ..shapes.library import resolve_library
+
+    return resolve_library(arg)
+
+
+def library_fingerprint_of(arg: str | None) -> str | None:
+    """The ``library_fingerprint`` of the library a ``--library`` value names (None: boxes)."""
+    from ..shapes.library import library_fingerprint
+
+    library = _load_library(arg)
+    return None if library is None else library_fingerprint(library)
 
 
 @functools.lru_cache(maxsize=4)
@@ -94,18 +151,67 @@ class AttackConfig:
     batch: int = 1
     n_initial: int = 11
     shape_space: str | None = None
+    shape_model: str = "latent"
+    vd_bound: float = 0.5
+    vd_lattice: tuple[int, int, int] = DEFAULT_LATTICE
+    max_mahalanobis: float | None = None
+    class_scales: bool = False
+    realism_weight: float = 0.0
+    library: str | None = None
 
     def __post_init__(self) -> None:
+        """Every field typed and in range (``ConfigError`` naming the option): a config built
+        in code or read from run.json is checked like the command line."""
+        from .search import ALGORITHMS
+
         object.__setattr__(self, "scenes", tuple(self.scenes))
+        if not self.scenes or not all(isinstance(s, str) and s for s in self.scenes):
+            raise ConfigError(f"scenes must be a non-empty list of scene files, got {list(self.scenes)!r}")
+        if self.algo not in ALGORITHMS:
+            raise ConfigError(f"--algo must be one of {', '.join(ALGORITHMS)}, got {self.algo!r}")
+        object.__setattr__(self, "vd_lattice", check_lattice(self.vd_lattice))
+        self._check_shape_options()
         if self.mode not in MODES:
             raise ConfigError(f"--mode must be one of {', '.join(MODES)}, got {self.mode!r}")
-        if self.budget < 1:
-            raise ConfigError(f"--budget must be >= 1, got {self.budget}")
-        if self.seconds <= 0:
-            raise ConfigError(f"--seconds must be > 0, got {self.seconds}")
-        if self.batch < 1:
-            raise ConfigError(f"--batch must be >= 1, got {self.batch}")
+        if self.autonomy not in AUTONOMY:
+            raise ConfigError(f"--autonomy must be one of {', '.join(AUTONOMY)}, got {self.autonomy!r}")
+        for name, lo, hi in (("budget", 1, MAX_BUDGET), ("actors", 1, MAX_ACTORS), ("seed", 0, SEED_MAX),
+                             ("batch", 1, 4096), ("n_initial", 1, MAX_BUDGET)):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or not lo <= value <= hi:
+                option = "--" + name.replace("_", "-")
+                raise ConfigError(f"{option} must be an integer in [{lo}, {hi}], got {value!r}")
+        if (isinstance(self.seconds, bool) or not isinstance(self.seconds, (int, float))
+                or not math.isfinite(self.seconds) or not 0 < self.seconds <= MAX_SECONDS):
+            raise ConfigError(f"--seconds must be a finite number in (0, {MAX_SECONDS:g}], got {self.seconds!r}")
+        if not isinstance(self.reactive, bool):
+            raise ConfigError(f"--reactive must be true or false, got {self.reactive!r}")
+        if self.shape_space is not None and not (isinstance(self.shape_space, str) and self.shape_space):
+            raise ConfigError(f"--shape-space must be a file name, got {self.shape_space!r}")
+        if not isinstance(self.objective, str):
+            raise ConfigError(f"--objective must be a string, got {self.objective!r}")
         parse_objective(self.objective)  # validate early
+
+    def _check_shape_options(self) -> None:
+        if self.shape_model not in SHAPE_MODELS:
+            raise ConfigError(f"--shape-model must be one of {', '.join(SHAPE_MODELS)}, got {self.shape_model!r}")
+        if not (np.isfinite(self.realism_weight) and self.realism_weight >= 0):
+            raise ConfigError(f"--realism-weight must be a finite number >= 0, got {self.realism_weight}")
+        if self.max_mahalanobis is not None and not (np.isfinite(self.max_mahalanobis) and self.max_mahalanobis > 0):
+            raise ConfigError(f"--max-mahalanobis must be a finite number > 0, got {self.max_mahalanobis}")
+        region = self.max_mahalanobis is not None or self.class_scales
+        if self.shape_model == "vd":
+            if not (np.isfinite(self.vd_bound) and self.vd_bound > 0):
+                raise ConfigError(f"--vd-bound must be a finite number of metres > 0, got {self.vd_bound}")
+            if self.algo in ("grid", "bruteforce"):
+                raise ConfigError(f"--algo {self.algo} does not apply to vertex deformation (a grid of 3^D points "
+                                  f"in D = 3 x lattice nodes, or the library's latents); use bo, random or blendsearch")
+            if region:
+                raise ConfigError("--max-mahalanobis and --class-scales restrict the latent shape space; "
+                                  "they do not apply to --shape-model vd")
+        if region and self.algo == "bruteforce":
+            raise ConfigError("bruteforce enumerates the library's own vehicles; --max-mahalanobis and "
+                              "--class-scales do not apply")
 
     @property
     def modes(self) -> list[str]:
@@ -117,23 +223,44 @@ class AttackConfig:
         """The part of the config a worker needs (:class:`QuerySettings`)."""
         return QuerySettings(autonomy=self.autonomy, actors=self.actors, objective=self.objective,
                              seconds=self.seconds, seed=self.seed, reactive=self.reactive,
-                             shape_space=self.shape_space)
+                             shape_space=self.shape_space, shape_model=self.shape_model, vd_bound=self.vd_bound,
+                             vd_lattice=self.vd_lattice, max_mahalanobis=self.max_mahalanobis,
+                             class_scales=self.class_scales, realism_weight=self.realism_weight,
+                             library=self.library)
 
     def with_batch(self, batch: int) -> "AttackConfig":
         """The same config with another batch size (a resume keeps the first run's)."""
         return replace(self, batch=int(batch))
 
     def run_json(self) -> dict[str, Any]:
-        """The fields as stored in ``run.json`` (field order, ``scenes`` as a list)."""
+        """The fields as stored in ``run.json`` (field order, ``scenes`` as a list; the knobs added
+        after version 1 only when set, ``vd_bound`` / ``vd_lattice`` only for ``vd``)."""
         doc = asdict(self)
         doc["scenes"] = list(self.scenes)
+        doc["vd_lattice"] = list(self.vd_lattice)
+        for key, default in _OPTIONAL_KEYS.items():
+            if doc[key] == default:
+                del doc[key]
+        if self.shape_model != "vd":
+            for key in _VD_KEYS:
+                del doc[key]
         return doc
 
     @classmethod
-    def from_run_json(cls, doc: Mapping[str, Any]) -> "AttackConfig":
-        """The config stored in a ``run.json`` mapping (other keys, e.g. ``versions``, ignored)."""
-        names = [f.name for f in fields(cls)]
-        missing = [n for n in ("scenes",) if n not in doc]
-        if missing:
-            raise ConfigError(f"run.json has no {', '.join(missing)}")
-        return cls(**{n: doc[n] for n in names if n in doc})
+    def from_run_json(cls, doc: Mapping[str, Any], path: str | Path | None = None) -> "AttackConfig":
+        """The config stored in a ``run.json`` mapping (other keys, e.g. ``versions``, ignored).
+
+        Raises:
+            FileFormatError: naming ``path`` and the field, for a missing ``scenes`` or a
+                value that is not a valid option.
+        """
+        node = Node(doc, "$", path)
+        node.object("a JSON object")
+        node["scenes"].items("a non-empty list of scene files", non_empty=True)
+        kw = {f.name: doc[f.name] for f in fields(cls) if f.name in doc}
+        try:
+            return cls(**kw)
+        except ConfigError as exc:  # messages start with the option: "--budget must be ..."
+            name = str(exc).split(" ", 1)[0].lstrip("-").replace("-", "_")
+            target = node.child(name, kw[name]) if name in kw else node
+            target.fail("a valid attack option", str(exc))

@@ -17,7 +17,10 @@ back to the driver, which writes every file of the run.
 Determinism: a search asks ``batch`` queries at a time (``--batch``, stored in run.json: a
 parameter of its own, so the results do not depend on the number of workers), the batch is
 evaluated in parallel, and the results are told in query order, so completion order never
-matters. Journal lines are appended as queries finish (durable at once); when the run is
+matters. Each query is journalled as soon as it finishes: into ``queries.jsonl`` when every
+lower index of its batch is already there, else into ``queries.pending.jsonl`` until they are
+(see :mod:`.journal`), so a kill loses only the queries in flight and each search's lines stay
+in index order. Searches worked on concurrently interleave their lines; when the run is
 complete the journal is rewritten, atomically, in the canonical order (scenes as given, modes,
 query index), so a finished run's ``queries.jsonl`` is the same bytes (up to wall times) for any
 number of workers, and for a run that was killed and resumed. The episode seed is the run seed
@@ -44,17 +47,18 @@ import tempfile
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from ..errors import ConfigError
+from ..errors import ConfigError, RunFailedError
+from ..fileio import resolve_inside
 from .config import MODES, AttackConfig, QuerySettings
 from .evaluator import BestEvaluation, EpisodeEvaluator, Query, QueryEvaluator, QueryResult, run_query
 from .journal import Journal, query_record, record_cost, record_unit
 from .search import make_searcher
 
-__all__ = ["MODES", "AttackConfig", "SceneRun", "make_executor", "run_attack"]
+__all__ = ["MODES", "AttackConfig", "SceneRun", "check_outcome", "make_executor", "run_attack"]
 
 #: Builds the run's evaluator from its settings (``run_attack(evaluator=...)``).
 EvaluatorFactory = Callable[[QuerySettings], QueryEvaluator]
@@ -219,6 +223,7 @@ class _Search:
         self.X: np.ndarray | None = None
         self.results: dict[int, dict] = {}
         self.waiting = 0  # queries of the current batch not back yet
+        self.order: list[int] = []  # indices of the current batch not yet in queries.jsonl
         self.bar = None
 
     def start(self) -> None:
@@ -239,10 +244,13 @@ class _Search:
                 break
             first = self.searcher.n_told
             self.X, self.results, todo = X, {}, []
+            self.order = list(range(first, first + len(X)))  # journal order of the batch
             for i, x in zip(range(first, first + len(X)), X):
                 if i in self.done:
                     rec = self.done[i]
-                    if not np.allclose(record_unit(rec), x, rtol=0, atol=1e-9) or rec.get("actors") != self.run.targets:
+                    u = record_unit(rec)
+                    if (u.shape != np.shape(x) or not np.allclose(u, x, rtol=0, atol=1e-9)
+                            or rec.get("actors") != self.run.targets):
                         raise ConfigError(f"{self.journal.path}: query {i} of {self.scene_id}/{self.mode} does not "
                                           f"match this run (different code or options?); use a new --out")
                     self.results[i] = rec
@@ -250,25 +258,43 @@ class _Search:
                 else:
                     todo.append((i, Query(self.ref, np.asarray(x, dtype=np.float64).reshape(-1),
                                           self.mode == "closed")))
+            self.commit()  # a resumed batch: its pending records move to the journal in order
             if todo:
                 self.waiting = len(todo)
                 return todo
+            self.journal.clear_pending()
             self.tell()
         return []
 
     def result(self, i: int, x: np.ndarray, out: QueryResult) -> bool:
-        """Journal query ``i``; True when its batch is complete (and told)."""
+        """Journal query ``i`` now: into ``queries.jsonl`` when it is the batch's next index not
+        yet there (with the finished ones after it), else into the pending file until its turn.
+        True when its batch is complete (and told)."""
         rec = query_record(self.scene_id, self.mode, i, self.run.targets, x, latent=out.latent, scales=out.scales,
                            dimensions=out.dimensions, cost=out.cost, components=out.components, metrics=out.metrics,
-                           status=out.status, error=out.error, wall_s=out.wall_s)
-        self.journal.append(rec)
+                           status=out.status, error=out.error, wall_s=out.wall_s, realism=out.realism)
         self.results[i] = rec
         self.run.evaluated += 1
         self.waiting -= 1
+        if self.order and self.order[0] == i:
+            self.commit()
+        else:
+            self.journal.append_pending(rec)
         if self.waiting == 0:
+            self.commit()
+            self.journal.clear_pending()  # truncates only once no search has a record waiting there
             self.tell()
             return True
         return False
+
+    def commit(self) -> None:
+        """Append the batch's finished queries to ``queries.jsonl`` in index order, up to the
+        first one not finished (a record already journalled by an earlier run is not repeated;
+        one from the pending file is moved)."""
+        while self.order and self.order[0] in self.results:
+            i = self.order.pop(0)
+            if i not in self.done or self.journal.is_pending(self.scene_id, self.mode, i):
+                self.journal.append(self.results[i])
 
     def tell(self) -> None:
         idx = sorted(self.results)
@@ -301,8 +327,9 @@ def _needs_best(root: Path, run: SceneRun, entry: dict) -> bool:
 def _write_files(root: Path, folder: str, files: dict[str, bytes]) -> None:
     from ..fileio import atomic_write_bytes
 
+    out_dir = resolve_inside(root, folder, field="scene id", inside="the run folder")  # checked at start too
     for name, data in files.items():
-        target = root / folder / name
+        target = resolve_inside(out_dir, name, field="best-shape file", inside="the run folder")
         target.parent.mkdir(parents=True, exist_ok=True)
         atomic_write_bytes(target, data)
 
@@ -358,13 +385,21 @@ def run_attack(config: AttackConfig, out: str | Path, *, workers: int | None = 1
 
     from ..progress import is_quiet, status
 
+    from .config import library_fingerprint_of
+
     root = Path(out)
     settings = replace(config.settings, incremental=bool(incremental))
     ev = evaluator(settings)
+    # Everything is read and checked before anything is written: scenes (ids, content),
+    # output folders of every scene, the run folder itself (Journal.start).
     ids = [ev.scene_id(ref) for ref in config.scenes]
+    for sid in ids:
+        resolve_inside(root, f"scenes/{sid}", field="scene id", inside="the run folder")
+    digests = [ev.scene_digest(ref) for ref in config.scenes]
     journal = Journal(root)
-    stored = journal.start({**config.run_json(), "scene_ids": ids, "versions": versions(ev), "workers": workers,
-                            "ray_address": ray_address})
+    stored = journal.start({**config.run_json(), "library_fingerprint": library_fingerprint_of(config.library),
+                            "scene_ids": ids, "scene_sha256": digests, "versions": versions(ev),
+                            "workers": workers, "ray_address": ray_address})
     config = config.with_batch(int(stored.get("batch", config.batch)))
     summary = journal.read_summary()
     summary.setdefault("scenes", {})
@@ -511,3 +546,26 @@ def run_attack(config: AttackConfig, out: str | Path, *, workers: int | None = 1
 
 class _Stop(Exception):
     pass
+
+
+def check_outcome(summary: dict, records: Sequence[dict]) -> None:
+    """Raise ``RunFailedError`` saying why when a run produced nothing: every scene skipped, or
+    a scene and mode whose every query failed (the most frequent errors are quoted)."""
+    from collections import Counter
+
+    scenes = summary.get("scenes", {})
+    attacked = {sid: e for sid, e in scenes.items() if "skipped" not in e}
+    if scenes and not attacked:
+        reasons = "; ".join(f"{sid}: {e['skipped']}" for sid, e in scenes.items())
+        raise RunFailedError(f"nothing was attacked: every scene was skipped ({reasons})")
+    problems = []
+    for sid, entry in attacked.items():
+        for mode, m in entry.get("modes", {}).items():
+            n = m.get("n_queries", 0)
+            if n and m.get("n_failed", 0) == n:
+                errors = Counter(r.get("error") or r.get("status") for r in records
+                                 if r.get("scene") == sid and r.get("mode") == mode and r.get("status") != "ok")
+                top = "; ".join(f"{c} x {msg}" for msg, c in errors.most_common(3))
+                problems.append(f"{sid} [{mode}]: all {n} queries failed ({top})")
+    if problems:
+        raise RunFailedError("every query failed: " + " | ".join(problems))

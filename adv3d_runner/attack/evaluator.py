@@ -52,7 +52,11 @@ class QueryResult:
     Attributes:
         cost: the objective (None when the query failed). components: its unweighted frame
             sums per term. metrics: the episode metrics (without format, version and timings).
-        latent, scales, dimensions: per attacked actor (m x K, m x 2, m x 3), None if not decoded.
+        latent, scales, dimensions: per attacked actor (m x K, m x 2, m x 3), None if not decoded
+            (latent and scales also None for vertex-deformed shapes).
+        realism: per attacked actor, the shape's cheap realism figures
+            (:meth:`~adv3d_runner.attack.shape_models.ActorShapes.figures`), None if not decoded;
+            in a closed-loop evaluation of a best shape, the full realism report.
         status: ``ok``, ``invalid`` (no surface) or ``error``. error: the message, or None.
         wall_s: seconds the evaluation took (not a result: it differs between runs).
     """
@@ -63,13 +67,18 @@ class QueryResult:
     latent: list | None = None
     scales: list | None = None
     dimensions: list | None = None
+    realism: list | None = None
     status: str = "ok"
     error: str | None = None
     wall_s: float = 0.0
 
     def evaluation(self) -> dict[str, Any]:
-        """``{"cost", "components", "metrics"}``, as summary.json stores a closed-loop evaluation."""
-        return {"cost": self.cost, "components": self.components, "metrics": self.metrics}
+        """``{"cost", "components", "metrics"}`` (+ ``realism`` when measured), as summary.json
+        stores a closed-loop evaluation."""
+        out = {"cost": self.cost, "components": self.components, "metrics": self.metrics}
+        if self.realism is not None:
+            out["realism"] = self.realism
+        return out
 
 
 @dataclass(frozen=True)
@@ -88,7 +97,11 @@ class QueryEvaluator(Protocol):
     """What the driver needs from whatever scores queries (must pickle: it goes to workers)."""
 
     def scene_id(self, ref: str) -> str:
-        """The id of the scene ``ref`` (journal and summary key)."""
+        """The id of the scene ``ref`` (journal and summary key; a file-name-safe id)."""
+
+    def scene_digest(self, ref: str) -> str:
+        """The identity of the scene's content (``sha256:...``): a resume compares it, not the
+        path the scene was given by."""
 
     def targets(self, ref: str) -> tuple[list[int], int]:
         """(attacked actor ids, query dimension) of a scene. Raises ConfigError when the scene
@@ -149,7 +162,8 @@ def stack_for(autonomy: str):
 
 class SceneWorkspace:
     """What one process needs to evaluate queries on a scene: the scene, its LiDAR world and rig
-    and its lane map (each built once), the autonomy stack, the shape space, the targets and the
+    and its lane map (each built once), the autonomy stack, the shape space, the targets, how
+    queries become their shapes (:class:`~adv3d_runner.attack.shape_models.ActorShapes`) and the
     objective weights; with ``settings.incremental``, the scene's
     :class:`~adv3d_runner.sensors.incremental.StaticRayCache` s (the attacked actors are their
     dynamic actors; one for open-loop and one for closed-loop episodes), which every episode of
@@ -160,17 +174,18 @@ class SceneWorkspace:
         from ..scene.schema import load_scene
         from ..sensors.incremental import StaticRayCache
         from ..sensors.world import rig_from_scene, world_from_scene
-        from ..sim.episode import default_library
+        from .shape_models import ActorShapes
         from .targets import select_targets
 
         self.settings = settings
         self.scene = load_scene(scene_path)
         self.space = settings.load_shape_space()
-        self.world = world_from_scene(self.scene, default_library(), scene_dir=Path(scene_path).parent)
+        self.world = world_from_scene(self.scene, settings.load_library(), scene_dir=Path(scene_path).parent)
         self.rig = rig_from_scene(self.scene, path=scene_path)
         self.context = SceneContext.from_scene(self.scene)
         self.stack = stack_for(settings.autonomy)
         self.targets = select_targets(self.scene, settings.actors)
+        self.shapes = ActorShapes(settings, self.scene, self.targets, self.space, settings.load_library())
         self.weights = settings.weights
         # One cache per loop: open-loop episodes all share the logged ego poses (every frame is
         # served again), closed-loop ones share only their first frames and then store frames
@@ -196,23 +211,33 @@ class SceneWorkspace:
         """(the query's result, the episode). ``u`` None = the original scene.
 
         The episode's detection frames and prediction pairs are computed once
-        (``sim.evaluate.episode_evaluation``) for both the objective and the metrics.
+        (``sim.evaluate.episode_evaluation``) for both the objective and the metrics. A decoded
+        query carries its shapes' cheap realism figures; with ``realism_weight`` W > 0 the cost
+        is the objective minus W times the realism penalty (``realism_constraints.realism_penalty``),
+        which ``components`` holds unweighted as ``realism_penalty``.
         """
         from ..sim.evaluate import episode_evaluation, episode_metrics
         from .objective import episode_objective
-        from .targets import decode_query
+        from .realism_constraints import realism_penalty
 
         info: dict[str, Any] = {}
         overrides = None
         if u is not None:
-            overrides, info = decode_query(self.space, u, self.targets)
+            overrides, info = self.shapes.decode_query(u)
+            info["realism"] = self.shapes.figures(overrides, info)
         result = self.episode(overrides, closed_loop, record_points)
         evaluation = episode_evaluation(result)
         obj = episode_objective(result, self.weights, evaluation)
         metrics = episode_metrics(result, self.scene.lanes, evaluation=evaluation)
         for k in ("format", "version", "ms_per_frame", "fps"):  # timing is not a result
             metrics.pop(k, None)
-        return QueryResult(cost=obj.total, components=obj.components(), metrics=metrics, **info), result
+        cost, components = obj.total, obj.components()
+        weight = self.settings.realism_weight
+        if weight > 0 and u is not None:
+            penalty = realism_penalty(info["realism"], self.shapes.reference.jsd_limit)
+            components["realism_penalty"] = penalty
+            cost = obj.total - weight * penalty
+        return QueryResult(cost=cost, components=components, metrics=metrics, **info), result
 
 
 _WORKSPACES: dict[tuple[str, QuerySettings], SceneWorkspace] = {}
@@ -247,13 +272,24 @@ class EpisodeEvaluator:
 
         return load_scene(ref).id
 
+    def scene_digest(self, ref: str) -> str:
+        """sha256 of the scene's canonical JSON (the loaded scene written compactly): the same
+        scene as ``.json`` or ``.json.gz``, by any path, has the same digest."""
+        import hashlib
+
+        from ..fileio import dump_json
+        from ..scene.schema import load_scene
+
+        return "sha256:" + hashlib.sha256(dump_json(load_scene(ref).to_dict(), indent=None).encode()).hexdigest()
+
     def targets(self, ref: str) -> tuple[list[int], int]:
         from ..scene.schema import load_scene
+        from .shape_models import dim_per_actor
         from .targets import select_targets
 
         space = self.settings.load_shape_space()
         ids = select_targets(load_scene(ref), self.settings.actors)
-        return ids, space.dim * len(ids)
+        return ids, dim_per_actor(self.settings, space) * len(ids)
 
     def candidates(self, ref: str, targets: list[int]) -> np.ndarray:
         """Unit vectors of the shape space's library assets (scales 1): every actor takes the
@@ -283,19 +319,20 @@ class EpisodeEvaluator:
                       metadata: dict[str, Any]) -> BestEvaluation:
         """Closed-loop episodes of the original scene (when ``original``) and of the best shape;
         writes ``actor<ID>.glb`` per attacked actor and ``replay.json.gz`` (with the LiDAR
-        points) of the best shape's episode into ``out``."""
+        points) of the best shape's episode into ``out``. The best shape's evaluation carries
+        its full realism report per actor (``realism``)."""
         import trimesh
 
         from ..shapes.mesh_io import write_mesh
         from ..sim.replay import replay_from_episode, save_replay
-        from .targets import decode_query
 
         ctx = workspace_for(ref, self.settings)
         first = ctx.evaluate(None, closed_loop=True)[0].evaluation() if original else None
         u = np.asarray(unit, dtype=np.float64).reshape(-1)
         best, result = ctx.evaluate(u, closed_loop=True, record_points=True)
+        best = replace(best, realism=ctx.shapes.full_reports(u))
         out.mkdir(parents=True, exist_ok=True)
-        overrides, _ = decode_query(ctx.space, u, targets)
+        overrides, _ = ctx.shapes.decode_query(u)
         meshes = {}
         for aid, shape in overrides.items():
             name = f"actor{aid}.glb"

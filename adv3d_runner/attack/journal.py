@@ -9,15 +9,28 @@
       scenes/<scene>/<mode>/actor<ID>.glb     best shape per attacked actor
       scenes/<scene>/<mode>/replay.json.gz    replay of the best shape in closed loop (+ .points.npz)
 
-Every journal line is written with one ``write`` + flush + fsync, so a killed run leaves at
-most one truncated last line. :meth:`Journal.open` drops such a line (it is not valid JSON or
-has no newline), truncates the file back to the last complete line and returns the finished
-queries; the driver then re-asks its searchers and takes the recorded results for every query
-already in the journal instead of evaluating it again (see :mod:`.driver`).
+Every journal line is written with one ``write`` + flush + fsync as soon as its query has
+finished, so a killed run leaves at most one truncated last line and loses only the queries in
+flight. :meth:`Journal.load` drops such a line (it is not valid JSON or has no newline),
+truncates the file back to the last complete line and returns the finished queries; the driver
+then re-asks its searchers and takes the recorded results for every query already in the
+journal instead of evaluating it again (see :mod:`.driver`).
+
+Order: ``queries.jsonl`` holds each scene and mode's queries in index order, whatever the
+worker count and the order in which workers finish (so the same seed gives the same file). A
+query that finishes before a lower-indexed one of its batch is written at once to
+``queries.pending.jsonl`` (same line format, same fsync) and moved to ``queries.jsonl`` when its
+turn comes; the pending file is emptied when its batch is complete. On resume both files are
+read (a query in both counts once), so a kill at any moment loses no finished query.
+
+Every line, ``run.json`` and ``summary.json`` are validated on load (``validate.Node``: known
+fields, types, ranges), so a damaged or hand-edited bundle is one error naming the file and
+field, never a crash of ``adv3d report``.
 
 Line fields (fixed order): ``scene``, ``mode``, ``index`` (query number within the scene and
-mode), ``actors``, ``unit`` (m lists of K + 2 numbers), ``latent``, ``scales``,
-``dimensions``, ``cost`` (null when failed), ``components``, ``metrics``, ``status``
+mode), ``actors``, ``unit`` (m lists of the query's unit entries), ``latent``, ``scales``,
+``dimensions``, ``realism`` (per actor the cheap realism figures, or null; absent in journals
+written before issue 14), ``cost`` (null when failed), ``components``, ``metrics``, ``status``
 (``ok`` / ``invalid`` / ``error``), ``error`` (message or null), ``wall_s``.
 """
 from __future__ import annotations
@@ -30,17 +43,26 @@ from typing import Any, Iterable
 import numpy as np
 
 from ..errors import ConfigError, FileFormatError
-from ..fileio import read_json, write_json
+from ..fileio import MAX_JSON_BYTES, parse_json, read_bytes, resolve_inside, write_json
+from ..validate import Node, check_header
 
 RUN_FORMAT = "adv3d.attack_run"
 SUMMARY_FORMAT = "adv3d.attack_summary"
 QUERY_FORMAT = "adv3d.attack_query"
 VERSION = 1
+#: run.json version: 2 adds ``library`` and ``library_fingerprint`` (the vehicle library the
+#: benign actors' meshes come from); version 1 runs are still read (reports) but not resumed.
+RUN_VERSION = 2
+RUN_VERSIONS = (1, 2)
 STATUSES = ("ok", "invalid", "error")
-_LINE_KEYS = ("scene", "mode", "index", "actors", "unit", "latent", "scales", "dimensions", "cost",
+_LINE_KEYS = ("scene", "mode", "index", "actors", "unit", "latent", "scales", "dimensions", "realism", "cost",
               "components", "metrics", "status", "error", "wall_s")
 # Config keys that may differ between the first run and a resume (they do not change results).
+# ``scenes`` (the paths as typed) is free when both runs store ``scene_sha256``: the scenes
+# are then compared by content, so the same file given by another path resumes.
 RESUME_FREE_KEYS = ("workers", "ray_address", "quiet", "out")
+MODES = ("closed", "open")
+PENDING_NAME = "queries.pending.jsonl"
 
 
 def _clean(x: Any) -> Any:
@@ -62,7 +84,7 @@ def _clean(x: Any) -> Any:
 
 
 def query_record(scene: str, mode: str, index: int, actors: list[int], unit: np.ndarray, *,
-                 latent=None, scales=None, dimensions=None, cost: float | None = None,
+                 latent=None, scales=None, dimensions=None, realism=None, cost: float | None = None,
                  components: dict | None = None, metrics: dict | None = None, status: str = "ok",
                  error: str | None = None, wall_s: float = 0.0) -> dict:
     """One journal line as a dict with the fixed field order."""
@@ -71,8 +93,8 @@ def query_record(scene: str, mode: str, index: int, actors: list[int], unit: np.
     u = np.asarray(unit, dtype=np.float64).reshape(len(actors), -1)
     rec = {"scene": scene, "mode": mode, "index": int(index), "actors": [int(a) for a in actors],
            "unit": [[float(v) for v in row] for row in u], "latent": latent, "scales": scales,
-           "dimensions": dimensions, "cost": cost, "components": components or {}, "metrics": metrics or {},
-           "status": status, "error": error, "wall_s": round(float(wall_s), 4)}
+           "dimensions": dimensions, "realism": realism, "cost": cost, "components": components or {},
+           "metrics": metrics or {}, "status": status, "error": error, "wall_s": round(float(wall_s), 4)}
     return _clean(rec)
 
 
@@ -88,12 +110,15 @@ def record_unit(rec: dict) -> np.ndarray:
 
 
 class Journal:
-    """Append-only ``queries.jsonl`` plus ``run.json`` / ``summary.json`` of one run folder."""
+    """Append-only ``queries.jsonl`` (+ ``queries.pending.jsonl``) plus ``run.json`` /
+    ``summary.json`` of one run folder."""
 
     def __init__(self, root: str | Path):
         self.root = Path(root)
         self.path = self.root / "queries.jsonl"
+        self.pending_path = self.root / PENDING_NAME
         self.records: list[dict] = []
+        self.pending: dict[tuple[str, str, int], dict] = {}
 
     # ------------------------------------------------------------------ run.json
     def start(self, config: dict) -> dict:
@@ -101,74 +126,93 @@ class Journal:
         config (up to :data:`RESUME_FREE_KEYS`) and load its journal. Returns the stored
         config (the first run's, e.g. its batch size, wins on resume).
 
+        A folder that exists and holds anything but an adv3d run (no ``run.json``) is refused
+        before anything is written: the user's files are never overwritten.
+
         Raises:
-            ConfigError: the folder holds a run with a different config.
+            ConfigError: the folder holds a run with a different config, or other files.
+            FileFormatError: its run.json or journal is damaged.
         """
-        self.root.mkdir(parents=True, exist_ok=True)
         run_path = self.root / "run.json"
-        doc = _clean({"format": RUN_FORMAT, "version": VERSION, **config})
+        if self.root.exists() or self.root.is_symlink():
+            if not self.root.is_dir():
+                raise ConfigError(f"--out {self.root}: exists and is not a folder; give a new or empty folder")
+            if not run_path.exists() and any(self.root.iterdir()):
+                names = sorted(p.name for p in self.root.iterdir())
+                shown = ", ".join(names[:5]) + (", ..." if len(names) > 5 else "")
+                raise ConfigError(f"--out {self.root}: the folder holds files that are not an adv3d run "
+                                  f"({shown}; no run.json); give a new or empty folder")
+        doc = _clean({"format": RUN_FORMAT, "version": RUN_VERSION, **config})
         if run_path.exists():
-            old = read_json(run_path)
-            if not isinstance(old, dict) or old.get("format") != RUN_FORMAT:
-                raise FileFormatError(run_path, "$.format", RUN_FORMAT, old.get("format") if isinstance(old, dict) else old)
-            diff = sorted(k for k in set(old) | set(doc)
-                          if k not in RESUME_FREE_KEYS and k != "versions" and old.get(k) != doc.get(k))
+            old = _read_doc(run_path, RUN_FORMAT)
+            if old.get("version") != RUN_VERSION:
+                raise ConfigError(f"{self.root} holds a run.json version {old.get('version')} run, made before runs "
+                                  "recorded their vehicle library's fingerprint: it can be reported, not resumed; "
+                                  "use another --out")
+            if old.get("library_fingerprint") != doc.get("library_fingerprint"):
+                raise ConfigError(f"{self.root} was run with another vehicle library (fingerprint "
+                                  f"{old.get('library_fingerprint')}, now {doc.get('library_fingerprint')}): the "
+                                  "benign actors would change; give the run's --library or use another --out")
+            free = set(RESUME_FREE_KEYS) | {"versions"}
+            if "scene_sha256" in old and "scene_sha256" in doc:
+                free.add("scenes")  # same scenes by content, whatever path they were given by
+            else:
+                free.add("scene_sha256")  # a bundle from before content hashes: paths compared
+            diff = sorted(k for k in set(old) | set(doc) if k not in free and old.get(k) != doc.get(k))
             if diff:
                 raise ConfigError(f"{self.root} holds a run with a different configuration ({', '.join(diff)}); "
                                   f"use another --out or the same options to resume it")
             self.load(repair=True)
             return old
+        self.root.mkdir(parents=True, exist_ok=True)
         write_json(run_path, doc, indent=1)
         self.load(repair=True)
         return doc
 
     # ------------------------------------------------------------------ queries.jsonl
     def load(self, repair: bool = False) -> list[dict]:
-        """Read the journal; a truncated or corrupt *last* line is dropped (and cut from the
-        file when ``repair``). A corrupt line elsewhere is a FileFormatError."""
-        self.records = []
-        if not self.path.exists():
-            return self.records
-        data = self.path.read_bytes()
-        good_end = 0
-        pos = 0
-        lines = data.split(b"\n")
-        for i, raw in enumerate(lines):
-            is_last = i == len(lines) - 1
-            if is_last:  # bytes after the last newline: an unfinished write
-                break
-            try:
-                rec = json.loads(raw.decode("utf-8"))
-                if not isinstance(rec, dict) or "index" not in rec or "scene" not in rec:
-                    raise ValueError("not a query record")
-            except (ValueError, UnicodeDecodeError) as exc:
-                if i == len(lines) - 2 and not lines[-1]:
-                    break  # the last complete line is corrupt (e.g. zero-filled after a crash)
-                raise FileFormatError(self.path, f"line {i + 1}", "one JSON query record per line", str(exc)) from None
-            self.records.append(rec)
-            pos += len(raw) + 1
-            good_end = pos
-        if repair and good_end != len(data):
-            with open(self.path, "r+b") as fh:
-                fh.truncate(good_end)
-                fh.flush()
-                os.fsync(fh.fileno())
+        """Read the journal and the pending file; a truncated or corrupt *last* line is dropped
+        (and cut from the file when ``repair``). A corrupt line elsewhere is a FileFormatError;
+        every record is validated (:func:`check_record`)."""
+        self.records = _read_lines(self.path, repair)
+        self.pending = {}
+        in_journal = {_key(r) for r in self.records}
+        for rec in _read_lines(self.pending_path, repair):
+            if _key(rec) not in in_journal:  # a kill between the move and the clean-up: journal wins
+                self.pending[_key(rec)] = rec
         return self.records
 
     def append(self, rec: dict) -> None:
-        """Append one record durably (single write, flush, fsync)."""
-        line = json.dumps(_clean(rec), allow_nan=False, separators=(",", ":")) + "\n"
-        with open(self.path, "a", encoding="utf-8") as fh:
-            fh.write(line)
-            fh.flush()
-            os.fsync(fh.fileno())
+        """Append one record to ``queries.jsonl`` durably (single write, flush, fsync)."""
+        line = _line(rec)
+        _append(self.path, line)
         self.records.append(json.loads(line))
+        self.pending.pop(_key(self.records[-1]), None)
+
+    def append_pending(self, rec: dict) -> None:
+        """Record a query that finished before a lower-indexed one of its batch: durably in
+        ``queries.pending.jsonl`` until :meth:`append` moves it to the journal."""
+        line = _line(rec)
+        _append(self.pending_path, line)
+        parsed = json.loads(line)
+        self.pending[_key(parsed)] = parsed
+
+    def is_pending(self, scene: str, mode: str, index: int) -> bool:
+        return (scene, mode, int(index)) in self.pending
+
+    def clear_pending(self) -> None:
+        """Empty the pending file once every query in it is in the journal (end of a batch)."""
+        if not self.pending and self.pending_path.exists() and self.pending_path.stat().st_size:
+            with open(self.pending_path, "r+b") as fh:
+                fh.truncate(0)
+                fh.flush()
+                os.fsync(fh.fileno())
 
     def canonicalize(self, order: list[tuple[str, str]]) -> bool:
         """Rewrite ``queries.jsonl`` (atomically) with its lines in the canonical order: the
         (scene, mode) pairs in ``order``, each by query index; lines of other pairs keep their
-        place after them. Lines are appended as queries finish, so a run with several workers
-        writes them interleaved; this makes a finished run's journal independent of that.
+        place after them. Each search's lines are in index order already, but searches worked on
+        concurrently interleave theirs; this makes a finished run's journal independent of that.
         Returns True when the file was rewritten (False: already in order)."""
         rank = {pair: k for k, pair in enumerate(order)}
 
@@ -182,15 +226,16 @@ class Journal:
             return False
         from ..fileio import atomic_write_bytes
 
-        data = b"".join((json.dumps(_clean(r), allow_nan=False, separators=(",", ":")) + "\n").encode("utf-8")
-                        for r in ordered)
+        data = b"".join(_line(r).encode("utf-8") for r in ordered)
         atomic_write_bytes(self.path, data)
         self.records = ordered
         return True
 
     def finished(self, scene: str, mode: str) -> dict[int, dict]:
-        """{query index: record} already journalled for a scene and mode."""
-        return {int(r["index"]): r for r in self.records if r.get("scene") == scene and r.get("mode") == mode}
+        """{query index: record} already finished for a scene and mode (journal or pending)."""
+        out = {int(r["index"]): r for r in self.pending.values() if r["scene"] == scene and r["mode"] == mode}
+        out.update({int(r["index"]): r for r in self.records if r.get("scene") == scene and r.get("mode") == mode})
+        return out
 
     # ------------------------------------------------------------------ summary.json
     def write_summary(self, summary: dict) -> None:
@@ -198,21 +243,149 @@ class Journal:
 
     def read_summary(self) -> dict:
         path = self.root / "summary.json"
-        return read_json(path) if path.exists() else {"format": SUMMARY_FORMAT, "version": VERSION, "scenes": {}}
+        if not path.exists():
+            return {"format": SUMMARY_FORMAT, "version": VERSION, "scenes": {}}
+        doc = Node.load(path)
+        check_header(doc, SUMMARY_FORMAT, (VERSION,))
+        check_summary(doc, self.root)
+        return doc.value
+
+
+def _key(rec: dict) -> tuple[str, str, int]:
+    return rec["scene"], rec["mode"], int(rec["index"])
+
+
+def _line(rec: dict) -> str:
+    return json.dumps(_clean(rec), allow_nan=False, separators=(",", ":")) + "\n"
+
+
+def _append(path: Path, line: str) -> None:
+    with open(path, "a", encoding="utf-8") as fh:
+        fh.write(line)
+        fh.flush()
+        os.fsync(fh.fileno())
+
+
+def _read_lines(path: Path, repair: bool) -> list[dict]:
+    """The validated records of a journal file (see :meth:`Journal.load`)."""
+    records: list[dict] = []
+    if not path.exists():
+        return records
+    data = read_bytes(path, limit=4 * MAX_JSON_BYTES, what="journal")
+    good_end = 0
+    lines = data.split(b"\n")
+    for i, raw in enumerate(lines):
+        if i == len(lines) - 1:  # bytes after the last newline: an unfinished write
+            break
+        try:
+            doc = parse_json(raw, path)
+        except FileFormatError as exc:
+            if i == len(lines) - 2 and not lines[-1]:
+                break  # the last complete line is corrupt (e.g. zero-filled after a crash)
+            raise FileFormatError(path, f"line {i + 1}", "one JSON query record per line", exc.got) from None
+        records.append(check_record(Node(doc, f"line {i + 1}: $", path)))
+        good_end += len(raw) + 1
+    if repair and good_end != len(data):
+        with open(path, "r+b") as fh:
+            fh.truncate(good_end)
+            fh.flush()
+            os.fsync(fh.fileno())
+    return records
+
+
+def _nested_numbers(node: Node, *, lo: float | None = None, hi: float | None = None) -> None:
+    """null, or a list of lists of finite numbers (per attacked actor)."""
+    if node.value is None:
+        return
+    for row in node.items("a list (one entry per attacked actor) or null"):
+        row.numbers(lo=lo, hi=hi)
+
+
+def check_record(node: Node) -> dict:
+    """Validate one journal line (fields in ``_LINE_KEYS``; see docs/formats.md). Returns it."""
+    node.object("a JSON object (one query record)")
+    node.check_keys(_LINE_KEYS, required=("scene", "mode", "index", "actors", "unit", "cost", "status"))
+    node["scene"].string()
+    node["mode"].string(choices=MODES)
+    node["index"].integer(lo=0)
+    actors = [a.integer() for a in node["actors"].items("a list of actor ids", non_empty=True)]
+    unit = node["unit"].items("one unit vector per attacked actor", length=len(actors))
+    for row in unit:
+        row.numbers(length=len(unit[0].list()), min_length=1, lo=0.0, hi=1.0)
+    for key in ("latent", "scales", "dimensions"):
+        _nested_numbers(node.get(key))
+    status = node["status"].string(choices=STATUSES)
+    cost = node["cost"]
+    if cost.value is not None or status == "ok":
+        cost.number()
+    for key in ("components", "metrics"):
+        node.get(key, {}).object()
+    node.get("error").string(nullable=True, empty=True)
+    node.get("wall_s", 0.0).number(lo=0.0)
+    return node.value
+
+
+def check_summary(doc: Node, root: Path | None = None) -> None:
+    """Validate ``summary.json`` beyond its header: per scene its ``targets`` and per mode the
+    best query, counts and file paths (which must stay inside the run folder ``root``)."""
+    doc.check_keys(("format", "version", "run", "wall_s", "scenes"))
+    doc.get("run", {}).object()
+    doc.get("wall_s", 0.0).number(lo=0.0)
+    for sid, entry in doc.get("scenes", {}).object().items():
+        e = doc["scenes"].child(sid, entry)
+        e.object()
+        e.check_keys(("ref", "targets", "original", "modes", "skipped"))
+        e.get("ref", "").string(empty=True)
+        e.get("skipped").string(nullable=True, empty=True)
+        e.get("original", {}).object()
+        n_targets = len([t.integer() for t in e.get("targets", []).items("a list of actor ids")])
+        for mode, m in e.get("modes", {}).object().items():
+            mn = e["modes"].child(mode, m)
+            mn.object()
+            mn.check_keys(("best_index", "best_cost", "best_unit", "n_queries", "n_failed", "closed_loop_eval",
+                           "files"), required=("best_index", "best_cost", "best_unit", "n_queries", "n_failed"))
+            mn["best_index"].integer(lo=-1)
+            if mn["best_cost"].value is not None or mn["best_unit"].value is not None:
+                mn["best_cost"].number()  # a best query has a cost
+            if mn["best_unit"].value is not None:
+                rows = mn["best_unit"].items("one unit vector per target", length=n_targets)
+                for row in rows:
+                    row.numbers(length=len(rows[0].list()), min_length=1, lo=0.0, hi=1.0)
+            n = mn["n_queries"].integer(lo=0)
+            mn["n_failed"].integer(lo=0, hi=n)
+            mn.get("closed_loop_eval", {}).object()
+            files = mn.get("files", {})
+            files.object()
+            files.check_keys(("meshes", "replay"))
+            paths = [files.get("replay")] if files.get("replay").value is not None else []
+            paths += [files["meshes"].child(k, v) for k, v in files.get("meshes", {}).object().items()]
+            for p in paths:
+                p.rel_path(inside="the run folder")
+                if root is not None:
+                    resolve_inside(root, p.value, file=p.file, field=p.path, inside="the run folder")
+
+
+def _read_doc(path: Path, fmt: str) -> dict:
+    """A run-bundle JSON file (run.json, summary.json) with its format/version header checked."""
+    doc = Node.load(path)
+    check_header(doc, fmt, RUN_VERSIONS if fmt == RUN_FORMAT else (VERSION,))
+    return doc.value
 
 
 def read_run(root: str | Path) -> tuple[dict, list[dict], dict]:
-    """(run.json, journal records, summary.json) of a run folder (for the report)."""
+    """(run.json, journal records, summary.json) of a run folder (for the report), all
+    validated; the records of the journal and of its pending file, in file order."""
+    from .config import AttackConfig
+
     root = Path(root)
     run_path = root / "run.json"
     if not run_path.exists():
         raise ConfigError(f"{root} is not an attack run folder (no run.json)")
-    run = read_json(run_path)
-    if not isinstance(run, dict) or run.get("format") != RUN_FORMAT:
-        raise FileFormatError(run_path, "$.format", RUN_FORMAT, run.get("format") if isinstance(run, dict) else run)
+    run = _read_doc(run_path, RUN_FORMAT)
+    AttackConfig.from_run_json(run, run_path)  # typed: the report reads these fields
     j = Journal(root)
     j.load(repair=False)
-    return run, j.records, j.read_summary()
+    return run, j.records + list(j.pending.values()), j.read_summary()
 
 
 def strip_times(records: Iterable[dict]) -> list[dict]:

@@ -7,6 +7,13 @@ algorithm the best cost against the number of queries and against wall
 time (table + ``convergence.png``) and a head-to-head comparison of algorithms at equal budget
 (wins per scene, Wilcoxon signed-rank test); the best shapes per scene as thumbnails (matplotlib renders
 of the decoded meshes, plus one grid of all of them at a common scale, `best_shapes.png`).
+
+Realism (issue 14): every results table has a JSD column (the paper's realism figure of the best
+shapes: the largest over a scene's attacked actors; the library's own leave-one-out maximum is
+the limit), and a section lists every best shape's realism report. Runs journalled before the
+realism figures existed get them computed from their best unit vectors (:func:`attach_realism`).
+Runs with a restricted search region, a realism penalty or vertex deformation are labelled
+with their knobs (:func:`run_label`), so they get rows of their own.
 """
 from __future__ import annotations
 
@@ -22,6 +29,73 @@ COLUMNS = (("Objective", ("_objective", "cost"), 1.0), ("AP", ("detection", "ap"
            ("minADE", ("prediction", "min_ade"), 1.0), ("meanADE", ("prediction", "mean_ade"), 1.0),
            ("Plan lat.", ("planning_comfort", "lat"), 1.0), ("Plan jerk", ("planning_comfort", "jerk"), 1.0),
            ("Drive lat.", ("driving_comfort", "lat"), 1.0), ("Drive jerk", ("driving_comfort", "jerk"), 1.0))
+
+
+def run_label(run: dict) -> str:
+    """The run's name in tables: its algorithm, plus its shape model and realism knobs when set
+    (``bo``, ``bo, vd 0.5 m``, ``bo, R 3.37, class scales, W 100``)."""
+    parts = [str(run.get("algo", "?"))]
+    if run.get("shape_model", "latent") == "vd":
+        parts.append(f"vd {float(run.get('vd_bound', 0.5)):g} m")
+    if run.get("max_mahalanobis") is not None:
+        parts.append(f"R {float(run['max_mahalanobis']):g}")
+    if run.get("class_scales"):
+        parts.append("class scales")
+    if run.get("realism_weight"):
+        parts.append(f"W {float(run['realism_weight']):g}")
+    return ", ".join(parts)
+
+
+def attach_realism(runs: list[tuple[str, dict, list, dict]]) -> None:
+    """Give every closed-loop evaluation of a best shape its realism reports (in memory), where
+    its run predates them: recomputed from ``best_unit`` through the run's shape model (the
+    scene gives the actors' classes; without the scene file, latent runs are measured without a
+    class). Evaluations that have them are left as they are, and so are runs made with another
+    shape space than the one loaded (their unit vectors decode to other shapes now)."""
+    from ..errors import Adv3dError
+    from ..shapes.realism import realism_report
+    from .config import AttackConfig
+    from .shape_models import ActorShapes
+    from .targets import split_query
+
+    for _, run, _, summary in runs:
+        config = None
+        for sid, entry in summary.get("scenes", {}).items():
+            for mode, m in entry.get("modes", {}).items():
+                ev = m.get("closed_loop_eval")
+                if not ev or ev.get("realism") is not None or not m.get("best_unit"):
+                    continue
+                config = config or AttackConfig.from_run_json(run)
+                space = config.settings.load_shape_space()
+                made_with = (run.get("versions") or {}).get("shape_space")
+                if made_with is not None and made_with != space.content_hash:
+                    continue  # another shape space decodes the unit vector to another shape: no figure
+                unit = np.asarray(m["best_unit"], dtype=np.float64).reshape(-1)
+                try:
+                    from ..scene.schema import load_scene
+
+                    shapes = ActorShapes(config.settings, load_scene(entry["ref"]), entry["targets"], space)
+                    ev["realism"] = shapes.full_reports(unit)
+                except (Adv3dError, OSError, KeyError):
+                    if config.shape_model != "latent" or config.max_mahalanobis is not None or config.class_scales:
+                        continue
+                    ev["realism"] = [realism_report(space, u) for u in split_query(unit, len(entry["targets"]), space.dim)]
+
+
+def _jsd(ev: dict | None) -> float:
+    """Largest JSD over a closed-loop evaluation's attacked actors (NaN without realism)."""
+    reps = (ev or {}).get("realism") or []
+    vals = [r.get("jsd") for r in reps if isinstance(r, dict) and isinstance(r.get("jsd"), (int, float))]
+    return float(max(vals)) if vals else float("nan")
+
+
+def _jsd_limit(evs: list[dict]) -> float:
+    for ev in evs:
+        for r in (ev or {}).get("realism") or []:
+            lim = (r.get("limits") or {}).get("jsd") if isinstance(r, dict) else None
+            if isinstance(lim, (int, float)):
+                return float(lim)
+    return float("nan")
 
 
 def _get(metrics: dict | None, path: tuple[str, str]) -> float:
@@ -45,7 +119,7 @@ def table1(runs: list[tuple[str, dict, list, dict]]) -> str:
     rows: dict[str, list[dict]] = {}
     seen_original: set[str] = set()
     for _, run, _, summary in runs:
-        algo = run.get("algo", "?")
+        label = run_label(run)
         for sid, entry in summary.get("scenes", {}).items():
             if "original" in entry and sid not in seen_original:
                 o = entry["original"]
@@ -54,18 +128,22 @@ def table1(runs: list[tuple[str, dict, list, dict]]) -> str:
             for mode, m in entry.get("modes", {}).items():
                 ev = m.get("closed_loop_eval")
                 if ev:
-                    rows.setdefault(f"Adv. {mode}-loop ({algo})", []).append({**ev["metrics"], "_objective": {"cost": ev["cost"]}})
+                    rows.setdefault(f"Adv. {mode}-loop ({label})", []).append(
+                        {**ev["metrics"], "_objective": {"cost": ev["cost"]}, "_realism": {"jsd": _jsd(ev)}})
     if not rows:
         return "_No closed-loop evaluations in these runs._\n"
-    head = "| | scenes | " + " | ".join(c for c, _, _ in COLUMNS) + " |\n"
-    head += "|---|---:|" + "---:|" * len(COLUMNS) + "\n"
+    cols = COLUMNS + (("JSD", ("_realism", "jsd"), 1.0),)
+    head = "| | scenes | " + " | ".join(c for c, _, _ in cols) + " |\n"
+    head += "|---|---:|" + "---:|" * len(cols) + "\n"
     order = sorted(rows, key=lambda k: (k != "Original", "closed" in k, k))
     body = ""
     for name in order:
         ms = rows[name]
-        body += f"| {name} | {len(ms)} | " + " | ".join(_cell([_get(m, p) for m in ms], s) for _, p, s in COLUMNS) + " |\n"
+        body += f"| {name} | {len(ms)} | " + " | ".join(_cell([_get(m, p) for m in ms], s) for _, p, s in cols) + " |\n"
     return head + body + ("\nObjective: Eq. 3-5 summed over the frames (higher = worse for the stack); AP and "
-                          "recall in %, ADE in m, lateral acceleration in m/s², jerk in m/s³; mean ± std over "
+                          "recall in %, ADE in m, lateral acceleration in m/s², jerk in m/s³; JSD: the paper's "
+                          "realism figure of the best shape (largest over a scene's attacked actors; the library's "
+                          "own vehicles score up to its leave-one-out maximum, docs/realism.md); mean ± std over "
                           "scenes; every row evaluated in closed loop.\n")
 
 
@@ -83,12 +161,14 @@ def per_scene(runs: list[tuple[str, dict, list, dict]]) -> str:
             if "original" in entry:
                 row["Original"] = f"{entry['original']['cost']:.4g}"
             for mode, m in entry.get("modes", {}).items():
-                key = f"{run.get('algo')} {mode}"
+                key = f"{run_label(run)} {mode}"
                 if key not in cols:
                     cols.append(key)
                 ev = m.get("closed_loop_eval")
                 best = m.get("best_cost")
-                row[key] = (f"{ev['cost']:.4g}" if ev else "-") + (f" (search {best:.4g})" if best is not None and mode == "open" else "")
+                jsd = _jsd(ev)
+                row[key] = ((f"{ev['cost']:.4g}" if ev else "-") + (f" (search {best:.4g})" if best is not None and mode == "open" else "")
+                            + (f", JSD {jsd:.3f}" if np.isfinite(jsd) else ""))
     if not table:
         return ""
     cols = ["Original"] + cols
@@ -96,7 +176,7 @@ def per_scene(runs: list[tuple[str, dict, list, dict]]) -> str:
     for sid in sorted(table):
         out += f"| {sid} | " + " | ".join(table[sid].get(c, "-") for c in cols) + " |\n"
     return out + ("\nClosed-loop objective of the original scene and of each run's best shape (for open-loop "
-                  "attacks the open-loop search value in parentheses).\n")
+                  "attacks the open-loop search value in parentheses), and the best shape's JSD.\n")
 
 
 # metrics where a lower value is worse for the stack (the others: higher is worse)
@@ -117,17 +197,24 @@ def paired_deltas(runs: list[tuple[str, dict, list, dict]]) -> str:
             for mode, m in entry.get("modes", {}).items():
                 ev = m.get("closed_loop_eval")
                 if ev:
-                    attacked.setdefault(f"Adv. {mode}-loop ({run.get('algo', '?')})", {})[sid] = {
-                        **ev["metrics"], "_objective": {"cost": ev["cost"]}}
+                    attacked.setdefault(f"Adv. {mode}-loop ({run_label(run)})", {})[sid] = {
+                        **ev["metrics"], "_objective": {"cost": ev["cost"]}, "_jsd": _jsd(ev), "_jsd_limit": _jsd_limit([ev])}
     rows = {name: {sid: m for sid, m in by.items() if sid in originals} for name, by in attacked.items()}
     rows = {name: by for name, by in rows.items() if by}
     if not rows:
         return ""
-    head = "| Δ against original | scenes | " + " | ".join(c for c, _, _ in COLUMNS) + " |\n"
-    head += "|---|---:|" + "---:|" * len(COLUMNS) + "\n"
+    head = "| Δ against original | scenes | " + " | ".join(c for c, _, _ in COLUMNS) + " | JSD |\n"
+    head += "|---|---:|" + "---:|" * (len(COLUMNS) + 1) + "\n"
     body = ""
     for name in sorted(rows, key=lambda k: ("closed" in k, k)):
         by = rows[name]
+        jsd = np.array([m["_jsd"] for m in by.values()])
+        limit = np.array([m["_jsd_limit"] for m in by.values()])
+        ok = np.isfinite(jsd)
+        jsd_cell = "-"
+        if ok.any():
+            spread = f" ± {jsd[ok].std():.2g}" if ok.sum() > 1 else ""
+            jsd_cell = f"{jsd[ok].mean():.3g}{spread} ({int(np.sum(jsd[ok] > limit[ok]))}/{int(ok.sum())})"
         cells = []
         for col, path, scale in COLUMNS:
             d = np.array([_get(m, path) - _get(originals[sid], path) for sid, m in by.items()]) * scale
@@ -135,15 +222,25 @@ def paired_deltas(runs: list[tuple[str, dict, list, dict]]) -> str:
             worse = int(np.sum(d < -1e-9)) if col in LOWER_IS_WORSE else int(np.sum(d > 1e-9))
             spread = f" ± {d.std():.2g}" if len(d) > 1 else ""
             cells.append(f"{d.mean():+.3g}{spread} ({worse}/{len(d)})" if len(d) else "-")
-        body += f"| {name} | {len(by)} | " + " | ".join(cells) + " |\n"
+        body += f"| {name} | {len(by)} | " + " | ".join(cells + [jsd_cell]) + " |\n"
     return head + body + ("\nPer scene: attacked - original, both in closed loop; mean ± std over scenes, in "
                           "parentheses the number of scenes where the change is worse for the stack (lower AP "
-                          "or recall, higher objective, ADE, acceleration or jerk).\n")
+                          "or recall, higher objective, ADE, acceleration or jerk). JSD: the best shapes' "
+                          "(not a change), in parentheses the number above the library's leave-one-out "
+                          "maximum.\n")
+
+
+def _record_jsd(rec: dict) -> float:
+    """Largest JSD over a journal record's actors (NaN when the record has no realism figures)."""
+    vals = [r.get("jsd") for r in (rec.get("realism") or []) if isinstance(r, dict)]
+    vals = [v for v in vals if isinstance(v, (int, float))]
+    return float(max(vals)) if vals else float("nan")
 
 
 def search_curves(records: list[dict]) -> dict[tuple[str, str], dict[str, np.ndarray]]:
     """(scene, mode) -> ``cost`` (N,) per query in index order (NaN = failed), ``best`` (N,)
-    best-so-far cost (failed queries count as -inf) and ``wall`` (N,) cumulative query seconds."""
+    best-so-far cost (failed queries count as -inf), ``wall`` (N,) cumulative query seconds and
+    ``best_jsd`` (N,) the JSD of the best-so-far query (NaN where the journal has no realism)."""
     by: dict[tuple[str, str], list] = {}
     for r in records:
         by.setdefault((r["scene"], r["mode"]), []).append(r)
@@ -151,8 +248,16 @@ def search_curves(records: list[dict]) -> dict[tuple[str, str], dict[str, np.nda
     for key, recs in by.items():
         recs = sorted(recs, key=lambda r: r["index"])
         c = np.array([record_cost(r) for r in recs])
-        out[key] = {"cost": c, "best": np.fmax.accumulate(np.where(np.isfinite(c), c, -np.inf)),
-                    "wall": np.cumsum([r.get("wall_s", 0.0) for r in recs])}
+        best = np.fmax.accumulate(np.where(np.isfinite(c), c, -np.inf))
+        jsd = np.array([_record_jsd(r) for r in recs])
+        best_jsd = np.full(len(c), np.nan)
+        at = -1
+        for i in range(len(c)):
+            if np.isfinite(c[i]) and (at < 0 or c[i] > c[at]):
+                at = i
+            best_jsd[i] = jsd[at] if at >= 0 else np.nan
+        out[key] = {"cost": c, "best": best, "wall": np.cumsum([r.get("wall_s", 0.0) for r in recs]),
+                    "best_jsd": best_jsd}
     return out
 
 
@@ -162,10 +267,12 @@ def head_to_head(runs: list[tuple[str, dict, list, dict]], budgets: Sequence[int
     std of the difference, wins / ties / losses and a two-sided Wilcoxon signed-rank p-value."""
     from scipy.stats import wilcoxon
 
-    curves: dict[tuple[str, str], dict[str, np.ndarray]] = {}   # (algo, mode) -> scene -> curve
+    curves: dict[tuple[str, str], dict[str, np.ndarray]] = {}   # (run label, mode) -> scene -> curve
+    jsds: dict[tuple[str, str], dict[str, np.ndarray]] = {}
     for _, run, records, _ in runs:
         for (sid, mode), curve in search_curves(records).items():
-            curves.setdefault((run.get("algo", "?"), mode), {})[sid] = curve["best"]
+            curves.setdefault((run_label(run), mode), {})[sid] = curve["best"]
+            jsds.setdefault((run_label(run), mode), {})[sid] = curve["best_jsd"]
     keys = sorted(curves)
     lines = []
     for i, a in enumerate(keys):
@@ -188,26 +295,35 @@ def head_to_head(runs: list[tuple[str, dict, list, dict]], budgets: Sequence[int
                 except ValueError:
                     p = "-"
                 spread = f" ± {d.std():.2g}" if len(d) > 1 else ""
+                dj = np.array([jsds[a][s][n - 1] - jsds[b][s][n - 1] for s in shared])
+                dj = dj[np.isfinite(dj)]
+                jsd_cell = (f"{dj.mean():+.3g}" + (f" ± {dj.std():.2g}" if len(dj) > 1 else "")) if len(dj) else "-"
                 lines.append(f"| {a[0]} vs {b[0]} [{a[1]}] | {n} | {len(d)} | {d.mean():+.3g}{spread} | "
-                             f"{wins} / {int(tie.sum())} / {losses} | {p} |")
+                             f"{wins} / {int(tie.sum())} / {losses} | {p} | {jsd_cell} |")
     if not lines:
         return ""
-    return ("| pair [mode] | queries | scenes | Δ best cost (mean ± std) | wins / ties / losses | Wilcoxon p |\n"
-            "|---|---:|---:|---:|---:|---:|\n" + "\n".join(lines) +
+    return ("| pair [mode] | queries | scenes | Δ best cost (mean ± std) | wins / ties / losses | Wilcoxon p | "
+            "Δ JSD of best |\n"
+            "|---|---:|---:|---:|---:|---:|---:|\n" + "\n".join(lines) +
             "\n\nΔ = first algorithm's best search cost minus the second's after the same number of queries, "
             "per scene (higher = the first found a worse case for the stack); wins count scenes where the "
-            "first is higher.\n")
+            "first is higher. Δ JSD: the same difference of the best-so-far shapes' JSD (from the journals' "
+            "realism figures; - for journals without them).\n")
 
 
 def convergence(runs: list[tuple[str, dict, list, dict]]) -> dict[str, dict]:
     """Per algorithm (and mode): best-so-far cost per query index and per cumulative wall
     time, averaged over scenes (each scene's curve relative to its first query's cost)."""
     curves: dict[str, dict] = {}
-    for _, run, records, _ in runs:
+    for _, run, records, summary in runs:
         for (sid, mode), curve in search_curves(records).items():
             c, best, wall = curve["cost"], curve["best"], curve["wall"]
-            key = f"{run.get('algo', '?')} [{mode}]"
-            d = curves.setdefault(key, {"best": [], "wall": [], "final": [], "failed": 0, "queries": 0})
+            key = f"{run_label(run)} [{mode}]"
+            d = curves.setdefault(key, {"best": [], "wall": [], "final": [], "failed": 0, "queries": 0, "jsd": []})
+            jsd = curve["best_jsd"][-1] if len(c) else float("nan")
+            if not np.isfinite(jsd):  # an older journal: the summary's best shape
+                jsd = _jsd(summary.get("scenes", {}).get(sid, {}).get("modes", {}).get(mode, {}).get("closed_loop_eval"))
+            d["jsd"].append(jsd)
             finite0 = best[np.isfinite(best)]
             ref = finite0[0] if len(finite0) else 0.0
             d["best"].append(best - ref)
@@ -331,39 +447,98 @@ def render_shape_sheet(cells: dict[tuple[str, str], tuple[np.ndarray, np.ndarray
     plt.close(fig)
 
 
+def _best_meshes(config, entry: dict, unit: np.ndarray) -> list[tuple[np.ndarray, np.ndarray] | None]:
+    """The best shape's mesh per attacked actor (None where it does not decode): the shape
+    space's decode for the paper's attack, the run's shape model (which needs the scene) else."""
+    from ..errors import Adv3dError
+    from .targets import split_query
+
+    space = config.settings.load_shape_space()
+    if config.shape_model == "latent" and config.max_mahalanobis is None and not config.class_scales:
+        out = []
+        for u in split_query(unit, len(entry["targets"]), space.dim):
+            try:
+                out.append(space.decode_arrays(u))
+            except Adv3dError:
+                out.append(None)
+        return out
+    from ..scene.schema import load_scene
+    from .shape_models import ActorShapes
+
+    try:
+        shapes = ActorShapes(config.settings, load_scene(entry["ref"]), entry["targets"], space)
+        U = split_query(unit, len(entry["targets"]), shapes.per_actor)
+        return [shapes.decode_actor(i, u)[:2] for i, u in enumerate(U)]
+    except (Adv3dError, OSError):
+        return [None] * len(entry["targets"])
+
+
 def thumbnails(runs: list[tuple[str, dict, list, dict]], out_dir: Path,
                sheet: Path | None = None) -> list[tuple[str, str]]:
     """Render the best shape of every scene, mode and attacked actor; (caption, png path).
     With ``sheet``, also one grid of all of them (rows scenes, columns run/mode/actor) there."""
-    from ..errors import Adv3dError
     from .config import AttackConfig
-    from .targets import split_query
 
     out = []
     cells: dict[tuple[str, str], tuple[np.ndarray, np.ndarray, str]] = {}
     for root, run, _, summary in runs:
+        label = run_label(run)
         for sid, entry in summary.get("scenes", {}).items():
             for mode, m in entry.get("modes", {}).items():
                 # no closed-loop evaluation: the evaluator simulated nothing (no shape to show)
                 if not m.get("best_unit") or not m.get("closed_loop_eval"):
                     continue
-                space = AttackConfig.from_run_json(run).settings.load_shape_space()
-                U = split_query(np.asarray(m["best_unit"]).reshape(-1), len(entry["targets"]), space.dim)
-                for aid, u in zip(entry["targets"], U):
+                meshes = _best_meshes(AttackConfig.from_run_json(run), entry,
+                                      np.asarray(m["best_unit"], dtype=np.float64).reshape(-1))
+                reps = m["closed_loop_eval"].get("realism") or [None] * len(meshes)
+                for aid, mesh, rep in zip(entry["targets"], meshes, reps):
                     png = out_dir / f"thumb_{Path(root).name}_{sid}_{mode}_actor{aid}.png"
-                    try:
-                        v, f = space.decode_arrays(u)
-                    except Adv3dError:
+                    if mesh is None:
                         continue
+                    v, f = mesh
                     d = v.max(axis=0) - v.min(axis=0)
-                    render_shape(v, f, png, f"{sid} [{mode}, {run.get('algo')}] actor {aid}: "
-                                             f"{d[0]:.2f} x {d[1]:.2f} x {d[2]:.2f} m")
-                    out.append((f"{sid} [{mode}, {run.get('algo')}] actor {aid}, cost {m.get('best_cost'):.4g}", png))
-                    column = f"{run.get('algo')} {mode}" + (f" #{aid}" if len(entry["targets"]) > 1 else "")
+                    jsd = f", JSD {rep['jsd']:.3f}" if isinstance(rep, dict) and "jsd" in rep else ""
+                    render_shape(v, f, png, f"{sid} [{mode}, {label}] actor {aid}: "
+                                             f"{d[0]:.2f} x {d[1]:.2f} x {d[2]:.2f} m{jsd}")
+                    out.append((f"{sid} [{mode}, {label}] actor {aid}, cost {m.get('best_cost'):.4g}{jsd}", png))
+                    column = f"{label} {mode}" + (f" #{aid}" if len(entry["targets"]) > 1 else "")
                     cells[(sid, column)] = (v, f, f"{d[0]:.1f} x {d[1]:.1f} x {d[2]:.1f} m, cost {m.get('best_cost'):.3g}")
     if sheet is not None and cells:
         render_shape_sheet(cells, sheet)
     return out
+
+
+def realism_table(runs: list[tuple[str, dict, list, dict]]) -> str:
+    """Markdown table: the realism report of every best shape (every run, scene, mode and
+    attacked actor), with the checks it fails (docs/realism.md)."""
+    lines = []
+    for root, run, _, summary in runs:
+        for sid, entry in sorted(summary.get("scenes", {}).items()):
+            for mode, m in entry.get("modes", {}).items():
+                reps = (m.get("closed_loop_eval") or {}).get("realism") or []
+                for aid, r in zip(entry.get("targets", []), reps):
+                    if not isinstance(r, dict):
+                        continue
+                    dims = r.get("dimensions_m") or []
+                    size = " x ".join(f"{x:.2f}" for x in dims) if dims else "-"
+                    excess = r.get("dimension_excess")
+                    cls = f"{r.get('dimension_class') or '-'} {100 * max(excess):.0f} %" if excess else "-"
+                    maha = r.get("mahalanobis")
+                    genus = (f"{r['genus']}/{r['genus_robust']}" if "genus" in r else "-")
+                    wall = f"{r['thinnest_wall_m']:.2f}" if "thinnest_wall_m" in r else "-"
+                    lines.append(
+                        f"| {run_label(run)} | {sid} | {mode} | {aid} | {r.get('jsd', float('nan')):.3f} | "
+                        f"{r.get('nearest_asset', '-')} ({r.get('nearest_chamfer_m', float('nan')):.3f}) | "
+                        f"{'-' if maha is None else f'{maha:.2f}'} | {size} | {cls} | {genus} | {wall} | "
+                        f"{', '.join(r.get('flags') or []) or '-'} |")
+    if not lines:
+        return ""
+    return ("| run | scene | mode | actor | JSD | nearest (Chamfer m) | Mahalanobis | L x W x H m | class, excess | "
+            "genus raw/robust | wall m | flags |\n|---|---|---|---:|---:|---|---:|---|---|---|---:|---|\n"
+            + "\n".join(lines) + "\n\nFlags name the failed checks (limits: the library's own leave-one-out "
+            "maxima for JSD, Chamfer and Mahalanobis; robust genus 0, floating volume <= 0.1 %, walls >= one "
+            "voxel, dimensions within the class's real ranges; docs/realism.md). Vertex-deformed shapes have "
+            "no latent and no decoder field: Mahalanobis, genus and wall are not measured.\n")
 
 
 def write_report(run_dirs: Sequence[str | Path], out: str | Path | None = None) -> Path:
@@ -372,13 +547,14 @@ def write_report(run_dirs: Sequence[str | Path], out: str | Path | None = None) 
     for d in run_dirs:
         run, records, summary = read_run(d)
         runs.append((str(d), run, records, summary))
+    attach_realism(runs)
     out_path = Path(out) if out else Path(run_dirs[0]) / "report.md"
     out_path.parent.mkdir(parents=True, exist_ok=True)
     lines = ["# Adversarial shape attack report", ""]
     lines.append("| run | algorithm | mode | budget | seed | objective | autonomy | scenes |")
     lines.append("|---|---|---|---:|---:|---|---|---|")
     for root, run, _, _ in runs:
-        lines.append(f"| {root} | {run.get('algo')} | {run.get('mode')} | {run.get('budget')} | {run.get('seed')} | "
+        lines.append(f"| {root} | {run_label(run)} | {run.get('mode')} | {run.get('budget')} | {run.get('seed')} | "
                      f"{run.get('objective')} | {run.get('autonomy')} | {', '.join(run.get('scene_ids', []))} |")
     lines += ["", "## Closed-loop evaluation (paper Table 1)", "", table1(runs), ""]
     deltas = paired_deltas(runs)
@@ -393,19 +569,22 @@ def write_report(run_dirs: Sequence[str | Path], out: str | Path | None = None) 
         png = out_path.parent / "convergence.png"
         plot_convergence(curves, png)
         lines.append("| algorithm [mode] | scene runs | queries | failed | best cost (mean ± std over scenes) | "
-                     "gain over first query | wall s per query |")
-        lines.append("|---|---:|---:|---:|---:|---:|---:|")
+                     "gain over first query | wall s per query | JSD of best |")
+        lines.append("|---|---:|---:|---:|---:|---:|---:|---:|")
         for key, d in sorted(curves.items()):
             gain = [b[-1] for b in d["best"] if len(b)]
             wall = sum(w[-1] for w in d["wall"] if len(w)) / max(d["queries"], 1)
             lines.append(f"| {key} | {len(d['final'])} | {d['queries']} | {d['failed']} | {_cell(d['final'], 1.0)} | "
-                         f"{_cell(gain, 1.0)} | {wall:.3g} |")
+                         f"{_cell(gain, 1.0)} | {wall:.3g} | {_cell(d['jsd'], 1.0)} |")
         lines += ["", f"![convergence]({png.name})", ""]
         h2h = head_to_head(runs)
         if h2h:
             lines += ["### Head to head at equal budget", "", h2h, ""]
     else:
         lines += ["_No queries journalled._", ""]
+    rt = realism_table(runs)
+    if rt:
+        lines += ["## Realism of the best shapes", "", rt, ""]
     sheet = out_path.parent / "best_shapes.png"
     thumbs = thumbnails(runs, out_path.parent, sheet=sheet)
     if thumbs:

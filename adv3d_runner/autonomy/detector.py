@@ -26,7 +26,7 @@ from __future__ import annotations
 import json
 import math
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -37,6 +37,7 @@ from torch import nn
 from ..errors import ConfigError, FileFormatError
 from ..fileio import REPO_ROOT
 from ..geometry.boxes import iou_pairwise
+from ..validate import Node, check_header
 from .interface import Detections
 
 DEFAULT_MODEL_DIR = REPO_ROOT / "assets" / "models" / "detector"
@@ -48,6 +49,39 @@ CONFIG_VERSION = 1
 # of 2 m) so every target is O(1).
 _LOG_L0, _LOG_W0, _OFFSET_SCALE = 1.5, 0.65, 2.0
 _DOWNSAMPLE = 8  # the backbone's coarsest stride: grid sizes are padded to a multiple of it
+MAX_GRID_CELLS = 4096 * 4096  # the shipped grid is 288 x 192
+#: Largest weights file loaded (the shipped one is ~0.6 MB).
+MAX_WEIGHTS_BYTES = 2**30
+
+
+def _range(node: Node) -> tuple[float, float]:
+    """A ``[low, high]`` extent in m (low < high, within 1 km)."""
+    lo, hi = node.numbers(length=2, lo=-1000.0, hi=1000.0)
+    if not lo < hi:
+        node.fail("[low, high] with low < high (m)", [lo, hi])
+    return float(lo), float(hi)
+
+
+def load_weights(path: Path, what: str):
+    """A tensor-only state_dict from ``path`` (a regular file of at most
+    :data:`MAX_WEIGHTS_BYTES`), read with ``torch.load(weights_only=True)`` (no pickle).
+
+    Raises:
+        FileFormatError: missing, not a regular file, too large, or not a plain tensor dict.
+    """
+    from ..fileio import check_regular_file
+
+    st = check_regular_file(path, what)
+    if st.st_size > MAX_WEIGHTS_BYTES:
+        raise FileFormatError(path, "$", f"{what} of at most {MAX_WEIGHTS_BYTES // 2**20} MiB", st.st_size)
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # pickle.UnpicklingError & co: not a plain tensor state_dict
+        raise FileFormatError(path, "$", "a tensor-only state_dict loadable with torch.load(weights_only=True)",
+                              f"{type(exc).__name__}: {str(exc).splitlines()[0][:200] if str(exc) else ''}") from None
+    if not isinstance(state, dict) or not all(isinstance(v, torch.Tensor) for v in state.values()):
+        raise FileFormatError(path, "$", "a dict of tensors (state_dict)", type(state).__name__)
+    return state
 
 
 @dataclass
@@ -119,15 +153,37 @@ class DetectorConfig:
         return {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}
 
     @classmethod
-    def from_dict(cls, d: dict, path: str | Path | None = None) -> "DetectorConfig":
-        known = {f for f in cls.__dataclass_fields__}
-        unknown = sorted(set(d) - known)
-        if unknown:
-            raise FileFormatError(path, f"$.detector.{unknown[0]}", f"one of {sorted(known)}", unknown[0])
+    def from_dict(cls, d: dict | Node, path: str | Path | None = None) -> "DetectorConfig":
+        """Build from the ``detector`` object of a model's config.json: every field typed and
+        bounded (unknown keys refused), the grid at most :data:`MAX_GRID_CELLS` cells."""
+        node = d if isinstance(d, Node) else Node(d, "$.detector", path)
+        node.object("an object of detector parameters")
+        node.check_keys(cls.__dataclass_fields__)
+        dflt = cls()
+        g = node.get
+        kw: dict[str, Any] = {
+            "resolution": g("resolution", dflt.resolution).number(lo=0.01, hi=10.0),
+            "x_range": _range(g("x_range", list(dflt.x_range))),
+            "y_range": _range(g("y_range", list(dflt.y_range))),
+            "z_edges": g("z_edges", list(dflt.z_edges)).numbers(min_length=2, lo=-100.0, hi=100.0),
+            "channels": [c.integer(lo=1, hi=4096) for c in g("channels", list(dflt.channels)).items(length=3)],
+            "head_channels": g("head_channels", dflt.head_channels).integer(lo=1, hi=4096),
+            "out_stride": g("out_stride", dflt.out_stride).integer(lo=2, hi=4),
+            "score_threshold": g("score_threshold", dflt.score_threshold).number(lo=0.0, hi=1.0),
+            "nms_iou": g("nms_iou", dflt.nms_iou).number(lo=0.0, hi=1.0),
+            "pre_nms": g("pre_nms", dflt.pre_nms).integer(lo=1, hi=1_000_000),
+            "max_detections": g("max_detections", dflt.max_detections).integer(lo=1, hi=100_000),
+        }
+        if np.any(np.diff(kw["z_edges"]) <= 0):
+            g("z_edges").fail("increasing height edges", kw["z_edges"].tolist())
         try:
-            return cls(**d)
-        except (TypeError, ValueError) as exc:
-            raise FileFormatError(path, "$.detector", "valid detector parameters", str(exc)) from None
+            cfg = cls(**kw)
+        except ConfigError as exc:
+            node.fail("valid detector parameters", str(exc))
+        nx, ny = cfg.grid_shape
+        if nx * ny > MAX_GRID_CELLS:
+            node.fail(f"a BEV grid of at most {MAX_GRID_CELLS} cells (x_range, y_range, resolution)", f"{nx} x {ny}")
+        return cfg
 
 
 # ----------------------------------------------------------------------------- numpy parts
@@ -477,31 +533,19 @@ def load_detector(path: str | Path = DEFAULT_MODEL_DIR, threads: int | None = 1,
         FileFormatError: missing/invalid config, or weights that are not a plain tensor
             state_dict (anything needing pickle is refused by ``weights_only=True``).
     """
-    from ..fileio import check_header, read_json
-
     path = Path(path)
     cfg_path = path / CONFIG_NAME if path.is_dir() else path
     if not cfg_path.is_file():
         raise FileFormatError(cfg_path, "$", "a detector config.json (train one with `adv3d train detector`)",
                               "no such file")
-    doc = read_json(cfg_path)
-    check_header(doc, cfg_path, CONFIG_FORMAT, (CONFIG_VERSION,))
-    if not isinstance(doc.get("detector"), dict):
-        raise FileFormatError(cfg_path, "$.detector", "an object of detector parameters", type(doc.get("detector")).__name__)
-    params = dict(doc["detector"])
-    params.update(overrides)
-    cfg = DetectorConfig.from_dict(params, cfg_path)
-    weights = cfg_path.parent / str(doc.get("weights", WEIGHTS_NAME))
+    doc = Node.load(cfg_path)
+    check_header(doc, CONFIG_FORMAT, (CONFIG_VERSION,))
+    params = doc["detector"]
+    params = Node({**params.object("an object of detector parameters"), **overrides}, params.path, cfg_path)
+    cfg = DetectorConfig.from_dict(params)
+    weights = doc.get("weights", WEIGHTS_NAME).file_in(cfg_path.parent, inside="the model folder")
     net = PixorNet(cfg)
-    try:
-        state = torch.load(weights, map_location="cpu", weights_only=True)
-    except FileNotFoundError:
-        raise FileFormatError(weights, "$", "detector weights (state_dict .pt)", "no such file") from None
-    except Exception as exc:  # pickle.UnpicklingError & co: not a plain tensor state_dict
-        raise FileFormatError(weights, "$", "a tensor-only state_dict loadable with torch.load(weights_only=True)",
-                              f"{type(exc).__name__}: {str(exc).splitlines()[0][:200]}") from None
-    if not isinstance(state, dict) or not all(isinstance(v, torch.Tensor) for v in state.values()):
-        raise FileFormatError(weights, "$", "a dict of tensors (state_dict)", type(state).__name__)
+    state = load_weights(weights, "detector weights (state_dict .pt)")
     try:
         net.load_state_dict(state, strict=True)
     except RuntimeError as exc:

@@ -36,7 +36,6 @@ Weights are a plain ``state_dict`` (``torch.load(weights_only=True)``) next to a
 """
 from __future__ import annotations
 
-import json
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -45,6 +44,7 @@ import numpy as np
 from ..errors import FileFormatError
 from ..fileio import REPO_ROOT
 from ..scene.lanemap import LaneIndex, LaneMap
+from ..validate import Node, check_header
 from .interface import DT, PREDICTION_STEPS, Predictions, Tracks
 
 DEFAULT_MODEL_DIR = REPO_ROOT / "assets" / "models" / "predictor"
@@ -221,6 +221,16 @@ def encode(tracks: Tracks, lane_map: LaneMap, steps: int = PREDICTION_STEPS,
             np.nan_to_num(prior).astype(np.float32))
 
 
+def no_reversing(local: np.ndarray) -> np.ndarray:
+    """Agent-frame trajectories (N, K, T, 2) with the forward coordinate made non-decreasing and
+    >= 0 (a running maximum): highway vehicles do not reverse. The network's residuals could
+    move a slow or standing vehicle backwards by metres (seen on NGSIM US-101 stop-and-go,
+    issue 17), which the planner took for a car rolling back into the ego."""
+    out = np.array(local, dtype=np.float64, copy=True)
+    out[..., 0] = np.maximum.accumulate(np.maximum(out[..., 0], 0.0), axis=-1)
+    return out
+
+
 def to_map_frame(local: np.ndarray, boxes: np.ndarray) -> np.ndarray:
     """Agent-frame positions (N, K, T, 2) -> map frame with the boxes' (N, 5) pose."""
     c, s = np.cos(boxes[:, 4]), np.sin(boxes[:, 4])
@@ -323,6 +333,7 @@ class LearnedPredictor:
             return Predictions(np.zeros(0, np.int64), np.zeros((0, K, T, 2)), np.zeros((0, K)), self.config.dt)
         feats, prior = encode(tracks, self.lane_map, T, self.config.dt)
         local, probs = self.predict_local(feats, prior)
+        local = no_reversing(local)
         boxes = np.asarray(tracks.boxes, np.float64).reshape(n, 5)
         traj = to_map_frame(local, np.nan_to_num(boxes))
         bad = ~np.all(np.isfinite(boxes), axis=1)
@@ -362,36 +373,34 @@ def load_predictor(path: str | Path = DEFAULT_MODEL_DIR, threads: int | None = 1
     Weights are read with ``torch.load(weights_only=True)``; a missing or malformed file raises
     :class:`~adv3d_runner.errors.FileFormatError` naming the file and field.
     """
-    import torch
-
     path = Path(path)
     cfg_path = path / CONFIG_NAME
     if not cfg_path.is_file():
         raise FileFormatError(str(cfg_path), "$", "a predictor config.json (train one with `adv3d train predictor`)", "no file")
-    doc = json.loads(cfg_path.read_text())
-    if not isinstance(doc, dict) or doc.get("format") != MODEL_FORMAT:
-        raise FileFormatError(str(cfg_path), "$.format", repr(MODEL_FORMAT), doc.get("format") if isinstance(doc, dict) else type(doc).__name__)
-    if doc.get("version") != MODEL_VERSION:
-        raise FileFormatError(str(cfg_path), "$.version", str(MODEL_VERSION), doc.get("version"))
-    raw = doc.get("config")
-    if not isinstance(raw, dict):
-        raise FileFormatError(str(cfg_path), "$.config", "an object", type(raw).__name__)
-    try:
-        config = PredictorConfig(**raw)
-    except TypeError as exc:
-        raise FileFormatError(str(cfg_path), "$.config", "PredictorConfig fields", str(exc)) from exc
-    if config.num_features != NUM_FEATURES:
-        raise FileFormatError(str(cfg_path), "$.config.num_features", str(NUM_FEATURES), config.num_features)
+    doc = Node.load(cfg_path)
+    check_header(doc, MODEL_FORMAT, (MODEL_VERSION,))
+    raw = doc["config"]
+    raw.object()
+    raw.check_keys(PredictorConfig.__dataclass_fields__)
+    dflt = PredictorConfig()
+    config = PredictorConfig(
+        num_features=raw.get("num_features", dflt.num_features).integer(lo=NUM_FEATURES, hi=NUM_FEATURES),
+        num_modes=raw.get("num_modes", dflt.num_modes).integer(lo=1, hi=64),
+        steps=raw.get("steps", dflt.steps).integer(lo=1, hi=1000),
+        hidden=raw.get("hidden", dflt.hidden).integer(lo=1, hi=8192),
+        layers=raw.get("layers", dflt.layers).integer(lo=1, hi=64),
+        residual_scale=raw.get("residual_scale", dflt.residual_scale).number(lo=0.0, lo_open=True, hi=1000.0),
+        dt=raw.get("dt", dflt.dt).number(lo=0.0, lo_open=True, hi=10.0))
     feats = doc.get("features", {})
-    if list(feats.get("lane_offsets_m", LANE_OFFSETS.tolist())) != LANE_OFFSETS.tolist() or feats.get("history", HISTORY) != HISTORY:
-        raise FileFormatError(str(cfg_path), "$.features", "the feature layout of this code version", feats)
-    w_path = path / str(doc.get("weights", WEIGHTS_NAME))
-    if not w_path.is_file():
-        raise FileFormatError(str(w_path), "$", "predictor weights", "no file")
-    try:
-        state = torch.load(w_path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # torch raises several types for corrupt / pickled files
-        raise FileFormatError(str(w_path), "$", "a weights-only torch state_dict", str(exc)) from exc
+    feats.object()
+    offsets = feats.get("lane_offsets_m", LANE_OFFSETS.tolist()).numbers()
+    if offsets.tolist() != LANE_OFFSETS.tolist():
+        feats["lane_offsets_m"].fail(f"the lane offsets of this code version {LANE_OFFSETS.tolist()}", offsets.tolist())
+    feats.get("history", HISTORY).integer(lo=HISTORY, hi=HISTORY, expected=f"{HISTORY} (this code's history)")
+    from .detector import load_weights
+
+    w_path = doc.get("weights", WEIGHTS_NAME).file_in(path, inside="the model folder")
+    state = load_weights(w_path, "predictor weights")
     net = build_net(config)
     try:
         net.load_state_dict(state)

@@ -210,11 +210,18 @@ def background_mesh(scene: Scene, scene_dir: str | Path | None = None, step: flo
 
 def _static_meshes(soup: _Soup, scene: Scene, scene_dir: str | Path | None) -> None:
     import trimesh
+
+    from ..fileio import resolve_inside
+    from ..shapes.mesh_io import check_mesh_file
+
     kinds = {name: i for i, name in enumerate(SURFACE_KINDS)}
-    for item in scene.background.meshes:
+    for i, item in enumerate(scene.background.meshes):
         if scene_dir is None:
             raise MeshImportError(f"scene {scene.id} lists background mesh {item.file!r}: pass scene_dir to resolve it")
-        path = Path(scene_dir) / item.file
+        # the file stays inside the scene's folder, symlinks included (the loader checked the letters)
+        path = resolve_inside(scene_dir, item.file, file=f"scene {scene.id}", field=f"$.background.meshes[{i}].file",
+                              inside="the scene's folder")
+        check_mesh_file(path)
         try:
             mesh = trimesh.load(path, force="mesh", process=False)
         except Exception as exc:  # trimesh raises many types for bad files

@@ -33,10 +33,11 @@ from ..dynamics.traffic import IDMParams, Traffic
 from ..geometry.angles import wrap_angle
 from . import lanes as lg
 from .generate import EGO_WHEELBASE
-from .schema import (Actor, Background, Barrier, Ego, Lane, Scene, Source, Track,
-                     default_sensors)
+from .schema import (MAX_COORD, MAX_DT, MAX_FRAMES, MAX_SIZE, MAX_SPEED, Actor, Background, Barrier, Ego, Lane,
+                     Scene, Source, Track, default_sensors)
 
 DT = 0.1
+MIN_SCENARIO_DT = 1e-3  # s: recordings are sampled at 10-100 Hz; a smaller step is a broken file
 LICENCE = "BSD-3-Clause (CommonRoad scenario; see scenes/real/LICENSE.txt)"
 ATTRIBUTION = ("Vehicle trajectories: NGSIM US-101 dataset, U.S. Department of Transportation, Federal "
                "Highway Administration (FHWA), Next Generation Simulation program. Scenario conversion: "
@@ -63,12 +64,53 @@ def _obstacle_class(obstacle) -> str:
 
 
 def _header(path: Path) -> dict:
-    """Attributes of the root <commonRoad> element (authors, source, benchmark id, ...)."""
+    """Attributes of the root <commonRoad> element (authors, source, benchmark id, ...). The file
+    is read bounded (a regular file of at most ``fileio.MAX_JSON_BYTES``) before parsing."""
+    from ..fileio import read_bytes
+
+    raw = read_bytes(path, what="CommonRoad XML file")
     try:
-        root = ET.parse(path).getroot()
+        root = ET.fromstring(raw)
     except ET.ParseError as exc:
         raise FileFormatError(path, "$", "a CommonRoad XML file", str(exc)) from None
+    _check_xml_numbers(root, path)
     return dict(root.attrib)
+
+
+# Bounds of the numbers of a CommonRoad XML by the element that holds them (its parent for
+# <exact>, <intervalStart>, <intervalEnd>); checked before commonroad-io parses the file:
+# commonroad-io wraps an orientation by subtracting 2 pi in a loop, which never ends for 1e20.
+_XML_BOUNDS = {"orientation": 1e3, "time": 1e7, "velocity": 1e3, "acceleration": 1e3, "yawRate": 1e3,
+               "slipAngle": 1e3, "x": MAX_COORD, "y": MAX_COORD, "length": MAX_SIZE, "width": MAX_SIZE,
+               "radius": MAX_SIZE}
+
+
+def _check_xml_numbers(root: ET.Element, path: Path) -> None:
+    """Every number of the scenario's states, bounds and shapes is finite and within
+    :data:`_XML_BOUNDS`, and ``timeStepSize`` is a number (``FileFormatError`` naming the
+    element, e.g. ``obstacle[@id=3]/initialState/orientation/exact``)."""
+    try:
+        float(root.get("timeStepSize", "0.1"))
+    except ValueError:
+        raise FileFormatError(path, "commonRoad/@timeStepSize", "a number", root.get("timeStepSize")) from None
+    stack = [(root, "commonRoad", None)]
+    while stack:
+        el, where, parent = stack.pop()
+        children = list(el)
+        for child in children:
+            ident = child.get("id")
+            stack.append((child, f"{where}/{child.tag}" + (f"[@id={ident}]" if ident else ""), el.tag))
+        if children or el.text is None or not el.text.strip():
+            continue
+        key = parent if el.tag in ("exact", "intervalStart", "intervalEnd") else el.tag
+        if key not in _XML_BOUNDS:
+            continue
+        try:
+            value = float(el.text)
+        except ValueError:
+            raise FileFormatError(path, where, "a number", el.text.strip()[:40]) from None
+        if not np.isfinite(value) or abs(value) > _XML_BOUNDS[key]:
+            raise FileFormatError(path, where, f"a finite number within +-{_XML_BOUNDS[key]:g}", el.text.strip()[:40])
 
 
 def _lanes(network) -> list[Lane]:
@@ -96,9 +138,11 @@ def _speed_limits(network) -> dict[int, float]:
             for el in sign.traffic_sign_elements:
                 if "max_speed" in str(el.traffic_sign_element_id.name).lower() and el.additional_values:
                     try:
-                        out[ll.lanelet_id] = float(el.additional_values[0])
+                        v = float(el.additional_values[0])
                     except ValueError:
-                        pass
+                        continue
+                    if np.isfinite(v) and 0 < v <= MAX_SPEED:  # anything else: unknown limit
+                        out[ll.lanelet_id] = v
     return out
 
 
@@ -206,8 +250,12 @@ def _extend(tracks: dict[int, np.ndarray], lengths: dict[int, float], last: int,
 
 
 def import_commonroad(path: str | Path, seconds: float | None = None, extend: bool = False,
-                      ego_id: int | None = None) -> Scene:
+                      ego_id: int | None = None, ego_rank: int = 0) -> Scene:
     """Convert a CommonRoad XML scenario into a Scene (see module docstring).
+
+    ``ego_rank`` k > 0 takes the (k+1)-th car of the ego rule's order instead of the first, so
+    the variants of one recording (same traffic, different planning problems) can become
+    different scenes.
 
     Raises:
         FileFormatError: unreadable scenario, or no usable ego.
@@ -222,6 +270,7 @@ def import_commonroad(path: str | Path, seconds: float | None = None, extend: bo
     except Exception as exc:  # commonroad-io raises assorted errors on bad files
         raise FileFormatError(path, "$", "a CommonRoad scenario readable by commonroad-io", str(exc)) from None
     sdt = float(scenario.dt)
+    _check_scenario(path, scenario)
     lanes = _lanes(scenario.lanelet_network)
     if not lanes:
         raise FileFormatError(path, "$.lanelet", "at least one lanelet")
@@ -249,7 +298,7 @@ def import_commonroad(path: str | Path, seconds: float | None = None, extend: bo
         tracks[oid] = arr
     info = {o.obstacle_id: o for o in obstacles}
     lengths = {oid: float(info[oid].obstacle_shape.length) for oid in tracks}
-    ego_oid, rule = _pick_ego(tracks, info, lanes, ego_id, path)
+    ego_oid, rule = _pick_ego(tracks, info, lanes, ego_id, path, ego_rank)
     synthetic_from = n_rec
     if frames > n_rec:
         more = _extend(tracks, lengths, n_rec - 1, frames, lanes)
@@ -295,8 +344,54 @@ def import_commonroad(path: str | Path, seconds: float | None = None, extend: bo
     }
     background = Background(shoulder_left=1.0, shoulder_right=2.5, ground_margin=30.0, lane_markings=True,
                             barriers=_edge_barriers(lanes))
-    return Scene(id=f"commonroad-{bench}", source=Source("commonroad", details, LICENCE, ATTRIBUTION), dt=DT,
-                 frames=frames, lanes=lanes, background=background, ego=ego, actors=actors)
+    scene = Scene(id=f"commonroad-{bench}", source=Source("commonroad", details, LICENCE, ATTRIBUTION), dt=DT,
+                  frames=frames, lanes=lanes, background=background, ego=ego, actors=actors)
+    # the scene contract, checked here so a broken scenario (a lanelet naming a missing
+    # neighbour, an id that is not a file name) is an error naming the XML, before any writing
+    return Scene.from_dict(scene.to_dict(), path)
+
+
+def _check_scenario(path: Path, scenario) -> None:
+    """Refuse what would make a broken or silently wrong scene, before anything is built: a
+    time step that is not a positive finite number (``timeStepSize="0"`` made one-frame scenes),
+    non-finite or out-of-range coordinates, sizes, speeds and time steps (the scene contract's
+    bounds, ``scene.schema.MAX_*``). Fields are named as in the XML.
+
+    Raises:
+        FileFormatError: naming the file and the element.
+    """
+    def bad(field: str, expected: str, got) -> None:
+        raise FileFormatError(path, field, expected, got)
+
+    dt = float(scenario.dt)
+    if not (np.isfinite(dt) and MIN_SCENARIO_DT <= dt <= MAX_DT):  # 1e-320 s would fold a recording into one frame
+        bad("commonRoad/@timeStepSize", f"a time step in [{MIN_SCENARIO_DT:g}, {MAX_DT:g}] s", scenario.dt)
+    coord = f"finite coordinates within +-{MAX_COORD:g} m"
+    for ll in scenario.lanelet_network.lanelets:
+        for name in ("left_vertices", "right_vertices", "center_vertices"):
+            v = np.asarray(getattr(ll, name), dtype=np.float64)
+            if v.ndim != 2 or len(v) < 2 or not np.isfinite(v).all() or np.abs(v).max() > MAX_COORD:
+                bad(f"lanelet[@id={ll.lanelet_id}]/{name.split('_')[0]}Bound", coord + " (at least 2 points)",
+                    v.tolist()[:2])
+    for o in scenario.dynamic_obstacles:
+        where = f"dynamicObstacle[@id={o.obstacle_id}]"
+        shape = o.obstacle_shape
+        for name in ("length", "width"):
+            v = getattr(shape, name, None)
+            if v is None or not np.isfinite(float(v)) or not 0 < float(v) <= MAX_SIZE:
+                bad(f"{where}/shape/rectangle/{name}", f"a rectangle {name} in (0, {MAX_SIZE:g}] m", v)
+        states = [o.initial_state] + list(o.prediction.trajectory.state_list if o.prediction else [])
+        for st in states:
+            step = int(st.time_step)
+            if not 0 <= step * dt / DT <= MAX_FRAMES:
+                bad(f"{where}/state[time={step}]", f"a time step within {MAX_FRAMES} frames of 0.1 s", step)
+            pos = np.asarray(st.position, dtype=np.float64)
+            if pos.shape != (2,) or not np.isfinite(pos).all() or np.abs(pos).max() > MAX_COORD:
+                bad(f"{where}/state[time={step}]/position", coord, pos.tolist())
+            for name, hi in (("orientation", 1e3), ("velocity", MAX_SPEED)):
+                v = getattr(st, name, 0.0) or 0.0
+                if not np.isfinite(float(v)) or abs(float(v)) > hi:
+                    bad(f"{where}/state[time={step}]/{name}", f"a finite {name} within +-{hi:g}", v)
 
 
 def _edge_barriers(lanes: list[Lane], shoulder_left: float = 1.0) -> list[Barrier]:
@@ -327,15 +422,20 @@ def _edge_barriers(lanes: list[Lane], shoulder_left: float = 1.0) -> list[Barrie
     return out
 
 
-def _pick_ego(tracks: dict[int, np.ndarray], info: dict, lanes: list[Lane], ego_id: int | None, path: Path) -> tuple[int, str]:
+def _pick_ego(tracks: dict[int, np.ndarray], info: dict, lanes: list[Lane], ego_id: int | None, path: Path,
+              rank: int = 0) -> tuple[int, str]:
+    if rank < 0:
+        raise ConfigError(f"--ego-rank must be >= 0 (got {rank})")
     if ego_id is not None:
+        if rank:
+            raise ConfigError("--ego and --ego-rank exclude each other")
         if ego_id not in tracks:
             raise ConfigError(f"--ego {ego_id}: no such dynamic obstacle in {path.name}")
         if not np.isfinite(tracks[ego_id][:, 0]).all():
             raise ConfigError(f"--ego {ego_id}: its track does not cover the whole recording")
         return ego_id, "chosen by the user (--ego)"
     by_id = {lane.id: lane for lane in lanes}
-    best, best_key = None, None
+    keys = []
     for oid in sorted(tracks):
         arr = tracks[oid]
         if not np.isfinite(arr[:, 0]).all() or _obstacle_class(info[oid]) not in ("sedan", "hatchback", "suv"):
@@ -351,10 +451,13 @@ def _pick_ego(tracks: dict[int, np.ndarray], info: dict, lanes: list[Lane], ego_
             lon = dx * np.cos(yaw) + dy * np.sin(yaw)
             lat = -dx * np.sin(yaw) + dy * np.cos(yaw)
             ahead += int(0 < lon <= 50.0 and abs(lat) <= 5.5)
-        key = (-ahead, not middle, oid)
-        if best_key is None or key < best_key:
-            best, best_key = oid, key
-    if best is None:
+        keys.append((-ahead, not middle, oid))
+    if not keys:
         raise FileFormatError(path, "$.dynamicObstacle", "a car whose track covers the whole recording (to be the ego)")
-    return best, ("car with a track over the whole recording and the most vehicles ahead (same/adjacent lane, "
-                  "within 50 m) in the first frame; middle lanes preferred; ties -> smallest id")
+    if rank >= len(keys):
+        raise ConfigError(f"--ego-rank {rank}: {path.name} has only {len(keys)} car(s) that can be the ego")
+    rule = ("car with a track over the whole recording and the most vehicles ahead (same/adjacent lane, "
+            "within 50 m) in the first frame; middle lanes preferred; ties -> smallest id")
+    if rank:
+        rule += f"; rank {rank} in that order (--ego-rank {rank}: the first {rank} left out)"
+    return sorted(keys)[rank][2], rule

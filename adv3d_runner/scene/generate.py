@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ConfigError
-from ..dynamics.traffic import Traffic, equilibrium_speed
+from ..dynamics.traffic import IDMParams, MOBILParams, Traffic, equilibrium_speed
 from ..geometry.angles import wrap_angle
 from . import lanes as lg
 from .schema import (Actor, Background, Barrier, Ego, Lane, Scene, Source, Track,
@@ -63,6 +63,70 @@ CLASSES = {
 }
 EGO_DIMENSIONS = (4.80, 1.90, 1.55)
 EGO_WHEELBASE = 2.85
+
+
+@dataclass(frozen=True)
+class GeneratorProfile:
+    """Traffic and road parameters of the generator; ``PROFILES["default"]`` is what the bundled
+    benchmark was made with (its values are the module's historical constants, and the default
+    profile draws exactly the random numbers it always drew, so the files stay byte-identical).
+
+    Attributes:
+        name: profile name (stored in ``source.details.profile`` unless default).
+        density: vehicles per km per lane; None = the ``--density`` level (``DENSITIES``).
+        lanes: main lanes drawn from ``[lo, hi)``.
+        speed_limits: m/s, one drawn per scene.
+        layouts: the layouts cycled by seed when ``--layout`` is not given.
+        v0_mean, v0_std: desired speed = speed limit x class factor x N(v0_mean, v0_std).
+        headway_scale, headway_sigma: desired time headway T = class T x headway_scale x
+            exp(N(0, headway_sigma)) (no draw when headway_sigma is 0).
+        idm, mobil: the traffic model's parameters.
+    """
+
+    name: str = "default"
+    density: float | None = None
+    lanes: tuple[int, int] = (2, 6)
+    speed_limits: tuple[float, ...] = (26.8, 29.1, 31.3)  # 60 / 65 / 70 mph
+    layouts: tuple[str, ...] = LAYOUTS
+    v0_mean: float = 1.0
+    v0_std: float = 0.07
+    headway_scale: float = 1.0
+    headway_sigma: float = 0.0
+    idm: IDMParams = IDMParams()
+    mobil: MOBILParams = MOBILParams()
+
+    def desired_headway(self, rng: np.random.Generator, T: float) -> float:
+        """A vehicle's T from its class T (draws only when ``headway_sigma`` > 0)."""
+        if self.headway_sigma <= 0.0 and self.headway_scale == 1.0:
+            return T
+        noise = float(np.exp(rng.normal(0.0, self.headway_sigma))) if self.headway_sigma > 0.0 else 1.0
+        return T * self.headway_scale * noise
+
+
+#: ``us101``: fitted to the *train* recordings of ``scenes/real/`` (NGSIM US-101, 5 lanes, 65
+#: mph, congested morning traffic) by ``bench/traffic.py --fit`` (random search minimising the
+#: summed Kolmogorov-Smirnov distances of speed, time headway and lane changes per 5 s;
+#: ``bench/results/traffic.json`` holds the search and the distances before and after).
+PROFILES = {
+    "default": GeneratorProfile(),
+    # the fit's best candidate (bench/results/traffic.fit.json, "best"), rounded to 3 digits
+    "us101": GeneratorProfile(name="us101", density=41.2, lanes=(5, 6), speed_limits=(29.1,),
+                              layouts=("straight", "onramp"), v0_mean=0.783, v0_std=0.0555,
+                              headway_scale=0.435, headway_sigma=0.0505,
+                              idm=IDMParams(s0=2.94), mobil=MOBILParams(politeness=0.5, a_thr=0.0)),
+}
+PROFILE_TAG = {"us101": 0x5101}  # SeedSequence element of a non-default profile (own seed space)
+
+
+def get_profile(profile: "str | GeneratorProfile | None") -> GeneratorProfile:
+    """A profile by name (or the profile itself; None = default)."""
+    if profile is None:
+        return PROFILES["default"]
+    if isinstance(profile, GeneratorProfile):
+        return profile
+    if profile not in PROFILES:
+        raise ConfigError(f"unknown generator profile {profile!r}; choose one of {sorted(PROFILES)}")
+    return PROFILES[profile]
 
 
 @dataclass
@@ -137,8 +201,9 @@ def _reference_line(rng: np.random.Generator, layout: str, total: float) -> np.n
     return xy
 
 
-def _make_layout(rng: np.random.Generator, layout: str, ego_s0: float, total: float) -> RoadLayout:
-    n_main = int(rng.integers(2, 6))  # 2..5 main lanes
+def _make_layout(rng: np.random.Generator, layout: str, ego_s0: float, total: float,
+                 lanes: tuple[int, int] = (2, 6)) -> RoadLayout:
+    n_main = int(rng.integers(*lanes))  # default 2..5 main lanes
     width = float(rng.choice([3.5, 3.6, 3.7, 3.75]))
     ref = _reference_line(rng, layout, total)
     inf = np.inf
@@ -180,7 +245,7 @@ class _Vehicle:
 
 
 def _populate(rng, road: RoadLayout, density: float, speed_limit: float, traffic: Traffic,
-              vehicles: list, s_lo: float, s_hi: float) -> None:
+              vehicles: list, s_lo: float, s_hi: float, profile: GeneratorProfile = GeneratorProfile()) -> None:
     """Place vehicles in every lane between s_lo and s_hi with exponential-ish spacing."""
     spacing = 1000.0 / density
     for k in range(road.n_lanes):
@@ -190,14 +255,17 @@ def _populate(rng, road: RoadLayout, density: float, speed_limit: float, traffic
         while s < hi:
             cls, dims, vf, T = _sample_vehicle(rng)
             gap = spacing * rng.uniform(0.6, 1.4)
-            v0 = speed_limit * vf * rng.normal(1.0, 0.07)
-            v = float(equilibrium_speed(np.array(max(gap - dims[0], 1.0)), np.array(v0), T=T))
+            v0 = speed_limit * vf * rng.normal(profile.v0_mean, profile.v0_std)
+            T = profile.desired_headway(rng, T)
+            v = float(equilibrium_speed(np.array(max(gap - dims[0], 1.0)), np.array(v0), T=T,
+                                        params=profile.idm))
             traffic.add(s, k, v, dims[0], v0, T)
             vehicles.append(_Vehicle(cls, dims))
             s += gap
 
 
-def _inflow(rng, road: RoadLayout, density: float, speed_limit: float, traffic: Traffic, vehicles: list) -> None:
+def _inflow(rng, road: RoadLayout, density: float, speed_limit: float, traffic: Traffic, vehicles: list,
+            profile: GeneratorProfile = GeneratorProfile()) -> None:
     """Keep traffic coming in at the start of the road (and of the ramp)."""
     spacing = 1000.0 / density
     for k in range(road.n_lanes):
@@ -206,7 +274,8 @@ def _inflow(rng, road: RoadLayout, density: float, speed_limit: float, traffic: 
         last = traffic.s[in_lane].min() if in_lane.any() else np.inf
         if last - entry > spacing * rng.uniform(0.8, 1.6) and last - entry > 25.0:
             cls, dims, vf, T = _sample_vehicle(rng)
-            v0 = speed_limit * vf * rng.normal(1.0, 0.07)
+            v0 = speed_limit * vf * rng.normal(profile.v0_mean, profile.v0_std)
+            T = profile.desired_headway(rng, T)
             v_last = traffic.v[in_lane][np.argmin(traffic.s[in_lane])] if in_lane.any() else v0
             traffic.add(entry, k, min(v0, v_last + 2.0), dims[0], v0, T)
             vehicles.append(_Vehicle(cls, dims))
@@ -217,18 +286,21 @@ def _smoothstep(u: np.ndarray) -> np.ndarray:
     return u * u * (3.0 - 2.0 * u)
 
 
-def _simulate(rng, road: RoadLayout, density: float, speed_limit: float, ego_lane: int, ego_s0: float):
+def _simulate(rng, road: RoadLayout, density: float, speed_limit: float, ego_lane: int, ego_s0: float,
+              profile: GeneratorProfile = GeneratorProfile()):
     """Run warm-up + recording. Returns per-frame arrays (F, N) and the vehicle list; the ego
     is index 0."""
-    traffic = Traffic(road.start, road.end, road_end=road.length - 5.0, lane_open=road.open)
+    traffic = Traffic(road.start, road.end, road_end=road.length - 5.0, lane_open=road.open, idm=profile.idm,
+                      mobil=profile.mobil)
     vehicles: list[_Vehicle] = []
     warm = int(round(WARMUP_S / DT))
     # the ego starts where it will be after the warm-up minus the distance driven meanwhile
     v_ego = speed_limit * 0.9
     ego_start = ego_s0 - v_ego * WARMUP_S
-    traffic.add(ego_start, ego_lane, v_ego, EGO_DIMENSIONS[0], speed_limit * rng.normal(1.0, 0.05), 1.5)
+    traffic.add(ego_start, ego_lane, v_ego, EGO_DIMENSIONS[0], speed_limit * rng.normal(profile.v0_mean, 0.05),
+                profile.desired_headway(rng, 1.5))
     vehicles.append(_Vehicle("sedan", np.array(EGO_DIMENSIONS)))
-    _populate(rng, road, density, speed_limit, traffic, vehicles, 0.0, road.length - 50.0)
+    _populate(rng, road, density, speed_limit, traffic, vehicles, 0.0, road.length - 50.0, profile)
     # remove vehicles overlapping the ego at the start
     ov = (traffic.lane == ego_lane) & (np.abs(traffic.s - ego_start) < 12.0)
     ov[0] = False
@@ -242,7 +314,7 @@ def _simulate(rng, road: RoadLayout, density: float, speed_limit: float, ego_lan
                               ("active", traffic.active)):
                 rec[name].append(arr.copy())
         traffic.step(DT)
-        _inflow(rng, road, density, speed_limit, traffic, vehicles)
+        _inflow(rng, road, density, speed_limit, traffic, vehicles, profile)
         if not traffic.active[0]:
             break
     n = len(traffic.s)
@@ -394,24 +466,43 @@ def check_split(split: str, seed: int) -> None:
                           "benchmark and training scenes must not overlap")
 
 
-def default_layout_density(seed: int) -> tuple[str, str]:
-    """The mix used when layout/density are not given: cycles through every combination."""
+def default_layout_density(seed: int, profile: GeneratorProfile | None = None) -> tuple[str, str]:
+    """The mix used when layout/density are not given: cycles through every combination (of the
+    profile's layouts; a profile with its own density has no density levels to cycle)."""
     dens = list(DENSITIES)
-    return LAYOUTS[seed % len(LAYOUTS)], dens[(seed // len(LAYOUTS)) % len(dens)]
+    layouts = LAYOUTS if profile is None else profile.layouts
+    return layouts[seed % len(layouts)], dens[(seed // len(layouts)) % len(dens)]
 
 
-def generate_scene(seed: int, split: str = "benchmark", layout: str | None = None, density: str | None = None) -> Scene:
+def _profile_tag(profile: GeneratorProfile) -> int:
+    import zlib
+
+    return PROFILE_TAG.get(profile.name, zlib.crc32(profile.name.encode()))
+
+
+def generate_scene(seed: int, split: str = "benchmark", layout: str | None = None, density: str | None = None,
+                   profile: "str | GeneratorProfile | None" = None) -> Scene:
     """Generate one highway scene (deterministic in its arguments).
 
     Args:
         seed: scene seed, inside the split's reserved range (``SPLITS``).
         split: ``benchmark`` or ``train``.
         layout: one of ``LAYOUTS``; None picks by seed (``default_layout_density``).
-        density: one of ``DENSITIES``; None picks by seed.
+        density: one of ``DENSITIES``; None picks by seed. Not with a profile that sets its own
+            density (``us101``).
+        profile: a name of ``PROFILES`` or a :class:`GeneratorProfile` (None: ``default``, what
+            the bundled benchmark was made with). A non-default profile draws from its own
+            seed space (an extra ``SeedSequence`` element) and names its scenes
+            ``highway-<profile>-<split>-<seed>``.
     """
     check_split(split, seed)
-    d_layout, d_density = default_layout_density(seed)
+    prof = get_profile(profile)
+    default = prof.name == "default"
+    d_layout, d_density = default_layout_density(seed, None if default else prof)
     layout = layout or d_layout
+    if prof.density is not None and density is not None:
+        raise ConfigError(f"profile {prof.name!r} sets its own density ({prof.density:g} vehicles/km/lane); "
+                          "leave out --density")
     density = density or d_density
     if layout not in LAYOUTS:
         raise ConfigError(f"unknown layout {layout!r}; choose one of {list(LAYOUTS)}")
@@ -419,21 +510,26 @@ def generate_scene(seed: int, split: str = "benchmark", layout: str | None = Non
         raise ConfigError(f"unknown density {density!r}; choose one of {list(DENSITIES)}")
     tag = SPLITS[split][0]
     for attempt in range(MAX_ATTEMPTS):
-        rng = np.random.default_rng(np.random.SeedSequence([tag, seed, attempt, LAYOUTS.index(layout), list(DENSITIES).index(density)]))
-        scene = _generate_once(rng, seed, split, layout, density, attempt)
+        entropy = [tag, seed, attempt, LAYOUTS.index(layout), list(DENSITIES).index(density)]
+        if not default:
+            entropy.append(_profile_tag(prof))
+        rng = np.random.default_rng(np.random.SeedSequence(entropy))
+        scene = _generate_once(rng, seed, split, layout, density, attempt, prof)
         if scene is not None and vehicles_ahead(scene):
             return scene
     raise ConfigError(f"could not generate a scene with a vehicle ahead for seed {seed} in {MAX_ATTEMPTS} attempts")
 
 
-def _generate_once(rng, seed: int, split: str, layout: str, density: str, attempt: int) -> Scene | None:
-    speed_limit = float(rng.choice([26.8, 29.1, 31.3]))  # 60 / 65 / 70 mph in m/s
+def _generate_once(rng, seed: int, split: str, layout: str, density: str, attempt: int,
+                   profile: GeneratorProfile = GeneratorProfile()) -> Scene | None:
+    speed_limit = float(rng.choice(list(profile.speed_limits)))
     ego_s0 = 300.0
     total = ego_s0 + FRAMES * DT * speed_limit * 1.3 + 300.0
-    road = _make_layout(rng, layout, ego_s0, total)
+    road = _make_layout(rng, layout, ego_s0, total, profile.lanes)
     main = [k for k in range(road.n_lanes) if k != road.ramp_lane and k != road.drop_lane]
     ego_lane = int(rng.choice(main))
-    rec, vehicles = _simulate(rng, road, DENSITIES[density], speed_limit, ego_lane, ego_s0)
+    per_km = DENSITIES[density] if profile.density is None else profile.density
+    rec, vehicles = _simulate(rng, road, per_km, speed_limit, ego_lane, ego_s0, profile)
     if not rec["active"][:, 0].all():
         return None  # the ego left the road (should not happen with the margins above)
     x, y, yaw = _poses(road, rec)
@@ -458,29 +554,50 @@ def _generate_once(rng, seed: int, split: str, layout: str, density: str, attemp
     shoulder_right = float(rng.uniform(2.4, 3.2))
     background = Background(shoulder_left=shoulder_left, shoulder_right=shoulder_right, ground_margin=30.0,
                             lane_markings=True, barriers=_barriers(rng, road, shoulder_left, shoulder_right))
-    source = Source(kind="generated", details={
+    details = {
         "generator": GENERATOR, "split": split, "seed": int(seed), "attempt": attempt,
         "layout": layout, "density": density, "lanes": int(road.n_lanes), "speed_limit": speed_limit,
         "command": f"adv3d scenes generate --split {split} --seed {seed} --count 1 --layout {layout} --density {density}",
-    }, licence="CC0-1.0 (synthetic, generated by adv3d)", attribution=None)
-    scene = Scene(id=f"highway-{split}-{seed:06d}", source=source, dt=DT, frames=FRAMES,
+    }
+    scene_id = f"highway-{split}-{seed:06d}"
+    if profile.name != "default":  # the default profile's files stay as they were
+        details["profile"] = profile.name
+        if profile.density is not None:
+            details["density"] = f"{profile.density:g} vehicles/km/lane ({profile.name})"
+        details["command"] = (f"adv3d scenes generate --split {split} --seed {seed} --count 1 --layout {layout} "
+                              f"--profile {profile.name}")
+        scene_id = f"highway-{profile.name}-{split}-{seed:06d}"
+    source = Source(kind="generated", details=details, licence="CC0-1.0 (synthetic, generated by adv3d)",
+                    attribution=None)
+    scene = Scene(id=scene_id, source=source, dt=DT, frames=FRAMES,
                   lanes=_lanes_for_map(road, speed_limit), background=background, ego=ego, actors=actors)
     return scene
 
 
 def generate_scenes(out_dir: str | Path, count: int, seed: int, split: str = "benchmark",
-                    layout: str | None = None, density: str | None = None, progress_desc: str = "scenes") -> list[Path]:
+                    layout: str | None = None, density: str | None = None, progress_desc: str = "scenes",
+                    profile: str | None = None, library=None) -> list[Path]:
     """Generate ``count`` scenes with seeds ``seed .. seed + count - 1`` into ``out_dir``
-    (``<scene id>.json.gz``). Refuses to write training scenes into the benchmark folder."""
+    (``<scene id>.json.gz``). Refuses to write training scenes, or scenes of another profile
+    than the default, into the benchmark folder.
+
+    With a vehicle ``library``, every actor records the asset drawn for it
+    (``actors.assign_assets``), so the scene keeps its meshes whatever the library becomes."""
     from ..progress import progress
     out_dir = Path(out_dir)
     check_split(split, seed)
     check_split(split, seed + count - 1)
-    if split != "benchmark" and (out_dir.resolve() / "x").is_relative_to(_benchmark_dir()):
-        raise ConfigError(f"refusing to write {split!r} scenes into the benchmark folder {out_dir}")
+    prof = get_profile(profile)
+    if (split != "benchmark" or prof.name != "default") and (out_dir.resolve() / "x").is_relative_to(_benchmark_dir()):
+        what = f"{split!r}" if split != "benchmark" else f"profile {prof.name!r}"
+        raise ConfigError(f"refusing to write {what} scenes into the benchmark folder {out_dir}")
     paths = []
     for s in progress(range(seed, seed + count), desc=progress_desc, total=count, unit="scene"):
-        scene = generate_scene(s, split, layout, density)
+        scene = generate_scene(s, split, layout, density, prof)
+        if library is not None:
+            from .actors import assign_assets
+
+            scene = assign_assets(scene, library)
         path = out_dir / f"{scene.id}.json.gz"
         save_scene(scene, path)
         paths.append(path)

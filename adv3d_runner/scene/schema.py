@@ -17,26 +17,24 @@ This module needs only numpy, so the Blender add-on can import it.
 from __future__ import annotations
 
 import math
-import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 import numpy as np
 
-from ..errors import FileFormatError
-from ..fileio import check_header, read_json, write_json
+from ..fileio import read_json, write_json
 from ..geometry.angles import wrap_angle
+from ..validate import Node, check_header
+from ..vehicle_classes import CLASS_PATTERN, class_examples
 
 FORMAT = "adv3d-scene"
 VERSION = 1
 SUPPORTED_VERSIONS = (1,)
 
 SOURCE_KINDS = ("generated", "commonroad", "blender")
-# Usual vehicle classes (shared with the vehicle library); any lower-case identifier is
-# accepted (``CLASS_RE``), e.g. the library's "ambulance"; "other" for anything unknown.
-ACTOR_CLASSES = ("sedan", "hatchback", "sports", "suv", "van", "pickup", "truck", "bus", "motorcycle", "other")
-CLASS_RE = re.compile(r"^[a-z][a-z0-9_]*$")
+# Actor classes: any lower-case identifier (``CLASS_PATTERN``); the known ones are the one list
+# ``adv3d_runner.vehicle_classes.VEHICLE_CLASSES`` (shared with the vehicle library and the add-on).
 BARRIER_KINDS = ("concrete", "guardrail")
 SURFACE_KINDS_FOR_MESHES = ("asphalt", "concrete", "metal", "ground", "vegetation")
 
@@ -48,6 +46,16 @@ SPEED_DECIMALS = 2
 DIM_DECIMALS = 3
 
 NO_ACTOR = -1  # label used by consumers for "background" (never a valid actor id)
+
+# Bounds of the contract (docs/formats.md): far outside any real scene, close enough that a
+# mistyped or hostile number (1e308 m, a 1e9-frame scene) is refused when the file is read
+# instead of overflowing a rounding or allocating gigabytes downstream.
+MAX_COORD = 1e7     # m, |x|, |y| of every position (a local map frame; UTM northings fit)
+MAX_SIZE = 100.0    # m, vehicle dimensions, lane widths, barrier heights, wheelbase
+MAX_MARGIN = 10_000.0  # m, shoulders and ground margin
+MAX_SPEED = 150.0   # m/s, recorded speeds and speed limits
+MAX_FRAMES = 100_000  # frames (2.8 h at 10 Hz)
+MAX_DT = 10.0       # s
 
 
 def _round(values: np.ndarray | float, decimals: int) -> np.ndarray:
@@ -470,262 +478,185 @@ def _scene_to_dict(scene: Scene) -> dict:
 # --------------------------------------------------------------------------------------------
 
 
-class _V:
-    """Validation helpers that raise FileFormatError(path, json_path, expected, got)."""
-
-    def __init__(self, path: str | Path | None):
-        self.path = path
-
-    def fail(self, where: str, expected: str, got: object = None) -> None:
-        raise FileFormatError(self.path, where, expected, got)
-
-    def obj(self, parent: dict, key: str, where: str) -> dict:
-        value = self.key(parent, key, where)
-        if not isinstance(value, dict):
-            self.fail(f"{where}.{key}", "an object", type(value).__name__)
-        return value
-
-    def key(self, parent: dict, key: str, where: str) -> Any:
-        if key not in parent:
-            self.fail(f"{where}.{key}", "a value (field is missing)")
-        return parent[key]
-
-    def number(self, value: Any, where: str, *, lo: float | None = None, hi: float | None = None,
-               lo_open: bool = False) -> float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            self.fail(where, "a number", value)
-        v = float(value)
-        if not math.isfinite(v):
-            self.fail(where, "a finite number", value)
-        if lo is not None and (v < lo or (lo_open and v == lo)):
-            self.fail(where, f"a number {'>' if lo_open else '>='} {lo}", value)
-        if hi is not None and v > hi:
-            self.fail(where, f"a number <= {hi}", value)
-        return v
-
-    def integer(self, value: Any, where: str, *, lo: int | None = None) -> int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            self.fail(where, "an integer", value)
-        if lo is not None and value < lo:
-            self.fail(where, f"an integer >= {lo}", value)
-        return int(value)
-
-    def string(self, value: Any, where: str, *, choices: tuple[str, ...] | None = None, nullable: bool = False) -> str | None:
-        if value is None and nullable:
-            return None
-        if not isinstance(value, str) or not value:
-            self.fail(where, "a non-empty string" + (" or null" if nullable else ""), value)
-        if choices is not None and value not in choices:
-            self.fail(where, f"one of {list(choices)}", value)
-        return value
-
-    def array(self, value: Any, where: str, *, length: int | None = None, min_length: int = 0,
-              lo: float | None = None) -> np.ndarray:
-        """A JSON list of finite numbers -> (n,) float64."""
-        if not isinstance(value, list):
-            self.fail(where, "a list of numbers", type(value).__name__)
-        if length is not None and len(value) != length:
-            self.fail(where, f"a list of {length} numbers", f"{len(value)} items")
-        if len(value) < min_length:
-            self.fail(where, f"a list of at least {min_length} numbers", f"{len(value)} items")
-        for i, item in enumerate(value):
-            if isinstance(item, bool) or not isinstance(item, (int, float)):
-                self.fail(f"{where}[{i}]", "a number", item)
-            if not math.isfinite(item):
-                self.fail(f"{where}[{i}]", "a finite number", item)
-            if lo is not None and item < lo:
-                self.fail(f"{where}[{i}]", f"a number >= {lo}", item)
-        return np.asarray(value, dtype=np.float64).reshape(-1)
-
-    def flags(self, value: Any, where: str, length: int) -> np.ndarray:
-        if not isinstance(value, list) or len(value) != length:
-            self.fail(where, f"a list of {length} flags (0 or 1)", value if not isinstance(value, list) else f"{len(value)} items")
-        for i, item in enumerate(value):
-            if item not in (0, 1) or isinstance(item, float):
-                self.fail(f"{where}[{i}]", "0 or 1", item)
-        return np.asarray(value, dtype=bool)
-
-    def objects(self, value: Any, where: str, expected: str, *, non_empty: bool = False) -> Iterator[tuple[str, dict]]:
-        """A JSON list of objects -> yields (json path of the item, item)."""
-        if not isinstance(value, list) or (non_empty and not value):
-            self.fail(where, expected, value if not isinstance(value, list) else "an empty list")
-        for i, item in enumerate(value):
-            w = f"{where}[{i}]"
-            if not isinstance(item, dict):
-                self.fail(w, "an object", type(item).__name__)
-            yield w, item
-
-    def unique(self, value: Any, where: str, seen: set, what: str) -> Any:
-        """Records ``value`` in ``seen``; a repeat is an error naming ``what`` (e.g. "lane id")."""
-        if value in seen:
-            self.fail(where, f"a unique {what}", value)
-        seen.add(value)
-        return value
-
-    def points(self, value: Any, where: str, *, min_points: int = 2) -> np.ndarray:
-        """A JSON list of [x, y] -> (P, 2) float64."""
-        if not isinstance(value, list) or len(value) < min_points:
-            got = f"{len(value)} points" if isinstance(value, list) else type(value).__name__
-            self.fail(where, f"a list of at least {min_points} [x, y] points", got)
-        for i, item in enumerate(value):
-            self.array(item, f"{where}[{i}]", length=2)
-        return np.asarray(value, dtype=np.float64).reshape(-1, 2)
-
-
-def _load_track(v: _V, doc: Any, where: str, frames: int, *, full: bool) -> Track:
-    if not isinstance(doc, dict):
-        v.fail(where, "an object", type(doc).__name__)
-    start = v.integer(v.key(doc, "start", where), f"{where}.start", lo=0)
-    x = v.array(v.key(doc, "x", where), f"{where}.x", min_length=1)
+def _load_track(t: Node, frames: int, *, full: bool) -> Track:
+    t.object()
+    t.check_keys(_TRACK_KEYS)
+    start = t["start"].integer(lo=0)
+    x = t["x"].numbers(min_length=1, lo=-MAX_COORD, hi=MAX_COORD)
     n = len(x)
     if start + n > frames:
-        v.fail(f"{where}.x", f"at most {frames - start} values (start {start} + length <= frames {frames})", f"{n} items")
+        t["x"].fail(f"at most {frames - start} values (start {start} + length <= frames {frames})", f"{n} items")
     if full and (start != 0 or n != frames):
-        v.fail(f"{where}.x", f"{frames} values starting at frame 0 (the ego track covers every frame)", f"start {start}, {n} items")
-    y = v.array(v.key(doc, "y", where), f"{where}.y", length=n)
-    yaw = v.array(v.key(doc, "yaw", where), f"{where}.yaw", length=n)
+        t["x"].fail(f"{frames} values starting at frame 0 (the ego track covers every frame)",
+                    f"start {start}, {n} items")
+    y = t["y"].numbers(length=n, lo=-MAX_COORD, hi=MAX_COORD)
+    yaw = t["yaw"].numbers(length=n)
     bad = np.flatnonzero((yaw < -math.pi - 1e-3) | (yaw > math.pi + 1e-3))
     if len(bad):
-        v.fail(f"{where}.yaw[{bad[0]}]", "an angle in [-pi, pi] rad", float(yaw[bad[0]]))
+        t["yaw"].fail("an angle in [-pi, pi] rad", float(yaw[bad[0]]), at=f"[{bad[0]}]")
     speed = None
-    if "speed" in doc:
-        speed = v.array(doc["speed"], f"{where}.speed", length=n, lo=0.0)
+    if "speed" in t:
+        speed = t["speed"].numbers(length=n, lo=0.0, hi=MAX_SPEED)
     elif full:
-        v.fail(f"{where}.speed", "a value (field is missing; the ego track needs speeds)")
-    valid = v.flags(doc["valid"], f"{where}.valid", n) if "valid" in doc else None
-    synthetic = v.flags(doc["synthetic"], f"{where}.synthetic", n) if "synthetic" in doc else None
+        t.child("speed").fail("a value (field is missing; the ego track needs speeds)")
+    valid = t["valid"].flags(n) if "valid" in t else None
+    synthetic = t["synthetic"].flags(n) if "synthetic" in t else None
     if full and valid is not None and not valid.all():
-        v.fail(f"{where}.valid", "all 1 (the ego is valid in every frame)")
+        t["valid"].fail("all 1 (the ego is valid in every frame)")
     if valid is not None and not valid.any():
-        v.fail(f"{where}.valid", "at least one valid frame")
-    unknown = set(doc) - {"start", "x", "y", "yaw", "speed", "valid", "synthetic"}
-    if unknown:
-        v.fail(f"{where}.{sorted(unknown)[0]}", "no such field (known: start, x, y, yaw, speed, valid, synthetic)")
+        t["valid"].fail("at least one valid frame")
     return Track(x=x, y=y, yaw=yaw, speed=speed, start=start, valid=valid, synthetic=synthetic)
 
 
-def _load_dims(v: _V, value: Any, where: str) -> np.ndarray:
-    dims = v.array(value, where, length=3)
-    bad = np.flatnonzero(dims <= 0)
-    if len(bad):
-        v.fail(f"{where}[{bad[0]}]", "a positive size in m", float(dims[bad[0]]))
-    return dims
+_TRACK_KEYS = ("start", "x", "y", "yaw", "speed", "valid", "synthetic")
 
 
-def _load_class(v: _V, value: Any, where: str) -> str:
-    name = v.string(value, where)
-    if not CLASS_RE.match(name):
-        v.fail(where, f"a lower-case class name such as {list(ACTOR_CLASSES[:4])}", name)
-    return name
+def _load_dims(node: Node) -> np.ndarray:
+    return node.numbers(length=3, lo=0.0, lo_open=True, hi=MAX_SIZE, expected=f"a positive size in m (at most {MAX_SIZE:g})")
 
 
-def _scene_from_dict(doc: Any, path: str | Path | None) -> Scene:
-    v = _V(path)
-    check_header(doc, path, FORMAT, SUPPORTED_VERSIONS)
-    scene_id = v.string(v.key(doc, "id", "$"), "$.id")
+def _load_class(node: Node) -> str:
+    return node.string(pattern=CLASS_PATTERN, expected=f"a lower-case class name such as {class_examples(4)}")
 
-    src = v.obj(doc, "source", "$")
-    kind = v.string(v.key(src, "kind", "$.source"), "$.source.kind", choices=SOURCE_KINDS)
-    details = src.get("details", {})
-    if not isinstance(details, dict):
-        v.fail("$.source.details", "an object", type(details).__name__)
-    source = Source(
-        kind=kind, details=details,
-        licence=v.string(src.get("licence"), "$.source.licence", nullable=True),
-        attribution=v.string(src.get("attribution"), "$.source.attribution", nullable=True),
+
+_LANE_KEYS = ("id", "centerline", "width", "left", "right", "successors", "speed_limit")
+
+
+def _load_lane(ld: Node) -> Lane:
+    ld.check_keys(_LANE_KEYS)
+    centerline = ld["centerline"].points(limit=MAX_COORD)
+    wd = ld["width"]
+    if isinstance(wd.value, list):
+        width = wd.numbers(length=len(centerline), lo=0.0, hi=MAX_SIZE)
+        if np.all(width == 0):
+            wd.fail("widths > 0 somewhere along the lane")
+    else:
+        width = np.array(wd.number(lo=0.0, lo_open=True, hi=MAX_SIZE))
+    left = ld.get("left")
+    right = ld.get("right")
+    succ = ld.get("successors", [])
+    limit = ld.get("speed_limit")
+    return Lane(
+        ld["id"].integer(lo=0), centerline, width,
+        None if left.value is None else left.integer(lo=0),
+        None if right.value is None else right.integer(lo=0),
+        [s.integer(lo=0) for s in succ.items("a list of lane ids")],
+        None if limit.value is None else limit.number(lo=0.0, lo_open=True, hi=MAX_SPEED),
     )
 
-    dt = v.number(v.key(doc, "dt", "$"), "$.dt", lo=0.0, lo_open=True)
-    frames = v.integer(v.key(doc, "frames", "$"), "$.frames", lo=1)
 
-    # map
-    mp = v.obj(doc, "map", "$")
+def _load_map(doc: Node) -> list[Lane]:
+    doc["map"].object()
+    doc["map"].check_keys(("lanes",))
+    nodes = doc["map"]["lanes"].objects("a non-empty list of lanes", non_empty=True)
     lanes: list[Lane] = []
     seen: set[int] = set()
-    for w, ld in v.objects(v.key(mp, "lanes", "$.map"), "$.map.lanes", "a non-empty list of lanes", non_empty=True):
-        lane_id = v.unique(v.integer(v.key(ld, "id", w), f"{w}.id", lo=0), f"{w}.id", seen, "lane id")
-        centerline = v.points(v.key(ld, "centerline", w), f"{w}.centerline")
-        wd = v.key(ld, "width", w)
-        if isinstance(wd, list):
-            width = v.array(wd, f"{w}.width", length=len(centerline), lo=0.0)
-        else:
-            width = np.array(v.number(wd, f"{w}.width", lo=0.0, lo_open=True))
-        if np.ndim(width) and np.all(width == 0):
-            v.fail(f"{w}.width", "widths > 0 somewhere along the lane")
-        left = ld.get("left")
-        right = ld.get("right")
-        left = None if left is None else v.integer(left, f"{w}.left", lo=0)
-        right = None if right is None else v.integer(right, f"{w}.right", lo=0)
-        succ = ld.get("successors", [])
-        if not isinstance(succ, list):
-            v.fail(f"{w}.successors", "a list of lane ids", succ)
-        successors = [v.integer(s, f"{w}.successors[{k}]", lo=0) for k, s in enumerate(succ)]
-        limit = ld.get("speed_limit")
-        limit = None if limit is None else v.number(limit, f"{w}.speed_limit", lo=0.0, lo_open=True)
-        lanes.append(Lane(lane_id, centerline, width, left, right, successors, limit))
-    for i, lane in enumerate(lanes):  # references must name existing lanes
-        w = f"$.map.lanes[{i}]"
+    for ld in nodes:
+        lane = _load_lane(ld)
+        ld["id"].unique(lane.id, seen, "lane id")
+        lanes.append(lane)
+    for ld, lane in zip(nodes, lanes):  # references must name existing lanes
         for name in ("left", "right"):
             ref = getattr(lane, name)
             if ref is not None and (ref not in seen or ref == lane.id):
-                v.fail(f"{w}.{name}", "the id of another lane in $.map.lanes, or null", ref)
+                ld[name].fail("the id of another lane in $.map.lanes, or null", ref)
         for k, ref in enumerate(lane.successors):
             if ref not in seen:
-                v.fail(f"{w}.successors[{k}]", "the id of a lane in $.map.lanes", ref)
+                ld["successors"][k].fail("the id of a lane in $.map.lanes", ref)
+    return lanes
 
-    # background
-    bd = v.obj(doc, "background", "$")
-    barriers = []
-    for w, b in v.objects(bd.get("barriers", []), "$.background.barriers", "a list of barriers"):
-        barriers.append(Barrier(
-            kind=v.string(v.key(b, "kind", w), f"{w}.kind", choices=BARRIER_KINDS),
-            polyline=v.points(v.key(b, "polyline", w), f"{w}.polyline"),
-            height=v.number(b.get("height", 0.8), f"{w}.height", lo=0.0, lo_open=True),
-        ))
-    meshes = []
-    for w, m in v.objects(bd.get("meshes", []), "$.background.meshes", "a list of static meshes"):
-        meshes.append(StaticMesh(
-            file=v.string(v.key(m, "file", w), f"{w}.file"),
-            pose=v.array(m.get("pose", [0, 0, 0, 0]), f"{w}.pose", length=4),
-            surface=v.string(m.get("surface", "concrete"), f"{w}.surface", choices=SURFACE_KINDS_FOR_MESHES),
-        ))
-    markings = bd.get("lane_markings", True)
-    if not isinstance(markings, bool):
-        v.fail("$.background.lane_markings", "true or false", markings)
-    background = Background(
-        shoulder_left=v.number(v.key(bd, "shoulder_left", "$.background"), "$.background.shoulder_left", lo=0.0),
-        shoulder_right=v.number(v.key(bd, "shoulder_right", "$.background"), "$.background.shoulder_right", lo=0.0),
-        ground_margin=v.number(bd.get("ground_margin", 30.0), "$.background.ground_margin", lo=0.0),
-        lane_markings=markings, barriers=barriers, meshes=meshes,
+
+_BACKGROUND_KEYS = ("shoulder_left", "shoulder_right", "ground_margin", "lane_markings", "barriers", "meshes")
+
+
+def _load_barrier(b: Node) -> Barrier:
+    b.check_keys(("kind", "height", "polyline"))
+    return Barrier(kind=b["kind"].string(choices=BARRIER_KINDS), polyline=b["polyline"].points(limit=MAX_COORD),
+                   height=b.get("height", 0.8).number(lo=0.0, lo_open=True, hi=MAX_SIZE))
+
+
+def _load_static_mesh(m: Node) -> StaticMesh:
+    m.check_keys(("file", "pose", "surface"))
+    pose = m.get("pose", [0, 0, 0, 0]).numbers(length=4, lo=-MAX_COORD, hi=MAX_COORD)
+    return StaticMesh(file=m["file"].rel_path(inside="the scene's folder"), pose=pose,
+                      surface=m.get("surface", "concrete").string(choices=SURFACE_KINDS_FOR_MESHES))
+
+
+def _load_background(bd: Node) -> Background:
+    bd.object()
+    bd.check_keys(_BACKGROUND_KEYS)
+    barriers = [_load_barrier(b) for b in bd.get("barriers", []).objects("a list of barriers")]
+    meshes = [_load_static_mesh(m) for m in bd.get("meshes", []).objects("a list of static meshes")]
+    return Background(
+        shoulder_left=bd["shoulder_left"].number(lo=0.0, hi=MAX_MARGIN),
+        shoulder_right=bd["shoulder_right"].number(lo=0.0, hi=MAX_MARGIN),
+        ground_margin=bd.get("ground_margin", 30.0).number(lo=0.0, hi=MAX_MARGIN),
+        lane_markings=bd.get("lane_markings", True).boolean(), barriers=barriers, meshes=meshes,
     )
 
-    # ego
-    ed = v.obj(doc, "ego", "$")
+
+def _load_ego(ed: Node, frames: int) -> Ego:
+    ed.check_keys(("dimensions", "wheelbase", "sensors", "track"))
     sensors = []
     names: set[str] = set()
-    for w, s in v.objects(ed.get("sensors", []), "$.ego.sensors", "a list of LiDARs"):
-        name = v.unique(v.string(v.key(s, "name", w), f"{w}.name"), f"{w}.name", names, "sensor name")
-        sensors.append(Lidar(name=name, model=v.string(v.key(s, "model", w), f"{w}.model"),
-                             mount=v.array(v.key(s, "mount", w), f"{w}.mount", length=6)))
-    ego = Ego(
-        dimensions=_load_dims(v, v.key(ed, "dimensions", "$.ego"), "$.ego.dimensions"),
-        wheelbase=v.number(v.key(ed, "wheelbase", "$.ego"), "$.ego.wheelbase", lo=0.0, lo_open=True),
-        track=_load_track(v, v.key(ed, "track", "$.ego"), "$.ego.track", frames, full=True),
+    for s in ed.get("sensors", []).objects("a list of LiDARs"):
+        s.check_keys(("name", "model", "mount"))
+        name = s["name"].unique(s["name"].string(), names, "sensor name")
+        sensors.append(Lidar(name=name, model=s["model"].string(),
+                             mount=s["mount"].numbers(length=6, lo=-MAX_SIZE, hi=MAX_SIZE)))
+    return Ego(
+        dimensions=_load_dims(ed["dimensions"]),
+        wheelbase=ed["wheelbase"].number(lo=0.0, lo_open=True, hi=MAX_SIZE),
+        track=_load_track(ed["track"], frames, full=True),
         sensors=sensors,
     )
 
-    # actors
+
+def _load_actors(nodes: Node, frames: int) -> list[Actor]:
     actors: list[Actor] = []
     ids: set[int] = set()
-    for w, ad in v.objects(v.key(doc, "actors", "$"), "$.actors", "a list of actors"):
-        actor_id = v.unique(v.integer(v.key(ad, "id", w), f"{w}.id", lo=0), f"{w}.id", ids, "actor id")
+    for ad in nodes.objects("a list of actors"):
+        ad.check_keys(("id", "class", "dimensions", "asset", "track"))
         actors.append(Actor(
-            id=actor_id,
-            cls=_load_class(v, v.key(ad, "class", w), f"{w}.class"),
-            dimensions=_load_dims(v, v.key(ad, "dimensions", w), f"{w}.dimensions"),
-            asset=v.string(ad.get("asset"), f"{w}.asset", nullable=True),
-            track=_load_track(v, v.key(ad, "track", w), f"{w}.track", frames, full=False),
+            id=ad["id"].unique(ad["id"].integer(lo=0), ids, "actor id"),
+            cls=_load_class(ad["class"]),
+            dimensions=_load_dims(ad["dimensions"]),
+            asset=_load_asset_id(ad.get("asset")),
+            track=_load_track(ad["track"], frames, full=False),
         ))
+    return actors
+
+
+def _load_asset_id(node: Node) -> str | None:
+    """A vehicle library asset id or null (checked against a library by ``scene.actors.check_assets``)."""
+    return None if node.value is None else node.name()
+
+
+_SCENE_KEYS = ("format", "version", "id", "source", "dt", "frames", "map", "background", "ego", "actors")
+
+
+def _scene_from_dict(raw: Any, path: str | Path | None) -> Scene:
+    doc = Node(raw, "$", path)
+    check_header(doc, FORMAT, SUPPORTED_VERSIONS)
+    doc.check_keys(_SCENE_KEYS, required=_SCENE_KEYS)
+    scene_id = doc["id"].name()  # becomes a folder name (attack run bundles)
+    src = doc["source"]
+    src.object()
+    src.check_keys(("kind", "details", "licence", "attribution"))
+    source = Source(
+        kind=src["kind"].string(choices=SOURCE_KINDS),
+        details=src.get("details", {}).object(),
+        licence=src.get("licence").string(nullable=True),
+        attribution=src.get("attribution").string(nullable=True),
+    )
+    dt = doc["dt"].number(lo=0.0, lo_open=True, hi=MAX_DT)
+    frames = doc["frames"].integer(lo=1, hi=MAX_FRAMES)
+    lanes = _load_map(doc)
+    background = _load_background(doc["background"])
+    ed = doc["ego"]
+    ed.object()
+    ego = _load_ego(ed, frames)
+    actors = _load_actors(doc["actors"], frames)
     return Scene(scene_id, source, dt, frames, lanes, background, ego, actors)
 
 

@@ -7,6 +7,8 @@ from pathlib import Path
 
 def register(subparsers) -> None:
     """Add ``lidar render`` and ``lidar models``."""
+    from .. import argtypes as at
+
     parser = subparsers.add_parser("lidar", help="simulate the ego's LiDAR in a scene",
                                    description="Simulate the ego's LiDAR (Embree ray casting) in a scene.")
     sub = parser.add_subparsers(dest="lidar_command", metavar="SUBCOMMAND")
@@ -14,16 +16,16 @@ def register(subparsers) -> None:
 
     render = sub.add_parser("render", help="simulate one frame: points as PLY, optional bird's-eye PNG")
     render.add_argument("scene", help="scene file (.json or .json.gz)")
-    render.add_argument("--frame", type=int, default=0, help="frame index (default 0)")
+    render.add_argument("--frame", type=at.count, default=0, help="frame index (default 0)")
     render.add_argument("-o", "--output", required=True, help="output PLY (x, y, z, intensity, ring, label, sensor)")
     render.add_argument("--bev", help="also write a bird's-eye PNG here")
     render.add_argument("--sensor", help="replace the rig's LiDAR model(s): hdl64, vlp32c, os1-128, generic-N")
-    render.add_argument("--seed", type=int, default=0, help="seed of range noise and ray drop (default 0)")
+    render.add_argument("--seed", type=at.seed, default=0, help="seed of range noise and ray drop (default 0)")
     render.add_argument("--ideal", action="store_true", help="no range noise, no ray drop")
     render.add_argument("--library", default=None,
                         help="vehicle library JSON for actor meshes (default: the bundled one if present; "
                              "'none' draws actors as boxes)")
-    render.add_argument("--extent", type=float, default=60.0, help="half-size of the bird's-eye view, m")
+    render.add_argument("--extent", type=at.number(0.0, 10000.0, lo_open=True), default=60.0, help="half-size of the bird's-eye view, m")
     render.set_defaults(func=_render)
 
     models = sub.add_parser("models", help="list the LiDAR models and their beam tables")

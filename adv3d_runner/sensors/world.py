@@ -168,6 +168,7 @@ def world_from_scene(scene, library=None, scene_dir=None) -> LidarWorld:
     if library is not None:
         from ..scene import actors as actors_mod
 
+        actors_mod.check_assets(scene, library)
         scene = actors_mod.assign_assets(scene, library)
     for actor in scene.actors:
         mesh = None

@@ -7,21 +7,23 @@ from pathlib import Path
 
 
 def register(subparsers) -> None:
+    from .. import argtypes as at
+
     p = subparsers.add_parser("shapes", help="build, decode and inspect the PCA vehicle shape space")
     sub = p.add_subparsers(dest="shapes_command", metavar="SUBCOMMAND")
 
     b = sub.add_parser("build", help="SDF volumes of the library's shape-space assets -> PCA shape space (.npz)")
     b.add_argument("--library", type=Path, default=None, help="library.json (default: the bundled library)")
-    b.add_argument("--resolution", type=int, default=None, help="SDF grid resolution N (default 64)")
-    b.add_argument("--k", type=int, default=None, help="number of principal components K (default 3)")
+    b.add_argument("--resolution", type=at.integer(8, 512), default=None, help="SDF grid resolution N (default 64)")
+    b.add_argument("--k", type=at.integer(1, 64), default=None, help="number of principal components K (default 3)")
     b.add_argument("--method", default=None, help="SDF inside/outside method: winding (default), floodfill, rayvote")
-    b.add_argument("--truncation", type=float, default=None, help="SDF truncation in unit-cube units (default 0.1)")
+    b.add_argument("--truncation", type=at.number(0.0, 1.0, lo_open=True), default=None, help="SDF truncation in unit-cube units (default 0.1)")
     b.add_argument("--out", type=Path, default=None,
                    help="output .npz (default assets/shape_space/vehicles_<N>.npz)")
     b.set_defaults(func=_build)
 
     d = sub.add_parser("decode", help="decode a unit vector in [0,1]^(K+2) to a metric vehicle mesh")
-    d.add_argument("--u", required=True,
+    d.add_argument("--u", required=True, type=at.numbers(0.0, 1.0),
                    help="comma-separated unit vector: K latents then width and length scale, e.g. 0.5,0.5,0.5,0.5,0.5")
     d.add_argument("-o", "--out", type=Path, required=True, help="mesh file (.glb, .obj, .ply or .stl)")
     d.add_argument("--space", type=Path, default=None, help="shape space .npz (default: the bundled one)")
@@ -33,7 +35,7 @@ def register(subparsers) -> None:
 
     r = sub.add_parser("realism", help="realism figures of a shape: JSD, nearest vehicle, Mahalanobis, "
                                        "artefacts, dimensions (docs/realism.md)")
-    r.add_argument("--u", required=True, help="comma-separated unit vector, as for decode")
+    r.add_argument("--u", required=True, type=at.numbers(0.0, 1.0), help="comma-separated unit vector, as for decode")
     r.add_argument("--class", dest="vehicle_class", default=None,
                    help="vehicle class for the dimension check (default: the nearest library model's)")
     r.add_argument("--space", type=Path, default=None, help="shape space .npz (default: the bundled one)")
@@ -96,28 +98,23 @@ def _decode(args: argparse.Namespace) -> int:
     suffix = args.out.suffix.lower()
     if suffix not in MESH_SUFFIXES:
         raise ConfigError(f"-o must end in one of {', '.join(MESH_SUFFIXES)}, got {args.out.name!r}")
-    try:
-        u = [float(x) for x in args.u.split(",") if x.strip() != ""]
-    except ValueError:
-        raise ConfigError(f"--u must be comma-separated numbers, got {args.u!r}") from None
+    u = args.u  # a list of numbers in [0, 1] (argtypes.numbers)
+    import trimesh
+
     space = _load_space(args.space)
-    mesh = space.decode(u)
+    info: dict = {}
+    mesh = trimesh.Trimesh(*space.decode_arrays(u, info=info), process=False)
     write_mesh(mesh, args.out)
     z, scales = space.unit_to_latent(u)
     ext = mesh.extents
+    dropped = ""
+    if info["dropped_parts"] or info["dropped_cavities"]:
+        dropped = (f"; dropped {info['dropped_parts']} small part(s) and {info['dropped_cavities']} cavity(ies), "
+                   f"{info['dropped_volume_m3']:.3g} m^3")
     status(f"decoded z={[round(float(x), 4) for x in z]} width/length scale={[round(float(x), 3) for x in scales]}: "
-           f"{len(mesh.vertices)} vertices, {len(mesh.faces)} faces, {ext[0]:.2f} x {ext[1]:.2f} x {ext[2]:.2f} m "
-           f"(nearest library asset {space.nearest_asset(u)}) -> {args.out}")
+           f"{len(mesh.vertices)} vertices, {len(mesh.faces)} faces, {ext[0]:.2f} x {ext[1]:.2f} x {ext[2]:.2f} m, "
+           f"{info['kept_parts']} part(s){dropped} (nearest library asset {space.nearest_asset(u)}) -> {args.out}")
     return 0
-
-
-def _parse_unit(text: str) -> list[float]:
-    from ..errors import ConfigError
-
-    try:
-        return [float(x) for x in text.split(",") if x.strip() != ""]
-    except ValueError:
-        raise ConfigError(f"--u must be comma-separated numbers, got {text!r}") from None
 
 
 def _realism(args: argparse.Namespace) -> int:
@@ -131,7 +128,7 @@ def _realism(args: argparse.Namespace) -> int:
     if args.vehicle_class is not None and args.vehicle_class not in DIMENSION_RANGES:
         raise ConfigError(f"--class must be one of {', '.join(DIMENSION_RANGES)}, got {args.vehicle_class!r}")
     space = _load_space(args.space)
-    u = _parse_unit(args.u)
+    u = args.u
     space.check_unit(u)
     ref = default_reference(space)
     t0 = time.perf_counter()

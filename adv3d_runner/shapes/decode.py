@@ -1,14 +1,23 @@
 """Signed distance volume -> metric vehicle mesh (the hot path of every attack query).
 
 Marching cubes runs on the volume padded by one layer of a positive ("outside") value, so the
-surface is closed even where a shape touches the grid border. Numpy + scikit-image only: the
-Blender add-on calls this in-process for live latent sliders.
+surface is closed even where a shape touches the grid border. Numpy + scikit-image only (scipy
+for part labels where it is installed, see ``cleaning.connected_vertex_parts``): the Blender
+add-on calls this in-process for live latent sliders.
+
+The decoded vehicle is placed by the footprint of its *body*, its largest closed part, so a
+small blob beside it (kept or dropped) never shifts the car. What the clean-up drops is
+counted: ``extract_surface(..., info=d)`` fills ``d`` with the part counts and volumes, and
+each drop is logged (logger ``adv3d_runner.shapes.decode``, level INFO).
 """
 from __future__ import annotations
+
+import logging
 
 import numpy as np
 
 from ..errors import EmptySurfaceError
+from .cleaning import connected_vertex_parts
 from .sdf import GridSpec
 
 #: Field values closer to zero than this fraction of a voxel are pushed to +-it before marching
@@ -23,69 +32,23 @@ _ZERO_NUDGE = 1e-3
 #: volume); a LiDAR sees them as stray points in the air.
 MIN_PART_FRACTION = 0.01
 
-
-def connected_vertex_parts(n_vertices: int, edges: np.ndarray) -> tuple[int, np.ndarray]:
-    """Connected components of a mesh's vertex graph.
-
-    Args:
-        n_vertices: V.
-        edges: (E, 2) vertex index pairs.
-    Returns:
-        the number of parts and a (V,) part label per vertex (0..parts-1).
-
-    scipy's sparse graph routine is used when it can be imported (~1 ms); Blender ships without
-    scipy, so the add-on falls back to a numpy min-label propagation (same labels up to
-    numbering, ~10x slower but still within a slider update).
-    """
-    try:
-        from scipy.sparse import coo_matrix
-        from scipy.sparse.csgraph import connected_components
-    except ImportError:
-        return _connected_vertex_parts_numpy(n_vertices, edges)
-    graph = coo_matrix((np.ones(len(edges), dtype=np.int8), (edges[:, 0], edges[:, 1])),
-                       shape=(n_vertices, n_vertices))
-    return connected_components(graph, directed=False)
+logger = logging.getLogger(__name__)
 
 
-def _connected_vertex_parts_numpy(n_vertices: int, edges: np.ndarray) -> tuple[int, np.ndarray]:
-    """numpy-only ``connected_vertex_parts``: hook roots to the smaller label, then pointer-jump."""
-    label = np.arange(n_vertices)
-    a, b = edges[:, 0], edges[:, 1]
-    while True:
-        la, lb = label[a], label[b]
-        low = np.minimum(la, lb)
-        new = label.copy()
-        np.minimum.at(new, la, low)
-        np.minimum.at(new, lb, low)
-        while True:
-            jumped = new[new]
-            if np.array_equal(jumped, new):
-                break
-            new = jumped
-        if np.array_equal(new, label):
-            roots, parts = np.unique(label, return_inverse=True)
-            return len(roots), parts
-        label = new
-
-
-def _drop_small_parts(v: np.ndarray, f: np.ndarray, min_fraction: float) -> tuple[np.ndarray, np.ndarray]:
-    """Keep the closed parts enclosing >= ``min_fraction`` of the largest part's volume."""
-    nv = len(v)
-    edges = np.concatenate([f[:, :2], f[:, 1:]])
-    n_parts, label = connected_vertex_parts(nv, edges)
-    if n_parts == 1:
-        return v, f
+def _parts(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Part label per face (F,) and signed volume x 6 per part (P,), in ``v``'s units."""
+    n_parts, label = connected_vertex_parts(len(v), np.concatenate([f[:, :2], f[:, 1:]]))
     face_part = label[f[:, 0]]
     # Signed volume per part: sum of tetrahedra against the origin (divergence theorem).
     tri = v[f]
     vol6 = np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2]))
-    part_vol = np.bincount(face_part, weights=vol6, minlength=n_parts)
-    keep_part = part_vol >= min_fraction * part_vol.max()
-    keep = keep_part[face_part]
-    if keep.all():
-        return v, f
+    return face_part, np.bincount(face_part, weights=vol6, minlength=n_parts)
+
+
+def _keep_faces(v: np.ndarray, f: np.ndarray, keep: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The faces ``keep`` (F,) bool, with unused vertices removed."""
     f = f[keep]
-    used = np.zeros(nv, dtype=bool)
+    used = np.zeros(len(v), dtype=bool)
     used[f.ravel()] = True
     remap = np.cumsum(used) - 1
     return v[used], remap[f]
@@ -96,6 +59,7 @@ def extract_surface(
     grid: GridSpec,
     scales: tuple[float, float] = (1.0, 1.0),
     min_part_fraction: float = MIN_PART_FRACTION,
+    info: dict | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Zero level set of ``field`` as a metric mesh in the vehicle convention.
 
@@ -105,9 +69,14 @@ def extract_surface(
         scales: (width_scale, length_scale) applied to y and x after metric scaling.
         min_part_fraction: drop closed parts smaller than this fraction of the largest one and
             cavities; 0 keeps the raw marching-cubes surface.
+        info: if a dict, filled with ``parts`` (closed parts of the raw surface),
+            ``dropped_parts`` (small parts dropped), ``dropped_cavities``, ``dropped_volume_m3``
+            (|volume| of everything dropped), ``kept_parts``, ``volume_m3`` (of what is kept)
+            and ``body_volume_m3`` (the largest part, which places the vehicle).
     Returns:
-        vertices (V, 3) float64 metres, origin at the footprint (x/y bounding box) centre with
-        the lowest point at z = 0; faces (F, 3) int64, counter-clockwise seen from outside.
+        vertices (V, 3) float64 metres: x/y origin at the centre of the body's footprint (the
+        x/y bounding box of the largest closed part), the lowest point at z = 0; faces (F, 3)
+        int64, counter-clockwise seen from outside.
     Raises:
         EmptySurfaceError: the field has no zero crossing (all inside or all outside).
     """
@@ -128,8 +97,6 @@ def extract_surface(
         vol, level=0.0, method="lewiner", step_size=1, allow_degenerate=True, gradient_direction="descent"
     )
     faces = faces.astype(np.int64, copy=False)
-    if min_part_fraction > 0:
-        verts, faces = _drop_small_parts(verts, faces, min_part_fraction)
     # Node index -> unit cube (undo the pad) -> metres, then the requested width/length scales.
     v = verts.astype(np.float64)
     v -= 1.0
@@ -138,11 +105,34 @@ def extract_surface(
     v = grid.to_metric(v)
     v[:, 0] *= float(scales[1])
     v[:, 1] *= float(scales[0])
-    mn = v.min(axis=0)
-    mx = v.max(axis=0)
-    v[:, 0] -= 0.5 * (mn[0] + mx[0])
-    v[:, 1] -= 0.5 * (mn[1] + mx[1])
-    v[:, 2] -= mn[2]
+    face_part, vol6 = _parts(v, faces)
+    body = int(np.argmax(vol6))
+    stats = {"parts": int(len(vol6)), "dropped_parts": 0, "dropped_cavities": 0, "dropped_volume_m3": 0.0}
+    keep_part = np.ones(len(vol6), dtype=bool)
+    if min_part_fraction > 0 and len(vol6) > 1:
+        keep_part = vol6 >= min_part_fraction * vol6[body]
+        if not keep_part.all():
+            stats["dropped_parts"] = int(np.sum(~keep_part & (vol6 >= 0)))
+            stats["dropped_cavities"] = int(np.sum(vol6 < 0))
+            stats["dropped_volume_m3"] = float(np.abs(vol6[~keep_part]).sum() / 6.0)
+            logger.info("decode: dropped %d small part(s) and %d cavity(ies), %.3g m^3 of %.3g m^3",
+                        stats["dropped_parts"], stats["dropped_cavities"], stats["dropped_volume_m3"],
+                        float(vol6[keep_part].sum() / 6.0))
+            keep = keep_part[face_part]
+            v, faces = _keep_faces(v, faces, keep)
+            face_part = face_part[keep]
+            vol6 = np.where(keep_part, vol6, 0.0)
+    # Place by the body: a blob beside it must not move the car (its x/y box would).
+    body_v = v[np.unique(faces[face_part == body])]
+    bmn, bmx = body_v.min(axis=0), body_v.max(axis=0)
+    v[:, 0] -= 0.5 * (bmn[0] + bmx[0])
+    v[:, 1] -= 0.5 * (bmn[1] + bmx[1])
+    v[:, 2] -= v[:, 2].min()
+    if info is not None:
+        info.update(stats)
+        info["kept_parts"] = int(keep_part.sum())
+        info["volume_m3"] = float(vol6.sum() / 6.0)
+        info["body_volume_m3"] = float(vol6[body] / 6.0)
     # skimage's "descent" winding, with our (i, j, k) = (x, y, z) layout and a negative-inside
     # field, is counter-clockwise seen from outside (tests check the volume is positive).
     return v, np.ascontiguousarray(faces)

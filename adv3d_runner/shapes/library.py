@@ -17,28 +17,27 @@ This module imports only numpy / trimesh, so the Blender add-on can use it in-pr
 from __future__ import annotations
 
 import copy
-import math
 import re
+import shutil
 from dataclasses import dataclass, field
-from pathlib import Path, PurePosixPath
-from typing import Any
+from pathlib import Path
+from typing import Any, Callable
 
-from ..errors import FileFormatError
-from ..fileio import REPO_ROOT, check_header, read_json, write_json
+from ..errors import ConfigError, MeshImportError, UnknownIdError
+from ..fileio import REPO_ROOT, atomic_path, resolve_inside, write_json
+from ..validate import Node, check_header
+from ..vehicle_classes import CLASS_PATTERN, class_examples, is_class_name
 
 FORMAT = "adv3d-vehicle-library"
 VERSION = 1
 DEFAULT_LIBRARY: Path = REPO_ROOT / "assets" / "vehicles" / "library.json"
 
-#: Classes used in the shipped library (others are allowed: any lower-case identifier).
-VEHICLE_CLASSES = ("sedan", "hatchback", "sports", "suv", "van", "pickup", "truck", "bus",
-                   "ambulance", "fire_truck", "garbage_truck", "police", "taxi")
-
 _ID_RE = re.compile(r"^[a-z0-9][a-z0-9_.-]*$")
-_CLASS_RE = re.compile(r"^[a-z][a-z0-9_]*$")
 _ASSET_KEYS = ("id", "file", "class", "dimensions", "in_shape_space", "triangle_count",
                "source", "licence", "curation", "cleaning")
 _EXCLUDED_KEYS = ("pack", "file", "reason")
+#: Licence text files looked for beside an imported mesh, in this order.
+LICENCE_NAMES = ("License.txt", "LICENSE.txt", "LICENSE", "Licence.txt", "LICENCE", "license.txt")
 
 
 @dataclass(frozen=True)
@@ -101,12 +100,13 @@ class VehicleLibrary:
     excluded: list[dict] = field(default_factory=list)
 
     def get(self, asset_id: str) -> VehicleAsset:
-        """The asset with this id; ``KeyError`` listing the known ids if absent."""
+        """The asset with this id; ``UnknownIdError`` (a ``KeyError``) listing the known ids if
+        absent."""
         for asset in self.assets:
             if asset.id == asset_id:
                 return asset
-        raise KeyError(f"no asset {asset_id!r} in the library at {self.root} "
-                       f"(known: {', '.join(a.id for a in self.assets) or 'none'})")
+        raise UnknownIdError(f"no asset {asset_id!r} in the library at {self.root} "
+                             f"(known: {', '.join(a.id for a in self.assets) or 'none'})")
 
     def ids(self) -> list[str]:
         return [a.id for a in self.assets]
@@ -120,10 +120,13 @@ class VehicleLibrary:
         return [a for a in self.assets if a.vehicle_class == vehicle_class]
 
     def path_of(self, asset: VehicleAsset | str) -> Path:
-        """Absolute path of an asset's mesh file."""
+        """Path of an asset's mesh file, checked to stay inside the library folder (symlinks
+        included; ``FileFormatError`` naming library.json and the asset's ``file`` field)."""
         if isinstance(asset, str):
             asset = self.get(asset)
-        return self.root / asset.file
+        index = next((i for i, a in enumerate(self.assets) if a.id == asset.id), None)
+        return resolve_inside(self.root, asset.file, file=self.root / "library.json", field=f"$.assets[{index}].file",
+                              inside="the library folder")
 
     def put(self, asset: VehicleAsset) -> None:
         """Add ``asset``, or replace the asset with the same id in place (keeps order)."""
@@ -144,100 +147,61 @@ class VehicleLibrary:
 
 # ----------------------------------------------------------------------------- validation
 
-def _require(cond: bool, path: Path | None, where: str, expected: str, got: Any) -> None:
-    if not cond:
-        raise FileFormatError(path, where, expected, got)
-
-
-def _is_number(x: Any) -> bool:
-    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
-
-
-def _check_keys(obj: dict, allowed: tuple[str, ...], required: tuple[str, ...], path, where) -> None:
-    for key in required:
-        _require(key in obj, path, f"{where}.{key}", "a value (required field)", "missing")
-    for key in obj:
-        _require(key in allowed, path, f"{where}.{key}", f"no such field (allowed: {', '.join(allowed)})", key)
-
-
-def _check_rel_file(value: Any, path, where: str) -> str:
-    _require(isinstance(value, str) and value != "", path, where, "a relative file path (string)", value)
-    p = PurePosixPath(value)
-    _require(not p.is_absolute() and ".." not in p.parts and "\\" not in value, path, where,
-             "a relative POSIX path inside the library folder (no '..', no absolute path)", value)
-    return value
-
-
-def _check_json_object(value: Any, path, where: str) -> dict:
-    _require(isinstance(value, dict), path, where, "a JSON object", value)
-    return value
-
-
 def asset_from_json(obj: Any, path: Path | None = None, where: str = "$") -> VehicleAsset:
     """Validate one asset object and build the :class:`VehicleAsset`.
 
     Raises:
         FileFormatError: naming ``path`` and the JSON path of the first bad field.
     """
-    _require(isinstance(obj, dict), path, where, "an asset object", obj)
-    _check_keys(obj, _ASSET_KEYS, _ASSET_KEYS, path, where)
-    aid = obj["id"]
-    _require(isinstance(aid, str) and bool(_ID_RE.match(aid)), path, f"{where}.id",
-             "a lower-case id of [a-z0-9_.-] starting with a letter or digit", aid)
-    file = _check_rel_file(obj["file"], path, f"{where}.file")
-    cls = obj["class"]
-    _require(isinstance(cls, str) and bool(_CLASS_RE.match(cls)), path, f"{where}.class",
-             f"a lower-case class name such as {', '.join(VEHICLE_CLASSES[:8])}", cls)
-    dims = obj["dimensions"]
-    _require(isinstance(dims, list) and len(dims) == 3, path, f"{where}.dimensions",
-             "[length, width, height] in metres", dims)
-    for i, d in enumerate(dims):
-        _require(_is_number(d) and d > 0, path, f"{where}.dimensions[{i}]", "a finite number > 0 (metres)", d)
-    iss = obj["in_shape_space"]
-    _require(isinstance(iss, bool), path, f"{where}.in_shape_space", "true or false", iss)
-    tri = obj["triangle_count"]
-    _require(isinstance(tri, int) and not isinstance(tri, bool) and tri > 0, path,
-             f"{where}.triangle_count", "an integer > 0", tri)
-    source = _check_json_object(obj["source"], path, f"{where}.source")
+    return _asset(obj if isinstance(obj, Node) else Node(obj, where, path))
+
+
+def _asset(node: Node) -> VehicleAsset:
+    node.object("an asset object")
+    node.check_keys(_ASSET_KEYS, required=_ASSET_KEYS)
+    aid = node["id"].string(pattern=_ID_RE,
+                            expected="a lower-case id of [a-z0-9_.-] starting with a letter or digit")
+    file = node["file"].rel_path(inside="the library folder")
+    cls = node["class"].string(pattern=CLASS_PATTERN,
+                               expected=f"a lower-case class name such as {', '.join(class_examples(8))}")
+    dims = node["dimensions"].numbers(length=3, lo=0.0, lo_open=True, expected="a finite number > 0 (metres)")
+    iss = node["in_shape_space"].boolean()
+    tri = node["triangle_count"].integer(lo=1, expected="an integer > 0")
+    source = node["source"]
+    source.object("a JSON object")
     for key in ("pack", "file"):
-        _require(isinstance(source.get(key), str) and source.get(key) != "", path, f"{where}.source.{key}",
-                 "a non-empty string", source.get(key))
-    licence = _check_json_object(obj["licence"], path, f"{where}.licence")
-    _require(isinstance(licence.get("name"), str) and licence.get("name") != "", path,
-             f"{where}.licence.name", "a licence name such as \"CC0-1.0\"", licence.get("name"))
-    _check_rel_file(licence.get("file"), path, f"{where}.licence.file")
-    curation = _check_json_object(obj["curation"], path, f"{where}.curation")
-    cleaning = _check_json_object(obj["cleaning"], path, f"{where}.cleaning")
+        source.get(key).string()
+    licence = node["licence"]
+    licence.object("a JSON object")
+    licence.get("name").string(expected='a licence name such as "CC0-1.0"')
+    licence.get("file").rel_path(inside="the library folder")
+    curation = node["curation"].object("a JSON object")
+    cleaning = node["cleaning"].object("a JSON object")
     return VehicleAsset(
         id=aid, file=file, vehicle_class=cls,
         dimensions=(float(dims[0]), float(dims[1]), float(dims[2])),
-        source=copy.deepcopy(source), licence=copy.deepcopy(licence), triangle_count=int(tri),
+        source=copy.deepcopy(source.value), licence=copy.deepcopy(licence.value), triangle_count=tri,
         cleaning=copy.deepcopy(cleaning), curation=copy.deepcopy(curation), in_shape_space=iss,
     )
 
 
 def library_from_json(doc: Any, root: Path, path: Path | None = None) -> VehicleLibrary:
     """Validate a parsed library.json document and build the :class:`VehicleLibrary`."""
-    check_header(doc, path, FORMAT, (VERSION,))
-    _check_keys(doc, ("format", "version", "assets", "excluded"), ("assets",), path, "$")
-    raw_assets = doc["assets"]
-    _require(isinstance(raw_assets, list), path, "$.assets", "a list of asset objects", raw_assets)
+    node = doc if isinstance(doc, Node) else Node(doc, "$", path)
+    check_header(node, FORMAT, (VERSION,))
+    node.check_keys(("format", "version", "assets", "excluded"), required=("assets",))
     assets: list[VehicleAsset] = []
     seen: set[str] = set()
-    for i, obj in enumerate(raw_assets):
-        asset = asset_from_json(obj, path, f"$.assets[{i}]")
-        _require(asset.id not in seen, path, f"$.assets[{i}].id", "an id not used by an earlier asset", asset.id)
-        seen.add(asset.id)
+    for item in node["assets"].items("a list of asset objects"):
+        asset = _asset(item)
+        item["id"].unique(asset.id, seen, "asset id")
         assets.append(asset)
-    excluded = doc.get("excluded", [])
-    _require(isinstance(excluded, list), path, "$.excluded", "a list of {pack, file, reason}", excluded)
-    for i, ex in enumerate(excluded):
-        where = f"$.excluded[{i}]"
-        _require(isinstance(ex, dict), path, where, "an object {pack, file, reason}", ex)
-        _check_keys(ex, _EXCLUDED_KEYS, _EXCLUDED_KEYS, path, where)
+    excluded = node.get("excluded", [])
+    for ex in excluded.objects("a list of {pack, file, reason}", item="an object {pack, file, reason}"):
+        ex.check_keys(_EXCLUDED_KEYS, required=_EXCLUDED_KEYS)
         for key in _EXCLUDED_KEYS:
-            _require(isinstance(ex[key], str) and ex[key] != "", path, f"{where}.{key}", "a non-empty string", ex[key])
-    return VehicleLibrary(root=Path(root), assets=assets, excluded=copy.deepcopy(excluded))
+            ex[key].string()
+    return VehicleLibrary(root=Path(root), assets=assets, excluded=copy.deepcopy(excluded.value))
 
 
 def load_library(path: str | Path = DEFAULT_LIBRARY) -> VehicleLibrary:
@@ -248,8 +212,40 @@ def load_library(path: str | Path = DEFAULT_LIBRARY) -> VehicleLibrary:
             message names the file and the JSON path.
     """
     path = Path(path)
-    doc = read_json(path)
-    return library_from_json(doc, path.parent, path)
+    return library_from_json(Node.load(path), path.parent, path)
+
+
+def library_fingerprint(library: VehicleLibrary) -> str:
+    """``sha256:`` over the library's records and the bytes of every mesh file it lists.
+
+    What a scene's actors look like depends on both; runs record it (run.json) and a resume
+    refuses another library. Missing mesh files count as empty.
+    """
+    import hashlib
+    import json
+
+    h = hashlib.sha256(json.dumps(library.to_json(), sort_keys=True).encode())
+    for asset in library.assets:
+        path = library.path_of(asset)
+        h.update(asset.file.encode() + b"\0")
+        h.update(hashlib.sha256(path.read_bytes() if path.is_file() else b"").digest())
+    return "sha256:" + h.hexdigest()
+
+
+def resolve_library(arg: str | Path | None) -> VehicleLibrary | None:
+    """The library a ``--library`` option names: None or "" -> the bundled one, ``"none"`` ->
+    None (actors are boxes), else that library.json."""
+    if arg is None or str(arg) == "":
+        return load_library(DEFAULT_LIBRARY)
+    if str(arg).lower() == "none":
+        return None
+    return load_library(Path(arg))
+
+
+def load_or_new_library(path: str | Path) -> VehicleLibrary:
+    """The library at ``path``, or a new empty one rooted in its folder if there is no file."""
+    path = Path(path)
+    return load_library(path) if path.exists() else VehicleLibrary(root=path.parent)
 
 
 def save_library(library: VehicleLibrary, path: str | Path | None = None) -> Path:
@@ -279,3 +275,127 @@ def load_asset_mesh(library: VehicleLibrary, asset_id: str):
     from .mesh_io import read_library_mesh  # trimesh import kept out of module import
 
     return read_library_mesh(library.path_of(asset_id))
+
+
+# ----------------------------------------------------------------------------- adding assets
+
+#: ``read(path) -> (mesh in the convention frame, curation record, cleaning report)``: how a
+#: vehicle file becomes a mesh (``mesh_io.import_vehicle`` for the CLI, Blender's importers
+#: followed by ``mesh_io.convert_vehicle`` in the add-on).
+MeshReader = Callable[[Path], tuple[Any, dict, dict]]
+
+
+def slug(text: str) -> str:
+    """File-name-safe lower-case id part: ``"SportsCar2"`` -> ``"sportscar2"``."""
+    s = re.sub(r"[^a-z0-9._-]+", "-", text.lower()).strip("-.")
+    if not s:
+        raise ConfigError(f"cannot make an id from {text!r}; give an asset id")
+    return s
+
+
+def find_licence(folder: Path) -> Path | None:
+    """The licence text beside a source file (one of :data:`LICENCE_NAMES`), or None."""
+    for name in LICENCE_NAMES:
+        if (folder / name).is_file():
+            return folder / name
+    return None
+
+
+def licence_name_from_text(text: str) -> str | None:
+    """The SPDX name of a licence text we can recognise (CC0, CC-BY 4.0), or None."""
+    t = text.lower()
+    if "cc0" in t or "creative commons zero" in t or "publicdomain/zero" in t:
+        return "CC0-1.0"
+    if "creativecommons.org/licenses/by/4.0" in t:
+        return "CC-BY-4.0"
+    return None
+
+
+def add_asset(library: VehicleLibrary, library_path: str | Path, source: str | Path, vehicle_class: str,
+              read: MeshReader, *, asset_id: str | None = None, pack: str | None = None,
+              licence_file: str | Path | None = None, licence_name: str | None = None, author: str = "",
+              url: str = "", note: str = "", in_shape_space: bool = True) -> VehicleAsset:
+    """Add one vehicle file to ``library`` (or replace the asset with the same id) and save it.
+
+    The one import pipeline behind ``adv3d assets import`` and the add-on's *Import vehicle*:
+    everything that can be refused (class, file, licence) is checked before the mesh is read;
+    the mesh is written to ``<pack>/<name>.glb`` beside ``library_path``; dimensions and
+    triangle count come from the stored file (float32 in glb); the licence text is copied to
+    ``<pack>/``; the library is saved atomically (after each asset, so a failure later keeps
+    earlier work).
+
+    Args:
+        library: the library to add to (modified in place; its ``root`` is the mesh folder).
+        library_path: where to save it (``library.json``).
+        source: the vehicle file.
+        vehicle_class: a lower-case class name (``adv3d_runner.vehicle_classes``).
+        read: turns ``source`` into (mesh, curation record, cleaning report); see
+            :data:`MeshReader`.
+        asset_id: default ``<pack>.<file stem>`` (slugged).
+        pack: source pack folder name; default the source file's folder name.
+        licence_file: licence text; default one of :data:`LICENCE_NAMES` beside ``source``.
+        licence_name: SPDX name; default read from the licence text.
+        author, url: credited in the ``source`` record.
+        note: why the asset was curated this way (``curation.note``).
+        in_shape_space: include the asset in the PCA shape space.
+
+    Returns:
+        the stored :class:`VehicleAsset`.
+
+    Raises:
+        ConfigError: bad class or id, no licence file, unknown licence. MeshImportError: the
+            file is missing or cannot be read as a mesh. FileFormatError: the library would
+            not validate (nothing is written then).
+    """
+    from .mesh_io import mesh_dimensions, read_library_mesh, write_library_glb
+
+    source = Path(source)
+    if not is_class_name(vehicle_class):
+        raise ConfigError(f"the class must be a lower-case name such as sedan or suv (got {vehicle_class!r})")
+    if not source.is_file():
+        raise MeshImportError(f"{source}: no such file")
+    pack = slug(pack or source.parent.name)
+    asset_id = asset_id or f"{pack}.{slug(source.stem)}"
+    if not _ID_RE.match(asset_id):
+        raise ConfigError(f"asset id {asset_id!r}: use lower-case [a-z0-9_.-], starting with a letter or digit")
+    licence_src = Path(licence_file) if licence_file else find_licence(source.parent)
+    if licence_src is None or not licence_src.is_file():
+        raise ConfigError(f"{source}: no licence file beside it; give the licence file (licences travel with meshes)")
+    licence_name = licence_name or licence_name_from_text(licence_src.read_text(errors="replace"))
+    if not licence_name:
+        raise ConfigError(f"{licence_src}: cannot tell the licence from its text; give its name (e.g. CC0-1.0)")
+
+    mesh, curation, report = read(source)
+    if len(getattr(mesh, "faces", ())) == 0:
+        raise MeshImportError(f"{source}: no triangles left after conversion and cleaning; nothing was changed")
+    rel_file = f"{pack}/{asset_id.split('.', 1)[-1] if asset_id.startswith(pack + '.') else asset_id}.glb"
+    target = resolve_inside(library.root, rel_file, field="asset file", inside="the library folder")
+    lic_rel = f"{pack}/{licence_src.name}"
+    if note:
+        curation["note"] = note
+    # Nothing the library had is touched until the new mesh has been written beside it, read
+    # back and the new library validated: a broken mesh under an existing id keeps the old one.
+    with atomic_path(target) as tmp:
+        write_library_glb(mesh, tmp)
+        try:
+            stored = read_library_mesh(tmp)  # dimensions from what is on disk (float32 in glb)
+        except MeshImportError as exc:
+            raise MeshImportError(f"{source}: the converted mesh cannot be read back ({exc}); "
+                                  "nothing was changed in the library") from None
+        asset = VehicleAsset(
+            id=asset_id, file=rel_file, vehicle_class=vehicle_class,
+            dimensions=tuple(round(v, 4) for v in mesh_dimensions(stored)),
+            source={"pack": pack, "file": source.name, "author": author, "url": url},
+            licence={"name": licence_name, "file": lic_rel},
+            triangle_count=int(len(stored.faces)), cleaning=report, curation=curation,
+            in_shape_space=in_shape_space,
+        )
+        trial = VehicleLibrary(root=library.root, assets=list(library.assets), excluded=library.excluded)
+        trial.put(asset)
+        library_from_json(trial.to_json(), Path(library_path).parent, Path(library_path))
+    if (library.root / lic_rel).resolve() != licence_src.resolve():
+        (library.root / pack).mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(licence_src, library.root / lic_rel)
+    library.put(asset)
+    save_library(library, library_path)
+    return asset

@@ -5,6 +5,11 @@ the footprint (the x/y bounding box) on the ground (z = 0 is the lowest point, t
 
 - glb / gltf / obj / ply / stl are read with trimesh; scenes are flattened with their node
   transforms.
+- ApolloCar3D car-model JSON (``{"car_type", "vertices", "faces"}``, faces numbered from 1,
+  metres, camera frame: x right, y down, z forward) is read here: up -y, front +z.
+- ShapeNet OBJ (``model_normalized.obj`` of ShapeNetCore v2: +y up, front -z, normalised to a
+  unit diagonal, so real dimensions are required) is an OBJ with its own axis defaults
+  (:data:`CONVENTIONS`).
 - fbx / blend are read by Blender in a child process (``adv3d_runner.shapes.bpy_export``) so
   this process never imports bpy; the child writes a plain PLY in Blender's Z-up world frame
   (metres, object scales such as FBX centimetres applied).
@@ -15,7 +20,6 @@ with the car's front along Blender +X. :func:`read_library_mesh` undoes that.
 """
 from __future__ import annotations
 
-import io
 import subprocess
 import sys
 import tempfile
@@ -28,11 +32,27 @@ from ..errors import ConfigError, MeshImportError
 
 TRIMESH_FORMATS = (".glb", ".gltf", ".obj", ".ply", ".stl")
 BLENDER_FORMATS = (".fbx", ".blend")
-SUPPORTED_FORMATS = TRIMESH_FORMATS + BLENDER_FORMATS
+JSON_FORMATS = (".json",)  # ApolloCar3D car models
+SUPPORTED_FORMATS = TRIMESH_FORMATS + BLENDER_FORMATS + JSON_FORMATS
 
 #: Up axis each format declares (None: the format does not say; we assume +z, CAD style).
 NATIVE_UP = {".glb": "+y", ".gltf": "+y", ".fbx": "+z", ".blend": "+z",
-             ".obj": None, ".ply": None, ".stl": None}
+             ".obj": None, ".ply": None, ".stl": None, ".json": "-y"}
+
+#: Axis conventions of the datasets people hold, beyond what a file format declares:
+#: ``up``/``forward`` defaults (explicit --up/--forward win), whether the files are normalised
+#: (real dimensions needed) and where the convention is documented.
+CONVENTIONS = {
+    # ApolloCar3D (Song et al., CVPR 2019) car models, e.g. the car_models_json of the PKU /
+    # Baidu Kaggle release: camera frame, x right, y down, z forward; metres; faces from 1
+    # (ApolloScapeAuto/dataset-api car_instance; the Kaggle kernels read them as
+    # ``faces - 1`` and flip y to draw them upright).
+    "apollocar3d": {"up": "-y", "forward": "+z", "normalised": False},
+    # ShapeNetCore v2 ``model_normalized.obj``: +y up, front towards -z, centred and scaled to
+    # a unit bounding-box diagonal (shapenet.org; the v2 OBJs were converted with Assimp,
+    # which fixed v1's left-right flips). Real dimensions must be given.
+    "shapenet": {"up": "+y", "forward": "-z", "normalised": True},
+}
 
 #: Rotation taking convention coordinates (z up) to glTF coordinates (y up): g = C2G @ c.
 CONVENTION_TO_GLTF = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
@@ -41,6 +61,8 @@ GLTF_TO_CONVENTION = CONVENTION_TO_GLTF.T
 UNIT_SCALES = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254}
 DEFAULT_RGBA = (180, 180, 180, 255)
 BPY_TIMEOUT_S = 300
+#: Largest mesh file read (bytes): the library's meshes are < 1 MB, source packs' files a few MB.
+MAX_MESH_BYTES = 512 * 2**20
 
 
 # ----------------------------------------------------------------------------- reading
@@ -64,11 +86,15 @@ def read_mesh(path: str | Path) -> tuple[Any, dict]:
     if suffix not in SUPPORTED_FORMATS:
         raise MeshImportError(f"{path}: unsupported mesh format {suffix or '(none)'!r}; "
                               f"expected one of {' '.join(SUPPORTED_FORMATS)}")
-    if not path.is_file():
+    if not path.exists():
         raise MeshImportError(f"{path}: no such file")
+    check_mesh_file(path)
     if suffix in BLENDER_FORMATS:
         mesh = _read_with_blender(path)
         reader = "bpy"
+    elif suffix in JSON_FORMATS:
+        mesh = read_apollocar3d_json(path)
+        reader = "apollocar3d-json"
     else:
         mesh = _read_with_trimesh(path, suffix)
         reader = "trimesh"
@@ -79,9 +105,74 @@ def read_mesh(path: str | Path) -> tuple[Any, dict]:
     return mesh, {"format": suffix, "native_up": NATIVE_UP[suffix], "reader": reader}
 
 
+def detect_convention(path: str | Path) -> str | None:
+    """The dataset convention a file follows by its name (``CONVENTIONS``), or None.
+
+    ``.json`` car models are ApolloCar3D's; ``model_normalized.obj`` is ShapeNetCore v2's file
+    name. Anything else follows its format's own axes.
+    """
+    path = Path(path)
+    if path.suffix.lower() == ".json":
+        return "apollocar3d"
+    if path.name.lower() == "model_normalized.obj":
+        return "shapenet"
+    return None
+
+
+def read_apollocar3d_json(path: str | Path):
+    """An ApolloCar3D car-model JSON as a mesh in its own (camera) frame.
+
+    Contract: ``{"car_type": str, "vertices": [[x, y, z], ...], "faces": [[i, j, k], ...]}``
+    with faces numbered from 1 (as the Kaggle / ApolloScape car_models_json files are).
+
+    Returns:
+        ``trimesh.Trimesh`` (float64 vertices, 0-based faces); ``metadata["car_type"]`` holds
+        the car type.
+    Raises:
+        FileFormatError: not JSON, or a field breaks the contract (names the JSON path).
+    """
+    import trimesh
+
+    from ..validate import Node
+
+    node = Node.load(Path(path))
+    node.object("an ApolloCar3D car model object {car_type, vertices, faces}")
+    car_type = node["car_type"].string(empty=True) if "car_type" in node else ""
+    vertices = node["vertices"].array((None, 3))
+    if len(vertices) < 3:
+        node["vertices"].fail("at least 3 vertices [x, y, z]", len(vertices))
+    faces_node = node["faces"]
+    faces = faces_node.array((None, 3))
+    if len(faces) == 0:
+        faces_node.fail("at least one face [i, j, k]", 0)
+    bad = np.flatnonzero(np.any((faces != np.round(faces)) | (faces < 1) | (faces > len(vertices)), axis=1))
+    if len(bad):
+        faces_node.fail(f"vertex numbers from 1 to {len(vertices)} (faces are numbered from 1)",
+                        faces[bad[0]].tolist(), at=f"[{int(bad[0])}]")
+    mesh = trimesh.Trimesh(vertices, faces.astype(np.int64) - 1, process=False)
+    mesh.visual = trimesh.visual.ColorVisuals(mesh, face_colors=np.tile(np.array(DEFAULT_RGBA, np.uint8),
+                                                                        (len(mesh.faces), 1)))
+    mesh.metadata["car_type"] = car_type
+    return mesh
+def check_mesh_file(path: str | Path) -> None:
+    """``path`` is a regular file (not a folder, FIFO or device) of at most
+    :data:`MAX_MESH_BYTES`; else ``MeshImportError`` naming it."""
+    from ..errors import FileFormatError
+    from ..fileio import check_regular_file
+
+    try:
+        st = check_regular_file(path, "mesh file")
+    except FileFormatError as exc:
+        raise MeshImportError(f"{path}: expected {exc.expected} (got {exc.got})") from None
+    if st.st_size > MAX_MESH_BYTES:
+        raise MeshImportError(f"{path}: expected a mesh file of at most {MAX_MESH_BYTES // 2**20} MiB "
+                              f"(got {st.st_size // 2**20} MiB)")
+
+
 def _read_with_trimesh(path: Path, suffix: str):
     import trimesh
 
+    check_mesh_file(path)
     try:
         loaded = trimesh.load(str(path), file_type=suffix[1:], force="scene", process=False)
     except Exception as exc:  # noqa: BLE001 - trimesh raises many types for bad files
@@ -351,7 +442,7 @@ def read_library_mesh(path: str | Path):
     was cleaned with. Returns a ``trimesh.Trimesh`` with float64 vertices and face colours.
     """
     path = Path(path)
-    if not path.is_file():
+    if not path.exists():
         raise MeshImportError(f"{path}: library mesh file is missing")
     mesh = _read_with_trimesh(path, path.suffix.lower() or ".glb")
     if path.suffix.lower() in (".glb", ".gltf"):
@@ -362,17 +453,103 @@ def read_library_mesh(path: str | Path):
 
 def import_vehicle(path: str | Path, up: str | None = None, forward: str | None = None,
                    unit: str = "auto", dimensions: tuple[float, float, float] | None = None,
-                   clean: bool = True) -> tuple[Any, dict, dict]:
+                   clean: bool = True, convention: str = "auto") -> tuple[Any, dict, dict]:
     """Read, convert, clean and (optionally) scale one vehicle file.
+
+    Args:
+        convention: ``"auto"`` (:func:`detect_convention`), ``"none"`` (the format's own axes)
+            or a key of :data:`CONVENTIONS` (``apollocar3d``, ``shapenet``): the default up and
+            forward axes; explicit ``up``/``forward`` win.
 
     Returns:
         (mesh in the convention frame, curation record, cleaning report).
+
+    Raises:
+        ConfigError: unknown convention; a normalised dataset (ShapeNet) without
+            ``dimensions``. MeshImportError: unreadable file, or extents that look rotated
+            (see :func:`check_orientation`).
+    """
+    if convention == "auto":
+        convention = detect_convention(path) or "none"
+    if convention != "none" and convention not in CONVENTIONS:
+        raise ConfigError(f"unknown convention {convention!r}; choose auto, none, {', '.join(CONVENTIONS)}")
+    mesh, info = read_mesh(path)
+    native_up = info["native_up"]
+    extra: dict = {}
+    if convention != "none":
+        conv = CONVENTIONS[convention]
+        if conv["normalised"] and dimensions is None:
+            raise ConfigError(f"{path}: {convention} models are normalised to a unit size; give the real "
+                              "--dimensions L W H of the vehicle")
+        if up is None:
+            up, extra["up"] = conv["up"], f"{conv['up']} ({convention} convention)"
+        if forward is None:
+            forward, extra["forward"] = conv["forward"], f"{conv['forward']} ({convention} convention)"
+        extra["convention"] = convention
+    if mesh.metadata.get("car_type"):
+        extra["car_type"] = str(mesh.metadata["car_type"])
+    converted, curation, report = convert_vehicle(
+        mesh, info["reader"], info["format"][1:], up=up, forward=forward, unit=unit, native_up=native_up,
+        dimensions=dimensions, clean=clean, source=str(path))
+    curation.update(extra)
+    return converted, curation, report
+
+
+def check_orientation(size: np.ndarray, rot: np.ndarray, record: dict, source: str = "the mesh") -> None:
+    """Refuse a conversion whose extents look rotated: a road vehicle is longer than it is
+    tall and than it is wide (a 12 m bus is 3.2 m tall, a 2.6 m tall van 5+ m long).
+
+    Args:
+        size: (3,) extents of the converted mesh (length x, width y, height z), any unit.
+        rot: the (3, 3) rotation used (rows: file axes of forward, left, up).
+        record: the axis record of :func:`to_convention` (names where up/forward came from).
+    Raises:
+        MeshImportError: naming the file axes that became length, width and height and what to give.
+    """
+    length, width, height = (float(x) for x in size)
+    if length >= height and length >= width:
+        return
+    names = [axis_name(r) for r in rot]  # file axes of +x (front), +y (left), +z (up)
+    file_ext = {axis_name(r).lstrip("+-"): float(e) for r, e in zip(rot, size)}
+    longest = max(file_ext, key=file_ext.get)
+    what = "taller" if height > length else "wider"
+    raise MeshImportError(
+        f"{source}: with up {record.get('up')} and forward {record.get('forward')} the vehicle would be {what} "
+        f"than long: length {length:.3g} along file axis {names[0].lstrip('+-')}, width {width:.3g} along "
+        f"{names[1].lstrip('+-')}, height {height:.3g} along {names[2].lstrip('+-')} (file units). A vehicle's "
+        f"longest axis is its length; the file's longest is {longest}: give --up (the file axis towards the roof) "
+        f"and --forward (towards the front), e.g. --forward +{longest}")
+
+
+def convert_vehicle(mesh, reader: str, file_format: str, *, up: str | None = None, forward: str | None = None,
+                    unit: str = "auto", native_up: str | None = None,
+                    dimensions: tuple[float, float, float] | None = None, length: float | None = None,
+                    clean: bool = True, source: str = "the mesh") -> tuple[Any, dict, dict]:
+    """Convert a mesh as read from a file (by trimesh, or by Blender in the add-on) into the
+    convention frame, clean it and (optionally) scale it: the one recipe behind every import.
+
+    Args:
+        mesh: ``trimesh.Trimesh`` in its file frame.
+        reader, file_format: recorded in the curation record (``"trimesh"``, ``"glb"``).
+        up, forward, unit, native_up: see :func:`to_convention`.
+        dimensions: (L, W, H) m to scale to, anisotropically (records ``size_before_scaling``,
+            ``scale_factors``).
+        length: m to scale to uniformly, after cleaning (records ``scaled_to_length`` too).
+        source: names the file in errors.
+
+    Returns:
+        (mesh in the convention frame, curation record, cleaning report).
+
+    Raises:
+        MeshImportError: the converted extents look rotated (:func:`check_orientation`).
     """
     from .cleaning import clean_mesh
 
-    mesh, info = read_mesh(path)
-    converted, record = to_convention(mesh, up=up, forward=forward, unit=unit, native_up=info["native_up"])
-    curation: dict = {"reader": info["reader"], "file_format": info["format"][1:], **record,
+    converted, record = to_convention(mesh, up=up, forward=forward, unit=unit, native_up=native_up)
+    up_used = up or native_up or "+z"
+    fwd_used = forward or guess_forward(np.asarray(mesh.vertices, dtype=np.float64), up_used)
+    check_orientation(np.array(mesh_dimensions(converted)), axes_rotation(up_used, fwd_used), record, source)
+    curation: dict = {"reader": reader, "file_format": file_format, **record,
                       "size_after_unit_conversion": [round(v, 4) for v in mesh_dimensions(converted)]}
     report: dict = {}
     if clean:
@@ -380,6 +557,11 @@ def import_vehicle(path: str | Path, up: str | None = None, forward: str | None 
     if dimensions is not None:
         converted, scaled = scale_to_dimensions(converted, dimensions)
         curation.update(scaled)
+    if length is not None:
+        size = np.array(mesh_dimensions(converted))
+        converted, scaled = scale_to_dimensions(converted, tuple(size * (length / size[0])))
+        curation.update(scaled)
+        curation["scaled_to_length"] = float(length)
     return converted, curation, report
 
 

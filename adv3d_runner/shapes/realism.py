@@ -42,18 +42,19 @@ labelling when present), like decoding, so the Blender add-on can call it.
 """
 from __future__ import annotations
 
-import io
 import json
-import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
 
-from ..errors import ConfigError, FileFormatError
-from ..fileio import REPO_ROOT, atomic_write_bytes
-from .decode import MIN_PART_FRACTION, connected_vertex_parts, extract_surface
+from ..errors import ConfigError
+from ..fileio import REPO_ROOT, atomic_write_bytes, npz_bytes
+from ..validate import check_header, read_npz
+from ..vehicle_classes import DIMENSION_RANGES
+from .cleaning import connected_vertex_parts
+from .decode import MIN_PART_FRACTION, extract_surface
 from .sdf import GridSpec
 
 # ----------------------------------------------------------------------------- constants
@@ -96,36 +97,11 @@ WALL_MAX_M = 1.5
 DEFAULT_REFERENCE: Path = REPO_ROOT / "assets" / "shape_space" / "realism_reference.npz"
 REFERENCE_FORMAT = "adv3d.realism_reference"
 REFERENCE_VERSION = 1
-_ZIP_DATE = (1980, 1, 1, 0, 0, 0)
 _MEMBERS = ("meta", "histogram", "points", "asset_ids")
 
 # ----------------------------------------------------------------------------- real dimensions
 
-#: Real (length, width, height) ranges in metres per vehicle class, each (low, high). Widths
-#: are body widths without mirrors. Sources (docs/realism.md has the full table):
-#:
-#: * legal limits: EU Council Directive 96/53/EC, Annex I (width 2.55 m, 2.60 m for
-#:   conditioned bodies; height 4.00 m; rigid motor vehicle 12.00 m; bus 13.5 m with two
-#:   axles, 15 m with more, articulated 18.75 m); US 23 CFR 658.15 (width 102 in = 2.59 m);
-#:   Japanese kei car category (3.40 x 1.48 x 2.00 m), the smallest highway-legal cars;
-#: * smallest and largest production examples per class, from the manufacturers' published
-#:   dimensions (named in docs/realism.md, e.g. Smart Fortwo 2.69 m long, Lotus Elise 1.12 m
-#:   high, Chevrolet Suburban 5.73 x 2.06 m, Mercedes-Benz Sprinter 7.37 m).
-DIMENSION_RANGES: dict[str, tuple[tuple[float, float], tuple[float, float], tuple[float, float]]] = {
-    "sedan": ((4.0, 5.4), (1.65, 1.97), (1.35, 1.60)),
-    "hatchback": ((2.5, 4.5), (1.47, 1.85), (1.38, 1.80)),
-    "sports": ((3.7, 4.9), (1.70, 2.05), (1.05, 1.40)),
-    "suv": ((3.4, 5.8), (1.60, 2.10), (1.55, 2.00)),
-    "van": ((4.2, 7.4), (1.70, 2.10), (1.70, 3.10)),
-    "pickup": ((4.8, 6.8), (1.75, 2.45), (1.65, 2.10)),
-    "truck": ((4.7, 12.0), (1.69, 2.55), (2.00, 4.00)),
-    "bus": ((6.5, 18.75), (2.00, 2.55), (2.60, 4.00)),
-    "ambulance": ((5.2, 7.7), (1.90, 2.55), (2.30, 3.20)),
-    "fire_truck": ((6.5, 12.0), (2.20, 2.60), (2.70, 4.00)),
-    "garbage_truck": ((6.5, 12.0), (2.30, 2.60), (3.00, 4.00)),
-    "police": ((4.4, 5.4), (1.70, 2.05), (1.40, 2.00)),
-    "taxi": ((4.2, 5.4), (1.69, 2.05), (1.40, 1.90)),
-}
+# DIMENSION_RANGES (cited real ranges per class) lives with the class list in vehicle_classes.
 
 
 # ----------------------------------------------------------------------------- sampling, JSD
@@ -612,17 +588,7 @@ class RealismReference:
             "points": np.ascontiguousarray(self.points, dtype=np.float32),
             "asset_ids": np.asarray(self.asset_ids, dtype=f"<U{max([1] + [len(a) for a in self.asset_ids])}"),
         }
-        buf = io.BytesIO()
-        with zipfile.ZipFile(buf, "w") as zf:
-            for name in _MEMBERS:
-                npy = io.BytesIO()
-                np.lib.format.write_array(npy, members[name], allow_pickle=False)
-                info = zipfile.ZipInfo(f"{name}.npy", date_time=_ZIP_DATE)
-                info.compress_type = zipfile.ZIP_DEFLATED
-                info.external_attr = 0o644 << 16
-                info.create_system = 3
-                zf.writestr(info, npy.getvalue(), compresslevel=6)
-        return buf.getvalue()
+        return npz_bytes({name: members[name] for name in _MEMBERS})
 
     def save(self, path: str | Path = DEFAULT_REFERENCE) -> Path:
         """Write the ``.npz`` atomically; returns the path."""
@@ -692,56 +658,29 @@ def load_reference(path: str | Path = DEFAULT_REFERENCE) -> RealismReference:
     Raises:
         FileFormatError: missing or corrupt file, or a field not matching the contract.
     """
-    path = Path(path)
-
-    def fail(where: str, expected: str, got: object) -> None:
-        raise FileFormatError(path, where, expected, got)
-
-    if not path.exists():
-        fail("$", "an existing realism reference .npz (build it with `adv3d shapes realism-reference`)",
-             "file not found")
-    try:
-        with np.load(path, allow_pickle=False) as npz:
-            members = {name: npz[name] for name in npz.files}
-    except (zipfile.BadZipFile, OSError, ValueError, EOFError) as exc:
-        fail("$", "a .npz (zip of .npy arrays)", f"{type(exc).__name__}: {exc}")
-    for name in _MEMBERS:
-        if name not in members:
-            fail(f"$.{name}", f"array member {name}.npy", sorted(members))
-    try:
-        meta = json.loads(str(members["meta"]))
-    except json.JSONDecodeError as exc:
-        fail("$.meta", "JSON", str(exc))
-    if not isinstance(meta, dict) or meta.get("format") != REFERENCE_FORMAT:
-        fail("$.meta.format", f'"{REFERENCE_FORMAT}"', meta.get("format") if isinstance(meta, dict) else meta)
-    if meta.get("version") != REFERENCE_VERSION:
-        fail("$.meta.version", str(REFERENCE_VERSION), meta.get("version"))
+    arrays = read_npz(path, "realism reference .npz", " (build it with `adv3d shapes realism-reference`)")
+    arrays.require(_MEMBERS)
+    meta_node = arrays.json("meta")
+    meta = meta_node.object()
+    check_header(meta_node, REFERENCE_FORMAT, (REFERENCE_VERSION,))
     if meta.get("bins") != BEV_BINS or meta.get("window_m") != BEV_WINDOW_M:
-        fail("$.meta.bins", f"bins {BEV_BINS} and window_m {BEV_WINDOW_M} (this code's histogram)",
-             f"{meta.get('bins')}, {meta.get('window_m')}")
-    ids = members["asset_ids"]
-    if ids.dtype.kind != "U" or ids.ndim != 1 or len(ids) < 2:
-        fail("$.asset_ids", "a 1-d unicode array of at least 2 ids", f"{ids.dtype} {ids.shape}")
+        meta_node["bins"].fail(f"bins {BEV_BINS} and window_m {BEV_WINDOW_M} (this code's histogram)",
+                               f"{meta.get('bins')}, {meta.get('window_m')}")
+    ids = arrays.array("asset_ids", kind="U", ndim=1)
+    if len(ids) < 2:
+        arrays.fail("asset_ids", "at least 2 asset ids", len(ids))
     m = len(ids)
-    hist, pts = members["histogram"], members["points"]
-    if hist.dtype != np.int64 or hist.shape != (BEV_BINS, BEV_BINS) or (hist < 0).any():
-        fail("$.histogram", f"non-negative int64 counts of shape ({BEV_BINS}, {BEV_BINS})", f"{hist.dtype} {hist.shape}")
-    if pts.dtype != np.float32 or pts.shape != (m, CHAMFER_POINTS, 3) or not np.isfinite(pts).all():
-        fail("$.points", f"finite float32 of shape ({m}, {CHAMFER_POINTS}, 3)", f"{pts.dtype} {pts.shape}")
-    loo = {}
-    for key in ("jsd_loo", "chamfer_loo", "mahalanobis_loo"):
-        val = meta.get(key)
-        arr = np.asarray(val, dtype=np.float64) if isinstance(val, list) and all(
-            isinstance(x, (int, float)) and not isinstance(x, bool) for x in val) else None
-        if arr is None or arr.shape != (m,) or not np.isfinite(arr).all() or (arr < 0).any():
-            fail(f"$.meta.{key}", f"a list of {m} finite non-negative numbers", val)
-        loo[key] = arr
-    classes = meta.get("asset_classes")
-    if not isinstance(classes, list) or len(classes) != m or not all(isinstance(c, str) for c in classes):
-        fail("$.meta.asset_classes", f"a list of {m} class names", classes)
+    hist = arrays.array("histogram", dtype=np.int64, shape=(BEV_BINS, BEV_BINS))
+    if (hist < 0).any():
+        arrays.fail("histogram", "non-negative counts", int(hist.min()))
+    pts = arrays.array("points", dtype=np.float32, shape=(m, CHAMFER_POINTS, 3), finite=True)
+    if np.abs(pts).max(initial=0.0) > 100.0:  # footprint-centred vehicle surfaces, metres
+        arrays.fail("points", "surface points within 100 m of the footprint centre", float(np.abs(pts).max()))
+    loo = {key: meta_node[key].numbers(length=m, lo=0.0) for key in ("jsd_loo", "chamfer_loo", "mahalanobis_loo")}
+    classes = [c.string() for c in meta_node["asset_classes"].items(length=m)]
     keep = {k: v for k, v in meta.items() if k not in ("format", "version", "asset_classes", *loo)}
     return RealismReference(histogram=hist, points=pts, asset_ids=[str(x) for x in ids], asset_classes=classes,
-                            meta=keep, source=path, **loo)
+                            meta=keep, source=Path(path), **loo)
 
 
 _CACHE: dict[str, RealismReference] = {}
@@ -797,6 +736,62 @@ def shape_surface_measures(vertices: np.ndarray, faces: np.ndarray, reference: R
         "dimension_excess": [float(x) for x in excess],
         "plausible_classes": plausible_classes(dims),
     }
+
+
+def quick_measures(vertices: np.ndarray, faces: np.ndarray, reference: RealismReference, *,
+                   latent: Any = None, latents: np.ndarray | None = None, vehicle_class: str | None = None,
+                   chamfer: bool = True, seed: Any = 0) -> dict:
+    """The cheap realism figures of a metric mesh: what every attack query carries and what the
+    add-on shows live (docs/realism.md, "Per query and live").
+
+    The paper's JSD (the same sample and value as the full report), the dimensions against the
+    class's real ranges, the nearest CAD model by Chamfer distance (``chamfer``) and the latent
+    Mahalanobis distance (when ``latent`` is given). Leaves out what needs the decoder's field
+    (parts, genus, wall thickness): those cost ~3x more and are computed for best shapes only.
+
+    Args:
+        vertices: (V, 3) metres, vehicle frame. faces: (F, 3).
+        reference: what to compare against.
+        latent: (K,) latent of the shape, or None (a mesh from outside the shape space).
+        latents: (M, K) library latents, in ``reference.asset_ids`` order (needed with ``latent``).
+        vehicle_class: class whose real dimensions apply; default the nearest CAD model's class
+            (by Chamfer, else by latent distance); without either, no dimension check.
+        chamfer: compute the nearest CAD model (~25 ms with scipy, ~50 ms without).
+        seed: surface sample seed (0: the full report's sample).
+    Returns:
+        a JSON-able dict: ``jsd``, [``nearest_asset``, ``nearest_chamfer_m``], [``mahalanobis``],
+        ``dimensions_m``, ``dimension_class``, ``dimension_excess`` (None without a class),
+        ``flags`` (the failed checks among those measured, named as in the full report).
+    """
+    v = np.asarray(vertices, dtype=np.float64)
+    pts = footprint_centred(sample_surface(v, faces, N_POINTS, seed), v)
+    out: dict[str, Any] = {"jsd": jsd(bev_histogram(pts), reference.histogram)}
+    checks = {"jsd": out["jsd"] <= reference.jsd_limit}
+    nearest_class = None
+    if chamfer:
+        dists = reference.chamfer_distances(pts)
+        near = int(np.argmin(dists))
+        out["nearest_asset"], out["nearest_chamfer_m"] = reference.asset_ids[near], float(dists[near])
+        checks["nearest_chamfer_m"] = out["nearest_chamfer_m"] <= reference.chamfer_limit_m
+        nearest_class = reference.asset_classes[near]
+    if latent is not None:
+        if latents is None:
+            raise ConfigError("quick_measures: a latent needs the library latents")
+        z = np.asarray(latent, dtype=np.float64).reshape(-1)
+        out["mahalanobis"] = latent_mahalanobis(z, latents)
+        checks["mahalanobis"] = out["mahalanobis"] <= reference.mahalanobis_limit
+        if nearest_class is None:
+            nearest_class = reference.asset_classes[int(np.argmin(np.linalg.norm(latents - z[None], axis=1)))]
+    dims = mesh_dimensions(v)
+    cls = vehicle_class or nearest_class
+    out["dimensions_m"] = [float(x) for x in dims]
+    out["dimension_class"] = cls
+    out["dimension_excess"] = None
+    if cls is not None:
+        out["dimension_excess"] = [float(x) for x in dimension_excess(dims, cls)]
+        checks["dimension_excess"] = max(out["dimension_excess"]) == 0.0
+    out["flags"] = [k for k, ok in checks.items() if not ok]
+    return out
 
 
 def latent_realism_report(space, z: Any, scales: Sequence[float] = (1.0, 1.0),

@@ -14,17 +14,17 @@ uses it in-process); building imports libigl through ``sdf``.
 from __future__ import annotations
 
 import hashlib
-import io
 import json
-import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from ..errors import Adv3dError, ConfigError, FileFormatError
-from ..fileio import REPO_ROOT, atomic_write_bytes
+from ..errors import Adv3dError, ConfigError
+from ..fileio import REPO_ROOT, atomic_write_bytes, npz_bytes
+from ..progress import Steps
+from ..validate import check_header, read_npz
 from .decode import extract_surface
 from .sdf import DEFAULT_METHOD, DEFAULT_TRUNCATION, GridSpec
 
@@ -39,8 +39,13 @@ DEFAULT_SHAPE_SPACE: Path = REPO_ROOT / "assets" / "shape_space" / "vehicles_64.
 # fewer assets than K + 1). float32 SDFs have ~1e-7 relative noise, so 1e-10 on variance
 # (1e-5 on amplitude) separates real from numerical directions.
 _RANK_TOL = 1e-10
-_ZIP_DATE = (1980, 1, 1, 0, 0, 0)
 _ARRAYS = ("meta", "mean", "components", "latents", "asset_ids")
+# Bounds of the contract: a vehicle grid of at most 50 m, width/length scales within [0.1, 10]
+# (the shipped range is 0.8-1.3), latents within 1e6: a file outside them is refused on load,
+# never decoded into a 5e11 m car.
+MAX_EXTENT_M = 50.0
+SCALE_LIMITS = (0.1, 10.0)
+MAX_LATENT = 1e6
 
 
 @dataclass
@@ -163,8 +168,12 @@ class ShapeSpace:
         n = self.grid.resolution
         return field_.reshape(n, n, n)
 
-    def decode_latent(self, z: Any, scales: Sequence[float] = (1.0, 1.0)) -> tuple[np.ndarray, np.ndarray]:
+    def decode_latent(self, z: Any, scales: Sequence[float] = (1.0, 1.0),
+                      info: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Mesh arrays of a latent (any finite z, not limited to the library box).
+
+        ``info``, if a dict, receives what the decoder's clean-up dropped (parts, cavities,
+        volume: see ``decode.extract_surface``).
 
         Raises:
             EmptySurfaceError: the field has no zero crossing.
@@ -172,19 +181,20 @@ class ShapeSpace:
         s = np.asarray(scales, dtype=np.float64).reshape(-1)
         if s.shape != (2,) or not np.all(np.isfinite(s)) or np.any(s <= 0):
             raise ConfigError(f"scales must be 2 positive finite numbers, got {s.tolist()}")
-        return extract_surface(self.decode_sdf(z), self.grid, (float(s[0]), float(s[1])))
+        return extract_surface(self.decode_sdf(z), self.grid, (float(s[0]), float(s[1])), info=info)
 
-    def decode_arrays(self, u: Any) -> tuple[np.ndarray, np.ndarray]:
+    def decode_arrays(self, u: Any, info: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Unit vector -> (vertices (V, 3) float64 metres, faces (F, 3) int64); the fast path.
 
-        The mesh is closed, wound counter-clockwise from outside, origin at the footprint centre
-        with its lowest point at z = 0, +x forward.
+        The mesh is closed, wound counter-clockwise from outside, origin at the centre of the
+        body's footprint (its largest closed part) with its lowest point at z = 0, +x forward.
+        ``info``: see :meth:`decode_latent`.
 
         Raises:
             ConfigError: bad unit vector. EmptySurfaceError: no surface (invalid query).
         """
         z, scales = self.unit_to_latent(u)
-        return self.decode_latent(z, scales)
+        return self.decode_latent(z, scales, info=info)
 
     def decode(self, u: Any):
         """Unit vector -> ``trimesh.Trimesh`` (metric, watertight, outward normals)."""
@@ -245,17 +255,7 @@ class ShapeSpace:
         arrays = self._arrays()
         meta["content_hash"] = _content_hash(meta, arrays)
         members = {"meta": np.asarray(json.dumps(meta, indent=1, allow_nan=False)), **arrays}
-        buf = io.BytesIO()
-        with zipfile.ZipFile(buf, "w") as zf:
-            for name in _ARRAYS:
-                npy = io.BytesIO()
-                np.lib.format.write_array(npy, members[name], allow_pickle=False)
-                info = zipfile.ZipInfo(f"{name}.npy", date_time=_ZIP_DATE)
-                info.compress_type = zipfile.ZIP_DEFLATED
-                info.external_attr = 0o644 << 16
-                info.create_system = 3  # unix, whatever the building machine is
-                zf.writestr(info, npy.getvalue(), compresslevel=6)
-        return buf.getvalue()
+        return npz_bytes({name: members[name] for name in _ARRAYS})
 
     def save(self, path: str | Path) -> Path:
         """Write the ``.npz`` atomically; returns the path."""
@@ -286,105 +286,47 @@ def _content_hash(meta: dict, arrays: dict[str, np.ndarray]) -> str:
     return "sha256:" + h.hexdigest()
 
 
-def _fail(path: Path, fieldname: str, expected: str, got: object = None) -> None:
-    raise FileFormatError(path, fieldname, expected, got)
-
-
 def _load(path: Path) -> ShapeSpace:
-    if not path.exists():
-        _fail(path, "$", "an existing shape-space .npz file (build one with `adv3d shapes build`)", "file not found")
-    try:
-        with np.load(path, allow_pickle=False) as npz:
-            members = {name: npz[name] for name in npz.files}
-    except (zipfile.BadZipFile, OSError, ValueError, EOFError) as exc:
-        _fail(path, "$", "a .npz (zip of .npy arrays) shape-space file", f"{type(exc).__name__}: {exc}")
-    for name in _ARRAYS:
-        if name not in members:
-            _fail(path, f"$.{name}", f"array member {name}.npy", f"members {sorted(members)}")
-    meta_arr = members["meta"]
-    if meta_arr.dtype.kind != "U" or meta_arr.ndim != 0:
-        _fail(path, "$.meta", "a 0-d unicode array holding JSON", f"{meta_arr.dtype} {meta_arr.shape}")
-    try:
-        meta = json.loads(str(meta_arr))
-    except json.JSONDecodeError as exc:
-        _fail(path, "$.meta", "valid JSON", str(exc))
-    if not isinstance(meta, dict):
-        _fail(path, "$.meta", "a JSON object", type(meta).__name__)
-    if meta.get("format") != FORMAT:
-        _fail(path, "$.meta.format", f'"{FORMAT}"', meta.get("format"))
-    if meta.get("version") != VERSION:
-        _fail(path, "$.meta.version", f"{VERSION}", meta.get("version"))
-
-    def num(key: str, sub: dict, where: str, positive: bool = False) -> float:
-        v = sub.get(key)
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v) or (positive and v <= 0):
-            _fail(path, f"{where}.{key}", "a finite positive number" if positive else "a finite number", v)
-        return float(v)
-
-    g = meta.get("grid")
-    if not isinstance(g, dict):
-        _fail(path, "$.meta.grid", "an object with resolution, extent_m, ground_z, truncation", g)
-    res = g.get("resolution")
-    if isinstance(res, bool) or not isinstance(res, int) or not 8 <= res <= 512:
-        _fail(path, "$.meta.grid.resolution", "an integer in [8, 512]", res)
-    grid = GridSpec(res, num("extent_m", g, "$.meta.grid", True), num("ground_z", g, "$.meta.grid"),
-                    num("truncation", g, "$.meta.grid", True))
-    k = meta.get("k")
-    if isinstance(k, bool) or not isinstance(k, int) or k < 1:
-        _fail(path, "$.meta.k", "a positive integer", k)
-    rank = meta.get("rank")
-    if isinstance(rank, bool) or not isinstance(rank, int) or not 0 <= rank <= k:
-        _fail(path, "$.meta.rank", f"an integer in [0, {k}]", rank)
+    z = read_npz(path, "shape-space .npz file", " (build one with `adv3d shapes build`)")
+    z.require(_ARRAYS)
+    meta = z.json("meta")
+    meta.object("a JSON object")
+    check_header(meta, FORMAT, (VERSION,))
+    g = meta["grid"]
+    g.object("an object with resolution, extent_m, ground_z, truncation")
+    res = g["resolution"].integer(lo=8, hi=512)
+    extent = g["extent_m"].number(lo=0.0, lo_open=True, hi=MAX_EXTENT_M)
+    grid = GridSpec(res, extent, g["ground_z"].number(lo=-extent, hi=extent),
+                    g["truncation"].number(lo=0.0, lo_open=True, hi=1.0))
+    k = meta["k"].integer(lo=1)
+    rank = meta["rank"].integer(lo=0, hi=k)
     d = res**3
-
-    def vec(key: str, n: int) -> np.ndarray:
-        v = meta.get(key)
-        arr = np.asarray(v, dtype=np.float64) if isinstance(v, list) and all(
-            isinstance(x, (int, float)) and not isinstance(x, bool) for x in v) else None
-        if arr is None or arr.shape != (n,) or not np.all(np.isfinite(arr)):
-            _fail(path, f"$.meta.{key}", f"a list of {n} finite numbers", v)
-        return arr
-
-    ev = vec("explained_variance", k)
-    evr = vec("explained_variance_ratio", k)
-    zmin = vec("latent_min", k)
-    zmax = vec("latent_max", k)
+    ev = meta["explained_variance"].numbers(length=k, lo=0.0)
+    evr = meta["explained_variance_ratio"].numbers(length=k, lo=0.0, hi=1.0)
+    zmin = meta["latent_min"].numbers(length=k, lo=-MAX_LATENT, hi=MAX_LATENT)
+    zmax = meta["latent_max"].numbers(length=k, lo=-MAX_LATENT, hi=MAX_LATENT)
     if np.any(zmin > zmax):
-        _fail(path, "$.meta.latent_max", "latent_max >= latent_min in every dimension", zmax.tolist())
-    sr = vec("scale_range", 2)
-    if not 0 < sr[0] < sr[1]:
-        _fail(path, "$.meta.scale_range", "0 < low < high", sr.tolist())
-    method = meta.get("method")
-    if not isinstance(method, str):
-        _fail(path, "$.meta.method", "a string", method)
-    build = meta.get("build", {})
-    if not isinstance(build, dict):
-        _fail(path, "$.meta.build", "an object", build)
-
-    def arr(name: str, dtype: str, shape: tuple) -> np.ndarray:
-        a = members[name]
-        if a.dtype != np.dtype(dtype) or a.shape != shape:
-            _fail(path, f"$.{name}", f"{np.dtype(dtype).name} array of shape {shape}", f"{a.dtype} {a.shape}")
-        if a.dtype.kind == "f" and not np.all(np.isfinite(a)):
-            _fail(path, f"$.{name}", "finite values", "NaN or inf")
-        return a
-
-    mean = arr("mean", "float32", (d,))
-    comps = arr("components", "float32", (k, d))
-    ids_arr = members["asset_ids"]
-    if ids_arr.dtype.kind != "U" or ids_arr.ndim != 1 or len(ids_arr) == 0:
-        _fail(path, "$.asset_ids", "a non-empty 1-d unicode array", f"{ids_arr.dtype} {ids_arr.shape}")
-    m = len(ids_arr)
-    latents = arr("latents", "float64", (m, k))
+        meta["latent_max"].fail("latent_max >= latent_min in every dimension", zmax.tolist())
+    sr = meta["scale_range"].numbers(length=2, lo=SCALE_LIMITS[0], hi=SCALE_LIMITS[1])
+    if not sr[0] < sr[1]:
+        meta["scale_range"].fail(f"low < high, both in [{SCALE_LIMITS[0]:g}, {SCALE_LIMITS[1]:g}]", sr.tolist())
+    method = meta["method"].string(empty=True)
+    build = meta.get("build", {}).object()
+    mean = z.array("mean", dtype=np.float32, shape=(d,), finite=True)
+    comps = z.array("components", dtype=np.float32, shape=(k, d), finite=True)
+    ids_arr = z.array("asset_ids", kind="U", ndim=1)
+    if len(ids_arr) == 0:
+        z.fail("asset_ids", "a non-empty 1-d unicode array", f"{ids_arr.dtype} {ids_arr.shape}")
+    latents = z.array("latents", dtype=np.float64, shape=(len(ids_arr), k), finite=True)
     space = ShapeSpace(
         grid=grid, mean=np.ascontiguousarray(mean), components=np.ascontiguousarray(comps),
         explained_variance=ev, explained_variance_ratio=evr, latents=latents,
         asset_ids=[str(x) for x in ids_arr], latent_min=zmin, latent_max=zmax,
         scale_range=(float(sr[0]), float(sr[1])), method=method, rank=rank, build=build, source=path,
     )
-    stored = meta.get("content_hash")
+    stored = meta.get("content_hash").value
     if stored != space.content_hash:
-        _fail(path, "$.meta.content_hash", f"{space.content_hash} (the hash of the stored data)", stored)
+        meta.child("content_hash").fail(f"{space.content_hash} (the hash of the stored data)", stored)
     return space
 
 
@@ -413,6 +355,9 @@ def fit_pca(data: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarra
         raise ConfigError(f"K={k} exceeds the number of SDF samples {d}")
     mean = x.mean(axis=0)
     xc = x - mean
+    # kept: eigh of the M x M Gram matrix, not np.linalg.svd / scikit-learn (same directions to
+    # 1e-15, but other last bits: at 24^3, 51 of 41472 float32 component entries and every
+    # variance differ, which would change the shipped shape-space bytes)
     gram = xc @ xc.T
     evals, evecs = np.linalg.eigh(gram)
     order = np.argsort(-evals, kind="stable")
@@ -505,21 +450,65 @@ def library_sdfs(
     truncation: float = DEFAULT_TRUNCATION,
     progress: bool = True,
     mesh_loader: Callable | None = None,
+    on_progress: Callable[[int, int], None] | None = None,
 ) -> tuple[GridSpec, list, np.ndarray]:
     """SDF volumes of every shape-space asset on the common grid.
+
+    ``progress`` shows a terminal bar; ``on_progress(done, total)``, when given, is called
+    instead before each asset and once at the end.
 
     Returns:
         grid, the assets (``library.shape_space_assets()`` order), sdfs (M, N, N, N) float32,
         and the ``library_fingerprint`` of the assets.
     """
-    from .sdf import grid_for_dimensions, sdf_volume
+    from ..progress import run_steps
+
+    steps = library_sdfs_steps(library, resolution, method, truncation, mesh_loader)
+    if on_progress is None:
+        if not progress:
+            return run_steps(steps)
+        from ..progress import progress as bar
+
+        ticks = iter(bar(range(len(list(library.shape_space_assets()))), desc=f"SDF {resolution}^3 ({method})",
+                         unit="asset"))
+        on_progress = lambda done, total: next(ticks, None)  # noqa: E731  (one tick per asset)
+    started = -1
+    while True:
+        try:
+            step = next(steps)
+        except StopIteration as stop:
+            total = len(stop.value[1])
+            on_progress(total, total)
+            return stop.value
+        if step[2] != started:  # (fraction, message, assets_done, assets_total): a new asset
+            started = step[2]
+            on_progress(step[2], step[3])
+
+
+def library_sdfs_steps(
+    library,
+    resolution: int = DEFAULT_RESOLUTION,
+    method: str = DEFAULT_METHOD,
+    truncation: float = DEFAULT_TRUNCATION,
+    mesh_loader: Callable | None = None,
+) -> Steps[tuple[GridSpec, list, np.ndarray, str]]:
+    """:func:`library_sdfs` as a steps generator (``progress.run_steps``), for callers that must
+    stay responsive (the Blender add-on's Build): every step is a short piece of work, yielded
+    as ``(fraction, message, assets_done, assets_total)``; returns what ``library_sdfs`` does,
+    the same bytes."""
+    from ..progress import relay
+    from .sdf import grid_for_dimensions, sdf_volume_steps
 
     if mesh_loader is None:
         from .library import load_asset_mesh as mesh_loader
     assets = list(library.shape_space_assets())
     if not assets:
         raise ConfigError("the vehicle library has no assets marked in_shape_space")
-    meshes = [mesh_loader(library, a.id) for a in assets]
+    m = len(assets)
+    meshes = []
+    for i, a in enumerate(assets):
+        meshes.append(mesh_loader(library, a.id))
+        yield 0.0, f"reading {a.id}", 0, m
     # Common scale: the larger of the recorded dimensions and the mesh's own extent, so every
     # mesh fits the cube even where the manifest rounds.
     dims = []
@@ -528,15 +517,12 @@ def library_sdfs(
         ext = np.array([2 * np.abs(v[:, 0]).max(), 2 * np.abs(v[:, 1]).max(), v[:, 2].max()])
         dims.append(np.maximum(np.asarray(a.dimensions, dtype=np.float64), ext))
     grid = grid_for_dimensions(dims, resolution, truncation)
-    sdfs = np.empty((len(assets), resolution, resolution, resolution), dtype=np.float32)
-    items = list(zip(assets, meshes))
-    if progress:
-        from ..progress import progress as bar
-
-        items = bar(items, desc=f"SDF {resolution}^3 ({method})", unit="asset")
-    for i, (a, mesh) in enumerate(items):
+    sdfs = np.empty((m, resolution, resolution, resolution), dtype=np.float32)
+    for i, (a, mesh) in enumerate(zip(assets, meshes)):
+        message = f"SDF {resolution}^3 of {a.id} ({i + 1}/{m})"
+        yield i / m, message, i, m
         try:
-            sdfs[i] = sdf_volume(mesh.vertices, mesh.faces, grid, method)
+            sdfs[i] = yield from relay(sdf_volume_steps(mesh.vertices, mesh.faces, grid, method), (i / m, message, i, m))
         except Adv3dError as exc:
             raise Adv3dError(f"asset {a.id}: {exc}") from None
     return grid, assets, sdfs, library_fingerprint(assets, meshes)
@@ -550,6 +536,7 @@ def build_shape_space(
     truncation: float = DEFAULT_TRUNCATION,
     progress: bool = True,
     mesh_loader: Callable | None = None,
+    on_progress: Callable[[int, int], None] | None = None,
 ) -> ShapeSpace:
     """Build the shape space over ``library.shape_space_assets()``.
 
@@ -561,8 +548,31 @@ def build_shape_space(
         truncation: SDF clamp, unit-cube units.
         progress: show a progress bar per asset.
         mesh_loader: ``(library, asset_id) -> trimesh.Trimesh``; default ``load_asset_mesh``.
+        on_progress: ``(done, total)`` called per asset instead of the terminal bar.
     """
-    grid, assets, sdfs, fingerprint = library_sdfs(library, resolution, method, truncation, progress, mesh_loader)
+    grid, assets, sdfs, fingerprint = library_sdfs(library, resolution, method, truncation, progress, mesh_loader,
+                                                   on_progress)
+    return _space_of(grid, assets, sdfs, fingerprint, k, method)
+
+
+def build_shape_space_steps(
+    library,
+    resolution: int = DEFAULT_RESOLUTION,
+    k: int = DEFAULT_K,
+    method: str = DEFAULT_METHOD,
+    truncation: float = DEFAULT_TRUNCATION,
+    mesh_loader: Callable | None = None,
+) -> Steps[ShapeSpace]:
+    """:func:`build_shape_space` as a steps generator (``progress.run_steps``): yields
+    ``(fraction, message, assets_done, assets_total)`` between short pieces of work (the
+    Blender add-on's modal Build); returns the same shape space, byte for byte."""
+    grid, assets, sdfs, fingerprint = yield from library_sdfs_steps(library, resolution, method, truncation,
+                                                                    mesh_loader)
+    yield 1.0, "principal components", len(assets), len(assets)
+    return _space_of(grid, assets, sdfs, fingerprint, k, method)
+
+
+def _space_of(grid: GridSpec, assets: list, sdfs: np.ndarray, fingerprint: str, k: int, method: str) -> ShapeSpace:
     build = {"assets": len(assets), "classes": sorted({a.vehicle_class for a in assets}),
              "library_fingerprint": fingerprint}
     return shape_space_from_sdfs(sdfs, [a.id for a in assets], grid, k, method, build)

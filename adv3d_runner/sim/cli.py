@@ -13,18 +13,20 @@ from pathlib import Path
 
 
 def register(subparsers) -> None:
+    from .. import argtypes as at
+
     p = subparsers.add_parser("simulate", help="run one closed- or open-loop episode on a scene",
                               description=__doc__.splitlines()[0])
     p.add_argument("scene", help="scene file (.json or .json.gz)")
     p.add_argument("--open-loop", action="store_true", help="the ego replays its log instead of following its plans")
-    p.add_argument("--seconds", type=float, default=5.0, help="episode length in s (default 5)")
+    p.add_argument("--seconds", type=at.number(0.0, 3600.0, lo_open=True), default=5.0, help="episode length in s (default 5)")
     p.add_argument("--reactive", action="store_true", help="actors react to the ego (IDM/MOBIL) instead of replaying")
     p.add_argument("--autonomy", choices=("A", "oracle", "A-lanefollow"), default="A",
                    help="A: learned detector + predictor (needs the shipped weights); oracle: ground-truth "
                         "boxes of the actors the LiDAR hits + lane-following prediction; A-lanefollow: learned detector + lane-following prediction (default A)")
     p.add_argument("--points", action="store_true", help="store the LiDAR points in the replay (large)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the LiDAR noise (default 0)")
-    p.add_argument("--start-frame", type=int, default=0, help="first scene frame (default 0)")
+    p.add_argument("--seed", type=at.seed, default=0, help="seed of the LiDAR noise (default 0)")
+    p.add_argument("--start-frame", type=at.count, default=0, help="first scene frame (default 0)")
     p.add_argument("--library", default=None, help="vehicle library JSON (default: the bundled one); 'none' = boxes")
     p.add_argument("--out", required=True, help="output folder")
     p.set_defaults(func=_simulate)

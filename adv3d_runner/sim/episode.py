@@ -261,7 +261,7 @@ class Episode:
         # Logged poses of the episode plus the prediction horizon after it.
         all_poses, _ = scene.all_actor_poses()
         self.log = _log_window(all_poses, start_frame, T + H)                      # (N, T+H, 3)
-        speeds_all = np.array([scene.actor_speeds(int(a)) for a in ids]).reshape(n, -1)
+        speeds_all = np.array([scene.actor_speeds(int(a)) for a in ids]).reshape(n, scene.frames)
         log_speeds = _log_window(speeds_all, start_frame, T + H)                   # (N, T+H)
         self.ego_log = scene.ego_poses()
         self.ego_log_speed = scene.ego_speeds()

@@ -26,13 +26,20 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import FileFormatError
-from ..fileio import atomic_path, check_header, read_json, write_json
+from ..fileio import atomic_path, read_json_steps, write_json
+from ..progress import Steps, run_steps
+from ..validate import Node, check_header, describe, read_npz_steps
 
 FORMAT = "adv3d-replay"
 VERSION = 1
 POINTS_FORMAT = "adv3d-replay-points"
 POS, ANG, SPD, SCORE = 3, 4, 3, 4  # decimals
+#: Largest |value| of any number in a replay (m, m/s, rad): far beyond any scene (whose
+#: positions are bounded by 1e7 m), so a hostile 1e308 cannot overflow the quantisation.
+MAX_ABS = 1e7
+MAX_FRAMES = 100_000
+_KEYS = ("format", "version", "scene", "dt", "start_frame", "frames", "closed_loop", "reactive", "seed", "autonomy",
+         "ego", "actors", "outputs", "points", "metadata")
 
 
 def _q(a, decimals: int) -> np.ndarray:
@@ -275,196 +282,167 @@ def save_replay(replay: Replay, path: str | Path, *, indent: int | None = None) 
     return path
 
 
-class _Check:
-    """Validation helpers that name the file and the JSON path."""
-
-    def __init__(self, path):
-        self.path = path
-
-    def fail(self, where: str, expected: str, got: Any = None):
-        raise FileFormatError(self.path, where, expected, got)
-
-    def obj(self, doc: Any, key: str, where: str) -> Any:
-        if not isinstance(doc, dict) or key not in doc:
-            self.fail(f"{where}.{key}", "a field (missing)")
-        return doc[key]
-
-    def number(self, v: Any, where: str, lo: float | None = None) -> float:
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v) or (lo is not None and v < lo):
-            self.fail(where, "a finite number" + (f" >= {lo}" if lo is not None else ""), v)
-        return float(v)
-
-    def integer(self, v: Any, where: str, lo: int | None = None) -> int:
-        if isinstance(v, bool) or not isinstance(v, int) or (lo is not None and v < lo):
-            self.fail(where, "an integer" + (f" >= {lo}" if lo is not None else ""), v)
-        return int(v)
-
-    def boolean(self, v: Any, where: str) -> bool:
-        if not isinstance(v, bool):
-            self.fail(where, "true or false", v)
-        return v
-
-    def string(self, v: Any, where: str, nullable: bool = False) -> str | None:
-        if v is None and nullable:
-            return None
-        if not isinstance(v, str):
-            self.fail(where, "a string" + (" or null" if nullable else ""), v)
-        return v
-
-    def array(self, v: Any, where: str, shape: tuple, nullable: bool = False) -> np.ndarray:
-        """Nested list of numbers with ``shape`` (None = any length), all finite (or null
-        where ``nullable``)."""
-        if not isinstance(v, list):
-            self.fail(where, f"an array of shape {_shape_text(shape)}", type(v).__name__)
-        try:
-            a = np.array([np.nan if x is None else x for x in v] if len(shape) == 1 else v, dtype=np.float64)
-        except (ValueError, TypeError):
-            a = None
-        if a is None or a.ndim != len(shape) or any(s is not None and s != n for s, n in zip(shape, a.shape)) \
-                or (a.size == 0 and len(v) and a.ndim != len(shape)):
-            if isinstance(v, list) and len(v) == 0:
-                return np.zeros(tuple(0 if s is None else s for s in shape))
-            self.fail(where, f"an array of shape {_shape_text(shape)} of numbers", _brief(v))
-        if not nullable and not np.isfinite(a).all():
-            bad = np.argwhere(~np.isfinite(a))[0]
-            self.fail(where + "".join(f"[{int(i)}]" for i in bad), "a finite number", None)
-        return a
-
-    def poses(self, v: Any, where: str, T: int, nullable: bool) -> np.ndarray:
-        if not isinstance(v, list) or len(v) != T:
-            self.fail(where, f"a list of {T} poses", _brief(v))
-        out = np.full((T, 3), np.nan)
-        for k, p in enumerate(v):
-            if p is None and nullable:
-                continue
-            out[k] = self.array(p, f"{where}[{k}]", (3,))
-        return out
+def _poses(node: Node, T: int, *, nullable: bool) -> np.ndarray:
+    """(T, 3) x, y, yaw per frame; ``null`` frames (actor absent) are NaN when ``nullable``."""
+    out = np.full((T, 3), np.nan)
+    for k, p in enumerate(node.items(f"a list of {T} poses", length=T)):
+        if p.value is None and nullable:
+            continue
+        out[k] = p.array((3,), limit=MAX_ABS)
+    return out
 
 
-def _shape_text(shape: tuple) -> str:
-    return "(" + ", ".join("N" if s is None else str(s) for s in shape) + ")"
+def _ids(node: Node, n: int | None = None) -> np.ndarray:
+    """A list of integer ids -> (n,) int64 (JSON numbers that are whole)."""
+    ids = node.array((n,), limit=2**62)
+    if np.any(ids != np.round(ids)):
+        node.fail("integers", describe(node.value))
+    return ids.astype(np.int64)
 
 
-def _brief(v: Any) -> Any:
-    return v if not isinstance(v, list) else f"list of {len(v)}"
+def _frame(o: Node) -> ReplayFrame:
+    o.check_keys(("detections", "tracks", "predictions", "plan"))
+    det = o["detections"]
+    det.check_keys(("boxes", "scores"))
+    boxes = det["boxes"].array((None, 5), limit=MAX_ABS)
+    scores = det["scores"].array((len(boxes),), limit=MAX_ABS)
+    tr = o["tracks"]
+    tr.check_keys(("ids", "boxes", "velocities"))
+    tids = _ids(tr["ids"])
+    tboxes = tr["boxes"].array((len(tids), 5), limit=MAX_ABS)
+    tvel = tr["velocities"].array((len(tids), 2), limit=MAX_ABS)
+    pr = o["predictions"]
+    pr.check_keys(("track_ids", "probabilities", "trajectories"))
+    pids = _ids(pr["track_ids"])
+    probs = pr["probabilities"].array((len(pids), None), limit=MAX_ABS)
+    traj = pr["trajectories"].array((len(pids), probs.shape[1] if probs.ndim == 2 else None, None, 2), limit=MAX_ABS)
+    pl = o["plan"]
+    pl.check_keys(("trajectory", "speed", "label", "cost"))
+    plan = pl["trajectory"].array((None, 3), limit=MAX_ABS)
+    speed = pl["speed"].array((len(plan),), limit=MAX_ABS)
+    return ReplayFrame(boxes, scores, tids, tboxes, tvel, pids, traj, probs, plan, speed,
+                       pl.get("label", "").string(empty=True), pl.get("cost", 0.0).number(lo=-MAX_ABS, hi=MAX_ABS))
 
 
-def replay_from_dict(doc: Any, path: str | Path | None = None, points: list[np.ndarray] | None = None) -> Replay:
+#: Frames validated per step of :func:`load_replay_steps`; points rows converted per step.
+STEP_FRAMES = 25
+STEP_ROWS = 1 << 19
+
+
+def replay_from_dict(raw: Any, path: str | Path | None = None, points: list[np.ndarray] | None = None) -> Replay:
     """Validate a replay document and build the :class:`Replay` (points loaded separately)."""
-    check_header(doc, path, FORMAT, (VERSION,))
-    c = _Check(path)
-    scene = c.obj(doc, "scene", "$")
-    scene_id = c.string(c.obj(scene, "id", "$.scene"), "$.scene.id")
-    scene_file = c.string(scene.get("file") if isinstance(scene, dict) else None, "$.scene.file", nullable=True)
-    dt = c.number(c.obj(doc, "dt", "$"), "$.dt", lo=1e-6)
-    T = c.integer(c.obj(doc, "frames", "$"), "$.frames", lo=0)
-    ego = c.obj(doc, "ego", "$")
-    ego_dims = c.array(c.obj(ego, "dimensions", "$.ego"), "$.ego.dimensions", (3,))
-    ego_poses = c.poses(c.obj(ego, "poses", "$.ego"), "$.ego.poses", T, nullable=False)
-    ego_speed = c.array(c.obj(ego, "speed", "$.ego"), "$.ego.speed", (T,))
-    actors_doc = c.obj(doc, "actors", "$")
-    if not isinstance(actors_doc, list):
-        c.fail("$.actors", "a list", type(actors_doc).__name__)
+    return run_steps(replay_from_dict_steps(raw, path, points))
+
+
+def replay_from_dict_steps(raw: Any, path: str | Path | None = None,
+                           points: list[np.ndarray] | None = None) -> Steps[Replay]:
+    """:func:`replay_from_dict` as a steps generator (``STEP_FRAMES`` frames per step)."""
+    doc = Node(raw, "$", path)
+    check_header(doc, FORMAT, (VERSION,))
+    doc.check_keys(_KEYS)
+    scene = doc["scene"]
+    scene.object()
+    scene.check_keys(("id", "file"))
+    scene_id = scene["id"].string(empty=True)
+    scene_file = scene.get("file").string(nullable=True, empty=True)
+    dt = doc["dt"].number(lo=1e-6, hi=10.0)
+    T = doc["frames"].integer(lo=0, hi=MAX_FRAMES)
+    ego = doc["ego"]
+    ego.object()
+    ego.check_keys(("dimensions", "poses", "speed"))
+    ego_dims = ego["dimensions"].array((3,), limit=MAX_ABS)
+    ego_poses = _poses(ego["poses"], T, nullable=False)
+    ego_speed = ego["speed"].array((T,), limit=MAX_ABS)
     actors, seen = [], set()
-    for i, a in enumerate(actors_doc):
-        w = f"$.actors[{i}]"
-        aid = c.integer(c.obj(a, "id", w), f"{w}.id", lo=0)
-        if aid in seen:
-            c.fail(f"{w}.id", "a unique actor id", aid)
-        seen.add(aid)
-        actors.append(ReplayActor(aid, c.string(c.obj(a, "class", w), f"{w}.class"),
-                                  c.array(c.obj(a, "dimensions", w), f"{w}.dimensions", (3,)),
-                                  c.poses(c.obj(a, "poses", w), f"{w}.poses", T, nullable=True),
-                                  c.boolean(a.get("adversarial", False), f"{w}.adversarial"),
-                                  c.string(a.get("mesh"), f"{w}.mesh", nullable=True)))
-    outs = c.obj(doc, "outputs", "$")
-    if not isinstance(outs, list) or len(outs) != T:
-        c.fail("$.outputs", f"a list of {T} frames", _brief(outs))
+    for a in doc["actors"].objects("a list of actors"):
+        a.check_keys(("id", "class", "dimensions", "adversarial", "mesh", "poses"))
+        aid = a["id"].unique(a["id"].integer(lo=0), seen, "actor id")
+        mesh = a.get("mesh")
+        actors.append(ReplayActor(aid, a["class"].string(empty=True), a["dimensions"].array((3,), limit=MAX_ABS),
+                                  _poses(a["poses"], T, nullable=True),
+                                  a.get("adversarial", False).boolean(),
+                                  None if mesh.value is None else mesh.rel_path(inside="the replay's folder")))
     frames = []
-    for k, o in enumerate(outs):
-        w = f"$.outputs[{k}]"
-        det = c.obj(o, "detections", w)
-        boxes = c.array(c.obj(det, "boxes", f"{w}.detections"), f"{w}.detections.boxes", (None, 5))
-        scores = c.array(c.obj(det, "scores", f"{w}.detections"), f"{w}.detections.scores", (len(boxes),))
-        tr = c.obj(o, "tracks", w)
-        tids = c.array(c.obj(tr, "ids", f"{w}.tracks"), f"{w}.tracks.ids", (None,))
-        if np.any(tids != np.round(tids)):
-            c.fail(f"{w}.tracks.ids", "integers", _brief(tr["ids"]))
-        tboxes = c.array(c.obj(tr, "boxes", f"{w}.tracks"), f"{w}.tracks.boxes", (len(tids), 5))
-        tvel = c.array(c.obj(tr, "velocities", f"{w}.tracks"), f"{w}.tracks.velocities", (len(tids), 2))
-        pr = c.obj(o, "predictions", w)
-        pids = c.array(c.obj(pr, "track_ids", f"{w}.predictions"), f"{w}.predictions.track_ids", (None,))
-        if np.any(pids != np.round(pids)):
-            c.fail(f"{w}.predictions.track_ids", "integers", _brief(pr["track_ids"]))
-        probs = c.array(c.obj(pr, "probabilities", f"{w}.predictions"), f"{w}.predictions.probabilities",
-                        (len(pids), None))
-        traj = c.array(c.obj(pr, "trajectories", f"{w}.predictions"), f"{w}.predictions.trajectories",
-                       (len(pids), probs.shape[1] if probs.ndim == 2 else None, None, 2))
-        pl = c.obj(o, "plan", w)
-        plan = c.array(c.obj(pl, "trajectory", f"{w}.plan"), f"{w}.plan.trajectory", (None, 3))
-        speed = c.array(c.obj(pl, "speed", f"{w}.plan"), f"{w}.plan.speed", (len(plan),))
-        label = c.string(pl.get("label", ""), f"{w}.plan.label")
-        cost = c.number(pl.get("cost", 0.0), f"{w}.plan.cost")
-        frames.append(ReplayFrame(boxes, scores, tids.astype(np.int64), tboxes, tvel, pids.astype(np.int64), traj,
-                                  probs, plan, speed, label, cost))
-    meta = doc.get("metadata", {})
-    if not isinstance(meta, dict):
-        c.fail("$.metadata", "a JSON object", type(meta).__name__)
+    for o in doc["outputs"].items(f"a list of {T} frames", length=T):
+        frames.append(_frame(o))
+        if len(frames) % STEP_FRAMES == 0:
+            yield
+    meta = doc.get("metadata", {}).object("a JSON object")
     return Replay(scene_id, dt, ego_dims, ego_poses, ego_speed, actors, frames,
-                  c.integer(doc.get("start_frame", 0), "$.start_frame", lo=0),
-                  c.boolean(doc.get("closed_loop", True), "$.closed_loop"),
-                  c.boolean(doc.get("reactive", False), "$.reactive"),
-                  c.integer(doc.get("seed", 0), "$.seed"),
-                  c.string(doc.get("autonomy", ""), "$.autonomy"), scene_file, points, meta)
+                  doc.get("start_frame", 0).integer(lo=0),
+                  doc.get("closed_loop", True).boolean(),
+                  doc.get("reactive", False).boolean(),
+                  doc.get("seed", 0).integer(),
+                  doc.get("autonomy", "").string(empty=True), scene_file, points, meta)
 
 
 def load_points(path: str | Path, frames: int, n_actors: int) -> list[np.ndarray]:
     """Read a replay's points file -> T float32 (P, 5) arrays (validated)."""
-    path = Path(path)
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            data = {k: z[k] for k in z.files}
-    except FileNotFoundError:
-        raise FileFormatError(path, "$", "an existing points file", "file not found") from None
-    except (OSError, ValueError) as exc:
-        raise FileFormatError(path, "$", "a numpy .npz file without pickled objects", str(exc)) from None
-    for key in ("format", "version", "xyz_cm", "intensity", "label", "offsets"):
-        if key not in data:
-            raise FileFormatError(path, f"$.{key}", "an array (missing)")
-    if str(data["format"]) != POINTS_FORMAT:
-        raise FileFormatError(path, "$.format", f'"{POINTS_FORMAT}"', str(data["format"]))
-    if int(data["version"]) != VERSION:
-        raise FileFormatError(path, "$.version", f"[{VERSION}]", int(data["version"]))
-    xyz, inten, lab, off = data["xyz_cm"], data["intensity"], data["label"], data["offsets"]
+    return run_steps(load_points_steps(path, frames, n_actors))
+
+
+def load_points_steps(path: str | Path, frames: int, n_actors: int) -> Steps[list[np.ndarray]]:
+    """:func:`load_points` as a steps generator: the file inflated and converted in pieces,
+    yielding ``(fraction,)``."""
+    from ..progress import span
+
+    z = yield from span(read_npz_steps(path, "points file"), 0.0, 0.8, "")
+    z.require(("format", "version", "xyz_cm", "intensity", "label", "offsets"))
+    z.header(POINTS_FORMAT, VERSION)
+    xyz = z.array("xyz_cm", dtype=np.int16, shape=("P", 3))
     P = len(xyz)
-    if xyz.dtype != np.int16 or xyz.ndim != 2 or xyz.shape[1] != 3:
-        raise FileFormatError(path, "$.xyz_cm", "int16 array (P, 3)", f"{xyz.dtype} {xyz.shape}")
-    if inten.dtype != np.uint8 or inten.shape != (P,):
-        raise FileFormatError(path, "$.intensity", f"uint8 array ({P},)", f"{inten.dtype} {inten.shape}")
-    if lab.dtype != np.int16 or lab.shape != (P,) or (P and (lab.min() < -1 or lab.max() >= n_actors)):
-        raise FileFormatError(path, "$.label", f"int16 array ({P},) in [-1, {n_actors - 1}]", f"{lab.dtype} {lab.shape}")
+    inten = z.array("intensity", dtype=np.uint8, shape=(P,))
+    lab = z.array("label", dtype=np.int16, shape=(P,))
+    if P and (lab.min() < -1 or lab.max() >= n_actors):
+        z.fail("label", f"int16 array ({P},) in [-1, {n_actors - 1}]", f"values in [{lab.min()}, {lab.max()}]")
+    off = z.array("offsets", kind="i", shape=(frames + 1,))
     if off.shape != (frames + 1,) or off[0] != 0 or off[-1] != P or np.any(np.diff(off) < 0):
-        raise FileFormatError(path, "$.offsets", f"non-decreasing int array ({frames + 1},) from 0 to {P}",
-                              f"{off.shape}")
+        z.fail("offsets", f"non-decreasing int array ({frames + 1},) from 0 to {P}", f"{off.shape}")
     # filled in place (no temporaries): this is most of the load time of a long replay
     pts = np.empty((P, 5), np.float32)
-    np.divide(xyz, np.float32(100.0), out=pts[:, :3], dtype=np.float32)
-    np.divide(inten, np.float32(255.0), out=pts[:, 3], dtype=np.float32)
-    pts[:, 4] = lab
+    for s in range(0, P, STEP_ROWS):  # row blocks: elementwise, so the same bytes as one call
+        e = min(s + STEP_ROWS, P)
+        np.divide(xyz[s:e], np.float32(100.0), out=pts[s:e, :3], dtype=np.float32)
+        np.divide(inten[s:e], np.float32(255.0), out=pts[s:e, 3], dtype=np.float32)
+        pts[s:e, 4] = lab[s:e]
+        yield 0.8 + 0.2 * e / P,
     return [pts[off[k]:off[k + 1]] for k in range(frames)]
 
 
 def load_replay(path: str | Path, *, points: bool = True) -> Replay:
     """Load and validate a replay file (and its points file when it names one and ``points``)."""
-    path = Path(path)
-    doc = read_json(path)
-    replay = replay_from_dict(doc, path)
+    return run_steps(load_replay_steps(path, points=points))
+
+
+def load_replay_steps(path: str | Path, *, points: bool = True) -> Steps[Replay]:
+    """:func:`load_replay` as a steps generator (``progress.run_steps``): reading, parsing,
+    validating and the points file in pieces of a few tens of milliseconds, yielding
+    ``(fraction, message)`` between them (the Blender add-on's Load review stays responsive)."""
+    from ..progress import relay, span
+
+    name = Path(path).name
+    doc = Node((yield from relay(read_json_steps(path), (0.05, f"reading {name}"))), "$", path)
+    replay = yield from relay(replay_from_dict_steps(doc.value, path), (0.2, f"checking {name}"))
     pf = doc.get("points")
-    if pf is not None and not isinstance(pf, str):
-        raise FileFormatError(path, "$.points", "a file name or null", pf)
-    if pf and points:
-        replay.points = load_points(path.parent / pf, replay.n_frames, len(replay.actors))
+    if pf.value is not None:
+        pf.string(empty=True, expected="a file name or null")
+    if pf.value and points:
+        pfile = pf.file_in(Path(path).parent, inside="the replay's folder")
+        replay.points = yield from span(load_points_steps(pfile, replay.n_frames, len(replay.actors)),
+                                        0.3, 1.0, f"reading {pf.value}")
     return replay
+
+
+def actor_mesh_path(replay_path: str | Path, replay: Replay, index: int) -> Path | None:
+    """The file of actor ``index``'s substituted mesh, checked to stay inside the replay's
+    folder (symlinks included), or None when the actor has no mesh."""
+    from ..fileio import resolve_inside
+
+    rel = replay.actors[index].mesh
+    if not rel:
+        return None
+    return resolve_inside(Path(replay_path).parent, rel, file=replay_path, field=f"$.actors[{index}].mesh",
+                          inside="the replay's folder")
 
 
 def replay_equal(a: Replay, b: Replay) -> bool:

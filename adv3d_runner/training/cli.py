@@ -23,26 +23,31 @@ def register(subparsers) -> None:
 
 
 def add_train_detector(train_sub) -> None:
+    from .. import argtypes as at
+
     p = train_sub.add_parser(
         "detector", help="train the PIXOR-like BEV LiDAR detector",
         description="Simulate LiDAR frames of training-split scenes (seeds 100000 + [0, N)), train the BEV "
                     "detector, evaluate AP/recall at BEV IoU 0.5 on held-out scenes (seeds 900000 + [0, M)), "
                     "and write weights, config.json, training_report.json and loss_curves.png to --out.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    p.add_argument("--scenes", type=int, default=140, help="training scenes")
-    p.add_argument("--val-scenes", type=int, default=40, help="held-out evaluation scenes")
-    p.add_argument("--frames-per-scene", type=int, default=10, help="LiDAR frames per scene")
-    p.add_argument("--epochs", type=int, default=10)
-    p.add_argument("--batch", type=int, default=8)
-    p.add_argument("--lr", type=float, default=2e-3)
-    p.add_argument("--resolution", type=float, default=0.25, help="BEV cell size, m")
-    p.add_argument("--min-points", type=int, default=5, help="LiDAR returns for a vehicle to count as ground truth")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--threads", type=int, default=1, help="torch threads for training")
-    p.add_argument("--time-limit", type=float, default=38 * 60,
+    p.add_argument("--scenes", type=at.positive_int, default=140, help="training scenes")
+    p.add_argument("--val-scenes", type=at.positive_int, default=40, help="held-out evaluation scenes")
+    p.add_argument("--frames-per-scene", type=at.positive_int, default=10, help="LiDAR frames per scene")
+    p.add_argument("--epochs", type=at.positive_int, default=10)
+    p.add_argument("--batch", type=at.positive_int, default=8)
+    p.add_argument("--lr", type=at.positive, default=2e-3)
+    p.add_argument("--resolution", type=at.number(0.01, 10.0), default=0.25, help="BEV cell size, m")
+    p.add_argument("--min-points", type=at.positive_int, default=5, help="LiDAR returns for a vehicle to count as ground truth")
+    p.add_argument("--seed", type=at.seed, default=0)
+    p.add_argument("--threads", type=at.positive_int, default=1, help="torch threads for training")
+    p.add_argument("--time-limit", type=at.positive, default=38 * 60,
                    help="stop training after the epoch that passes this many seconds (data included)")
     p.add_argument("--cache", default=None, help="frame cache folder (default ~/.cache/adv3d/detector)")
     p.add_argument("--out", default="assets/models/detector", help="model folder")
+    p.add_argument("--library", default=None,
+                   help="vehicle library the scenes' actors draw their meshes from (default: the bundled one; "
+                        "'none': boxes)")
     p.add_argument("--quick", action="store_true",
                    help="small recipe for smoke tests and the resolution benchmark (24 scenes, 4 epochs)")
     p.set_defaults(func=_train_detector)
@@ -77,10 +82,13 @@ def _train_detector(args) -> int:
     val_seeds = list(range(VAL_SEED0, VAL_SEED0 + args.val_scenes))
     t_data = time.perf_counter()
     cache_stats: dict = {}
-    train = make_frames(train_seeds, args.frames_per_scene, cache_dir=args.cache, desc="training scenes",
-                        stats=cache_stats)
-    val = make_frames(val_seeds, args.frames_per_scene, cache_dir=args.cache, desc="held-out scenes",
-                      stats=cache_stats)
+    from ..shapes.library import library_fingerprint, resolve_library
+
+    library = resolve_library(args.library)
+    train = make_frames(train_seeds, args.frames_per_scene, library=library, cache_dir=args.cache,
+                        desc="training scenes", stats=cache_stats)
+    val = make_frames(val_seeds, args.frames_per_scene, library=library, cache_dir=args.cache,
+                      desc="held-out scenes", stats=cache_stats)
     data_s = time.perf_counter() - t_data
     status(f"data: {len(train)} training frames, {len(val)} held-out frames ({data_s:.0f} s)")
     limit = None if args.time_limit is None else max(0.0, args.time_limit - (time.perf_counter() - t0))
@@ -108,7 +116,10 @@ def _train_detector(args) -> int:
         else "adv3d train detector " + _args_line(args)
     recipe = {"split": "train", "train_seeds": [train_seeds[0], train_seeds[-1]],
               "val_seeds": [val_seeds[0], val_seeds[-1]] if val_seeds else [],
-              "frames_per_scene": args.frames_per_scene, "library": "bundled benign vehicle library",
+              "frames_per_scene": args.frames_per_scene,
+              "library": args.library or "bundled benign vehicle library",
+              "library_fingerprint": library_fingerprint(library) if library is not None else None,
+              "actor_meshes": "drawn per actor from every asset of its class (scene.actors.assign_assets)",
               "lidar": "scene rig (HDL-64E at 1.73 m) with noise and ray drop", "min_points": args.min_points,
               "train_frames": len(train), "val_frames": len(val),
               "cache": {"scenes_from_cache": cache_stats.get("cached", 0),
@@ -166,6 +177,7 @@ def _finite(obj):
 
 def add_train_predictor(train_subparsers) -> None:
     """Add ``predictor`` to the ``adv3d train`` subcommand group."""
+    from .. import argtypes as at
     from ..autonomy.predictor import DEFAULT_MODEL_DIR
 
     p = train_subparsers.add_parser(
@@ -173,21 +185,26 @@ def add_train_predictor(train_subparsers) -> None:
         description="Generate training-split scenes, run noisy detections through the tracker, train the "
                     "predictor (winner-takes-all over K modes) and report held-out minADE against the "
                     "constant-velocity and lane-following baselines.")
-    p.add_argument("--scenes", type=int, default=None, help="training scenes (default 240; 8 with --quick)")
-    p.add_argument("--val-scenes", type=int, default=None, help="held-out scenes (default 40; 3 with --quick)")
-    p.add_argument("--epochs", type=int, default=None, help="epochs (default 20; 2 with --quick)")
-    p.add_argument("--seed", type=int, default=100_000, help="first training scene seed (>= 100000) and torch seed")
-    p.add_argument("--modes", type=int, default=6, help="number of modes K (>= 3)")
-    p.add_argument("--batch", type=int, default=512)
-    p.add_argument("--lr", type=float, default=2e-3)
-    p.add_argument("--threads", type=int, default=1,
+    p.add_argument("--scenes", type=at.positive_int, default=None, help="training scenes (default 240; 8 with --quick)")
+    p.add_argument("--val-scenes", type=at.positive_int, default=None, help="held-out scenes (default 40; 3 with --quick)")
+    p.add_argument("--epochs", type=at.positive_int, default=None, help="epochs (default 20; 2 with --quick)")
+    p.add_argument("--seed", type=at.seed, default=100_000, help="first training scene seed (>= 100000) and torch seed")
+    p.add_argument("--modes", type=at.integer(3, 64), default=6, help="number of modes K (>= 3)")
+    p.add_argument("--batch", type=at.positive_int, default=512)
+    p.add_argument("--lr", type=at.positive, default=2e-3)
+    p.add_argument("--threads", type=at.positive_int, default=1,
                    help="torch threads for training (1: on a shared 2-core machine 2 threads were 70x slower)")
-    p.add_argument("--time-limit", type=float, default=40.0,
+    p.add_argument("--time-limit", type=at.positive, default=40.0,
                    help="minutes: stop after the epoch that passes this (data included)")
     p.add_argument("--cache", default=None, help="data cache root (default $ADV3D_CACHE or ~/.cache/adv3d)")
     p.add_argument("--no-cache", action="store_true", help="do not read or write the sample cache")
     p.add_argument("--out", default=str(DEFAULT_MODEL_DIR), help="output folder")
     p.add_argument("--quick", action="store_true", help="tiny run for smoke tests (few scenes, 2 epochs)")
+    p.add_argument("--real", default=None,
+                   help="real scenes' split manifest (default scenes/real/split.json): its train part joins the "
+                        "training data, its benchmark part is evaluated only")
+    p.add_argument("--no-real", action="store_true", help="train on generated scenes only")
+    p.add_argument("--real-weight", type=int, default=10, help="times each real training sample is repeated")
     p.set_defaults(func=_train_predictor)
 
 
@@ -204,7 +221,18 @@ def _train_predictor(args: argparse.Namespace) -> int:
         raise ConfigError("--modes must be >= 3 (the issue asks for a multi-modal predictor)")
     command = ("adv3d " + " ".join(shlex.quote(a) for a in sys.argv[1:])) if sys.argv and "adv3d" in sys.argv[0] \
         else ""  # called in-process (tests): train_predictor spells out the arguments
+    real_train, real_eval, real_info = [], [], None
+    if not args.no_real:
+        from ..scene.real import load_real_split
+
+        split = load_real_split(args.real)  # validated: the parts' recordings are disjoint
+        real_train, real_eval = split.paths("train"), split.paths("benchmark")
+        if args.quick:
+            real_train, real_eval = real_train[:2], real_eval[:1]
+        real_info = {"split": args.real or "scenes/real/split.json", "train_recordings": list(split.recordings["train"]),
+                     "held_out_recordings": list(split.recordings["benchmark"])}
     train_predictor(scenes=scenes, val_scenes=val, epochs=epochs, seed=args.seed, modes=args.modes,
                     batch=args.batch, lr=args.lr, threads=args.threads, cache=args.cache,
-                    use_cache=not args.no_cache, out=args.out, command=command, time_limit_min=args.time_limit)
+                    use_cache=not args.no_cache, out=args.out, command=command, time_limit_min=args.time_limit,
+                    real_train=real_train, real_eval=real_eval, real_weight=args.real_weight, real_info=real_info)
     return 0

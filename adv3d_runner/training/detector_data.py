@@ -181,16 +181,12 @@ def save_frameset(fs: FrameSet, path: Path) -> None:
 
 
 def load_frameset(path: Path) -> FrameSet:
-    from ..errors import FileFormatError
+    from ..validate import read_npz
 
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            if str(z["format"]) != "adv3d-detector-frames" or int(z["version"]) != DATA_VERSION:
-                raise FileFormatError(path, "$.format", f"adv3d-detector-frames v{DATA_VERSION}",
-                                      f"{z['format']} v{z['version']}")
-            return FrameSet(**{k: z[k] for k in FrameSet.__dataclass_fields__})
-    except (KeyError, ValueError, OSError) as exc:
-        raise FileFormatError(path, "$", "a detector frame cache (.npz)", str(exc)) from None
+    z = read_npz(path, "detector frame cache (.npz)")
+    z.header("adv3d-detector-frames", DATA_VERSION)
+    z.require(FrameSet.__dataclass_fields__)
+    return FrameSet(**{k: z.members[k] for k in FrameSet.__dataclass_fields__})
 
 
 def make_frames(seeds: Sequence[int], frames_per_scene: int, split: str = "train", library="default",
@@ -212,7 +208,14 @@ def make_frames(seeds: Sequence[int], frames_per_scene: int, split: str = "train
     if isinstance(library, str) and library == "default":
         from ..shapes.library import load_library
         library = load_library()
-    tag = "lib" if library is not None else "box"
+    # the cache is keyed by the library's fingerprint: actors draw their meshes from it
+    # (``scene.actors.assign_assets``), so another library (or assignment) means other frames
+    if library is not None:
+        from ..shapes.library import library_fingerprint
+
+        tag = "lib-" + library_fingerprint(library).split(":", 1)[1][:12]
+    else:
+        tag = "box"
     cache = default_cache_dir() if cache_dir is None else (Path(cache_dir) if cache_dir != "" else None)
     sets = []
     for seed in progress(list(seeds), desc=desc, unit="scene"):

@@ -25,12 +25,24 @@ Everything is deterministic for a scene seed (``SeedSequence([DATA_TAG, seed])``
 samples are cached as one ``.npz`` (``allow_pickle=False``) under
 ``$ADV3D_CACHE/predictor_data/<data key>/`` (default ``~/.cache/adv3d``), outside the repo; the
 data key hashes every constant here and the feature layout, so a change never reuses stale data.
+
+**Real scenes** (:func:`real_scene_samples`, :func:`build_real_dataset`): the same pipeline on a
+recorded scene of ``scenes/real/`` (NGSIM US-101). Only recorded frames count: an actor's
+``synthetic`` frames (the ``--extend``-ed tail of a short recording) are treated as absent, so
+no detection, no sample and no future step comes from the IDM extrapolation. The noise stream
+is ``SeedSequence([DATA_TAG, REAL_TAG, crc32(scene id)])``; the ``seed`` column holds
+``-1 - crc32(scene id)`` (negative: never a generator seed). The cache file name carries a hash
+of the scene file's bytes (``real-<stem>-<sha1[:10]>.npz``), so a re-imported scene is never
+read stale. Which real scenes may be used for training is the caller's business:
+``adv3d train predictor`` takes the *train* part of ``scenes/real/split.json`` and evaluates
+on the *benchmark* part only.
 """
 from __future__ import annotations
 
 import hashlib
 import json
 import os
+import zlib
 from pathlib import Path
 from typing import Sequence
 
@@ -44,6 +56,7 @@ from ..scene.lanemap import LaneMap
 
 DATA_VERSION = 1
 DATA_TAG = 0x9D1C7               # SeedSequence namespace of the perception noise
+REAL_TAG = 0x4EA1                # sub-namespace of real (recorded) scenes
 DETECT_RANGE = 80.0              # m around the ego
 FRAME_STRIDE = 2                 # frames between samples (consecutive frames are near duplicates)
 MIN_FUTURE = 30                  # valid future steps a sample needs (3 s)
@@ -101,15 +114,42 @@ def scene_samples(seed: int, scene=None) -> dict[str, np.ndarray]:
         float32 agent frame, future_valid (M, 60), boxes (M, 5) map frame, frame (M,), seed
         (M,), ``<baseline>_metrics`` (M, 6).
     """
-    from ..autonomy.baselines import ConstantVelocityPredictor, LaneFollowingPredictor
-    from ..autonomy.tracker import MultiObjectTracker
     from ..scene.generate import generate_scene
 
     if scene is None:
         scene = generate_scene(int(seed), "train")
     rng = np.random.default_rng(np.random.SeedSequence([DATA_TAG, int(seed)]))
+    return _samples(scene, rng, int(seed))
+
+
+def _scene_crc(scene) -> int:
+    return zlib.crc32(scene.id.encode())
+
+
+def real_scene_samples(scene) -> dict[str, np.ndarray]:
+    """All samples of a recorded (real) scene, from its recorded frames only (see the module
+    docstring); deterministic for the scene id. Same arrays as :func:`scene_samples`."""
+    crc = _scene_crc(scene)
+    rng = np.random.default_rng(np.random.SeedSequence([DATA_TAG, REAL_TAG, crc]))
+    recorded = np.ones((len(scene.actors), scene.frames), bool)
+    for i, actor in enumerate(scene.actors):
+        recorded[i] = ~scene.actor_synthetic(actor.id)
+    return _samples(scene, rng, -1 - crc, recorded)
+
+
+def _samples(scene, rng: np.random.Generator, seed_value: int, recorded: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """The pipeline of :func:`scene_samples` on a loaded scene with its noise stream ``rng``;
+    ``recorded`` (A, F) bool, when given, marks the actor frames that may be used (others are
+    absent); ``seed_value`` fills the ``seed`` column."""
+    from ..autonomy.baselines import ConstantVelocityPredictor, LaneFollowingPredictor
+    from ..autonomy.tracker import MultiObjectTracker
+
+    seed = seed_value
     noise = {k: float(rng.uniform(*v)) for k, v in NOISE_RANGES.items()}
     poses, valid = scene.all_actor_poses()                       # (A, F, 3), (A, F)
+    if recorded is not None:
+        valid = valid & recorded
+        poses = np.where(valid[..., None], poses, np.nan)
     dims = scene.actor_dimensions()
     ego = scene.ego_poses()
     ego_v = scene.ego_speeds()
@@ -218,16 +258,12 @@ def save_samples(path: str | Path, samples: dict[str, np.ndarray]) -> None:
 def load_samples(path: str | Path) -> dict[str, np.ndarray]:
     """Read a cached scene npz (``allow_pickle=False``); raises FileFormatError when arrays are
     missing or malformed."""
-    from ..errors import FileFormatError
+    from ..validate import read_npz
 
-    with np.load(path, allow_pickle=False) as z:
-        out = {k: z[k] for k in z.files}
-    for k in ARRAYS:
-        if k not in out:
-            raise FileFormatError(str(path), f"$.{k}", "a predictor sample array", "missing")
-    if out["features"].ndim != 2 or out["features"].shape[1] != NUM_FEATURES:
-        raise FileFormatError(str(path), "$.features", f"(M, {NUM_FEATURES})", out["features"].shape)
-    return out
+    z = read_npz(path, "predictor sample cache (.npz)")
+    z.require(ARRAYS)
+    z.array("features", shape=(None, NUM_FEATURES))
+    return dict(z.members)
 
 
 def build_dataset(seeds: Sequence[int], cache: str | Path | None = None, use_cache: bool = True,
@@ -254,6 +290,45 @@ def build_dataset(seeds: Sequence[int], cache: str | Path | None = None, use_cac
         stats["generated"] += 1
         if use_cache:
             save_samples(path, samples)
+        parts.append(samples)
+    if not parts:
+        return _empty()
+    return {k: np.concatenate([p[k] for p in parts]) for k in ARRAYS}
+
+
+def real_cache_name(path: str | Path) -> str:
+    """Cache file name of a real scene: ``real-<stem>-<sha1 of the file's bytes, 10 hex>.npz``."""
+    path = Path(path)
+    digest = hashlib.sha1(path.read_bytes()).hexdigest()[:10]
+    stem = path.name.split(".json")[0]
+    return f"real-{stem}-{digest}.npz"
+
+
+def build_real_dataset(paths: Sequence[str | Path], cache: str | Path | None = None, use_cache: bool = True,
+                       desc: str = "real scenes", stats: dict | None = None) -> dict[str, np.ndarray]:
+    """Samples of every real scene file in ``paths`` (:func:`real_scene_samples`), concatenated,
+    cached per file under ``cache_dir(cache)``. ``stats`` as in :func:`build_dataset`."""
+    from ..progress import progress
+    from ..scene.schema import load_scene
+
+    stats = {} if stats is None else stats
+    stats.setdefault("generated", 0)
+    stats.setdefault("cached", 0)
+    folder = cache_dir(cache)
+    parts = []
+    for path in progress([Path(p) for p in paths], desc=desc, unit="scene"):
+        cpath = folder / real_cache_name(path)
+        if use_cache and cpath.is_file():
+            try:
+                parts.append(load_samples(cpath))
+                stats["cached"] += 1
+                continue
+            except Exception:  # a broken cache entry is rebuilt, never trusted
+                pass
+        samples = real_scene_samples(load_scene(path))
+        stats["generated"] += 1
+        if use_cache:
+            save_samples(cpath, samples)
         parts.append(samples)
     if not parts:
         return _empty()

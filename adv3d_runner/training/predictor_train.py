@@ -7,6 +7,12 @@ Seeds: training scenes ``seed .. seed + scenes - 1`` (``--seed`` >= 100 000, the
 training split); held-out scenes ``seed + HELD_OUT_OFFSET ..`` (same split, disjoint seeds).
 The benchmark scenes (``scenes/highway/``) are never used.
 
+Real traffic: the recorded scenes of the *train* part of ``scenes/real/split.json`` (NGSIM
+US-101 recordings) join the training data, each sample repeated ``real_weight`` times (they are
+~1 % of the samples otherwise); the *benchmark* part (other recordings) is only evaluated, in a
+separate held-out table (``held_out_real``). Nothing is selected on either held-out set: the
+model of the last epoch is kept.
+
 Outputs in ``--out`` (default ``assets/models/predictor``): ``weights.pt`` + ``config.json``
 (:func:`~adv3d_runner.autonomy.predictor.load_predictor`), ``training_report.json`` (loss curves, held-out metrics of
 the model and both baselines, times, the exact command) and ``loss_curves.png``.
@@ -16,6 +22,7 @@ from __future__ import annotations
 import platform
 import time
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 
@@ -40,9 +47,14 @@ def train_predictor(scenes: int = 240, val_scenes: int = 40, epochs: int = 20, s
                     modes: int = 6, batch: int = 512, lr: float = 2e-3, threads: int = 1,
                     cache: str | None = None, use_cache: bool = True, out: str | Path | None = None,
                     command: str = "", cls_weight: float = 0.5, lane_dropout: float = 0.05,
-                    time_limit_min: float | None = 40.0) -> dict:
+                    time_limit_min: float | None = 40.0, real_train: Sequence[str | Path] = (),
+                    real_eval: Sequence[str | Path] = (), real_weight: int = 10,
+                    real_info: dict | None = None) -> dict:
     """Train and evaluate the predictor; write weights, config, report and curves to ``out``.
 
+    ``real_train``: real scene files added to the training data (each sample ``real_weight``
+    times); ``real_eval``: real scene files evaluated as a second held-out set (never trained
+    on); ``real_info``: what to record about them in the report (split, recordings).
     Returns the report dict (also written as ``training_report.json``).
     """
     import torch
@@ -53,7 +65,8 @@ def train_predictor(scenes: int = 240, val_scenes: int = 40, epochs: int = 20, s
     from ..scene.generate import check_split
     from ..autonomy.predictor import (DEFAULT_MODEL_DIR, NUM_FEATURES, PredictorConfig, _HIST_F, _AGENT_F, _LANE_F,
                             build_net, save_predictor)
-    from .predictor_data import BASELINES, METRIC_COLUMNS, build_dataset, data_key, per_sample_metrics
+    from .predictor_data import (ARRAYS, BASELINES, METRIC_COLUMNS, build_dataset, build_real_dataset, data_key,
+                                 per_sample_metrics)
 
     out = Path(out) if out is not None else DEFAULT_MODEL_DIR
     for s in (seed, seed + scenes - 1, seed + HELD_OUT_OFFSET, seed + HELD_OUT_OFFSET + val_scenes - 1):
@@ -67,10 +80,23 @@ def train_predictor(scenes: int = 240, val_scenes: int = 40, epochs: int = 20, s
     train = build_dataset(range(seed, seed + scenes), cache, use_cache, desc="training scenes", stats=data_stats)
     held = build_dataset(range(seed + HELD_OUT_OFFSET, seed + HELD_OUT_OFFSET + val_scenes), cache, use_cache,
                          desc="held-out scenes", stats=data_stats)
+    if real_weight < 1:
+        raise ConfigError("--real-weight must be >= 1")
+    n_generated = len(train["features"])
+    real_stats: dict = {}
+    real = build_real_dataset(real_train, cache, use_cache, desc="real training scenes", stats=real_stats) \
+        if real_train else None
+    held_real = build_real_dataset(real_eval, cache, use_cache, desc="real held-out scenes", stats=real_stats) \
+        if real_eval else None
+    n_real = 0 if real is None else len(real["features"])
+    if n_real:  # repeated so that real traffic is not drowned by ~100x more generated samples
+        train = {k: np.concatenate([train[k]] + [real[k]] * real_weight) for k in ARRAYS}
     t_data = time.perf_counter() - t0
     if len(train["features"]) == 0 or len(held["features"]) == 0:
         raise ConfigError("no training or held-out samples were made; use more scenes")
-    status(f"{len(train['features'])} training samples, {len(held['features'])} held-out samples ({t_data:.0f} s)")
+    status(f"{n_generated} generated + {n_real} x {real_weight} real training samples, {len(held['features'])} "
+           f"generated held-out samples, {0 if held_real is None else len(held_real['features'])} real held-out "
+           f"samples ({t_data:.0f} s)")
 
     # the curves track the headline subset: held-out samples whose actor is known for all 6 s
     full_mask = held["future_valid"].all(axis=1)
@@ -129,6 +155,63 @@ def train_predictor(scenes: int = 240, val_scenes: int = 40, epochs: int = 20, s
     t_train = time.perf_counter() - t1
 
     # held-out evaluation: the same samples for every model
+    table = _held_out_table(torch, net, held, modes, per_sample_metrics, BASELINES, METRIC_COLUMNS)
+    table_real = None if held_real is None or len(held_real["features"]) == 0 else \
+        _held_out_table(torch, net, held_real, modes, per_sample_metrics, BASELINES, METRIC_COLUMNS)
+    full = held["future_valid"].all(axis=1)
+    res = table["full_6s"]["models"]
+    beats = res[f"learned_k{modes}"]["min_ade"] < res["constant_velocity"]["min_ade"]
+
+    report = {
+        "format": REPORT_FORMAT, "version": REPORT_VERSION,
+        "command": command or (f"adv3d train predictor --scenes {scenes} --val-scenes {val_scenes} --epochs {epochs} "
+                               f"--seed {seed} --modes {modes} --batch {batch} --lr {lr} --out {out}"),
+        "data": {"train_seeds": [seed, seed + scenes - 1], "held_out_seeds": [seed + HELD_OUT_OFFSET, seed + HELD_OUT_OFFSET + val_scenes - 1],
+                 "split": "train (generator seed namespace disjoint from the benchmark)",
+                 "train_samples": int(n), "generated_train_samples": int(n_generated),
+                 "held_out_samples": int(len(full)), "data_key": data_key(),
+                 "seconds": round(t_data, 1), "scenes_generated": data_stats["generated"],
+                 "scenes_from_cache": data_stats["cached"],
+                 "real": dict(real_info or {}, train_scenes=[Path(p).name for p in real_train],
+                              held_out_scenes=[Path(p).name for p in real_eval], train_samples=int(n_real),
+                              weight=int(real_weight),
+                              held_out_samples=0 if held_real is None else int(len(held_real["features"])),
+                              scenes_generated=real_stats.get("generated", 0),
+                              scenes_from_cache=real_stats.get("cached", 0))},
+        "training": {"epochs": epochs, "batch": batch, "lr": lr, "optimizer": "AdamW + one-cycle", "cls_weight": cls_weight,
+                     "lane_dropout": lane_dropout, "threads": threads, "seconds": round(t_train, 1),
+                     "epochs_run": len(curves["epoch"]), "stopped_by_time_limit": stopped_early,
+                     "parameters": int(sum(p.numel() for p in net.parameters()))},
+        "curves": curves,
+        "held_out": table,
+        "held_out_real": table_real,
+        "beats_constant_velocity_min_ade": bool(beats),
+        "machine": {"platform": platform.platform(), "python": platform.python_version(), "torch": torch.__version__,
+                    "cpu": platform.processor() or platform.machine()},
+        "notes": "metrics over 6 s at 10 Hz; 'full_6s' = samples whose actor is known for the whole 6 s, 'all' = "
+                 ">= 3 s known (averaged over known steps). Baselines have K = 3 modes; learned_top3 = the learned "
+                 "model's 3 most probable modes. held_out = generated held-out scenes; held_out_real = the real "
+                 "benchmark part (recorded frames only), never trained on.",
+    }
+    save_predictor(net, cfg, out, extra={"training_report": "training_report.json"})
+    write_json(out / "training_report.json", report)
+    _plot(out / "loss_curves.png", curves, res, modes)
+    for name, tab in (("generated", table), ("real", table_real)):
+        if tab is None:
+            continue
+        r = tab["full_6s"]["models"] if tab["full_6s"]["n_samples"] else tab["all"]["models"]
+        sub = "full 6 s" if tab["full_6s"]["n_samples"] else ">= 3 s"
+        status(f"{name} held-out ({sub}, {tab['full_6s']['n_samples'] or tab['all']['n_samples']} samples): minADE "
+               f"learned {r[f'learned_k{modes}']['min_ade']:.3f} m, top-3 {r['learned_top3']['min_ade']:.3f} m, "
+               f"constant velocity {r['constant_velocity']['min_ade']:.3f} m, lane following "
+               f"{r['lane_following']['min_ade']:.3f} m")
+    status(f"wrote {out}")
+    return report
+
+
+def _held_out_table(torch, net, held: dict, modes: int, per_sample_metrics, baselines, columns) -> dict:
+    """Metrics of the model, its 3 most probable modes and the baselines on the same samples:
+    {"full_6s" | "all": {"n_samples", "models": {name: {column: mean}}}}."""
     net.eval()
     with torch.inference_mode():
         traj, logits = net(torch.from_numpy(held["features"]), torch.from_numpy(held["prior"]))
@@ -144,44 +227,12 @@ def train_predictor(scenes: int = 240, val_scenes: int = 40, epochs: int = 20, s
     table = {}
     for subset, mask in (("full_6s", full), ("all", np.ones(len(full), bool))):
         rows = {f"learned_k{modes}": learned[mask], "learned_top3": learned3[mask]}
-        for b in BASELINES:
+        for b in baselines:
             rows[b] = held[f"{b}_metrics"][mask]
         table[subset] = {"n_samples": int(mask.sum()),
-                         "models": {name: {c: float(np.nanmean(v[:, j])) for j, c in enumerate(METRIC_COLUMNS)}
-                                    for name, v in rows.items()}}
-    res = table["full_6s"]["models"]
-    beats = res[f"learned_k{modes}"]["min_ade"] < res["constant_velocity"]["min_ade"]
-
-    report = {
-        "format": REPORT_FORMAT, "version": REPORT_VERSION,
-        "command": command or (f"adv3d train predictor --scenes {scenes} --val-scenes {val_scenes} --epochs {epochs} "
-                               f"--seed {seed} --modes {modes} --batch {batch} --lr {lr} --out {out}"),
-        "data": {"train_seeds": [seed, seed + scenes - 1], "held_out_seeds": [seed + HELD_OUT_OFFSET, seed + HELD_OUT_OFFSET + val_scenes - 1],
-                 "split": "train (generator seed namespace disjoint from the benchmark)",
-                 "train_samples": int(n), "held_out_samples": int(len(full)), "data_key": data_key(),
-                 "seconds": round(t_data, 1), "scenes_generated": data_stats["generated"],
-                 "scenes_from_cache": data_stats["cached"]},
-        "training": {"epochs": epochs, "batch": batch, "lr": lr, "optimizer": "AdamW + one-cycle", "cls_weight": cls_weight,
-                     "lane_dropout": lane_dropout, "threads": threads, "seconds": round(t_train, 1),
-                     "epochs_run": len(curves["epoch"]), "stopped_by_time_limit": stopped_early,
-                     "parameters": int(sum(p.numel() for p in net.parameters()))},
-        "curves": curves,
-        "held_out": table,
-        "beats_constant_velocity_min_ade": bool(beats),
-        "machine": {"platform": platform.platform(), "python": platform.python_version(), "torch": torch.__version__,
-                    "cpu": platform.processor() or platform.machine()},
-        "notes": "metrics over 6 s at 10 Hz; 'full_6s' = samples whose actor is known for the whole 6 s, 'all' = "
-                 ">= 3 s known (averaged over known steps). Baselines have K = 3 modes; learned_top3 = the learned "
-                 "model's 3 most probable modes.",
-    }
-    save_predictor(net, cfg, out, extra={"training_report": "training_report.json"})
-    write_json(out / "training_report.json", report)
-    _plot(out / "loss_curves.png", curves, res, modes)
-    status(f"held-out (full 6 s, {table['full_6s']['n_samples']} samples): minADE learned "
-           f"{res[f'learned_k{modes}']['min_ade']:.3f} m, top-3 {res['learned_top3']['min_ade']:.3f} m, "
-           f"constant velocity {res['constant_velocity']['min_ade']:.3f} m, lane following "
-           f"{res['lane_following']['min_ade']:.3f} m; wrote {out}")
-    return report
+                         "models": {name: {c: (float(np.nanmean(v[:, j])) if len(v) else None)
+                                           for j, c in enumerate(columns)} for name, v in rows.items()}}
+    return table
 
 
 def _evaluate(torch, net, held, cls_weight) -> tuple[float, float]:

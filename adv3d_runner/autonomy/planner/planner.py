@@ -25,6 +25,7 @@ from .proposals import ActorForecast, Candidates, ProposalConfig, make_specs, ro
 from .scorer import CostWeights, ScoreTable, score
 
 DEFAULT_ACTOR_DIMS = (4.6, 1.9)  # m, used when a prediction has no matching track
+YAW_CHORD = 4.0  # m of forward motion over which a predicted actor's heading is measured
 
 
 @dataclass(frozen=True)
@@ -67,8 +68,9 @@ def forecast_from(predictions: Predictions | None, tracks: Tracks | None, steps:
 
     Returns poses (N, K, steps + 1, 3): index 0 = the track's current pose (or, without a track,
     the first predicted point extrapolated one step back); later steps = predicted positions
-    (held at the last prediction past its horizon), yaw from the direction of motion (the
-    previous yaw while an actor moves less than 5 cm per step)."""
+    (held at the last prediction past its horizon), yaw from the direction of motion over the
+    last ``YAW_CHORD`` m (the track's yaw until the actor has moved that far, see
+    :func:`_yaw_from_motion`)."""
     if predictions is None or len(predictions) == 0:
         return ActorForecast.empty(steps)
     traj = np.asarray(predictions.trajectories, dtype=np.float64)
@@ -106,18 +108,36 @@ def forecast_from(predictions: Predictions | None, tracks: Tracks | None, steps:
     return ActorForecast(poses, np.maximum(dims, 0.0), probs, ids)
 
 
-def _yaw_from_motion(xy: np.ndarray, yaw0: np.ndarray, min_step: float = 0.05) -> np.ndarray:
-    """Heading along (N, K, T, 2) positions: direction of each step, carried forward over steps
-    shorter than ``min_step``; index 0 and leading short steps use ``yaw0`` (N,)."""
+def _yaw_from_motion(xy: np.ndarray, yaw0: np.ndarray, chord: float = YAW_CHORD) -> np.ndarray:
+    """Heading along (N, K, T, 2) positions: the direction of the last ``chord`` m of forward
+    motion, i.e. from the latest earlier point at least ``chord`` m further back along the
+    actor's present heading ``yaw0`` (N,) to this one; ``yaw0`` until the actor has moved that
+    far forward (index 0 always).
+
+    Why a chord and not each 0.1 s step: a predicted path jitters by a few centimetres from step
+    to step, which for a slow actor (a step of 0.2-0.8 m in stop-and-go traffic) turned into
+    heading errors of 10-30 degrees; rotated that much, a truck in the next lane overlapped the
+    ego's footprint and every candidate "collided" (NGSIM US-101 scenes, issue 17). Progress is
+    measured along ``yaw0`` (running maximum), so lateral jitter and backward jitter of a
+    standing actor add nothing and it keeps its heading."""
     N, K, T = xy.shape[:3]
-    d = np.diff(xy, axis=2)
-    moving = np.linalg.norm(d, axis=-1) > min_step  # (N, K, T-1)
-    step_yaw = np.arctan2(d[..., 1], d[..., 0])
-    cand = np.concatenate([np.broadcast_to(yaw0[:, None, None], (N, K, 1)), step_yaw], axis=2)
-    valid = np.concatenate([np.ones((N, K, 1), bool), moving], axis=2)
-    idx = np.where(valid, np.arange(T)[None, None, :], 0)
-    idx = np.maximum.accumulate(idx, axis=2)
-    return np.take_along_axis(cand, idx, axis=2)
+    fwd = np.stack([np.cos(yaw0), np.sin(yaw0)], axis=-1)[:, None, None, :]         # (N, 1, 1, 2)
+    prog = np.maximum.accumulate(np.sum((xy - xy[:, :, :1]) * fwd, axis=-1), axis=2)  # (N, K, T), >= 0
+    rows = N * K
+    if rows == 0 or T == 0:
+        return np.broadcast_to(yaw0[:, None, None], (N, K, T)).copy()
+    # per row, the last index i with prog[i] <= prog[t] - chord (rows made one sorted array)
+    span = float(prog.max(initial=0.0)) + chord + 1.0
+    offset = (np.arange(rows) * span)[:, None]
+    flat = (prog.reshape(rows, T) + offset).ravel()
+    i = np.searchsorted(flat, (prog.reshape(rows, T) - chord + offset).ravel(), side="right") - 1
+    i = i.reshape(rows, T) - (np.arange(rows) * T)[:, None]
+    ok = i >= 0  # moved at least ``chord`` forward since the start
+    p = xy.reshape(rows, T, 2)
+    d = p - np.take_along_axis(p, np.maximum(i, 0)[..., None], axis=1)
+    yaw = np.where(ok, np.arctan2(d[..., 1], d[..., 0]), np.repeat(yaw0, K)[:, None])
+    yaw[:, 0] = np.repeat(yaw0, K)
+    return yaw.reshape(N, K, T)
 
 
 class SamplingPlanner:

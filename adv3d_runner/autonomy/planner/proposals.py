@@ -51,9 +51,13 @@ class ProposalConfig:
         idm_gap, idm_headway: IDM jam distance (m) and time headway (s).
         max_decel: hardest braking of any candidate (and of the emergency stop).
         max_jerk: |da/dt| limit of the IDM candidates; max_release_jerk: the limit while
-            the acceleration rises from a negative value (releasing the brakes).
+            the acceleration rises from a negative value (releasing the brakes);
+            max_brake_jerk: the limit while the IDM asks for harder braking than
+            ``idm_decel`` (firm braking builds up faster than comfortable speed changes).
         min_mode_prob: predicted modes below this probability are ignored as leaders.
         lane_margin: extra lateral margin when deciding that an actor is in a corridor, m.
+        leader_speed_window: s over which a leader's predicted speed is averaged for the IDM
+            (0.1 = one step; predicted positions jitter by centimetres per step).
     """
 
     horizon: float = 5.0
@@ -72,10 +76,12 @@ class ProposalConfig:
     idm_gap: float = 3.0
     idm_headway: float = 1.5
     max_decel: float = 7.0
-    max_jerk: float = 4.0
-    max_release_jerk: float = 10.0
+    max_jerk: float = 1.5
+    max_release_jerk: float = 3.0
+    max_brake_jerk: float = 8.0
     min_mode_prob: float = 0.1
     lane_margin: float = 0.3
+    leader_speed_window: float = 1.5
 
     @property
     def steps(self) -> int:
@@ -255,6 +261,7 @@ def rollout_candidates(ego_pose: np.ndarray, ego_speed: float, ego_accel: float,
     lat_lim = config.max_lat_accel
     kappa_max = params.max_curvature
     jerk_dn = config.max_jerk * dt
+    brake_dn = config.max_brake_jerk * dt
     up_jerk = np.array([config.max_jerk * dt, config.max_release_jerk * dt])
     # the bicycle step (:func:`adv3d_runner.dynamics.bicycle.step` with a curvature input) is
     # inlined below with its parameter-derived constants computed once
@@ -267,7 +274,12 @@ def rollout_candidates(ego_pose: np.ndarray, ego_speed: float, ego_accel: float,
         lead_ok_t = leader_ok.transpose(2, 0, 1)
         lead_s_ok = np.where(lead_ok_t, lead_s_t, -np.inf)  # actor-modes out of the lane never lead
         lead_back = lead_s_t - (leader_len + half_len)  # the leader's rear bumper less the ego's half length
-        lead_v = np.maximum((lead_s_t[1:] - lead_s_t[:-1]) / dt, 0.0)  # (T, B, M) leader speeds
+        # (T, B, M) leader speeds, as the mean over ``leader_speed_window`` s ahead: predicted
+        # positions jitter by centimetres per step, which one-step differences turn into
+        # +-0.3 m/s of speed noise that the IDM passes on to the ego's acceleration
+        w = max(1, int(round(config.leader_speed_window / dt)))
+        ahead_w = np.minimum(np.arange(T) + w, T)
+        lead_v = np.maximum((lead_s_t[ahead_w] - lead_s_t[:-1]) / ((ahead_w - np.arange(T)) * dt)[:, None, None], 0.0)
         any_lead = lead_ok_t.any(axis=(1, 2))
     x, y, yaw, v = (states[i, 0].copy() for i in range(4))
     # the proposal's own limits are within the vehicle's: the step's clamps would be no-ops
@@ -304,7 +316,8 @@ def rollout_candidates(ego_pose: np.ndarray, ego_speed: float, ego_accel: float,
         a = np.minimum(np.maximum(a, -config.max_decel), config.idm_accel)
         # jerk limit; releasing the brakes may be faster (max_release_jerk) so that a plan that
         # braked hard does not keep the ego decelerating for seconds after the reason is gone
-        a = np.minimum(np.maximum(a, a_prev - jerk_dn), a_prev + up_jerk[(a_prev < 0).view(np.int8)])
+        down = jerk_dn if brake_dn == jerk_dn else np.where(a < -config.idm_decel, brake_dn, jerk_dn)
+        a = np.minimum(np.maximum(a, a_prev - down), a_prev + up_jerk[(a_prev < 0).view(np.int8)])
         if len(em_rows):
             a[em_rows] = -config.max_decel
         if v.min() <= 1e-6:

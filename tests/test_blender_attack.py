@@ -1,0 +1,105 @@
+"""The Scenes panel's "Attack this scene" on the ``bpy`` module: a tiny real attack
+(``adv3d attack --autonomy oracle --budget 2 --seconds 0.5``) runs as a separate process started
+with the runner from the add-on preferences, its progress is polled from the journal, Esc
+terminates it, pressing again resumes the same run, and the finished run opens in Review.
+"""
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+bpy = pytest.importorskip("bpy")
+
+pytestmark = pytest.mark.blender
+
+SCENE = "highway-benchmark-000002.json.gz"  # has an actor in front of the ego to attack
+
+
+@pytest.fixture
+def ctx(addon, repo_root, tmp_path):
+    from blender_addon import prefs
+
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    entry = bpy.context.preferences.addons.new()
+    entry.module = prefs.PACKAGE
+    p = prefs.get()
+    p.runner = sys.executable  # a Python with adv3d installed: run as `python -m adv3d_runner.cli`
+    p.runs_folder = str(tmp_path / "runs")
+    assert bpy.ops.adv3d.scene_load(filepath=str(repo_root / "scenes" / "highway" / SCENE)) == {"FINISHED"}
+    sc = bpy.context.scene.adv3d.scene
+    sc.attack_budget, sc.attack_seconds, sc.attack_autonomy = 2, 0.5, "oracle"
+    yield bpy.context
+    bpy.context.preferences.addons.remove(entry)
+
+
+def _journal(run: Path) -> list[dict]:
+    path = run / "queries.jsonl"
+    return [json.loads(line) for line in path.read_text().splitlines()] if path.exists() else []
+
+
+def test_attack_this_scene_runs_and_opens_in_review(ctx):
+    from blender_addon import ops_attack, review
+
+    assert bpy.ops.adv3d.scene_attack() == {"FINISHED"}
+    run = Path(ctx.scene.adv3d.scene.last_run)
+    assert len(_journal(run)) == 2 and (run / "summary.json").is_file()
+    assert (run.with_name(run.name + ".blender") / SCENE).is_file()  # the scene as exported from Blender
+    # the finished run is open in Review
+    assert ctx.scene.adv3d.review.path == str(run) and review.data_of(ctx.scene) is not None
+    assert "review ego" in bpy.data.objects and ctx.scene.adv3d.review.loaded.startswith(str(run))
+    assert ops_attack.journal_progress(run)[0] == 2
+
+
+def test_attack_is_cancelled_by_esc_and_resumes(ctx):
+    """Esc terminates the runner process; the same button then resumes the same run (the
+    journal's queries are kept) and finishes it."""
+    from blender_addon import jobs
+
+    sc = ctx.scene.adv3d.scene
+    sc.attack_budget = 3
+    started = []
+    op_steps = _attack_steps(ctx, started)
+    job = jobs.Job("Attack", op_steps)
+    import time
+
+    t0 = time.perf_counter()
+    run = Path(sc.last_run)
+    while not _journal(run) and time.perf_counter() - t0 < 120:  # until the first query is in
+        assert jobs.handle_event(ctx, job, "TIMER") == jobs.RUNNING
+        time.sleep(0.1)
+    first = _journal(run)
+    assert first and "query" in job.message
+    assert jobs.handle_event(ctx, job, "ESC") == jobs.CANCELLED
+    assert started[0].poll() is not None  # the process is gone
+    assert bpy.ops.adv3d.scene_attack() == {"FINISHED"}  # same scene, same settings: resumed
+    assert Path(sc.last_run) == run
+    done = _journal(run)
+    assert len(done) == 3 and done[0] == first[0]
+
+
+def _attack_steps(ctx, started: list):
+    """The operator's job (``prepare_attack`` + ``attack_steps``), the process handed out."""
+    from blender_addon import ops_attack
+
+    cmd, run_dir, settings = ops_attack.prepare_attack(ctx)
+    steps = ops_attack.attack_steps(cmd, run_dir, settings["budget"], started=started)
+    next(steps)  # starts the process
+    return steps
+
+
+def test_algorithms_match_the_attack_cli():
+    from adv3d_runner.attack.search import ALGORITHMS
+    from blender_addon.ops_attack import ALGORITHMS as ADDON
+
+    assert ADDON == ALGORITHMS
+
+
+def test_missing_runner_is_reported(ctx):
+    from blender_addon import prefs
+
+    prefs.get().runner = "/no/such/adv3d"
+    with pytest.raises(RuntimeError, match="adv3d attack failed|No such file|no adv3d runner"):
+        bpy.ops.adv3d.scene_attack()
