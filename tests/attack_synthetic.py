@@ -103,3 +103,24 @@ class SyntheticWithBest(SyntheticEvaluator):
         (out / "best.txt").write_text(f"{ref} {np.asarray(unit).tolist()} {metadata}\n")
         first = {"cost": FUNCTIONS[name](np.full(PER_ACTOR, 0.5))} if original else None
         return BestEvaluation(closed_loop={"cost": value}, original=first, meshes={}, replay="best.txt")
+
+
+class SyntheticLogged(SyntheticEvaluator):
+    """:class:`SyntheticEvaluator` taking 20-420 ms per query (by the query's own numbers, so
+    workers finish out of order) and, with ``ADV3D_TEST_EVAL_LOG`` set, appending every query
+    it evaluates (its unit vector, one JSON line) to that file, from whichever process runs it."""
+
+    def evaluate(self, query: Query) -> QueryResult:
+        import json
+        import os
+        import time
+
+        time.sleep(0.02 + 0.4 * float(np.asarray(query.unit).reshape(-1)[2]))
+        log = os.environ.get("ADV3D_TEST_EVAL_LOG")
+        if log:
+            fd = os.open(log, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+            try:
+                os.write(fd, (json.dumps(np.asarray(query.unit).reshape(-1).tolist()) + "\n").encode())
+            finally:
+                os.close(fd)
+        return super().evaluate(query)

@@ -159,6 +159,13 @@ class Journal:
             else:
                 free.add("scene_sha256")  # a bundle from before content hashes: paths compared
             diff = sorted(k for k in set(old) | set(doc) if k not in free and old.get(k) != doc.get(k))
+            if "batch" in diff:  # the one the worker count used to set: say what to do
+                others = [k for k in diff if k != "batch"]
+                raise ConfigError(f"{self.root} was run with --batch {old.get('batch')} (run.json field 'batch'), "
+                                  f"this command asks --batch {doc.get('batch')}: the queries a search asks depend on "
+                                  f"it (--workers does not); give --batch {old.get('batch')} or leave it out to resume"
+                                  + (f" (other differing fields: {', '.join(others)})" if others else "")
+                                  + ", or use another --out")
             if diff:
                 raise ConfigError(f"{self.root} holds a run with a different configuration ({', '.join(diff)}); "
                                   f"use another --out or the same options to resume it")
