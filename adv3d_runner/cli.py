@@ -73,6 +73,11 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+#: Commands that choose their own threads (training uses every core); every other command runs
+#: its numerical libraries on one thread (``machine.limit_threads``; bench/threads.py).
+OWN_THREADS = ("train",)
+
+
 def _join_axis_values(parser: argparse.ArgumentParser, argv: list[str]) -> list[str]:
     """``--up -y`` -> ``--up=-y`` for options of type :func:`adv3d_runner.argtypes.axis`
     (argparse would take ``-y`` for an option)."""
@@ -91,6 +96,12 @@ def _join_axis_values(parser: argparse.ArgumentParser, argv: list[str]) -> list[
 
 
 def main(argv: list[str] | None = None) -> int:
+    words = sys.argv[1:] if argv is None else list(argv)
+    command = next((w for w in words if not w.startswith("-")), None)
+    if command not in OWN_THREADS:
+        from .machine import limit_threads
+
+        limit_threads()  # before numpy and torch load (building the parser imports numpy)
     parser = build_parser()
     argv = list(sys.argv[1:] if argv is None else argv)
     args = parser.parse_args(_join_axis_values(parser, argv))  # usage errors: one line, SystemExit(2)

@@ -42,3 +42,27 @@ def machine_info(*packages: str, **extra) -> dict:
             info[name] = None
     info.update(extra)
     return info
+
+
+def single_thread_env() -> dict[str, str]:
+    """Environment variables that keep OpenMP (torch), OpenBLAS (numpy) and MKL to one thread.
+
+    The simulation's numerical work is small per call (a BEV network on one frame, 4x4 Kalman
+    updates, a few hundred planner candidates); extra threads only spin and yield against each
+    other, on a shared machine or next to other worker processes (``bench/threads.py``). The
+    parallelism of adv3d is its worker processes.
+    """
+    return {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+
+
+def limit_threads() -> None:
+    """One thread per numerical library in this process: the variables of
+    :func:`single_thread_env` for libraries not loaded yet (a value the user set wins), and
+    torch's intra-op threads if torch is loaded (torch reads OMP_NUM_THREADS when it starts)."""
+    import sys
+
+    for key, value in single_thread_env().items():
+        os.environ.setdefault(key, value)
+    torch = sys.modules.get("torch")
+    if torch is not None:
+        torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "1") or 1))

@@ -1,22 +1,34 @@
-"""Attack benchmark: searcher overhead and convergence, and query throughput on a real scene.
+"""Attack benchmark: searcher overhead and convergence, query throughput, and where a query's
+CPU time goes.
 
     .venv/bin/python bench/attack.py [--quick] [--scene FILE] [--autonomy oracle|A] [--queries N]
+    .venv/bin/python bench/attack.py --stages [--autonomy A] [--queries 8] [--scenes 000000,000010,000041]
 
 1. Convergence on the synthetic 5-D objective (``synthetic:peak``: a bowl with a narrow peak of
    height 2 at a fixed point; ``tests/attack_synthetic.py``, the tests' analytic stand-in for the
    episode evaluator), every algorithm at budget 100 over several seeds: best value after
    10/25/50/100 queries and the searcher's own time per query (ask + tell, no simulation).
-2. Throughput on a bundled scene: a closed-loop 5 s BO attack with 1 and 2 local workers;
-   queries per minute (steady state from the journal's per-query wall times, and end to end
-   including worker start-up and the LiDAR world build) and the extrapolated time of a
-   100-query attack.
+2. Throughput on a bundled scene: a closed-loop 5 s BO attack with 1 and 2 local workers
+   (batch = workers); queries per minute (steady state from the journal's per-query wall times,
+   and end to end including worker start-up and the LiDAR world build) and the extrapolated time
+   of a 100-query attack.
+3. ``--stages`` (alone): CPU seconds of one query (a 5 s episode with a decoded shape, scored and
+   measured) in closed and open loop, with the plain and the incremental LiDAR (when the code has
+   it), split by stage: shape decoding, BVH build, LiDAR, detector, tracker, predictor, planner,
+   evaluation (objective + metrics) and the rest. One process pinned to one core, one thread per
+   library; ``time.process_time`` (the machine is shared: CPU time, not wall time). The same
+   seeded shapes in every configuration, interleaved query by query so that load changes hit all
+   of them alike; the first query of each (workspace build) is not counted. Runs against the
+   code next to it, so the same script measures an older checkout (``before`` numbers).
 
-Writes ``bench/results/attack.json`` (``attack.quick.json`` with --quick).
+Writes ``bench/results/attack.json`` (``attack.quick.json`` with --quick; ``attack_stages.json``
+with --stages).
 """
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import shutil
 import sys
 import tempfile
@@ -24,6 +36,12 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+if "--stages" in sys.argv:  # one core, one thread per library, before numpy and torch load
+    for _k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(_k, "1")
+    if hasattr(os, "sched_setaffinity"):
+        os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -88,6 +106,129 @@ def throughput(scene: str, autonomy: str, queries: int, workers: int, seconds: f
         shutil.rmtree(tmp, ignore_errors=True)
 
 
+STAGES = ("decode", "bvh", "lidar", "detector", "tracker", "predictor", "planner", "evaluation")
+
+
+class _StageClock:
+    """CPU seconds per stage, accumulated by wrapping the functions and methods of each stage
+    (module attributes looked up at call time, so the episode and the evaluator use the
+    wrapped ones)."""
+
+    def __init__(self):
+        self.now = dict.fromkeys(STAGES, 0.0)
+        self._undo = []
+
+    def wrap(self, owner, name: str, stage: str) -> None:
+        orig = getattr(owner, name)
+        clock = self
+
+        def timed(*a, **k):
+            t0 = time.process_time()
+            try:
+                return orig(*a, **k)
+            finally:
+                clock.now[stage] += time.process_time() - t0
+
+        setattr(owner, name, timed)
+        self._undo.append((owner, name, orig))
+
+    def restore(self) -> None:
+        for owner, name, orig in reversed(self._undo):
+            setattr(owner, name, orig)
+        self._undo.clear()
+
+
+def query_stages(scenes: list[str], autonomy: str, queries: int, seconds: float = 5.0) -> dict:
+    """Section 3: CPU seconds per query by stage (see the module docstring)."""
+    import dataclasses
+
+    import adv3d_runner.attack.objective as objective_mod
+    import adv3d_runner.attack.targets as targets_mod
+    import adv3d_runner.sensors.lidar as lidar_mod
+    import adv3d_runner.sim.evaluate as evaluate_mod
+    from adv3d_runner.attack.config import QuerySettings
+    from adv3d_runner.attack.evaluator import SceneWorkspace
+    from adv3d_runner.sensors.world import LidarWorld
+
+    has_incremental = "incremental" in {f.name for f in dataclasses.fields(QuerySettings)}
+    variants = [("plain", False)] + ([("incremental", True)] if has_incremental else [])
+    configs = [(loop, name, flag) for loop in ("closed", "open") for name, flag in variants]
+    clock = _StageClock()
+    clock.wrap(lidar_mod, "simulate_frame", "lidar")
+    clock.wrap(targets_mod, "decode_query", "decode")
+    clock.wrap(LidarWorld, "set_actor_mesh", "bvh")
+    clock.wrap(evaluate_mod, "episode_evaluation", "evaluation")
+    clock.wrap(evaluate_mod, "episode_metrics", "evaluation")
+    clock.wrap(objective_mod, "episode_objective", "evaluation")
+    wrapped_stacks = set()
+    out = {"configs": {}, "scenes": [], "queries_per_scene": queries, "seconds": seconds,
+           "has_incremental": has_incremental}
+    per = {f"{loop}/{name}": [] for loop, name, _ in configs}
+    try:
+        for scene in scenes:
+            units = np.random.default_rng(0).random((queries + 1, 5))
+            spaces = {}
+            for loop, name, flag in configs:
+                kw = {"incremental": flag} if has_incremental else {}
+                st = QuerySettings(autonomy=autonomy, seconds=seconds, **kw)
+                key = (name, flag)
+                if key not in spaces:
+                    spaces[key] = SceneWorkspace(scene, st)
+                    stack = spaces[key].stack
+                    if id(stack) not in wrapped_stacks:
+                        wrapped_stacks.add(id(stack))
+                        clock.wrap(stack.detector, "detect", "detector")
+                        clock.wrap(stack.tracker, "update", "tracker")
+                        clock.wrap(stack.predictor, "predict", "predictor")
+                        clock.wrap(stack.planner, "plan", "planner")
+            results = {}
+            for q, u in enumerate(units):
+                for loop, name, flag in configs:
+                    ws = spaces[(name, flag)]
+                    clock.now = dict.fromkeys(STAGES, 0.0)
+                    t0 = time.process_time()
+                    res, ep = ws.evaluate(u, loop == "closed")
+                    total = time.process_time() - t0
+                    results.setdefault((loop, q), []).append((name, res.cost, res.metrics))
+                    if q == 0:
+                        continue  # first query: warm-up
+                    row = {k: v for k, v in clock.now.items()}
+                    row["other"] = total - sum(row.values())
+                    row["total"] = total
+                    row["frames"] = int(ep.frames)
+                    per[f"{loop}/{name}"].append(row)
+            same = all(len({(c, json.dumps(m, sort_keys=True)) for _, c, m in v}) == 1 for v in results.values())
+            cache = {}
+            for (name, flag), ws in spaces.items():
+                for loop, c in getattr(ws, "lidar_caches", {}).items():
+                    cache[f"{'closed' if loop else 'open'}/{name}"] = {"hits": c.hits, "misses": c.misses,
+                                                                      "megabytes": c.nbytes / 2**20}
+            out["scenes"].append({"scene": Path(scene).name, "targets": spaces[variants[0]].targets,
+                                  "actors": len(spaces[variants[0]].scene.actors),
+                                  "results_identical_across_variants": same, "lidar_cache": cache})
+            print(f"  {Path(scene).name}: results identical across variants: {same}; cache {cache}")
+    finally:
+        clock.restore()
+    for key, rows in per.items():
+        frames = np.mean([r["frames"] for r in rows])
+        out["configs"][key] = {
+            "queries": len(rows),
+            "cpu_s_per_query_median": float(np.median([r["total"] for r in rows])),
+            "cpu_s_per_query_mean": float(np.mean([r["total"] for r in rows])),
+            "s_per_query_by_stage": {k: float(np.mean([r[k] for r in rows])) for k in STAGES + ("other",)},
+            "ms_per_frame_by_stage": {k: 1000 * float(np.mean([r[k] for r in rows])) / frames
+                                      for k in STAGES + ("other",)},
+        }
+    keys = list(out["configs"])
+    print(f"\nCPU per {seconds:g} s query by stage (s per query, mean over {len(per[keys[0]])} queries; "
+          f"{autonomy}; one core)")
+    print(f"{'stage':12s} " + " ".join(f"{k:>20s}" for k in keys))
+    for stage in STAGES + ("other",):
+        print(f"{stage:12s} " + " ".join(f"{out['configs'][k]['s_per_query_by_stage'][stage]:20.3f}" for k in keys))
+    print(f"{'total (med)':12s} " + " ".join(f"{out['configs'][k]['cpu_s_per_query_median']:20.3f}" for k in keys))
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true")
@@ -96,7 +237,24 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=5.0)
     ap.add_argument("--queries", type=int, default=None,
                     help="queries per throughput run (default 8, 4 with --quick; 100 = the issue's target run)")
+    ap.add_argument("--stages", action="store_true", help="only section 3: CPU per query by stage")
+    ap.add_argument("--scenes", default="000000,000010,000041",
+                    help="--stages: benchmark scene numbers (default 000000,000010,000041)")
     args = ap.parse_args()
+    if args.stages:
+        scenes = [str(ROOT / "scenes" / "highway" / f"highway-benchmark-{n}.json.gz") for n in args.scenes.split(",")]
+        t0 = time.time()
+        stages = query_stages(scenes, args.autonomy, args.queries or 8, args.seconds)
+        doc = {"format": "adv3d.bench", "topic": "attack_stages",
+               "command": " ".join([Path(sys.executable).name] + sys.argv),
+               "machine": machine_info("numpy", "torch", "embreex"), "wall_s": time.time() - t0,
+               "timing": "time.process_time of one process pinned to one core, one thread per library",
+               "autonomy": args.autonomy, **stages}
+        out = ROOT / "bench" / "results" / "attack_stages.json"
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(doc, indent=1) + "\n")
+        print(f"\nwrote {out}")
+        return
     seeds = 2 if args.quick else 5
     nq = args.queries or (4 if args.quick else 8)
     t0 = time.time()

@@ -234,6 +234,8 @@ def real_trials(code: Path, n: int, rng: np.random.Generator, work: Path) -> dic
     env = {**os.environ, "PYTHONPATH": str(code), "OMP_NUM_THREADS": "1"}
     cmd = [sys.executable, "-m", "adv3d_runner.cli", "-q", "attack", str(scene), "--algo", "random", "--budget", "8",
            "--seconds", "1", "--autonomy", "oracle", "--workers", "2", "--seed", "3", "--out"]
+    if "--batch" in (code / "adv3d_runner" / "attack" / "cli.py").read_text():
+        cmd[-1:-1] = ["--batch", "2"]  # batch 2 as the code before --batch had it (= workers)
     t0 = time.perf_counter()
     proc = _start(cmd + [str(work / "real_ref")], env)
     first_s = _wait_for([work / "real_ref" / "queries.jsonl", work / "real_ref" / "queries.pending.jsonl"], proc)

@@ -19,6 +19,10 @@ car/truck boxes when the vehicle library is present, boxes otherwise).
     (identical points either way, checked).
 (c) points per frame against beam count: VLP-32C, HDL-64E, OS1-128 and generic 32/64/128-beam
     sensors with 2048 columns.
+(d) incremental simulation (``sensors.incremental.StaticRayCache``, the attack's per-scene
+    cache): HDL-64E, 30 actors, the actor nearest the ego is the dynamic (attacked) one with a
+    new shape; a frame whose geometry was seen before (cache hit) against the plain frame and
+    the first sight (miss: the static layers cast and stored); points identical in all three.
 
 Prints the tables and writes ``bench/results/lidar.json`` (``lidar.quick.json`` with --quick)
 with machine info and the command.
@@ -275,6 +279,48 @@ def section_c(repeats: int) -> list[dict]:
     return rows
 
 
+def section_d(repeats: int) -> dict:
+    from adv3d_runner.sensors.incremental import StaticRayCache
+
+    world, ego, poses, _, _ = build_scene_world(30)
+    rig = LidarRig.single(get_model("hdl64"), mount=(0, 0, 1.73, 0, 0, 0), ego_dimensions=(4.6, 1.9, 1.5))
+    nearest = int(np.argmin(np.hypot(*(poses[:, :2] - ego[:2]).T)))
+    _, v, f = actor_meshes()[0]
+    world.set_actor_mesh(nearest, v * np.array([1.2, 1.15, 1.1]), f)  # an "attacked" shape
+    simulate_frame(world, rig, ego, poses, None)
+    st_plain, st_hit = {"clock": CLOCK}, {"clock": CLOCK}
+    t_plain, plain = timed(lambda: simulate_frame(world, rig, ego, poses, np.random.default_rng(4), stats=st_plain),
+                           repeats, "plain")
+    misses = []
+
+    def miss():
+        cache = StaticRayCache(world, [nearest])
+        t0 = CLOCK()
+        frame = simulate_frame(world, rig, ego, poses, np.random.default_rng(4), cache=cache)
+        misses.append(CLOCK() - t0)
+        return frame, cache
+
+    for _ in range(max(3, repeats // 3)):
+        first, cache = miss()
+    t_miss = float(np.median(misses))
+    t_hit, hit = timed(lambda: simulate_frame(world, rig, ego, poses, np.random.default_rng(4), cache=cache,
+                                              stats=st_hit), repeats, "hit")
+    same = all(np.array_equal(getattr(a, k), getattr(b, k)) for a in (first, hit)
+               for b in (plain,) for k in ("points", "ring", "label", "distance"))
+    n_plain = repeats
+    row = {"dynamic_actor": nearest, "plain_ms": 1e3 * t_plain, "miss_ms": 1e3 * t_miss, "hit_ms": 1e3 * t_hit,
+           "plain_embree_ms": 1e3 * st_plain["embree_s"] / n_plain, "hit_embree_ms": 1e3 * st_hit["embree_s"] / repeats,
+           "hit_rays_cast": st_hit["rays_cast"] // repeats, "plain_rays_cast": st_plain["rays_cast"] // n_plain,
+           "speed_up_hit": t_plain / t_hit, "cache_megabytes_per_frame": cache.nbytes / 2**20, "identical": bool(same)}
+    print("\n(d) incremental simulation, HDL-64E, 30 actors, the nearest one attacked (median CPU ms)")
+    print(f"  plain frame {row['plain_ms']:.2f} (Embree {row['plain_embree_ms']:.2f}, {row['plain_rays_cast']} rays cast)")
+    print(f"  first sight (cast + store) {row['miss_ms']:.2f}")
+    print(f"  seen before (cache hit) {row['hit_ms']:.2f} (Embree {row['hit_embree_ms']:.2f}, {row['hit_rays_cast']} rays "
+          f"cast): x{row['speed_up_hit']:.1f}; {row['cache_megabytes_per_frame']:.2f} MB stored per frame; "
+          f"identical points: {same}")
+    return row
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="fewer repeats")
@@ -291,6 +337,7 @@ def main() -> int:
         "a_pipeline_vs_raw": section_a(repeats),
         "b_actors_culling": section_b(repeats),
         "c_beams": section_c(repeats),
+        "d_incremental": section_d(repeats),
     }
     out = ROOT / "bench" / "results" / ("lidar.quick.json" if args.quick else "lidar.json")
     write_json(out, result)

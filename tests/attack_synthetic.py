@@ -30,7 +30,17 @@ def peak(u: np.ndarray) -> float:
     return -d2 + 2.0 * np.exp(-d2 / (2 * 0.05**2))
 
 
-FUNCTIONS: dict[str, Callable[[np.ndarray], float]] = {"peak": peak}
+def bowl(u: np.ndarray) -> float:
+    """5-D: a smooth bowl around another point (a second scene for multi-scene runs)."""
+    return -float(np.sum((u[:5] - 0.4) ** 2))
+
+
+def ridge(u: np.ndarray) -> float:
+    """5-D: a ridge along u[2] = u[3]."""
+    return -abs(float(u[2] - u[3])) + 0.1 * float(u[4])
+
+
+FUNCTIONS: dict[str, Callable[[np.ndarray], float]] = {"peak": peak, "bowl": bowl, "ridge": ridge}
 
 
 class SyntheticEvaluator:
@@ -70,3 +80,47 @@ class SyntheticEvaluator:
     def evaluate_best(self, ref: str, targets: list[int], unit: np.ndarray, out: Path, *, original: bool,
                       metadata: dict[str, Any]) -> BestEvaluation | None:
         return None  # nothing to simulate, no files
+
+
+class SyntheticWithBest(SyntheticEvaluator):
+    """:class:`SyntheticEvaluator` whose best-shape evaluation writes a file and reports the
+    original scene, like the episode evaluator; with ``ADV3D_TEST_PID_DIR`` set, every process
+    that evaluates a query leaves a file named after its pid there (to see the workers used)."""
+
+    def evaluate(self, query: Query) -> QueryResult:
+        import os
+
+        folder = os.environ.get("ADV3D_TEST_PID_DIR")
+        if folder:
+            Path(folder, str(os.getpid())).touch()
+        return super().evaluate(query)
+
+    def evaluate_best(self, ref: str, targets: list[int], unit: np.ndarray, out: Path, *, original: bool,
+                      metadata: dict[str, Any]) -> BestEvaluation | None:
+        name = ref.split(":", 1)[1]
+        value = FUNCTIONS[name](np.asarray(unit))
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "best.txt").write_text(f"{ref} {np.asarray(unit).tolist()} {metadata}\n")
+        first = {"cost": FUNCTIONS[name](np.full(PER_ACTOR, 0.5))} if original else None
+        return BestEvaluation(closed_loop={"cost": value}, original=first, meshes={}, replay="best.txt")
+
+
+class SyntheticLogged(SyntheticEvaluator):
+    """:class:`SyntheticEvaluator` taking 20-420 ms per query (by the query's own numbers, so
+    workers finish out of order) and, with ``ADV3D_TEST_EVAL_LOG`` set, appending every query
+    it evaluates (its unit vector, one JSON line) to that file, from whichever process runs it."""
+
+    def evaluate(self, query: Query) -> QueryResult:
+        import json
+        import os
+        import time
+
+        time.sleep(0.02 + 0.4 * float(np.asarray(query.unit).reshape(-1)[2]))
+        log = os.environ.get("ADV3D_TEST_EVAL_LOG")
+        if log:
+            fd = os.open(log, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+            try:
+                os.write(fd, (json.dumps(np.asarray(query.unit).reshape(-1).tolist()) + "\n").encode())
+            finally:
+                os.close(fd)
+        return super().evaluate(query)

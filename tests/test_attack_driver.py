@@ -106,10 +106,84 @@ def test_resume_with_other_options_refused(tmp_path):
         run_attack(cfg(budget=6, batch=3), tmp_path / "y", show_progress=False)
 
 
+def test_kill_during_a_batch_on_two_workers_then_resume_on_one(tmp_path, monkeypatch):
+    """Two worker processes, batches of 4, stopped (as if killed) after 5 results: every
+    result the driver had is journalled (queries.jsonl or the pending file), the resume, with
+    another worker count, evaluates only the queries that were never journalled, and the run
+    ends with the serial run's journal."""
+    from attack_synthetic import SyntheticLogged
+
+    c = cfg(algo="random", budget=8, batch=4, seed=2)  # query 5 takes 80 ms less than query 4
+    run_attack(c, tmp_path / "serial", show_progress=False)
+    monkeypatch.setenv("ADV3D_TEST_EVAL_LOG", str(tmp_path / "killed.log"))
+    run_attack(c, tmp_path / "run", workers=2, stop_after=5, evaluator=SyntheticLogged, show_progress=False)
+    j = Journal(tmp_path / "run")
+    j.load()
+    journalled = j.records + list(j.pending.values())
+    # batch 1 in the journal; of batch 2 (4 and 5 running), 5 finished first: in the pending file
+    assert [r["index"] for r in j.records] == [0, 1, 2, 3] and [k[2] for k in j.pending] == [5]
+    assert json.loads((tmp_path / "run" / "run.json").read_text())["batch"] == 4
+    monkeypatch.setenv("ADV3D_TEST_EVAL_LOG", str(tmp_path / "resumed.log"))
+    run_attack(c, tmp_path / "run", workers=1, evaluator=SyntheticLogged, show_progress=False)
+    redone = [json.loads(x) for x in (tmp_path / "resumed.log").read_text().splitlines()]
+    done_units = [np.ravel(r["unit"]).tolist() for r in journalled]
+    assert len(redone) == 8 - 5  # 4, 6, 7
+    assert not any(np.allclose(u, d, rtol=0, atol=1e-12) for u in redone for d in done_units)
+    assert strip_times(lines(tmp_path / "run")) == strip_times(lines(tmp_path / "serial"))
+    assert (tmp_path / "run" / "queries.pending.jsonl").read_bytes() == b""
+
+
 def test_workers_give_the_same_journal(tmp_path):
     run_attack(cfg(budget=12), tmp_path / "serial", workers=1, show_progress=False)
     run_attack(cfg(budget=12), tmp_path / "pool", workers=2, show_progress=False)
     assert strip_times(lines(tmp_path / "serial")) == strip_times(lines(tmp_path / "pool"))
+
+
+def test_scenes_run_concurrently_and_the_journal_does_not_depend_on_workers(tmp_path, monkeypatch):
+    """Three scenes x two modes, one query asked at a time: two workers both evaluate queries
+    (the searches run concurrently), and the finished run's journal, summary and best-shape
+    files are the serial run's, byte for byte up to wall times."""
+    from attack_synthetic import SyntheticWithBest
+
+    scenes = ["synthetic:peak", "synthetic:bowl", "synthetic:ridge"]
+    c = cfg(scenes=scenes, mode="both", budget=6, batch=1, n_initial=3)
+    run_attack(c, tmp_path / "serial", workers=1, show_progress=False, evaluator=SyntheticWithBest)
+    pids = tmp_path / "pids"
+    pids.mkdir()
+    monkeypatch.setenv("ADV3D_TEST_PID_DIR", str(pids))
+    run_attack(c, tmp_path / "pool", workers=2, show_progress=False, evaluator=SyntheticWithBest)
+    assert len(list(pids.iterdir())) == 2  # both workers evaluated queries
+
+    def text(run, name):
+        return (tmp_path / run / name).read_text()
+
+    def strip(line):
+        return line[:line.rindex(',"wall_s"')]
+
+    serial, pool = (text(r, "queries.jsonl").splitlines() for r in ("serial", "pool"))
+    assert len(serial) == 3 * 2 * 6 and [strip(x) for x in serial] == [strip(x) for x in pool]
+    assert [(r["scene"], r["mode"]) for r in lines(tmp_path / "pool")][::6] == \
+        [(s, m) for s in scenes for m in ("open", "closed")]
+    a, b = (json.loads(text(r, "summary.json")) for r in ("serial", "pool"))
+    a.pop("wall_s"), b.pop("wall_s")
+    assert a == b and list(b["scenes"]) == scenes and list(b["scenes"]["synthetic:bowl"]["modes"]) == ["open", "closed"]
+    assert all("original" in e and e["modes"]["closed"]["closed_loop_eval"] for e in b["scenes"].values())
+    for s in ("peak", "bowl", "ridge"):
+        for m in ("open", "closed"):
+            f = f"scenes/synthetic:{s}/{m}/best.txt"
+            assert text("serial", f) == text("pool", f)
+
+
+def test_journal_canonical_order_after_a_resume(tmp_path):
+    """A run stopped part-way and resumed ends with the journal of an uninterrupted run."""
+    c = cfg(scenes=["synthetic:peak", "synthetic:bowl"], budget=6, batch=1, n_initial=3)
+    run_attack(c, tmp_path / "full", show_progress=False)
+    run_attack(c, tmp_path / "part", show_progress=False, stop_after=8)
+    # as a run with several workers leaves it: lines in completion order, not canonical
+    path = tmp_path / "part" / "queries.jsonl"
+    path.write_text("".join(reversed(path.read_text().splitlines(keepends=True))))
+    run_attack(c, tmp_path / "part", show_progress=False)
+    assert strip_times(lines(tmp_path / "part")) == strip_times(lines(tmp_path / "full"))
 
 
 def test_journal_corrupt_middle_line_is_an_error(tmp_path):
@@ -134,7 +208,7 @@ def test_journal_nonfinite_cost_written_as_null(tmp_path):
     assert rec["cost"] is None and rec["status"] == "error"
 
 
-def test_cli_attack_and_report(tmp_path, repo_root):
+def test_cli_attack_and_report(tmp_path, repo_root, capsys, monkeypatch):
     from adv3d_runner.cli import main
 
     scene = repo_root / "scenes" / "highway" / "highway-benchmark-000000.json.gz"
@@ -148,6 +222,27 @@ def test_cli_attack_and_report(tmp_path, repo_root):
     assert run["scenes"] == [str(scene)] and run["autonomy"] == "oracle" and run["seconds"] == 0.3
     assert AttackConfig.from_run_json(run) == AttackConfig([str(scene)], algo="random", budget=2, seconds=0.3,
                                                           autonomy="oracle")
+    # resuming: --workers may change, --batch is kept from run.json (a different one is refused)
+    before = (out / "queries.jsonl").read_text()
+    assert main(["-q", "attack", str(scene), "--algo", "random", "--budget", "2", "--seconds", "0.3",
+                 "--autonomy", "oracle", "--workers", "2", "--out", str(out)]) == 0
+    assert (out / "queries.jsonl").read_text() == before
+    capsys.readouterr()
+    assert main(["-q", "attack", str(scene), "--algo", "random", "--budget", "2", "--seconds", "0.3",
+                 "--autonomy", "oracle", "--batch", "2", "--out", str(out)]) == 1
+    err = capsys.readouterr().err
+    assert "--batch 1 (run.json field 'batch')" in err and "asks --batch 2" in err
+    # the same scene by a relative path is the same run: a killed run (its last query lost)
+    # resumes from it, on two workers, and ends with the same journal
+    monkeypatch.chdir(repo_root)
+    rel = str(scene.relative_to(repo_root))
+    (out / "queries.jsonl").write_text(before.splitlines(keepends=True)[0])
+    assert main(["-q", "attack", rel, "--algo", "random", "--budget", "2", "--seconds", "0.3",
+                 "--autonomy", "oracle", "--workers", "2", "--out", str(out)]) == 0
+    assert strip_times(lines(out)) == strip_times([json.loads(x) for x in before.splitlines()])
+    assert main(["-q", "attack", rel, "--algo", "random", "--budget", "3", "--seconds", "0.3",
+                 "--autonomy", "oracle", "--out", str(out)]) == 1  # another budget is another run
+    assert "(budget)" in capsys.readouterr().err
     assert main(["-q", "report", str(out)]) == 0
     text = (out / "report.md").read_text()
     assert "highway-benchmark-000000" in text and "random" in text

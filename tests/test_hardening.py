@@ -365,21 +365,46 @@ class _Killed(Exception):
 
 
 class _Backwards:
-    """An executor whose workers finish a batch in reverse order, killed after ``kill_after``
-    results (the driver must have journalled those, and only those)."""
+    """An executor of ``slots`` workers that finishes the tasks it holds in reverse order, one
+    at a time, killed after ``kill_after`` results (the driver must have journalled those, and
+    only those). Deterministic without threads: once every worker holds a query the last one
+    finishes; each time the driver reads a result, the next held query (in reverse) finishes."""
 
-    def __init__(self, kill_after: int | None = None):
+    def __init__(self, kill_after: int | None = None, slots: int = 4):
         self.kill_after = kill_after
+        self.slots = slots
         self.given = 0
+        self.held: list = []  # (future, fn, args) submitted, not finished
 
-    def as_completed(self, evaluator, queries):
+    def submit(self, slot, fn, *args):
+        import concurrent.futures as cf
+
+        executor = self
+
+        class Future(cf.Future):
+            def result(self, timeout=None):
+                try:
+                    return super().result(timeout)
+                finally:
+                    executor._finish_next()
+
         from adv3d_runner.attack.evaluator import run_query
 
-        for k in reversed(range(len(queries))):
-            if self.kill_after is not None and self.given >= self.kill_after:
-                raise _Killed
-            self.given += 1
-            yield k, run_query(evaluator, queries[k])
+        fut = Future()
+        self.held.append((fut, fn, args))
+        if len(self.held) == self.slots or fn is not run_query:  # the best-shape task runs at once
+            self._finish_next()
+        return fut
+
+    def _finish_next(self):
+        if not self.held:
+            return
+        fut, fn, args = self.held.pop()
+        if self.kill_after is not None and self.given >= self.kill_after:
+            fut.set_exception(_Killed())
+            return
+        self.given += 1
+        fut.set_result(fn(*args))
 
     def close(self):
         pass
@@ -405,7 +430,8 @@ def test_each_query_is_journalled_as_it_finishes_and_the_journal_stays_in_order(
             calls.append(1)
             return super().evaluate(query)
 
-    monkeypatch.setattr(driver, "make_executor", lambda workers, ray_address: _Backwards())
+    # the two left (4 and 5) on two workers, again finishing backwards
+    monkeypatch.setattr(driver, "make_executor", lambda workers, ray_address: _Backwards(slots=2))
     run_attack(cfg, tmp_path / "killed", evaluator=Counting, show_progress=False)
     assert len(calls) == 2  # only the two in flight
     serial = [json.loads(x) for x in (tmp_path / "serial" / "queries.jsonl").read_text().splitlines()]

@@ -3,6 +3,10 @@ from __future__ import annotations
 
 import argparse
 
+#: ``--batch`` of a new run: one query at a time, as the paper's BO (and every run made before
+#: the option existed without --workers); a resumed run keeps its stored batch.
+DEFAULT_BATCH = 1
+
 
 def register(subparsers) -> None:
     from .. import argtypes as at
@@ -23,7 +27,12 @@ def register(subparsers) -> None:
                    help="closed: attack in closed loop; open: attack with the ego on its log, then evaluate "
                         "in closed loop; both: the two (paper Table 1)")
     p.add_argument("--seconds", type=at.number(0.0, 3600.0, lo_open=True), default=5.0, help="episode length in s (default 5)")
-    p.add_argument("--workers", type=at.integer(1, 256), default=1, help="local worker processes (default 1)")
+    p.add_argument("--workers", type=at.integer(1, 256), default=None,
+                   help="local worker processes (default 1), or with --ray-address the Ray workers "
+                        "(default: one per CPU of the cluster); the results do not depend on it")
+    p.add_argument("--batch", type=at.integer(1, 4096), default=None,
+                   help="queries asked of a search at once (default 1, or the stored value when resuming); "
+                        "part of the run's configuration: the results depend on it, not on --workers")
     p.add_argument("--seed", type=at.seed, default=0,
                    help="search and LiDAR-noise seed (default 0; per scene derived from it with --scene-seeds)")
     p.add_argument("--out", required=True, help="run folder, e.g. runs/NAME")
@@ -46,6 +55,9 @@ def register(subparsers) -> None:
     p.add_argument("--reactive", action="store_true", help="actors react to the ego (IDM/MOBIL)")
     p.add_argument("--n-initial", type=at.integer(1, 1_000_000), default=11, help="BO initial queries (default 11)")
     p.add_argument("--shape-space", default=None, help="shape space .npz (default: the shipped one)")
+    p.add_argument("--no-incremental", action="store_true",
+                   help="simulate every LiDAR ray of every frame instead of reusing the static hits between "
+                        "the queries of a scene (same results, slower; for checks)")
     p.add_argument("--library", default=None,
                    help="vehicle library of the benign actors' meshes (default: the bundled one; 'none': boxes); "
                         "its fingerprint is recorded in run.json and checked on resume")
@@ -78,16 +90,18 @@ def register(subparsers) -> None:
 def _attack(args: argparse.Namespace) -> int:
     from ..progress import is_quiet, status
     from .config import AttackConfig
-    from .driver import check_outcome, run_attack
+    from .driver import check_outcome, run_attack, stored_batch
     from .journal import read_run
 
+    workers = args.workers if args.workers is not None or args.ray_address else 1
+    batch = args.batch if args.batch is not None else (stored_batch(args.out) or DEFAULT_BATCH)
     cfg = AttackConfig(scenes=tuple(args.scenes), algo=args.algo, budget=args.budget, actors=args.actors,
                        mode=args.mode, seconds=args.seconds, seed=args.seed, objective=args.objective,
-                       autonomy=args.autonomy, reactive=args.reactive, batch=args.workers,
+                       autonomy=args.autonomy, reactive=args.reactive, batch=batch,
                        n_initial=args.n_initial, shape_space=args.shape_space, library=args.library,
                        pred_reduction=args.pred_reduction, scene_seeds=args.scene_seeds, **_shape_options(args))
-    summary = run_attack(cfg, args.out, workers=args.workers, ray_address=args.ray_address,
-                         show_progress=not is_quiet())
+    summary = run_attack(cfg, args.out, workers=workers, ray_address=args.ray_address,
+                         show_progress=not is_quiet(), incremental=not args.no_incremental)
     for sid, entry in summary.get("scenes", {}).items():
         for mode, m in entry.get("modes", {}).items():
             status(f"{sid} [{mode}]: best cost {m.get('best_cost')} at query {m.get('best_index')} "

@@ -72,12 +72,15 @@ class QuerySettings:
     max_mahalanobis: float | None = None
     class_scales: bool = False
     realism_weight: float = 0.0
-
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "vd_lattice", check_lattice(self.vd_lattice))  # hashable tuple
     library: str | None = None
     pred_reduction: str = DEFAULT_PRED_REDUCTION
     scene_seeds: bool = False
+    #: how, not what: reuse the static LiDAR hits between the queries of a scene
+    #: (``sensors.incremental``); the results are identical either way.
+    incremental: bool = True
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "vd_lattice", check_lattice(self.vd_lattice))  # hashable tuple
 
     @property
     def weights(self) -> ObjectiveWeights:
@@ -161,8 +164,9 @@ def _load_shape_space(path: str, stamp: tuple[int, int] | None):
 class AttackConfig:
     """Everything that determines an attack's results (``run.json``; see the CLI options).
 
-    ``scenes`` is kept as a tuple (a list is accepted). ``batch`` is the number of queries asked
-    at once (the first run's worker count; a resume keeps it).
+    ``scenes`` is kept as a tuple (a list is accepted). ``batch`` is the number of queries a
+    search asks at once (``--batch``; independent of the number of workers, which does not
+    change results; a resume must use the stored one).
     """
 
     scenes: tuple[str, ...]
@@ -208,7 +212,7 @@ class AttackConfig:
                              ("batch", 1, 4096), ("n_initial", 1, MAX_BUDGET)):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or not lo <= value <= hi:
-                option = "batch (workers)" if name == "batch" else "--" + name.replace("_", "-")
+                option = "--" + name.replace("_", "-")
                 raise ConfigError(f"{option} must be an integer in [{lo}, {hi}], got {value!r}")
         if (isinstance(self.seconds, bool) or not isinstance(self.seconds, (int, float))
                 or not math.isfinite(self.seconds) or not 0 < self.seconds <= MAX_SECONDS):

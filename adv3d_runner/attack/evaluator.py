@@ -142,17 +142,38 @@ def run_query(evaluator: QueryEvaluator, query: Query) -> QueryResult:
 
 # ============================================================================ episodes
 
+_STACKS: dict[str, Any] = {}
+#: Memory bounds of a scene's static-hit caches (``sensors.incremental``): a whole 5 s open-loop
+#: path of a 133k-ray HDL-64E with 30 actors takes about 90 MB; closed-loop episodes reuse only
+#: the frames before they diverge.
+OPEN_LOOP_CACHE_BYTES = 128 * 2**20
+CLOSED_LOOP_CACHE_BYTES = 64 * 2**20
+
+
+def stack_for(autonomy: str):
+    """This process's autonomy stack of that name (loaded once: a stack is reset at the start of
+    every episode, so the scenes of a process share it)."""
+    if autonomy not in _STACKS:
+        from ..autonomy.stacks import make_stack
+
+        _STACKS[autonomy] = make_stack(autonomy)
+    return _STACKS[autonomy]
+
+
 class SceneWorkspace:
-    """What one process needs to evaluate queries on a scene: the scene, its LiDAR world and its
-    lane map (each built once), the autonomy stack, the shape space, the targets, how queries
-    become their shapes (:class:`~adv3d_runner.attack.shape_models.ActorShapes`) and the
-    objective weights."""
+    """What one process needs to evaluate queries on a scene: the scene, its LiDAR world and rig
+    and its lane map (each built once), the autonomy stack, the shape space, the targets, how
+    queries become their shapes (:class:`~adv3d_runner.attack.shape_models.ActorShapes`) and the
+    objective weights; with ``settings.incremental``, the scene's
+    :class:`~adv3d_runner.sensors.incremental.StaticRayCache` s (the attacked actors are their
+    dynamic actors; one for open-loop and one for closed-loop episodes), which every episode of
+    the scene shares."""
 
     def __init__(self, scene_path: str, settings: QuerySettings):
         from ..autonomy.interface import SceneContext
-        from ..autonomy.stacks import make_stack
         from ..scene.schema import load_scene
-        from ..sensors.world import world_from_scene
+        from ..sensors.incremental import StaticRayCache
+        from ..sensors.world import rig_from_scene, world_from_scene
         from .shape_models import ActorShapes
         from .targets import select_targets
 
@@ -160,13 +181,23 @@ class SceneWorkspace:
         self.scene = load_scene(scene_path)
         self.space = settings.load_shape_space()
         self.world = world_from_scene(self.scene, settings.load_library(), scene_dir=Path(scene_path).parent)
+        self.rig = rig_from_scene(self.scene, path=scene_path)
         self.context = SceneContext.from_scene(self.scene)
-        self.stack = make_stack(settings.autonomy)
+        self.stack = stack_for(settings.autonomy)
         self.targets = select_targets(self.scene, settings.actors)
         self.shapes = ActorShapes(settings, self.scene, self.targets, self.space, settings.load_library())
         self.weights = settings.weights
         # The search's episode seed (LiDAR noise): the run seed, or one derived per scene.
         self.seed = settings.episode_seed(scene_digest_of(self.scene)) if settings.scene_seeds else settings.seed
+        # One cache per loop: open-loop episodes all share the logged ego poses (every frame is
+        # served again), closed-loop ones share only their first frames and then store frames
+        # that are never served again; apart, the closed-loop churn cannot push the open-loop
+        # path out of memory.
+        self.lidar_caches: dict[bool, StaticRayCache] = {}
+        if settings.incremental:
+            dynamic = [self.world.actor_index(int(a)) for a in self.targets]
+            self.lidar_caches = {False: StaticRayCache(self.world, dynamic, max_bytes=OPEN_LOOP_CACHE_BYTES),
+                                 True: StaticRayCache(self.world, dynamic, max_bytes=CLOSED_LOOP_CACHE_BYTES)}
 
     def episode(self, overrides: dict | None, closed_loop: bool, record_points: bool = False,
                 seed: int | None = None) -> "EpisodeResult":
@@ -174,8 +205,9 @@ class SceneWorkspace:
 
         s = self.settings
         return run_episode(self.scene, self.stack, seconds=s.seconds, closed_loop=closed_loop, reactive=s.reactive,
-                           world=self.world, actor_overrides=overrides, seed=self.seed if seed is None else int(seed),
-                           record_points=record_points, context=self.context)
+                           world=self.world, rig=self.rig, actor_overrides=overrides, seed=self.seed if seed is None else int(seed),
+                           record_points=record_points, context=self.context,
+                           lidar_cache=self.lidar_caches.get(bool(closed_loop)))
 
     def evaluate(self, u: np.ndarray | None, closed_loop: bool, record_points: bool = False,
                  seed: int | None = None) -> tuple[QueryResult, "EpisodeResult"]:
@@ -224,15 +256,22 @@ def scene_digest_of(scene) -> str:
 
 
 _WORKSPACES: dict[tuple[str, QuerySettings], SceneWorkspace] = {}
+#: Scenes a process keeps built at once (the driver sends a scene's queries to the same worker
+#: where it can; two cover a worker that moves on to a new scene while finishing another).
+WORKSPACES_PER_PROCESS = 2
 
 
 def workspace_for(scene_ref: str, settings: QuerySettings) -> SceneWorkspace:
-    """This process's context of a scene (built on first use; one scene at a time)."""
+    """This process's context of a scene (built on first use; the least recently used one is
+    dropped beyond :data:`WORKSPACES_PER_PROCESS`, which keeps memory flat)."""
     key = (scene_ref, settings)
-    if key not in _WORKSPACES:
-        _WORKSPACES.clear()  # one scene at a time per worker keeps memory flat
-        _WORKSPACES[key] = SceneWorkspace(scene_ref, settings)
-    return _WORKSPACES[key]
+    ws = _WORKSPACES.pop(key, None)
+    if ws is None:
+        while len(_WORKSPACES) >= WORKSPACES_PER_PROCESS:
+            _WORKSPACES.pop(next(iter(_WORKSPACES)))
+        ws = SceneWorkspace(scene_ref, settings)
+    _WORKSPACES[key] = ws  # most recently used last
+    return ws
 
 
 class EpisodeEvaluator:

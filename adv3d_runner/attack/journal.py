@@ -159,6 +159,13 @@ class Journal:
             else:
                 free.add("scene_sha256")  # a bundle from before content hashes: paths compared
             diff = sorted(k for k in set(old) | set(doc) if k not in free and old.get(k) != doc.get(k))
+            if "batch" in diff:  # the one the worker count used to set: say what to do
+                others = [k for k in diff if k != "batch"]
+                raise ConfigError(f"{self.root} was run with --batch {old.get('batch')} (run.json field 'batch'), "
+                                  f"this command asks --batch {doc.get('batch')}: the queries a search asks depend on "
+                                  f"it (--workers does not); give --batch {old.get('batch')} or leave it out to resume"
+                                  + (f" (other differing fields: {', '.join(others)})" if others else "")
+                                  + ", or use another --out")
             if diff:
                 raise ConfigError(f"{self.root} holds a run with a different configuration ({', '.join(diff)}); "
                                   f"use another --out or the same options to resume it")
@@ -207,6 +214,29 @@ class Journal:
                 fh.truncate(0)
                 fh.flush()
                 os.fsync(fh.fileno())
+
+    def canonicalize(self, order: list[tuple[str, str]]) -> bool:
+        """Rewrite ``queries.jsonl`` (atomically) with its lines in the canonical order: the
+        (scene, mode) pairs in ``order``, each by query index; lines of other pairs keep their
+        place after them. Each search's lines are in index order already, but searches worked on
+        concurrently interleave theirs; this makes a finished run's journal independent of that.
+        Returns True when the file was rewritten (False: already in order)."""
+        rank = {pair: k for k, pair in enumerate(order)}
+
+        def key(item):
+            pos, rec = item
+            pair = (rec.get("scene"), rec.get("mode"))
+            return (rank.get(pair, len(rank)), int(rec["index"]) if pair in rank else 0, pos)
+
+        ordered = [rec for _, rec in sorted(enumerate(self.records), key=key)]
+        if all(a is b for a, b in zip(ordered, self.records)):
+            return False
+        from ..fileio import atomic_write_bytes
+
+        data = b"".join(_line(r).encode("utf-8") for r in ordered)
+        atomic_write_bytes(self.path, data)
+        self.records = ordered
+        return True
 
     def finished(self, scene: str, mode: str) -> dict[int, dict]:
         """{query index: record} already finished for a scene and mode (journal or pending)."""

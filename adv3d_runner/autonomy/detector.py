@@ -206,9 +206,18 @@ def voxelize(points: np.ndarray, cfg: DetectorConfig) -> np.ndarray:
         return out
     p = p.reshape(len(p), -1)
     res = cfg.resolution
+    edges = np.asarray(cfg.z_edges, p.dtype)
+    # The height test first (searchsorted's slice index is in 0..nz-1 exactly when
+    # edges[0] <= z < edges[-1]): most returns are the road below the first edge, and every
+    # per-point step is elementwise, so the grid is the same as binning every point.
+    z = p[:, 2]
+    keep = np.flatnonzero((z >= edges[0]) & (z < edges[-1]))
+    if keep.size == 0:
+        return out
+    p = p.take(keep, axis=0)
     ix = np.floor((p[:, 0] - cfg.x_range[0]) / res).astype(np.int64)
     iy = np.floor((p[:, 1] - cfg.y_range[0]) / res).astype(np.int64)
-    iz = np.searchsorted(np.asarray(cfg.z_edges, p.dtype), p[:, 2], side="right") - 1
+    iz = np.searchsorted(edges, p[:, 2], side="right") - 1
     ok = (ix >= 0) & (ix < nx) & (iy >= 0) & (iy < ny) & (iz >= 0) & (iz < nz)
     if not ok.any():
         return out

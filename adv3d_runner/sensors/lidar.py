@@ -130,7 +130,47 @@ class MountedLidar:
         radius = xy_radius * (1.0 + 1e-6) + _RADIUS_PAD
         if dist <= radius:  # sensor inside the bounding circle: every ray may hit
             return None
-        rho0, rho1 = dist - radius, dist + radius
+        half = math.asin(radius / dist) + _ANGLE_PAD
+        center = math.atan2(-rel_xy[1], -rel_xy[0]) - ego_yaw
+        return self._window_rays(dist - radius, dist + radius, z_range, center, half)
+
+    def footprint_rays(self, rel_xy: np.ndarray, actor_yaw: float, ego_yaw: float,
+                       footprint: tuple[float, float, float, float],
+                       z_range: tuple[float, float]) -> np.ndarray | None:
+        """Flat indices of the rays that can hit a mesh inside a vertical box: its footprint
+        ``(xmin, xmax, ymin, ymax)`` in the actor's frame (yaw ``actor_yaw``, origin at
+        ``-rel_xy`` from the sensor, map frame) by ``z_range``. Tighter than the bounding
+        cylinder of :meth:`candidate_rays` (a car seen from behind spans a third of its
+        circle's azimuths), the same reasoning: a ray can only hit points whose azimuth lies in
+        the arc the footprint spans from the sensor and whose elevation lies between the
+        box's lowest and highest point at its nearest and farthest horizontal distance.
+        Padded like :meth:`candidate_rays`. Returns None for "all rays" (the sensor is above
+        the footprint)."""
+        ca, sa = math.cos(actor_yaw), math.sin(actor_yaw)
+        sx = ca * rel_xy[0] + sa * rel_xy[1]  # the sensor in the actor's frame
+        sy = -sa * rel_xy[0] + ca * rel_xy[1]
+        x0, x1, y0, y1 = footprint
+        pad_x = 1e-6 * max(abs(x0), abs(x1)) + _RADIUS_PAD
+        pad_y = 1e-6 * max(abs(y0), abs(y1)) + _RADIUS_PAD
+        x0, x1, y0, y1 = x0 - pad_x, x1 + pad_x, y0 - pad_y, y1 + pad_y
+        if x0 <= sx <= x1 and y0 <= sy <= y1:
+            return None
+        rho0 = math.hypot(max(x0 - sx, 0.0, sx - x1), max(y0 - sy, 0.0, sy - y1))
+        corners = ((x0, y0), (x1, y0), (x1, y1), (x0, y1))
+        rho1 = max(math.hypot(cx - sx, cy - sy) for cx, cy in corners)
+        # the sensor is outside the convex footprint: its corners span an arc of less than pi
+        # around the direction to its centre
+        mid = math.atan2(0.5 * (y0 + y1) - sy, 0.5 * (x0 + x1) - sx)
+        deltas = [(math.atan2(cy - sy, cx - sx) - mid + math.pi) % _TWO_PI - math.pi for cx, cy in corners]
+        lo, hi = min(deltas), max(deltas)
+        center = mid + 0.5 * (lo + hi) + actor_yaw - ego_yaw
+        half = 0.5 * (hi - lo) + _ANGLE_PAD
+        return self._window_rays(rho0, rho1, z_range, center, half)
+
+    def _window_rays(self, rho0: float, rho1: float, z_range: tuple[float, float], center: float,
+                     half: float) -> np.ndarray:
+        """The rays within ``half`` of azimuth ``center`` (ego frame) that pass between heights
+        ``z_range`` somewhere between horizontal distances ``rho0`` > 0 and ``rho1``."""
         z_lo = z_range[0] - self.position[2] - _RADIUS_PAD
         z_hi = z_range[1] - self.position[2] + _RADIUS_PAD
         e_lo = math.atan(z_lo / (rho0 if z_lo < 0 else rho1)) - _ANGLE_PAD
@@ -138,8 +178,6 @@ class MountedLidar:
         rows = np.flatnonzero((self.row_elevation[:, 1] >= e_lo) & (self.row_elevation[:, 0] <= e_hi))
         if rows.size == 0:
             return np.zeros(0, np.intp)
-        half = math.asin(radius / dist) + _ANGLE_PAD
-        center = math.atan2(-rel_xy[1], -rel_xy[0]) - ego_yaw
         if self._common_azimuth is not None:
             az = self._common_azimuth
             cols = [np.arange(np.searchsorted(az, lo, "left"), np.searchsorted(az, hi, "right"))
@@ -223,6 +261,39 @@ class LidarRig:
             cache[key] = (rays, t_in[rays], t_out[rays])
         return cache[key]
 
+    def range_floor(self, k: int) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray] | None]:
+        """Per-ray smallest valid range of sensor ``k`` with the ego box folded in, so that one
+        comparison replaces the min-range test and the ego-box test. Cached.
+
+        A return at range t is dropped when t < min_range or when the ray crosses the grown ego
+        box and t_in <= t <= t_out. For a ray with t_in <= min_range (every ray when the sensor
+        sits inside the box) the two dropped sets join into t <= max(t_out, min_range - ulp),
+        i.e. the return is kept iff t >= max(min_range, nextafter(t_out)): exact in float32.
+
+        Returns:
+            floor: (N,) float32; keep iff t >= floor (and t < max range).
+            rest: (rays, t_in, t_out) of the rays with t_in > min_range (a sensor outside the
+                box), which keep the two-sided test; None when there are none.
+        """
+        cache = self.__dict__.setdefault("_floor_cache", {})
+        dims = None if self.ego_dimensions is None else tuple(self.ego_dimensions)
+        key = (k, dims, float(self.ego_margin))
+        if key not in cache:
+            sensor = self.sensors[k]
+            min_range = np.float32(sensor.model.min_range)
+            floor = np.full(sensor.n_rays, min_range, np.float32)
+            rest = None
+            if dims is not None:
+                rays, t_in, t_out = self.ego_interval(k)
+                simple = t_in <= min_range
+                above = np.nextafter(t_out[simple], np.float32(np.inf))
+                floor[rays[simple]] = np.maximum(above, min_range)
+                if not simple.all():
+                    other = ~simple
+                    rest = (rays[other], t_in[other], t_out[other])
+            cache[key] = (floor, rest)
+        return cache[key]
+
 
 def _slab_interval(origin: np.ndarray, dirs: np.ndarray, lo: np.ndarray, hi: np.ndarray):
     """Ray / axis-aligned box entry and exit distances (slab method), float32 (N,) each."""
@@ -301,9 +372,163 @@ class LidarFrame:
                           actor_ids=frames[0].actor_ids)
 
 
+
+@dataclass
+class RayHits:
+    """The nearest hit of every ray of one sensor in one frame, before the sensor effects.
+
+    Attributes:
+        t: (N,) float32 distance to the nearest hit (the max range where nothing was hit).
+        label: (N,) int32 actor row hit, ``BACKGROUND`` (-1), or the ego body (-3).
+        prim_bg: (N,) int32 background face hit by the ray (-1: none), whatever is nearer.
+        cos_actor: (N,) float32 |cos incidence| where the nearest hit is an actor (0
+            elsewhere), or None when no actor was hit.
+    """
+
+    t: np.ndarray
+    label: np.ndarray
+    prim_bg: np.ndarray
+    cos_actor: np.ndarray | None
+
+
+class _Cast:
+    """Per-sensor, per-frame ray geometry shared by the plain and the incremental cast."""
+
+    def __init__(self, sensor: MountedLidar, ego: np.ndarray, stats: dict | None):
+        self.sensor, self.model, self.ego = sensor, sensor.model, ego
+        self.c, self.s = float(np.cos(ego[2])), float(np.sin(ego[2]))
+        px, py, pz = sensor.position
+        self.pz = pz
+        self.sensor_map = np.array([ego[0] + self.c * px - self.s * py, ego[1] + self.s * px + self.c * py, pz])
+        self.timer = stats.get("clock", time.perf_counter) if stats is not None else time.perf_counter
+        self.embree_s = 0.0
+        self.actor_rays = 0
+        self.background_rays = 0
+
+    def background(self, world) -> RayHits:
+        """Background (and ego body) cast of every ray: tfar starts at max range and becomes
+        the nearest distance."""
+        sensor, n = self.sensor, self.sensor.n_rays
+        c, s = self.c, self.s
+        # Ray directions in the map frame (float32, elementwise: identical for any subset).
+        dirs = np.empty((n, 3), np.float32)
+        np.subtract(np.float32(c) * sensor.dx, np.float32(s) * sensor.dy, out=dirs[:, 0])
+        np.add(np.float32(s) * sensor.dx, np.float32(c) * sensor.dy, out=dirs[:, 1])
+        dirs[:, 2] = sensor.dz
+        t = np.full(n, self.model.max_range, np.float32)
+        origin_bg = (self.sensor_map - world.origin).astype(np.float32).reshape(1, 3)
+        t0 = self.timer()
+        prim_bg, _ = world.background.intersect(origin_bg, dirs, t)
+        self.embree_s += self.timer() - t0
+        self.background_rays += n
+        label = np.full(n, BACKGROUND, np.int32)
+        # The ego's own body (ego frame, rays in the ego frame): blocks rays, returns nothing.
+        if world.ego is not None:
+            t0 = self.timer()
+            prim_e, _ = world.ego.intersect(sensor.position.astype(np.float32).reshape(1, 3), sensor.dirs, t)
+            self.embree_s += self.timer() - t0
+            label[prim_e >= 0] = _EGO
+        return RayHits(t, label, prim_bg, None)
+
+    def window(self, bvh, pose, cull: bool):
+        """The rays that can reach an actor at ``pose``: flat indices, None for all rays, or
+        False when none can (out of range or an empty window)."""
+        if not cull:
+            return None
+        rel = self.sensor_map[:2] - (pose[0], pose[1])  # actor -> sensor, map frame
+        if np.hypot(rel[0], rel[1]) - bvh.xy_radius - _RADIUS_PAD > self.model.max_range:
+            return False
+        rays = self.sensor.footprint_rays(rel, float(pose[2]), self.ego[2], bvh.footprint, bvh.z_range)
+        if rays is not None and rays.size == 0:
+            return False
+        return rays
+
+    def actor(self, bvh, pose, rays, tfar: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """Cast ``rays`` (None: all) against one actor's mesh with the limits ``tfar`` (their
+        current nearest distances, updated in place where the actor is closer).
+
+        Returns:
+            hit: indices into ``rays`` (or ray indices for None) of the rays the actor took.
+            cos: (len(hit),) float32 |cos incidence| of those hits, None when there are none.
+        """
+        sensor = self.sensor
+        ax, ay, ayaw = pose
+        rel = self.sensor_map[:2] - (ax, ay)
+        ca, sa = np.cos(ayaw), np.sin(ayaw)
+        origin = np.array([[ca * rel[0] + sa * rel[1], -sa * rel[0] + ca * rel[1], self.pz]], np.float32)
+        phi = self.ego[2] - ayaw
+        cp, sp = np.float32(np.cos(phi)), np.float32(np.sin(phi))
+        # Rays in the actor's frame (elementwise, so any subset gives the same per-ray values).
+        if rays is None:
+            dx, dy, dz = sensor.dx, sensor.dy, sensor.dz
+        else:
+            dx, dy, dz = sensor.dx.take(rays), sensor.dy.take(rays), sensor.dz.take(rays)
+        m = len(dx)
+        local = np.empty((m, 3), np.float32)
+        np.subtract(cp * dx, sp * dy, out=local[:, 0])
+        np.add(sp * dx, cp * dy, out=local[:, 1])
+        local[:, 2] = dz
+        t0 = self.timer()
+        prim, _ = bvh.intersect(origin, local, tfar)  # closer hits overwrite tfar
+        self.embree_s += self.timer() - t0
+        self.actor_rays += m
+        hit = np.flatnonzero(prim >= 0)
+        if hit.size == 0:
+            return hit, None
+        # |cos incidence| in the actor's frame, from its unit face normals.
+        return hit, np.abs(np.einsum("ij,ij->i", bvh.face_normals[prim[hit]], local[hit]))
+
+    def record(self, stats: dict | None) -> None:
+        if stats is not None:
+            stats["embree_s"] = stats.get("embree_s", 0.0) + self.embree_s
+            stats["rays_cast"] = stats.get("rays_cast", 0) + self.background_rays + self.actor_rays
+            stats["actor_rays"] = stats.get("actor_rays", 0) + self.actor_rays
+
+
+def _take_hits(hits: RayHits, i: int, rays, tfar: np.ndarray, hit: np.ndarray, cos: np.ndarray | None) -> None:
+    """Write an actor's hits (from :meth:`_Cast.actor`) into ``hits``."""
+    if hit.size == 0:
+        return
+    rows = hit if rays is None else rays[hit]
+    if tfar is not hits.t:
+        hits.t[rows] = tfar[hit]
+    hits.label[rows] = i
+    if hits.cos_actor is None:
+        hits.cos_actor = np.zeros(len(hits.t), np.float32)
+    hits.cos_actor[rows] = cos
+
+
+def cast_rays(world, sensor: MountedLidar, ego: np.ndarray, poses: np.ndarray, present: np.ndarray,
+              cull: bool = True, stats: dict | None = None) -> RayHits:
+    """The nearest hit of every ray of one sensor: the background, then the ego body, then each
+    present actor in row order, each cast with the current nearest distances as limits.
+
+    Args:
+        world: a :class:`~adv3d_runner.sensors.world.LidarWorld`.
+        sensor: the sensor. ego: (3,) ego pose. poses: (A, 3) actor poses (map frame).
+        present: (P,) ascending rows of the actors present this frame.
+        cull: cast only the rays in each actor's window (identical result).
+        stats: see :func:`simulate_frame`.
+    """
+    cast = _Cast(sensor, ego, stats)
+    hits = cast.background(world)
+    for i in present:
+        bvh = world.actor_bvh(i)
+        if bvh is None:
+            continue
+        rays = cast.window(bvh, poses[i], cull)
+        if rays is False:
+            continue
+        tfar = hits.t if rays is None else hits.t.take(rays)
+        hit, cos = cast.actor(bvh, poses[i], rays, tfar)
+        _take_hits(hits, int(i), rays, tfar, hit, cos)
+    cast.record(stats)
+    return hits
+
+
 def simulate_frame(world, rig: LidarRig, ego_pose, actor_poses=None, rng: np.random.Generator | None = None, *,
                    cull: bool = True, noise: bool = True, drop: bool = True,
-                   stats: dict | None = None) -> LidarFrame:
+                   stats: dict | None = None, cache=None) -> LidarFrame:
     """Simulate one frame of the rig's LiDARs in ``world``.
 
     Args:
@@ -321,6 +546,11 @@ def simulate_frame(world, rig: LidarRig, ego_pose, actor_poses=None, rng: np.ran
             ``actor_rays`` are accumulated into it; its optional ``clock`` entry is the timer
             (default ``time.perf_counter``; benchmarks on a shared machine pass
             ``time.thread_time``).
+        cache: a :class:`~adv3d_runner.sensors.incremental.StaticRayCache` of this world and
+            rig: the hits of everything but its dynamic actors are reused for a frame seen
+            before (same ego pose and actor poses, bit for bit) and only the rays that can
+            reach a dynamic actor are cast again. Identical output (tested); ignored when
+            ``cull`` is False.
 
     Returns:
         :class:`LidarFrame` in the ego frame.
@@ -335,108 +565,40 @@ def simulate_frame(world, rig: LidarRig, ego_pose, actor_poses=None, rng: np.ran
             raise ValueError(f"actor_poses has {len(poses)} rows for {n_actors} actors")
     present = np.flatnonzero(np.isfinite(poses).all(axis=1))
     actor_refl = world.actor_reflectivity()
-    frames = [
-        _simulate_sensor(world, rig, k, sensor, ego, poses, present, actor_refl, rng, cull, noise, drop, stats)
-        for k, sensor in enumerate(rig.sensors)
-    ]
+    frames = []
+    for k, sensor in enumerate(rig.sensors):
+        if cache is not None and cull:
+            hits = cache.cast(world, rig, k, ego, poses, present, stats)
+        else:
+            hits = cast_rays(world, sensor, ego, poses, present, cull, stats)
+        frames.append(_effects(world, rig, k, ego, hits, actor_refl, rng, noise, drop))
     out = LidarFrame.concat(frames)
     out.actor_ids = tuple(world.actor_ids)
     return out
 
 
-def _simulate_sensor(world, rig, k, sensor: MountedLidar, ego, poses, present, actor_refl, rng, cull, noise, drop,
-                     stats) -> LidarFrame:
+def _effects(world, rig: LidarRig, k: int, ego: np.ndarray, hits: RayHits, actor_refl: np.ndarray,
+             rng: np.random.Generator | None, noise: bool, drop: bool) -> LidarFrame:
+    """Sensor effects on one sensor's nearest hits: range limits and ego masking, range noise
+    and ray drop, intensity; the points in the ego frame."""
+    sensor = rig.sensors[k]
     model = sensor.model
-    n = sensor.n_rays
-    c, s = float(np.cos(ego[2])), float(np.sin(ego[2]))
-    px, py, pz = sensor.position
-    sensor_map = np.array([ego[0] + c * px - s * py, ego[1] + s * px + c * py, pz])
-    timer = stats.get("clock", time.perf_counter) if stats is not None else time.perf_counter
-    embree_s = 0.0
-    actor_rays = 0
+    t, label = hits.t, hits.label
 
-    # Ray directions in the map frame (float32, elementwise: identical for any subset).
-    dirs = np.empty((n, 3), np.float32)
-    np.subtract(np.float32(c) * sensor.dx, np.float32(s) * sensor.dy, out=dirs[:, 0])
-    np.add(np.float32(s) * sensor.dx, np.float32(c) * sensor.dy, out=dirs[:, 1])
-    dirs[:, 2] = sensor.dz
-
-    # Background: one cast; tfar starts at max range and becomes the nearest distance.
-    t = np.full(n, model.max_range, np.float32)
-    origin_bg = (sensor_map - world.origin).astype(np.float32).reshape(1, 3)
-    t0 = timer()
-    prim_bg, _ = world.background.intersect(origin_bg, dirs, t)
-    embree_s += timer() - t0
-    label = np.full(n, BACKGROUND, np.int32)
-    cos_actor = None  # (N,) |cos incidence| of the rays whose nearest hit is an actor
-
-    # The ego's own body (ego frame, rays in the ego frame): blocks rays, returns nothing.
-    if world.ego is not None:
-        t0 = timer()
-        prim_e, _ = world.ego.intersect(sensor.position.astype(np.float32).reshape(1, 3), sensor.dirs, t)
-        embree_s += timer() - t0
-        label[prim_e >= 0] = _EGO
-
-    for i in present:
-        bvh = world.actor_bvh(i)
-        if bvh is None:
-            continue
-        ax, ay, ayaw = poses[i]
-        rel = sensor_map[:2] - (ax, ay)  # actor -> sensor, map frame
-        rays = None  # None = all rays (no culling, or the sensor is inside the actor's circle)
-        if cull:
-            if np.hypot(rel[0], rel[1]) - bvh.xy_radius - _RADIUS_PAD > model.max_range:
-                continue
-            rays = sensor.candidate_rays(rel, ego[2], bvh.xy_radius, bvh.z_range)
-            if rays is not None and rays.size == 0:
-                continue
-        ca, sa = np.cos(ayaw), np.sin(ayaw)
-        origin = np.array([[ca * rel[0] + sa * rel[1], -sa * rel[0] + ca * rel[1], pz]], np.float32)
-        phi = ego[2] - ayaw
-        cp, sp = np.float32(np.cos(phi)), np.float32(np.sin(phi))
-        # Rays in the actor's frame (elementwise, so any subset gives the same per-ray values).
-        if rays is None:
-            dx, dy, dz, t_sub = sensor.dx, sensor.dy, sensor.dz, t  # t updated in place
-        else:
-            dx, dy, dz, t_sub = sensor.dx.take(rays), sensor.dy.take(rays), sensor.dz.take(rays), t.take(rays)
-        m = len(dx)
-        local = np.empty((m, 3), np.float32)
-        np.subtract(cp * dx, sp * dy, out=local[:, 0])
-        np.add(sp * dx, cp * dy, out=local[:, 1])
-        local[:, 2] = dz
-        t0 = timer()
-        prim, ng = bvh.intersect(origin, local, t_sub)  # closer hits overwrite t_sub
-        embree_s += timer() - t0
-        actor_rays += m
-        hit = np.flatnonzero(prim >= 0)
-        if hit.size:
-            rows = hit if rays is None else rays[hit]
-            if rays is not None:
-                t[rows] = t_sub[hit]
-            label[rows] = i
-            # |cos incidence| in the actor's frame, from its unit face normals.
-            if cos_actor is None:
-                cos_actor = np.zeros(n, np.float32)
-            cos_actor[rows] = np.abs(np.einsum("ij,ij->i", bvh.face_normals[prim[hit]], local[hit]))
-
-    if stats is not None:
-        stats["embree_s"] = stats.get("embree_s", 0.0) + embree_s
-        stats["rays_cast"] = stats.get("rays_cast", 0) + n + actor_rays
-        stats["actor_rays"] = stats.get("actor_rays", 0) + actor_rays
-
-    valid = t < np.float32(model.max_range)
-    valid &= t >= np.float32(model.min_range)
+    # Valid returns: min range and the ego box folded into one per-ray floor (LidarRig.range_floor).
+    floor, rest = rig.range_floor(k)
+    valid = t >= floor
+    valid &= t < np.float32(model.max_range)
     if world.ego is not None:
         valid &= label != _EGO
-    if rig.ego_dimensions is not None:
-        # Ego box masking on the true range, only over the few rays that cross the box.
-        rays_e, t_in, t_out = rig.ego_interval(k)
-        te = t[rays_e]
+    if rest is not None:
+        rays_e, t_in, t_out = rest
+        te = t.take(rays_e)
         valid[rays_e[(te >= t_in) & (te <= t_out)]] = False
     idx = np.flatnonzero(valid)
     if idx.size == 0:
         return LidarFrame.empty()
-    dist = t[idx]
+    dist = t.take(idx)
 
     # Effects drawn from the caller's generator in a fixed order (noise, then drop), one draw
     # per return, so the same returns and seed give the same frame.
@@ -461,27 +623,30 @@ def _simulate_sensor(world, rig, k, sensor: MountedLidar, ego, poses, present, a
 
     # Intensity = reflectivity x |cos incidence| x exp(-attenuation x true range).
     lab = label.take(idx)
-    prim_b = prim_bg.take(idx)
+    prim_b = hits.prim_bg.take(idx)
     refl = world.background_reflectivity.take(prim_b)  # prim -1 -> the trailing 0 slot
-    on_actor = lab >= 0
-    any_actor = bool(on_actor.any())
-    if any_actor:
-        refl[on_actor] = actor_refl[lab[on_actor]]
+    on_actor = None
+    if hits.cos_actor is not None:
+        on_actor = lab >= 0
+        if not on_actor.any():
+            on_actor = None
+    if on_actor is not None:
+        np.copyto(refl, actor_refl.take(np.maximum(lab, 0)), where=on_actor)
     # |cos incidence| from unit face normals: background by face index (a miss indexes the
-    # zero row), actors from the loop above. n_map . d_map = n_ego . d_ego: the background's
+    # zero row), actors from the cast. n_map . d_map = n_ego . d_ego: the background's
     # normal table (small) is turned into the ego frame, then gathered per return.
+    c, s = np.float32(np.cos(ego[2])), np.float32(np.sin(ego[2]))
     fnx, fny, fnz = world.background.normal_columns
-    cf, sf = np.float32(c), np.float32(s)
-    cos_inc = (cf * fnx + sf * fny).take(prim_b)
+    cos_inc = (c * fnx + s * fny).take(prim_b)
     cos_inc *= dxe
-    tmp = (cf * fny - sf * fnx).take(prim_b)
+    tmp = (c * fny - s * fnx).take(prim_b)
     tmp *= dye
     cos_inc += tmp
     np.multiply(fnz.take(prim_b), dze, out=tmp)
     cos_inc += tmp
     np.abs(cos_inc, out=cos_inc)
-    if any_actor:
-        cos_inc[on_actor] = cos_actor[idx[on_actor]]
+    if on_actor is not None:
+        np.copyto(cos_inc, hits.cos_actor.take(idx), where=on_actor)
     np.minimum(cos_inc, 1.0, out=cos_inc)
     cos_inc *= refl
     np.multiply(t.take(idx), np.float32(-rig.attenuation), out=tmp)

@@ -55,6 +55,7 @@ class MeshBVH:
     Attributes:
         n_faces: F (0 means the mesh is empty and every ray misses).
         xy_radius: radius of the smallest origin-centred circle holding the mesh's xy footprint.
+        footprint: (xmin, xmax, ymin, ymax) of the vertices, the mesh's axis-aligned xy box.
         radius: radius of the origin-centred sphere holding the mesh.
         z_range: (zmin, zmax) of the vertices.
         face_normals: (F + 1, 3) float32 unit face normals (zero for degenerate faces), with
@@ -72,9 +73,12 @@ class MeshBVH:
             self.xy_radius = float(np.sqrt((v64[:, 0] ** 2 + v64[:, 1] ** 2).max()))
             self.radius = float(np.sqrt((v64 ** 2).sum(axis=1).max()))
             self.z_range = (float(v64[:, 2].min()), float(v64[:, 2].max()))
+            self.footprint = (float(v64[:, 0].min()), float(v64[:, 0].max()),
+                              float(v64[:, 1].min()), float(v64[:, 1].max()))
         else:
             self.xy_radius = self.radius = 0.0
             self.z_range = (0.0, 0.0)
+            self.footprint = (0.0, 0.0, 0.0, 0.0)
         normals = np.zeros((self.n_faces + 1, 3), np.float32)
         if self.n_faces:
             v64 = v.astype(np.float64)

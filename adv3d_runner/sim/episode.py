@@ -228,7 +228,7 @@ class Episode:
                  world=None, rig=None, library: Any = "default",
                  actor_overrides: Mapping[int, ShapeOverride] | None = None, seed: int = 0,
                  start_frame: int = 0, lidar_noise: bool = True, recorders: Sequence[Recorder] = (),
-                 context: SceneContext | None = None):
+                 context: SceneContext | None = None, lidar_cache=None):
         from ..sensors.world import rig_from_scene, world_from_scene
 
         dt = float(scene.dt)
@@ -243,6 +243,7 @@ class Episode:
         self.closed_loop, self.reactive, self.seed = bool(closed_loop), bool(reactive), int(seed)
         self.start_frame, self.lidar_noise = int(start_frame), bool(lidar_noise)
         self.recorders = list(recorders)
+        self.lidar_cache = lidar_cache
 
         ids = np.array(scene.actor_ids, dtype=np.int64)
         n = len(ids)
@@ -323,7 +324,8 @@ class Episode:
         world_poses[:] = np.nan
         world_poses[to_world[have]] = poses_k[have]
         t0 = time.perf_counter()
-        frame = simulate_frame(self.world, self.rig, ego.pose, world_poses, self.rng if self.lidar_noise else None)
+        frame = simulate_frame(self.world, self.rig, ego.pose, world_poses, self.rng if self.lidar_noise else None,
+                               cache=self.lidar_cache)
         t1 = time.perf_counter()
         counts_world = np.bincount(frame.label[frame.label >= 0], minlength=self.n_world + 1)
         counts = np.where(have, counts_world[np.maximum(to_world, 0)], 0)
@@ -391,7 +393,7 @@ def run_episode(scene, stack, *, seconds: float = 5.0, closed_loop: bool = True,
                 world=None, rig=None, library: Any = "default",
                 actor_overrides: Mapping[int, ShapeOverride] | None = None,
                 seed: int = 0, start_frame: int = 0, record_points: bool = False, progress: bool = False,
-                lidar_noise: bool = True, context: SceneContext | None = None) -> EpisodeResult:
+                lidar_noise: bool = True, context: SceneContext | None = None, lidar_cache=None) -> EpisodeResult:
     """Run one episode of ``seconds`` at the scene's dt (10 Hz): :class:`Episode` setup, steps
     and finish, with a :class:`~adv3d_runner.sim.recorders.TimingRecorder` (and a
     :class:`~adv3d_runner.sim.recorders.PointRecorder` when ``record_points``).
@@ -416,6 +418,10 @@ def run_episode(scene, stack, *, seconds: float = 5.0, closed_loop: bool = True,
         context: the scene's :class:`~adv3d_runner.autonomy.interface.SceneContext` (its lane
             map) for ``stack.reset``; built from ``scene`` when None. Pass one to reuse the lane
             map across episodes of the same scene (an attack builds it once per scene).
+        lidar_cache: a :class:`~adv3d_runner.sensors.incremental.StaticRayCache` of ``world``
+            and ``rig`` whose dynamic actors are the substituted ones: frames whose ego and
+            actor poses were simulated before reuse the hits of everything else (identical
+            results; an attack keeps one per scene).
 
     Raises:
         ConfigError: the scene is too short for an open-loop episode, or an override names an
@@ -427,7 +433,7 @@ def run_episode(scene, stack, *, seconds: float = 5.0, closed_loop: bool = True,
     episode = Episode(scene, stack, seconds=seconds, closed_loop=closed_loop, reactive=reactive, world=world,
                       rig=rig, library=library, actor_overrides=actor_overrides, seed=seed,
                       start_frame=start_frame, lidar_noise=lidar_noise, recorders=recorders,
-                      context=context)
+                      context=context, lidar_cache=lidar_cache)
     steps = range(episode.frames)
     if progress:
         from ..progress import progress as bar
