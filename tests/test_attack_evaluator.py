@@ -60,7 +60,10 @@ def test_pred_reduction_and_scene_seeds_in_run_json():
     per_scene = AttackConfig(["a.json.gz"], scene_seeds=True)
     assert per_scene.run_json()["scene_seeds"] is True
     assert AttackConfig.from_run_json(per_scene.run_json()) == per_scene
-    for bad in (dict(pred_reduction="max"), dict(scene_seeds=1)):
+    ranked = AttackConfig(["a.json.gz"], target_rank=2)
+    assert ranked.run_json()["target_rank"] == 2 and "target_rank" not in new.run_json()
+    assert AttackConfig.from_run_json(ranked.run_json()) == ranked and ranked.settings.target_rank == 2
+    for bad in (dict(pred_reduction="max"), dict(scene_seeds=1), dict(target_rank=-1), dict(target_rank=64)):
         with pytest.raises(ConfigError):
             AttackConfig(["a.json.gz"], **bad)
 

@@ -162,3 +162,23 @@ def test_select_targets_in_front_nearest_first(repo_root):
     assert d == sorted(d)
     with pytest.raises(ConfigError):
         select_targets(scene, 0)
+
+
+def test_select_targets_rank_skips_the_closest(repo_root):
+    import glob
+
+    from adv3d_runner.attack.targets import select_targets
+    from adv3d_runner.scene.schema import load_scene
+
+    files = sorted(glob.glob(str(repo_root / "scenes" / "highway" / "*.json.gz")))
+    if not files:
+        pytest.skip("no bundled scenes")
+    scene = load_scene(files[0])
+    three = select_targets(scene, 3)
+    assert [select_targets(scene, 1, rank=k)[0] for k in range(3)] == three   # each of the 3 closest alone
+    assert select_targets(scene, 2, rank=1) == three[1:]
+    n_front = len(select_targets(scene, 64))
+    with pytest.raises(ConfigError, match="none of rank"):
+        select_targets(scene, 1, rank=n_front)
+    with pytest.raises(ConfigError):
+        select_targets(scene, 1, rank=-1)

@@ -18,7 +18,9 @@ Issue 18 added two: ``pred_reduction`` (how the objective's prediction term redu
 waypoints; default ``"sum"``, paper Eq. 5 as written) is written unless it is ``"mean"``, the
 form every older run used, which a run.json without the key reads as; ``scene_seeds`` (derive
 each scene's search seed and LiDAR-noise seed from ``seed`` and the scene's content,
-:func:`scene_seed`) is written when true.
+:func:`scene_seed`) is written when true; ``target_rank`` (attack the ``actors`` actors after
+the ``target_rank`` closest in front: the paper's Table 2 attacks each of the 3 closest alone) is
+written when not 0.
 """
 from __future__ import annotations
 
@@ -42,7 +44,7 @@ MODES = ("closed", "open", "both")
 SHAPE_MODELS = ("latent", "vd")
 #: Knobs added after run.json version 1, with the value that leaves them out of run.json.
 _OPTIONAL_KEYS = {"shape_model": "latent", "max_mahalanobis": None, "class_scales": False, "realism_weight": 0.0,
-                  "pred_reduction": LEGACY_PRED_REDUCTION, "scene_seeds": False}
+                  "pred_reduction": LEGACY_PRED_REDUCTION, "scene_seeds": False, "target_rank": 0}
 _VD_KEYS = ("vd_bound", "vd_lattice")
 AUTONOMY = ("A", "oracle", "B")
 #: Bounds of the options (the CLI's argument types use the same ones).
@@ -75,6 +77,7 @@ class QuerySettings:
     library: str | None = None
     pred_reduction: str = DEFAULT_PRED_REDUCTION
     scene_seeds: bool = False
+    target_rank: int = 0
     #: how, not what: reuse the static LiDAR hits between the queries of a scene
     #: (``sensors.incremental``); the results are identical either way.
     incremental: bool = True
@@ -191,6 +194,7 @@ class AttackConfig:
     library: str | None = None
     pred_reduction: str = DEFAULT_PRED_REDUCTION
     scene_seeds: bool = False
+    target_rank: int = 0
 
     def __post_init__(self) -> None:
         """Every field typed and in range (``ConfigError`` naming the option): a config built
@@ -209,7 +213,7 @@ class AttackConfig:
         if self.autonomy not in AUTONOMY:
             raise ConfigError(f"--autonomy must be one of {', '.join(AUTONOMY)}, got {self.autonomy!r}")
         for name, lo, hi in (("budget", 1, MAX_BUDGET), ("actors", 1, MAX_ACTORS), ("seed", 0, SEED_MAX),
-                             ("batch", 1, 4096), ("n_initial", 1, MAX_BUDGET)):
+                             ("batch", 1, 4096), ("n_initial", 1, MAX_BUDGET), ("target_rank", 0, MAX_ACTORS - 1)):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or not lo <= value <= hi:
                 option = "--" + name.replace("_", "-")
@@ -265,7 +269,7 @@ class AttackConfig:
                              vd_lattice=self.vd_lattice, max_mahalanobis=self.max_mahalanobis,
                              class_scales=self.class_scales, realism_weight=self.realism_weight,
                              library=self.library, pred_reduction=self.pred_reduction,
-                             scene_seeds=self.scene_seeds)
+                             scene_seeds=self.scene_seeds, target_rank=self.target_rank)
 
     def search_seed(self, scene_digest: str) -> int:
         """The seed of the searcher on a scene: ``seed``, or with ``scene_seeds`` one derived

@@ -184,7 +184,7 @@ class SceneWorkspace:
         self.rig = rig_from_scene(self.scene, path=scene_path)
         self.context = SceneContext.from_scene(self.scene)
         self.stack = stack_for(settings.autonomy)
-        self.targets = select_targets(self.scene, settings.actors)
+        self.targets = select_targets(self.scene, settings.actors, rank=settings.target_rank)
         self.shapes = ActorShapes(settings, self.scene, self.targets, self.space, settings.load_library())
         self.weights = settings.weights
         # The search's episode seed (LiDAR noise): the run seed, or one derived per scene.
@@ -300,7 +300,7 @@ class EpisodeEvaluator:
         from .targets import select_targets
 
         space = self.settings.load_shape_space()
-        ids = select_targets(load_scene(ref), self.settings.actors)
+        ids = select_targets(load_scene(ref), self.settings.actors, rank=self.settings.target_rank)
         return ids, dim_per_actor(self.settings, space) * len(ids)
 
     def candidates(self, ref: str, targets: list[int]) -> np.ndarray:
