@@ -559,8 +559,15 @@ def table_markdown(spec: TableSpec, doc: dict, scene_part: dict) -> str:
         parts.setdefault(s.get("density") or f"real (recording {s.get('recording')})", 0)
         parts[s.get("density") or f"real (recording {s.get('recording')})"] += 1
     cpu = doc["compute"].get("cpu_s_total")
-    lines += [f"Scenes: {any_row['n_scenes']} ({', '.join(f'{k} {v}' for k, v in parts.items())}); run seeds "
-              f"{', '.join(map(str, proto.get('seeds', [])))}; {proto.get('eval_seeds')} held-out evaluation seeds per "
+    done_scenes = max(r["n_scenes"] for r in rows.values())
+    done_seeds = sorted({s for r in rows.values() for s in r["seeds"]})
+    chosen = len(proto.get("scenes", []))
+    lines += [f"Scenes: {done_scenes}" + (f" of the {chosen} chosen" if chosen != done_scenes else "")
+              + f" ({', '.join(f'{k} {v}' for k, v in parts.items())}); run seeds "
+              f"{', '.join(map(str, done_seeds))}"
+              + ("" if done_seeds == proto.get("seeds", done_seeds) else
+                 f" (of {', '.join(map(str, proto.get('seeds', [])))}: the table is growing)")
+              + f"; {proto.get('eval_seeds')} held-out evaluation seeds per "
               f"scene and run seed; budget {proto.get('budget')} queries per search (BO: {proto.get('n_initial')} "
               f"Latin-hypercube points first), {proto.get('seconds')} s episodes, batch {proto.get('batch')}; objective "
               f"{', '.join(f'{k} {v:g}' for k, v in form.get('objective', {}).items() if k in ('det', 'pred', 'plan'))}"
