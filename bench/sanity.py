@@ -19,12 +19,13 @@ recorded future only (the ``--extend``-ed tail of a recording is IDM, not real t
 issue-17 targets on the real benchmark are checked at the end.
 
     .venv/bin/python bench/sanity.py [--quick] [--sets generated,real] [--real-part benchmark|train]
-                                     [--autonomy A|oracle|A-lanefollow] [--workers 2] [--seconds 5]
+                                     [--autonomy A|oracle|A-lanefollow] [--workers 2] [--seconds 5] [--tag NAME]
 
 ``--autonomy A`` needs the trained detector and predictor (assets/models/); without them use
 ``--autonomy oracle``. Writes ``bench/results/sanity[.<autonomy>][.quick].json`` when both sets
 run (the generated set under ``summary`` / ``rows`` as before, the real one under ``real``), and
-``bench/results/sanity.real-<part>[.<autonomy>].json`` for ``--sets real``.
+``bench/results/sanity.real-<part>[.<autonomy>].json`` for ``--sets real``; ``--tag NAME`` appends
+``.NAME`` to the file name (before/after pairs, e.g. an old detector).
 """
 from __future__ import annotations
 
@@ -222,7 +223,12 @@ def main() -> int:
     ap.add_argument("--autonomy", choices=("A", "oracle", "A-lanefollow"), default="A")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--seconds", type=float, default=5.0)
+    ap.add_argument("--tag", default="",
+                    help="suffix of the result file name (e.g. old-detector: sanity.old-detector.json), so a "
+                         "before/after pair does not overwrite the kept result")
     args = ap.parse_args()
+    if args.tag and not all(c.isalnum() or c in "-_" for c in args.tag):
+        ap.error("--tag takes letters, digits, '-' and '_'")
     sets = [s.strip() for s in args.sets.split(",") if s.strip()]
     if not sets or set(sets) - {"generated", "real"}:
         ap.error("--sets takes generated and/or real")
@@ -258,6 +264,8 @@ def main() -> int:
         name = "sanity" + tag + (".quick" if args.quick else "")
     else:
         name = f"sanity.real-{args.real_part}" + tag
+    if args.tag:
+        name += f".{args.tag}"
     doc = {"format": "adv3d-bench", "version": 1, "topic": "sanity",
            "command": " ".join(["bench/sanity.py"] + sys.argv[1:]),
            "machine": {"python": platform.python_version(), "platform": platform.platform(),
