@@ -19,7 +19,7 @@ recorded future only (the ``--extend``-ed tail of a recording is IDM, not real t
 issue-17 targets on the real benchmark are checked at the end.
 
     .venv/bin/python bench/sanity.py [--quick] [--sets generated,real] [--real-part benchmark|train]
-                                     [--autonomy A|B|oracle|A-lanefollow] [--workers 2] [--seconds 5]
+                                     [--autonomy A|B|oracle|A-lanefollow] [--workers 2] [--seconds 5] [--tag NAME]
 
 ``--autonomy A`` needs the trained detector and predictor (assets/models/); without them use
 ``--autonomy oracle``. ``--autonomy B`` (instance-free, the implicit occupancy model) reports the
@@ -28,7 +28,8 @@ Soft-IoU, flow-grounded mAP and Soft-IoU, and the flow EPE) next to Autonomy-A's
 same scenes from ``bench/results/sanity.json`` (its ``real`` rows for the real set); the real
 targets on prediction do not apply to it (no trajectories). Writes ``bench/results/sanity[.<autonomy>][.quick].json`` when both sets
 run (the generated set under ``summary`` / ``rows`` as before, the real one under ``real``), and
-``bench/results/sanity.real-<part>[.<autonomy>].json`` for ``--sets real``.
+``bench/results/sanity.real-<part>[.<autonomy>].json`` for ``--sets real``; ``--tag NAME`` appends
+``.NAME`` to the file name (before/after pairs, e.g. an old detector).
 """
 from __future__ import annotations
 
@@ -235,7 +236,12 @@ def main() -> int:
                     help="result file stem under bench/results/ (default sanity[.<autonomy>][.quick])")
     ap.add_argument("--reference", default="bench/results/sanity.json",
                     help="Autonomy-A's sanity file that --autonomy B is compared with (same scenes)")
+    ap.add_argument("--tag", default="",
+                    help="suffix of the result file name (e.g. old-detector: sanity.old-detector.json), so a "
+                         "before/after pair does not overwrite the kept result")
     args = ap.parse_args()
+    if args.tag and not all(c.isalnum() or c in "-_" for c in args.tag):
+        ap.error("--tag takes letters, digits, '-' and '_'")
     sets = [s.strip() for s in args.sets.split(",") if s.strip()]
     if not sets or set(sets) - {"generated", "real"}:
         ap.error("--sets takes generated and/or real")
@@ -283,6 +289,8 @@ def main() -> int:
         name = "sanity" + tag + (".quick" if args.quick else "")
     else:
         name = f"sanity.real-{args.real_part}" + tag
+    if args.tag:
+        name += f".{args.tag}"
     doc = {"format": "adv3d-bench", "version": 1, "topic": "sanity",
            "command": " ".join(["bench/sanity.py"] + sys.argv[1:]),
            "machine": {"python": platform.python_version(), "platform": platform.platform(),
