@@ -384,3 +384,38 @@ def test_run_records_the_library_fingerprint_and_a_resume_checks_it(tmp_path):
     assert read_run(out)[0]["version"] == 1  # a v1 run is still read (reports)
     with pytest.raises(ConfigError, match="version 1"):
         run_attack(cfg, out, evaluator=SyntheticEvaluator, show_progress=False)
+
+
+class _TwoPeaks(SyntheticEvaluator):
+    """Scenes ``synthetic:peak#N``: the same analytic scene under distinct ids and contents."""
+
+    def evaluate(self, query):
+        from dataclasses import replace as _replace
+
+        return super().evaluate(_replace(query, scene=query.scene.split("#")[0]))
+
+
+def test_scene_seeds_give_each_scene_its_own_search(tmp_path):
+    from adv3d_runner.attack.config import scene_seed
+
+    scenes = ["synthetic:peak#1", "synthetic:peak#2"]
+    run_attack(cfg(scenes=scenes, algo="random", budget=5), tmp_path / "same", evaluator=_TwoPeaks,
+               show_progress=False)
+    recs = lines(tmp_path / "same")
+    units = {s: [r["unit"] for r in recs if r["scene"] == s] for s in scenes}
+    assert units[scenes[0]] == units[scenes[1]]  # default: one search sequence for every scene
+    run_attack(cfg(scenes=scenes, algo="random", budget=5, scene_seeds=True), tmp_path / "own",
+               evaluator=_TwoPeaks, show_progress=False)
+    recs = lines(tmp_path / "own")
+    units = {s: [r["unit"] for r in recs if r["scene"] == s] for s in scenes}
+    assert units[scenes[0]] != units[scenes[1]]
+    summary = json.loads((tmp_path / "own" / "summary.json").read_text())
+    for s in scenes:
+        m = summary["scenes"][s]["modes"]["closed"]
+        assert m["search_seed"] == scene_seed(5, s, "search") and m["noise_seed"] == scene_seed(5, s, "noise")
+        # the recorded search seed reproduces the scene's sequence
+        rng_units = np.random.default_rng(m["search_seed"]).random((5, 5))
+        assert np.allclose(np.reshape(units[s], (5, 5)), rng_units)
+    assert summary["run"]["scene_seeds"] is True and summary["run"]["pred_reduction"] == "sum"
+    _run, _recs, read = read_run(tmp_path / "own")  # the seeds pass summary.json's validation
+    assert read["scenes"][scenes[0]]["modes"]["closed"]["search_seed"] == scene_seed(5, scenes[0], "search")

@@ -16,7 +16,7 @@ from adv3d_runner.errors import ConfigError, FileFormatError
 
 #: run.json's config keys in their order (docs/formats.md, "Run bundle"): the file contract.
 RUN_JSON_KEYS = ["scenes", "algo", "budget", "actors", "mode", "seconds", "seed", "objective", "autonomy",
-                 "reactive", "batch", "n_initial", "shape_space", "library"]
+                 "reactive", "batch", "n_initial", "shape_space", "library", "pred_reduction"]
 
 
 def test_attack_config_is_frozen_and_round_trips_through_run_json():
@@ -45,6 +45,46 @@ def test_attack_config_is_frozen_and_round_trips_through_run_json():
                 dict(budget=True), dict(autonomy="C")):
         with pytest.raises(ConfigError):
             AttackConfig(["a.json.gz"], **bad)
+
+
+def test_pred_reduction_and_scene_seeds_in_run_json():
+    """Runs before the option used the horizon mean: their run.json (no key) reads as "mean", a
+    "mean" run writes the run.json it always wrote; the default is Eq. 5's sum and is written."""
+    new = AttackConfig(["a.json.gz"])
+    assert new.pred_reduction == "sum" and new.run_json()["pred_reduction"] == "sum"
+    assert new.settings.weights.pred_reduction == "sum"
+    legacy = AttackConfig(["a.json.gz"], pred_reduction="mean")
+    assert "pred_reduction" not in legacy.run_json() and "scene_seeds" not in legacy.run_json()
+    assert AttackConfig.from_run_json(legacy.run_json()) == legacy
+    assert AttackConfig.from_run_json(new.run_json()) == new
+    per_scene = AttackConfig(["a.json.gz"], scene_seeds=True)
+    assert per_scene.run_json()["scene_seeds"] is True
+    assert AttackConfig.from_run_json(per_scene.run_json()) == per_scene
+    ranked = AttackConfig(["a.json.gz"], target_rank=2)
+    assert ranked.run_json()["target_rank"] == 2 and "target_rank" not in new.run_json()
+    assert AttackConfig.from_run_json(ranked.run_json()) == ranked and ranked.settings.target_rank == 2
+    for bad in (dict(pred_reduction="max"), dict(scene_seeds=1), dict(target_rank=-1), dict(target_rank=64)):
+        with pytest.raises(ConfigError):
+            AttackConfig(["a.json.gz"], **bad)
+
+
+def test_scene_seeds_differ_per_scene_and_stream():
+    from adv3d_runner.attack.config import scene_seed
+
+    a, b = "sha256:" + "0" * 64, "sha256:" + "1" * 64
+    # fixed value: sha256("7|sha256:00..0|search")[:4] (the derivation is a file contract)
+    import hashlib
+
+    assert scene_seed(7, a, "search") == int(hashlib.sha256(f"7|{a}|search".encode()).hexdigest()[:8], 16)
+    seeds = {scene_seed(7, d, s) for d in (a, b) for s in ("search", "noise")}
+    assert len(seeds) == 4 and all(0 <= x < 2**32 for x in seeds)
+    assert scene_seed(8, a, "search") != scene_seed(7, a, "search")
+    cfg = AttackConfig(["x"], seed=7)
+    assert cfg.search_seed(a) == 7 and cfg.settings.episode_seed(a) == 7  # default: the run seed
+    cfg = AttackConfig(["x"], seed=7, scene_seeds=True)
+    assert cfg.search_seed(a) == scene_seed(7, a, "search") and cfg.settings.episode_seed(b) == scene_seed(7, b, "noise")
+    with pytest.raises(ConfigError):
+        scene_seed(-1, a, "search")
 
 
 def test_one_shape_space_load_per_run_and_process():

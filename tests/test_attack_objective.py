@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from adv3d_runner.attack.objective import (ABLATIONS, ObjectiveWeights, combine, detection_terms, parse_objective,
-                                           planning_terms, prediction_terms)
+                                           planning_terms, prediction_terms, term_split)
 from adv3d_runner.attack.targets import mesh_dimensions, split_query
 from adv3d_runner.errors import ConfigError
 
@@ -30,7 +30,8 @@ def test_detection_terms_tp_and_fp():
     assert tp2.tolist() == [0.0, 0.0] and fp2.tolist() == [0.0, 0.0]
 
 
-def test_prediction_terms_mode_average_ade():
+def test_prediction_terms_sum_over_waypoints_and_mean():
+    """Eq. 5 sums the displacement over the H waypoints (the default); "mean" averages it."""
     H = 10
     gt = np.zeros((1, H, 2))
     gt[0, :, 0] = np.arange(1, H + 1)
@@ -38,11 +39,16 @@ def test_prediction_terms_mode_average_ade():
     pred[0, 1, :, 1] += 2.0  # mode 1 off by 2 m everywhere, mode 0 exact
     valid = np.ones((1, H), bool)
     frames = [(pred, gt, valid), (np.zeros((0, 2, H, 2)), np.zeros((0, H, 2)), np.zeros((0, H), bool))]
-    out = prediction_terms(frames)
-    assert out == pytest.approx([1.0, 0.0])  # (0 + 2) / 2 modes; empty frame contributes 0
-    valid[0, 5:] = False  # only valid steps count
+    # sum: (0 + 10 x 2 m) / 2 modes = 10; mean: (0 + 2) / 2 = 1; an empty frame contributes 0
+    assert prediction_terms(frames) == pytest.approx([10.0, 0.0])
+    assert prediction_terms(frames, "sum") == pytest.approx([10.0, 0.0])
+    assert prediction_terms(frames, "mean") == pytest.approx([1.0, 0.0])
+    valid[0, 5:] = False  # only valid steps count: 5 waypoints of 2 m in mode 1
     pred[0, 1, 5:, 1] += 100.0
-    assert prediction_terms([(pred, gt, valid)])[0] == pytest.approx(1.0)
+    assert prediction_terms([(pred, gt, valid)])[0] == pytest.approx(5.0)
+    assert prediction_terms([(pred, gt, valid)], "mean")[0] == pytest.approx(1.0)
+    with pytest.raises(ValueError):
+        prediction_terms(frames, "max")
 
 
 def test_planning_terms_comfort():
@@ -83,9 +89,26 @@ def test_parse_objective():
     w = parse_objective("M1,beta=2")
     assert w.det == 1 and w.pred == 0 and w.beta == 2
     assert parse_objective("pred=0.2").pred == 0.2
-    for bad in ("M9", "gamma=1", "pred=x", "det=0,pred=0,plan=0", "alpha=-1"):
+    assert parse_objective("M0").pred_reduction == "sum"  # Eq. 5 as written, by default
+    for bad in ("M9", "gamma=1", "pred=x", "det=0,pred=0,plan=0", "alpha=-1", "pred_reduction=mean"):
         with pytest.raises(ConfigError):
             parse_objective(bad)
+    with pytest.raises(ConfigError):
+        ObjectiveWeights(pred_reduction="max")
+    assert ObjectiveWeights(pred_reduction="mean").as_dict()["pred_reduction"] == "mean"
+
+
+def test_term_split_keeps_weighted_and_unweighted_apart():
+    w = ObjectiveWeights()  # det 1, pred 0.1, plan 0.5
+    comp = {"det": -12.0, "tp": 13.0, "fp": 1.0, "pred": 300.0, "plan": 4.0, "frames": 50}
+    split = term_split(comp, w)
+    assert list(split) == ["det", "pred", "plan"]
+    assert split["pred"] == {"unweighted": 300.0, "weight": 0.1, "weighted": pytest.approx(30.0)}
+    assert split["plan"]["weighted"] == pytest.approx(2.0) and split["det"]["weighted"] == -12.0
+    # the weighted terms add up to the objective; the unweighted ones are not summed anywhere
+    tp, fp, pred, plan = np.array([13.0]), np.array([1.0]), np.array([300.0]), np.array([4.0])
+    assert sum(t["weighted"] for t in split.values()) == pytest.approx(combine(tp, fp, pred, plan, w).total)
+    assert term_split(comp, ABLATIONS["M1"])["pred"] == {"unweighted": 300.0, "weight": 0.0, "weighted": 0.0}
 
 
 def test_split_query_and_dimensions():
@@ -139,3 +162,23 @@ def test_select_targets_in_front_nearest_first(repo_root):
     assert d == sorted(d)
     with pytest.raises(ConfigError):
         select_targets(scene, 0)
+
+
+def test_select_targets_rank_skips_the_closest(repo_root):
+    import glob
+
+    from adv3d_runner.attack.targets import select_targets
+    from adv3d_runner.scene.schema import load_scene
+
+    files = sorted(glob.glob(str(repo_root / "scenes" / "highway" / "*.json.gz")))
+    if not files:
+        pytest.skip("no bundled scenes")
+    scene = load_scene(files[0])
+    three = select_targets(scene, 3)
+    assert [select_targets(scene, 1, rank=k)[0] for k in range(3)] == three   # each of the 3 closest alone
+    assert select_targets(scene, 2, rank=1) == three[1:]
+    n_front = len(select_targets(scene, 64))
+    with pytest.raises(ConfigError, match="none of rank"):
+        select_targets(scene, 1, rank=n_front)
+    with pytest.raises(ConfigError):
+        select_targets(scene, 1, rank=-1)

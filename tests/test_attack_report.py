@@ -46,6 +46,28 @@ def test_paired_deltas_per_scene_mean_spread_and_worse_count():
     assert cells[8] == "+0.1 ± 0.1 (1/2)"                                    # plan jerk 0, +0.2
 
 
+def test_objective_split_unweighted_and_weighted_apart():
+    from adv3d_runner.attack.report import objective_label, objective_split
+
+    def comp(det, pred, plan):
+        return {"det": det, "tp": -det, "fp": 0.0, "pred": pred, "plan": plan, "frames": 50}
+
+    summary = {"scenes": {
+        "s1": {"original": {"cost": 0, "metrics": {}, "components": comp(-20.0, 100.0, 2.0)},
+               "modes": {"closed": {"closed_loop_eval": {"cost": 0, "metrics": {}, "components": comp(-10.0, 160.0, 4.0)}}}},
+        "s2": {"original": {"cost": 0, "metrics": {}, "components": comp(-30.0, 200.0, 1.0)},
+               "modes": {"closed": {"closed_loop_eval": {"cost": 0, "metrics": {}, "components": comp(-24.0, 220.0, 1.0)}}}}}}
+    run = {"scenes": ["s1", "s2"], "algo": "bo", "objective": "M0", "pred_reduction": "sum"}
+    table = objective_split([("r", run, [], summary)])
+    cells = _row(table, "Adv. closed-loop (bo; M0, pred sum)")
+    assert cells[1] == "2"
+    assert cells[2:5] == ["8 ± 2", "1", "8 ± 2"]          # det +10, +6; weight 1
+    assert cells[5:8] == ["40 ± 20", "0.1", "4 ± 2"]      # pred +60, +20; weight 0.1 (sum form)
+    assert cells[8:11] == ["1 ± 1", "0.5", "0.5 ± 0.5"]   # plan +2, 0; weight 0.5
+    # a run.json without the key predates it: the horizon mean
+    assert objective_label({"objective": "M0"}) == "M0, pred mean"
+
+
 def test_paired_deltas_empty_without_originals():
     assert paired_deltas([("r", {"algo": "bo"}, [], {"scenes": {"s": {"modes": {}}}})]) == ""
 

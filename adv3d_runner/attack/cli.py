@@ -23,6 +23,9 @@ def register(subparsers) -> None:
     p.add_argument("--algo", choices=ALGORITHMS, default="bo", help="search algorithm (default bo)")
     p.add_argument("--budget", type=at.integer(1, 1_000_000), default=100, help="queries per scene and mode (default 100)")
     p.add_argument("--actors", type=at.integer(1, 64), default=1, help="attack the m closest actors in front of the ego (default 1)")
+    p.add_argument("--target-rank", type=at.integer(0, 63), default=0,
+                   help="skip the K closest actors in front first (default 0): --actors 1 --target-rank 1 attacks the "
+                        "second closest alone (the paper's Table 2 attacks each of the 3 closest alone)")
     p.add_argument("--mode", choices=MODES, default="closed",
                    help="closed: attack in closed loop; open: attack with the ego on its log, then evaluate "
                         "in closed loop; both: the two (paper Table 1)")
@@ -33,7 +36,8 @@ def register(subparsers) -> None:
     p.add_argument("--batch", type=at.integer(1, 4096), default=None,
                    help="queries asked of a search at once (default 1, or the stored value when resuming); "
                         "part of the run's configuration: the results depend on it, not on --workers")
-    p.add_argument("--seed", type=at.seed, default=0, help="search and LiDAR-noise seed (default 0)")
+    p.add_argument("--seed", type=at.seed, default=0,
+                   help="search and LiDAR-noise seed (default 0; per scene derived from it with --scene-seeds)")
     p.add_argument("--out", required=True, help="run folder, e.g. runs/NAME")
     p.add_argument("--ray-address", default=None, metavar="ADDR",
                    help="evaluate queries on an existing Ray cluster (e.g. 127.0.0.1:6379 or auto)")
@@ -41,6 +45,13 @@ def register(subparsers) -> None:
                    help="M0 (all terms, default) .. M5 (paper ablations), or key=value list "
                         "(det, pred, plan, alpha, beta), e.g. 'M1,beta=2' or 'pred=0.2'; with --autonomy B the "
                         "presets are Autonomy-B's (det = -Soft-IoU of occupancy, pred = flow EPE, lambda_pred 1.0)")
+    p.add_argument("--pred-reduction", choices=("sum", "mean"), default="sum",
+                   help="the prediction term over the H waypoints: sum (paper Eq. 5 as written, default) or "
+                        "mean (the ADE; the form of runs made before this option); Autonomy-A's term (B's flow "
+                        "EPE has no waypoints)")
+    p.add_argument("--scene-seeds", action="store_true",
+                   help="derive each scene's search seed and LiDAR-noise seed from --seed and the scene's "
+                        "content (recorded in summary.json), so searches differ per scene; default: --seed for all")
     p.add_argument("--autonomy", default="A", choices=("A", "B", "oracle"),
                    help="stack under test: A (learned detector + predictor), B (instance-free: learned implicit "
                         "occupancy-and-flow model) or oracle perception")
@@ -91,7 +102,8 @@ def _attack(args: argparse.Namespace) -> int:
                        mode=args.mode, seconds=args.seconds, seed=args.seed, objective=args.objective,
                        autonomy=args.autonomy, reactive=args.reactive, batch=batch,
                        n_initial=args.n_initial, shape_space=args.shape_space, library=args.library,
-                       **_shape_options(args))
+                       pred_reduction=args.pred_reduction, scene_seeds=args.scene_seeds,
+                       target_rank=args.target_rank, **_shape_options(args))
     summary = run_attack(cfg, args.out, workers=workers, ray_address=args.ray_address,
                          show_progress=not is_quiet(), incremental=not args.no_incremental)
     for sid, entry in summary.get("scenes", {}).items():

@@ -13,6 +13,14 @@ The shape model and realism knobs (issue 14: ``shape_model``, ``vd_bound``, ``vd
 ``max_mahalanobis``, ``class_scales``, ``realism_weight``) came after run.json version 1; they are
 written only when set (``vd_*`` with ``shape_model`` ``vd``), so a run that uses none of them
 writes the run.json it always wrote, and older runs resume and compare equal.
+
+Issue 18 added two: ``pred_reduction`` (how the objective's prediction term reduces over the H
+waypoints; default ``"sum"``, paper Eq. 5 as written) is written unless it is ``"mean"``, the
+form every older run used, which a run.json without the key reads as; ``scene_seeds`` (derive
+each scene's search seed and LiDAR-noise seed from ``seed`` and the scene's content,
+:func:`scene_seed`) is written when true; ``target_rank`` (attack the ``actors`` actors after
+the ``target_rank`` closest in front: the paper's Table 2 attacks each of the 3 closest alone) is
+written when not 0.
 """
 from __future__ import annotations
 
@@ -27,7 +35,7 @@ import numpy as np
 from ..argtypes import SEED_MAX
 from ..errors import ConfigError
 from ..validate import Node
-from .objective import ObjectiveWeights, parse_objective
+from .objective import DEFAULT_PRED_REDUCTION, LEGACY_PRED_REDUCTION, PRED_REDUCTIONS, ObjectiveWeights, parse_objective
 from .vertex_deform import DEFAULT_LATTICE, check_lattice
 
 MODES = ("closed", "open", "both")
@@ -35,7 +43,8 @@ MODES = ("closed", "open", "both")
 #: deformation of the actor's own mesh (the paper's baseline); see attack/shape_models.py.
 SHAPE_MODELS = ("latent", "vd")
 #: Knobs added after run.json version 1, with the value that leaves them out of run.json.
-_OPTIONAL_KEYS = {"shape_model": "latent", "max_mahalanobis": None, "class_scales": False, "realism_weight": 0.0}
+_OPTIONAL_KEYS = {"shape_model": "latent", "max_mahalanobis": None, "class_scales": False, "realism_weight": 0.0,
+                  "pred_reduction": LEGACY_PRED_REDUCTION, "scene_seeds": False, "target_rank": 0}
 _VD_KEYS = ("vd_bound", "vd_lattice")
 AUTONOMY = ("A", "oracle", "B")
 #: Bounds of the options (the CLI's argument types use the same ones).
@@ -66,6 +75,9 @@ class QuerySettings:
     class_scales: bool = False
     realism_weight: float = 0.0
     library: str | None = None
+    pred_reduction: str = DEFAULT_PRED_REDUCTION
+    scene_seeds: bool = False
+    target_rank: int = 0
     #: how, not what: reuse the static LiDAR hits between the queries of a scene
     #: (``sensors.incremental``); the results are identical either way.
     incremental: bool = True
@@ -75,8 +87,14 @@ class QuerySettings:
 
     @property
     def weights(self) -> ObjectiveWeights:
-        """The objective's weights (``objective`` parsed with the stack's presets)."""
-        return parse_objective(self.objective, self.autonomy)
+        """The objective's weights (``objective`` parsed with the stack's presets) and form
+        (``pred_reduction``)."""
+        return replace(parse_objective(self.objective, self.autonomy), pred_reduction=self.pred_reduction)
+
+    def episode_seed(self, scene_digest: str) -> int:
+        """The seed of the search's episodes on a scene (the LiDAR noise): ``seed``, or with
+        ``scene_seeds`` one derived from it and the scene's content (:func:`scene_seed`)."""
+        return scene_seed(self.seed, scene_digest, "noise") if self.scene_seeds else int(self.seed)
 
     @property
     def shape_space_path(self) -> Path:
@@ -101,6 +119,22 @@ class QuerySettings:
         library.json, or ``"none"`` for boxes), or the bundled one when None (None when the
         bundled one is not there). Loaded once per process and path."""
         return _load_library(self.library)
+
+
+def scene_seed(seed: int, scene_digest: str, stream: str) -> int:
+    """A seed in [0, 2^32) for one scene and one use, derived from the run's ``seed``, the
+    scene's content id (``scene_digest``, ``sha256:...``) and a stream name (``"search"``: the
+    searcher's draws; ``"noise"``: the LiDAR noise of the search's episodes; the protocol's
+    held-out evaluation seeds use their own streams). sha256 of ``"seed|digest|stream"``, first 4
+    bytes big-endian: the same inputs give the same seed on every machine, and different scenes
+    or streams give unrelated seeds, so searches differ per scene and the search's noise is not
+    an evaluation's."""
+    import hashlib
+
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or not 0 <= int(seed) <= SEED_MAX:
+        raise ConfigError(f"seed must be an integer in [0, {SEED_MAX}], got {seed!r}")
+    text = f"{int(seed)}|{scene_digest}|{stream}".encode("utf-8")
+    return int.from_bytes(hashlib.sha256(text).digest()[:4], "big")
 
 
 @functools.lru_cache(maxsize=4)
@@ -158,6 +192,9 @@ class AttackConfig:
     class_scales: bool = False
     realism_weight: float = 0.0
     library: str | None = None
+    pred_reduction: str = DEFAULT_PRED_REDUCTION
+    scene_seeds: bool = False
+    target_rank: int = 0
 
     def __post_init__(self) -> None:
         """Every field typed and in range (``ConfigError`` naming the option): a config built
@@ -176,7 +213,7 @@ class AttackConfig:
         if self.autonomy not in AUTONOMY:
             raise ConfigError(f"--autonomy must be one of {', '.join(AUTONOMY)}, got {self.autonomy!r}")
         for name, lo, hi in (("budget", 1, MAX_BUDGET), ("actors", 1, MAX_ACTORS), ("seed", 0, SEED_MAX),
-                             ("batch", 1, 4096), ("n_initial", 1, MAX_BUDGET)):
+                             ("batch", 1, 4096), ("n_initial", 1, MAX_BUDGET), ("target_rank", 0, MAX_ACTORS - 1)):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or not lo <= value <= hi:
                 option = "--" + name.replace("_", "-")
@@ -186,6 +223,11 @@ class AttackConfig:
             raise ConfigError(f"--seconds must be a finite number in (0, {MAX_SECONDS:g}], got {self.seconds!r}")
         if not isinstance(self.reactive, bool):
             raise ConfigError(f"--reactive must be true or false, got {self.reactive!r}")
+        if not isinstance(self.scene_seeds, bool):
+            raise ConfigError(f"--scene-seeds must be true or false, got {self.scene_seeds!r}")
+        if self.pred_reduction not in PRED_REDUCTIONS:
+            raise ConfigError(f"--pred-reduction must be one of {', '.join(PRED_REDUCTIONS)}, "
+                              f"got {self.pred_reduction!r}")
         if self.shape_space is not None and not (isinstance(self.shape_space, str) and self.shape_space):
             raise ConfigError(f"--shape-space must be a file name, got {self.shape_space!r}")
         if not isinstance(self.objective, str):
@@ -226,7 +268,14 @@ class AttackConfig:
                              shape_space=self.shape_space, shape_model=self.shape_model, vd_bound=self.vd_bound,
                              vd_lattice=self.vd_lattice, max_mahalanobis=self.max_mahalanobis,
                              class_scales=self.class_scales, realism_weight=self.realism_weight,
-                             library=self.library)
+                             library=self.library, pred_reduction=self.pred_reduction,
+                             scene_seeds=self.scene_seeds, target_rank=self.target_rank)
+
+    def search_seed(self, scene_digest: str) -> int:
+        """The seed of the searcher on a scene: ``seed``, or with ``scene_seeds`` one derived
+        from it and the scene's content (:func:`scene_seed`), so every scene gets its own
+        sequence of queries."""
+        return scene_seed(self.seed, scene_digest, "search") if self.scene_seeds else int(self.seed)
 
     def with_batch(self, batch: int) -> "AttackConfig":
         """The same config with another batch size (a resume keeps the first run's)."""
@@ -258,6 +307,7 @@ class AttackConfig:
         node.object("a JSON object")
         node["scenes"].items("a non-empty list of scene files", non_empty=True)
         kw = {f.name: doc[f.name] for f in fields(cls) if f.name in doc}
+        kw.setdefault("pred_reduction", LEGACY_PRED_REDUCTION)  # every run before the key used the mean
         try:
             return cls(**kw)
         except ConfigError as exc:  # messages start with the option: "--budget must be ..."

@@ -23,8 +23,10 @@ lower index of its batch is already there, else into ``queries.pending.jsonl`` u
 in index order. Searches worked on concurrently interleave their lines; when the run is
 complete the journal is rewritten, atomically, in the canonical order (scenes as given, modes,
 query index), so a finished run's ``queries.jsonl`` is the same bytes (up to wall times) for any
-number of workers, and for a run that was killed and resumed. The episode seed is the run seed
-for every query (common random numbers: two queries differ only by their shapes). A resumed run
+number of workers, and for a run that was killed and resumed. The episode seed is the same
+for every query of a scene (common random numbers: two queries differ only by their shapes):
+the run seed, or with ``scene_seeds`` a seed derived from it and the scene's content, as is then
+the searcher's (``config.scene_seed``; both recorded in summary.json). A resumed run
 replays the same asks and takes the journalled result of every query that is already there
 (checking that the journalled unit vector is the one asked), so it neither redoes work nor
 changes the outcome.
@@ -208,6 +210,7 @@ class SceneRun:
     best_unit: list | None = None
     evaluated: int = 0
     reused: int = 0
+    seeds: dict | None = None  # {"search_seed", "noise_seed"} of a run with scene_seeds
 
 
 class _Search:
@@ -231,7 +234,13 @@ class _Search:
         config = self.config
         cands = self.evaluator.candidates(self.ref, self.run.targets) if config.algo == "bruteforce" else None
         options = {"n_initial": config.n_initial} if config.algo == "bo" else {}
-        self.searcher = make_searcher(config.algo, self.dim, seed=config.seed, budget=config.budget,
+        seed = config.seed
+        if config.scene_seeds:  # this scene's own search sequence and LiDAR noise (config.scene_seed)
+            digest = self.evaluator.scene_digest(self.ref)
+            self.run.seeds = {"search_seed": config.search_seed(digest),
+                              "noise_seed": config.settings.episode_seed(digest)}
+            seed = self.run.seeds["search_seed"]
+        self.searcher = make_searcher(config.algo, self.dim, seed=seed, budget=config.budget,
                                       candidates=cands, **options)
         self.done = self.journal.finished(self.scene_id, self.mode)
 
@@ -314,7 +323,7 @@ class _Search:
 def _mode_entry(run: SceneRun) -> dict:
     return {"best_index": run.best_index, "best_cost": run.best_cost if np.isfinite(run.best_cost) else None,
             "best_unit": run.best_unit, "n_queries": len(run.costs),
-            "n_failed": int(sum(not np.isfinite(c) for c in run.costs))}
+            "n_failed": int(sum(not np.isfinite(c) for c in run.costs)), **(run.seeds or {})}
 
 
 def _needs_best(root: Path, run: SceneRun, entry: dict) -> bool:
@@ -404,7 +413,10 @@ def run_attack(config: AttackConfig, out: str | Path, *, workers: int | None = 1
     summary = journal.read_summary()
     summary.setdefault("scenes", {})
     summary["run"] = {"algo": config.algo, "budget": config.budget, "mode": config.mode, "seed": config.seed,
-                      "objective": config.objective, "autonomy": config.autonomy}
+                      "objective": config.objective, "pred_reduction": config.pred_reduction,
+                      "autonomy": config.autonomy}
+    if config.scene_seeds:
+        summary["run"]["scene_seeds"] = True
 
     # every search of the run, in canonical order (skipped scenes recorded as such)
     pending: list[_Search] = []

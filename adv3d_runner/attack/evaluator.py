@@ -184,9 +184,11 @@ class SceneWorkspace:
         self.rig = rig_from_scene(self.scene, path=scene_path)
         self.context = SceneContext.from_scene(self.scene)
         self.stack = stack_for(settings.autonomy)
-        self.targets = select_targets(self.scene, settings.actors)
+        self.targets = select_targets(self.scene, settings.actors, rank=settings.target_rank)
         self.shapes = ActorShapes(settings, self.scene, self.targets, self.space, settings.load_library())
         self.weights = settings.weights
+        # The search's episode seed (LiDAR noise): the run seed, or one derived per scene.
+        self.seed = settings.episode_seed(scene_digest_of(self.scene)) if settings.scene_seeds else settings.seed
         # One cache per loop: open-loop episodes all share the logged ego poses (every frame is
         # served again), closed-loop ones share only their first frames and then store frames
         # that are never served again; apart, the closed-loop churn cannot push the open-loop
@@ -197,18 +199,21 @@ class SceneWorkspace:
             self.lidar_caches = {False: StaticRayCache(self.world, dynamic, max_bytes=OPEN_LOOP_CACHE_BYTES),
                                  True: StaticRayCache(self.world, dynamic, max_bytes=CLOSED_LOOP_CACHE_BYTES)}
 
-    def episode(self, overrides: dict | None, closed_loop: bool, record_points: bool = False) -> "EpisodeResult":
+    def episode(self, overrides: dict | None, closed_loop: bool, record_points: bool = False,
+                seed: int | None = None) -> "EpisodeResult":
         from ..sim.episode import run_episode
 
         s = self.settings
         return run_episode(self.scene, self.stack, seconds=s.seconds, closed_loop=closed_loop, reactive=s.reactive,
-                           world=self.world, rig=self.rig, actor_overrides=overrides, seed=s.seed,
+                           world=self.world, rig=self.rig, actor_overrides=overrides, seed=self.seed if seed is None else int(seed),
                            record_points=record_points, context=self.context,
                            lidar_cache=self.lidar_caches.get(bool(closed_loop)))
 
-    def evaluate(self, u: np.ndarray | None, closed_loop: bool,
-                 record_points: bool = False) -> tuple[QueryResult, "EpisodeResult"]:
-        """(the query's result, the episode). ``u`` None = the original scene.
+    def evaluate(self, u: np.ndarray | None, closed_loop: bool, record_points: bool = False,
+                 seed: int | None = None) -> tuple[QueryResult, "EpisodeResult"]:
+        """(the query's result, the episode). ``u`` None = the original scene. ``seed``: the
+        episode seed (LiDAR noise) when not the search's (:attr:`seed`), e.g. a held-out
+        evaluation seed (``attack.protocol``).
 
         The episode's detection frames and prediction pairs are computed once
         (``sim.evaluate.episode_evaluation``) for both the objective and the metrics. A decoded
@@ -225,7 +230,7 @@ class SceneWorkspace:
         if u is not None:
             overrides, info = self.shapes.decode_query(u)
             info["realism"] = self.shapes.figures(overrides, info)
-        result = self.episode(overrides, closed_loop, record_points)
+        result = self.episode(overrides, closed_loop, record_points, seed)
         evaluation = episode_evaluation(result)
         obj = episode_objective(result, self.weights, evaluation)
         metrics = episode_metrics(result, self.scene.lanes, evaluation=evaluation)
@@ -238,6 +243,16 @@ class SceneWorkspace:
             components["realism_penalty"] = penalty
             cost = obj.total - weight * penalty
         return QueryResult(cost=cost, components=components, metrics=metrics, **info), result
+
+
+def scene_digest_of(scene) -> str:
+    """``sha256:<hex>`` of a loaded scene's canonical JSON (written compactly): the scene's
+    content id, whatever file or path it came from."""
+    import hashlib
+
+    from ..fileio import dump_json
+
+    return "sha256:" + hashlib.sha256(dump_json(scene.to_dict(), indent=None).encode()).hexdigest()
 
 
 _WORKSPACES: dict[tuple[str, QuerySettings], SceneWorkspace] = {}
@@ -275,12 +290,9 @@ class EpisodeEvaluator:
     def scene_digest(self, ref: str) -> str:
         """sha256 of the scene's canonical JSON (the loaded scene written compactly): the same
         scene as ``.json`` or ``.json.gz``, by any path, has the same digest."""
-        import hashlib
-
-        from ..fileio import dump_json
         from ..scene.schema import load_scene
 
-        return "sha256:" + hashlib.sha256(dump_json(load_scene(ref).to_dict(), indent=None).encode()).hexdigest()
+        return scene_digest_of(load_scene(ref))
 
     def targets(self, ref: str) -> tuple[list[int], int]:
         from ..scene.schema import load_scene
@@ -288,7 +300,7 @@ class EpisodeEvaluator:
         from .targets import select_targets
 
         space = self.settings.load_shape_space()
-        ids = select_targets(load_scene(ref), self.settings.actors)
+        ids = select_targets(load_scene(ref), self.settings.actors, rank=self.settings.target_rank)
         return ids, dim_per_actor(self.settings, space) * len(ids)
 
     def candidates(self, ref: str, targets: list[int]) -> np.ndarray:

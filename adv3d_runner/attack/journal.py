@@ -350,8 +350,11 @@ def check_summary(doc: Node, root: Path | None = None) -> None:
             mn = e["modes"].child(mode, m)
             mn.object()
             mn.check_keys(("best_index", "best_cost", "best_unit", "n_queries", "n_failed", "closed_loop_eval",
-                           "files"), required=("best_index", "best_cost", "best_unit", "n_queries", "n_failed"))
+                           "files", "search_seed", "noise_seed"),
+                          required=("best_index", "best_cost", "best_unit", "n_queries", "n_failed"))
             mn["best_index"].integer(lo=-1)
+            for key in ("search_seed", "noise_seed"):  # runs with scene_seeds (issue 18)
+                mn.get(key, 0).integer(lo=0, hi=2**32 - 1)
             if mn["best_cost"].value is not None or mn["best_unit"].value is not None:
                 mn["best_cost"].number()  # a best query has a cost
             if mn["best_unit"].value is not None:

@@ -4,9 +4,12 @@
 
 * ``l_det^t = -alpha * sum_TP IoU * conf + beta * sum_FP (1 - IoU) * conf`` over the frame's
   detections in the region of interest (:mod:`adv3d_runner.metrics.detection`);
-* ``l_pred^t`` = the multi-modal ADE (``1/K sum_modes`` of the displacement error) of the
-  predicted tracks matched to ground-truth actors, averaged over those actors
-  (:func:`adv3d_runner.metrics.prediction.prediction_loss`, mean over the horizon);
+* ``l_pred^t`` = ``1/K sum_modes sum_h ||g - p||``: the displacement error of the predicted tracks
+  matched to ground-truth actors, **summed over the H waypoints** as Eq. 5 writes it (m), averaged
+  over the modes and over those actors (:func:`adv3d_runner.metrics.prediction.prediction_loss`).
+  ``pred_reduction="mean"`` averages over the waypoints instead (the multi-modal ADE, the form
+  runs used before issue 18): the same optimum for the term alone, but with lambda_pred = 0.1 it
+  weighs prediction about H = 60 times less in the sum of the three terms;
 * ``c_plan^t = c_jerk + c_lat``: mean |jerk| + mean |lateral acceleration| of the frame's plan
   (:func:`adv3d_runner.metrics.comfort.plan_comfort_cost`).
 
@@ -22,7 +25,7 @@ are over the occupancy query set Q of the frame (``adv3d_runner.sim.evaluate.occ
 * ``l_pred^t`` = the foreground flow end-point error (m/s), the mean ``||f - f^||`` over the
   occupied query points;
 * ``c_plan^t`` as above; lambda_pred = 1.0, lambda_plan = 0.5 (:data:`ABLATIONS_B`, the same
-  names M0-M5; ``alpha`` and ``beta`` do not apply).
+  names M0-M5; ``alpha``, ``beta`` and ``pred_reduction`` do not apply).
 
 The functions here are pure: per-frame terms from plain arrays (hand-made in tests), and
 :func:`episode_objective` that pulls those arrays from an ``EpisodeResult`` with the same
@@ -31,8 +34,8 @@ ground-truth rules as the episode metrics (``adv3d_runner.sim.evaluate``), from 
 """
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, replace
-from typing import Sequence
+from dataclasses import dataclass, fields, replace
+from typing import Mapping, Sequence
 
 import numpy as np
 
@@ -44,13 +47,21 @@ from ..metrics.prediction import prediction_loss
 
 LAMBDA_PRED = 0.1
 LAMBDA_PLAN = 0.5
+#: How l_pred reduces the displacement error over the H waypoints: "sum" as paper Eq. 5 writes
+#: it (the default), "mean" the horizon average (the form of the runs made before issue 18).
+PRED_REDUCTIONS = ("sum", "mean")
+DEFAULT_PRED_REDUCTION = "sum"
+#: The form of runs whose run.json predates the choice (they were all made with the mean).
+LEGACY_PRED_REDUCTION = "mean"
 LAMBDA_PRED_B = 1.0  # Autonomy-B (paper appendix A.4)
 
 
 @dataclass(frozen=True)
 class ObjectiveWeights:
-    """Weights of Eq. 3-4. ``det``, ``pred``, ``plan`` multiply the three per-frame terms (0
-    switches a term off); ``alpha``/``beta`` weight true and false positives inside l_det."""
+    """Weights and form of Eq. 3-5. ``det``, ``pred``, ``plan`` multiply the three per-frame
+    terms (0 switches a term off); ``alpha``/``beta`` weight true and false positives inside
+    l_det; ``pred_reduction`` is how l_pred reduces over the waypoints (:data:`PRED_REDUCTIONS`:
+    ``"sum"``, Eq. 5 as written, or ``"mean"``)."""
 
     det: float = 1.0
     pred: float = LAMBDA_PRED
@@ -58,16 +69,23 @@ class ObjectiveWeights:
     alpha: float = 1.0
     beta: float = 1.0
     iou_threshold: float = IOU_THRESHOLD
+    pred_reduction: str = DEFAULT_PRED_REDUCTION
 
     def __post_init__(self) -> None:
-        for k, v in asdict(self).items():
+        for k, v in self.numbers().items():
             if not np.isfinite(v) or v < 0:
                 raise ConfigError(f"objective weight {k} must be a finite number >= 0, got {v}")
         if self.det == 0 and self.pred == 0 and self.plan == 0:
             raise ConfigError("the objective needs at least one of det, pred, plan > 0")
+        if self.pred_reduction not in PRED_REDUCTIONS:
+            raise ConfigError(f"pred_reduction must be one of {', '.join(PRED_REDUCTIONS)}, got {self.pred_reduction!r}")
+
+    def numbers(self) -> dict[str, float]:
+        """The numeric weights (every field but ``pred_reduction``)."""
+        return {f.name: float(getattr(self, f.name)) for f in fields(self) if f.name != "pred_reduction"}
 
     def as_dict(self) -> dict:
-        return {k: float(v) for k, v in asdict(self).items()}
+        return {**self.numbers(), "pred_reduction": self.pred_reduction}
 
 
 #: The paper's objective ablations (supp. Table 6): which terms are on.
@@ -96,12 +114,13 @@ def presets_for(autonomy: str = "A") -> dict[str, ObjectiveWeights]:
 def parse_objective(text: str | None, autonomy: str = "A") -> ObjectiveWeights:
     """``"M0"``..``"M5"``, or comma-separated ``key=value`` overrides of M0
     (``"det=1,pred=0.1,plan=0.5,alpha=1,beta=1"``), optionally after a preset
-    (``"M1,beta=2"``). The presets are the stack's (:func:`presets_for`)."""
+    (``"M1,beta=2"``). The presets are the stack's (:func:`presets_for`). The form of l_pred is
+    not part of this text: it is its own option (``--pred-reduction``, ``AttackConfig.pred_reduction``)."""
     presets = presets_for(autonomy)
     if not text:
         return presets["M0"]
     w = presets["M0"]
-    fields = set(asdict(w))
+    fields = set(w.numbers())
     for part in [p.strip() for p in text.split(",") if p.strip()]:
         if part.upper() in presets:
             w = presets[part.upper()]
@@ -134,14 +153,18 @@ def detection_terms(frames: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]],
     return tp.reshape(-1), fp.reshape(-1)
 
 
-def prediction_terms(pairs: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> np.ndarray:
-    """Per frame l_pred (Eq. 5): mean over matched actors of the mode-averaged ADE (m); 0 for a
-    frame without matched predictions.
+def prediction_terms(pairs: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]],
+                     reduction: str = DEFAULT_PRED_REDUCTION) -> np.ndarray:
+    """Per frame l_pred (Eq. 5): mean over matched actors of the mode-averaged displacement error,
+    summed over the valid waypoints (``reduction="sum"``, m x waypoints) or averaged over them
+    (``"mean"``: the ADE, m); 0 for a frame without matched predictions.
 
     Args:
         pairs: T tuples (predictions (M, K, H, 2), true futures (M, H, 2), valid (M, H)).
+        reduction: ``"sum"`` or ``"mean"`` (:data:`PRED_REDUCTIONS`).
     """
-    return np.array([prediction_loss(p, g, v) if len(p) else 0.0 for p, g, v in pairs], dtype=np.float64).reshape(-1)
+    return np.array([prediction_loss(p, g, v, reduction=reduction) if len(p) else 0.0 for p, g, v in pairs],
+                    dtype=np.float64).reshape(-1)
 
 
 def planning_terms(plans: Sequence[np.ndarray], dt: float = 0.1) -> np.ndarray:
@@ -230,5 +253,26 @@ def episode_objective(result, weights: ObjectiveWeights = ABLATIONS["M0"], evalu
         iou, epe = occupancy_terms(evaluation.occupancy)
         return combine_occupancy(iou, epe, plan, weights)
     tp, fp = detection_terms(evaluation.detection, weights.iou_threshold)
-    pred = prediction_terms(evaluation.prediction) if weights.pred > 0 else np.zeros(result.frames)
+    # l_pred is measured even when its weight is 0 (M1, M3, M5): the journal reports every term
+    # unweighted, whatever the search maximised.
+    pred = prediction_terms(evaluation.prediction, weights.pred_reduction)
     return combine(tp, fp, pred, plan, weights)
+
+
+#: The three terms of Eq. 3 in the order they are reported, with their weight's field.
+TERMS = ("det", "pred", "plan")
+
+
+def term_split(components: Mapping[str, float], weights: ObjectiveWeights) -> dict[str, dict[str, float]]:
+    """Each term of the objective apart: ``{term: {"unweighted", "weight", "weighted"}}`` for
+    det, pred, plan from a query's ``components`` (the unweighted frame sums; ``det`` already
+    holds alpha and beta). ``weighted`` = weight x unweighted, so the three weighted values add
+    up to the objective (without a realism penalty); the unweighted values never do, and are
+    never added up. ``pred``'s unit follows ``weights.pred_reduction`` (m x waypoints summed, or
+    m)."""
+    out = {}
+    for term in TERMS:
+        value = float(components.get(term, float("nan")))
+        w = float(getattr(weights, term))
+        out[term] = {"unweighted": value, "weight": w, "weighted": w * value}
+    return out

@@ -15,6 +15,10 @@ the limit), and a section lists every best shape's realism report. Runs journall
 realism figures existed get them computed from their best unit vectors (:func:`attach_realism`).
 Runs with a restricted search region, a realism penalty or vertex deformation are labelled
 with their knobs (:func:`run_label`), so they get rows of their own.
+
+Objective (issue 18): every run is listed with its objective and prediction form
+(:func:`objective_label`), and the paired change of each objective term is given unweighted and
+weighted, apart (:func:`objective_split`).
 """
 from __future__ import annotations
 
@@ -252,6 +256,60 @@ def paired_deltas(runs: list[tuple[str, dict, list, dict]], columns=COLUMNS) -> 
                           "or recall, higher objective, ADE, acceleration or jerk). JSD: the best shapes' "
                           "(not a change), in parentheses the number above the library's leave-one-out "
                           "maximum.\n")
+
+
+def objective_label(run: dict) -> str:
+    """The run's objective and its form: ``M0, pred sum`` (``pred_reduction``; a run.json without
+    it predates the option and used the horizon mean); ``M0, pred flow EPE`` for an
+    instance-free stack, whose prediction term has no waypoints."""
+    from .objective import LEGACY_PRED_REDUCTION
+
+    if is_instance_free(run):
+        return f"{run.get('objective')}, pred flow EPE"
+    return f"{run.get('objective')}, pred {run.get('pred_reduction', LEGACY_PRED_REDUCTION)}"
+
+
+def objective_split(runs: list[tuple[str, dict, list, dict]]) -> str:
+    """Markdown table: per attack row, the paired change (attacked - original, closed loop) of
+    each objective term, unweighted and weighted, never summed across the two: the unweighted
+    frame sums of l_det, l_pred and c_plan are in different units; only weight x term adds up to
+    the objective."""
+    from ..errors import Adv3dError
+    from .config import AttackConfig
+    from .objective import TERMS, term_split
+
+    rows: dict[str, list[dict]] = {}
+    for root, run, _, summary in runs:
+        try:
+            weights = AttackConfig.from_run_json(run, Path(root) / "run.json").settings.weights
+        except Adv3dError:
+            continue
+        for sid, entry in summary.get("scenes", {}).items():
+            o = (entry.get("original") or {}).get("components")
+            for mode, m in entry.get("modes", {}).items():
+                a = (m.get("closed_loop_eval") or {}).get("components")
+                if not (o and a):
+                    continue
+                so, sa = term_split(o, weights), term_split(a, weights)
+                rows.setdefault(f"Adv. {mode}-loop ({run_label(run)}; {objective_label(run)})", []).append(
+                    {t: (sa[t]["unweighted"] - so[t]["unweighted"], sa[t]["weight"]) for t in TERMS})
+    if not rows:
+        return ""
+    head = ("| Δ against original | scenes | " + " | ".join(f"{t} (unweighted) | weight | {t} (weighted)" for t in TERMS)
+            + " |\n|---|---:|" + "---:|---:|---:|" * len(TERMS) + "\n")
+    body = ""
+    for name in sorted(rows, key=lambda k: ("closed" in k, k)):
+        cells = []
+        for t in TERMS:
+            d = np.array([r[t][0] for r in rows[name]])
+            w = sorted({r[t][1] for r in rows[name]})
+            cells += [_cell(list(d), 1.0), "/".join(f"{x:g}" for x in w),
+                      _cell([r[t][0] * r[t][1] for r in rows[name]], 1.0)]
+        body += f"| {name} | {len(rows[name])} | " + " | ".join(cells) + " |\n"
+    return head + body + ("\nPer scene: the attacked shape's frame sum of each term minus the original's, both in "
+                          "closed loop, mean ± std over scenes. Unweighted: l_det (confidence-weighted IoU), l_pred "
+                          "(m x waypoints for pred sum, m for pred mean), c_plan (m/s² + m/s³); weighted: times "
+                          "the run's weight. Only the weighted columns add up (to the objective's change).\n")
 
 
 def _record_jsd(rec: dict) -> float:
@@ -578,8 +636,9 @@ def write_report(run_dirs: Sequence[str | Path], out: str | Path | None = None) 
     lines.append("| run | algorithm | mode | budget | seed | objective | autonomy | scenes |")
     lines.append("|---|---|---|---:|---:|---|---|---|")
     for root, run, _, _ in runs:
-        lines.append(f"| {root} | {run_label(run)} | {run.get('mode')} | {run.get('budget')} | {run.get('seed')} | "
-                     f"{run.get('objective')} | {run.get('autonomy')} | {', '.join(run.get('scene_ids', []))} |")
+        seed = f"{run.get('seed')}" + (" (per scene)" if run.get("scene_seeds") else "")
+        lines.append(f"| {root} | {run_label(run)} | {run.get('mode')} | {run.get('budget')} | {seed} | "
+                     f"{objective_label(run)} | {run.get('autonomy')} | {', '.join(run.get('scene_ids', []))} |")
     groups = [("", [r for r in runs if not is_instance_free(r[1])], COLUMNS),
               ("Autonomy-B (instance-free): ", [r for r in runs if is_instance_free(r[1])], COLUMNS_B)]
     for prefix, group, columns in groups:
@@ -591,6 +650,9 @@ def write_report(run_dirs: Sequence[str | Path], out: str | Path | None = None) 
         deltas = paired_deltas(group, columns)
         if deltas:
             lines += [f"### {prefix}Paired change against the original", "", deltas, ""]
+        split = objective_split(group)
+        if split:
+            lines += [f"### {prefix}Objective terms, paired change", "", split, ""]
     ps = per_scene(runs)
     if ps:
         lines += ["### Per scene", "", ps, ""]

@@ -16,15 +16,19 @@ from ..errors import ConfigError, EmptySurfaceError
 from ..sim.episode import ShapeOverride
 
 
-def select_targets(scene, m: int = 1, start_frame: int = 0, max_distance: float = 80.0) -> list[int]:
+def select_targets(scene, m: int = 1, start_frame: int = 0, max_distance: float = 80.0, rank: int = 0) -> list[int]:
     """Ids of the ``m`` actors closest to the ego (centre distance) among those in front of it
-    (positive longitudinal offset in the ego frame) at ``start_frame``, nearest first.
+    (positive longitudinal offset in the ego frame) at ``start_frame``, nearest first, after
+    skipping the ``rank`` closest (``rank`` 1, ``m`` 1: the second closest alone).
 
     Raises:
-        ConfigError: m < 1, or no actor in front within ``max_distance`` m.
+        ConfigError: m < 1, rank < 0, or fewer than ``rank + 1`` actors in front within
+            ``max_distance`` m.
     """
     if int(m) < 1:
         raise ConfigError(f"--actors must be >= 1, got {m}")
+    if int(rank) < 0:
+        raise ConfigError(f"--target-rank must be >= 0, got {rank}")
     ego = scene.ego_poses()[start_frame]
     c, s = np.cos(ego[2]), np.sin(ego[2])
     cand = []
@@ -40,7 +44,10 @@ def select_targets(scene, m: int = 1, start_frame: int = 0, max_distance: float 
     if not cand:
         raise ConfigError(f"scene {scene.id}: no actor in front of the ego within {max_distance:g} m at frame {start_frame}")
     cand.sort()
-    return [int(a) for _, a in cand[: int(m)]]
+    if len(cand) <= int(rank):
+        raise ConfigError(f"scene {scene.id}: {len(cand)} actor(s) in front of the ego within {max_distance:g} m at "
+                          f"frame {start_frame}, none of rank {int(rank)} (--target-rank counts from 0)")
+    return [int(a) for _, a in cand[int(rank): int(rank) + int(m)]]
 
 
 def split_query(u: np.ndarray, n_actors: int, per_actor: int = 5) -> np.ndarray:

@@ -1,0 +1,84 @@
+"""The experiment protocol (attack/protocol.py): the scene-set rule, held-out evaluation seeds,
+the held-out store and the per-scene aggregation."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from adv3d_runner.attack.config import scene_seed
+from adv3d_runner.attack.protocol import (HeldoutStore, HeldoutTask, evaluation_seeds, metric_value, run_heldout,
+                                          scene_means, select_scenes)
+from adv3d_runner.errors import ConfigError, FileFormatError
+from adv3d_runner.scene.generate import DENSITIES
+
+
+def test_scene_set_covers_every_density_then_the_real_recordings():
+    five = select_scenes(5, 3)
+    gen = [s for s in five if s.part == "generated"]
+    real = [s for s in five if s.part == "real"]
+    assert [s.density for s in gen] == list(DENSITIES)           # one per density, in the generator's order
+    assert len({s.layout for s in gen}) == 4                      # layouts cycle with the density
+    assert gen[0].path == "scenes/highway/highway-benchmark-000000.json.gz"
+    assert [s.recording for s in real] == [4, 6, 9]               # one scene per benchmark recording first
+    assert all(s.path.startswith("scenes/real/") for s in real)
+    # growing the set keeps what was chosen: the smaller set is a prefix of each part
+    more = select_scenes(7, 4)
+    assert [s for s in more if s.part == "generated"][:5] == gen
+    assert [s for s in more if s.part == "real"][:3] == real
+    assert select_scenes(0, 0) == []
+    with pytest.raises(ConfigError):
+        select_scenes(0, 99)
+    with pytest.raises(ConfigError):
+        select_scenes(-1, 0)
+
+
+def test_evaluation_seeds_are_held_out_from_the_search():
+    digest = "sha256:" + "ab" * 32
+    seeds = evaluation_seeds(3, digest, 5)
+    assert len(set(seeds)) == 5 and seeds == evaluation_seeds(3, digest, 5)
+    assert scene_seed(3, digest, "search") not in seeds and scene_seed(3, digest, "noise") not in seeds
+    assert seeds[0] == scene_seed(3, digest, "eval0")
+    assert evaluation_seeds(3, digest, 2) == seeds[:2]           # more evaluation seeds extend the list
+    assert evaluation_seeds(4, digest, 2) != seeds[:2]
+    with pytest.raises(ConfigError):
+        evaluation_seeds(3, digest, 0)
+
+
+def test_heldout_store_round_trip_and_unit_check(tmp_path):
+    path = tmp_path / "heldout.json.gz"
+    store = HeldoutStore(path)
+    u = np.array([0.1, 0.2, 0.3, 0.4, 0.5])
+    store.put("s|closed|7", u, {"seed": 7, "cost": 1.5, "components": {}, "metrics": {}})
+    store.put("s|original|7", None, {"seed": 7, "cost": -2.0, "components": {}, "metrics": {}})
+    again = HeldoutStore(path)
+    assert again.get("s|closed|7", u)["cost"] == 1.5
+    assert again.get("s|closed|7", u + 0.01) is None              # another best shape: evaluate again
+    assert again.get("s|original|7", None)["cost"] == -2.0
+    assert again.get("s|original|7", u) is None and again.get("s|open|7", u) is None
+    path.write_text('{"format": "something-else", "version": 1, "evaluations": {}}')
+    with pytest.raises(FileFormatError):
+        HeldoutStore(path)
+
+
+def test_run_heldout_reuses_the_same_shape_seed_and_scene(tmp_path):
+    """Open- and closed-loop searches that kept the same point need one simulation: a stored
+    record of the same scene, seed and unit vector is copied, nothing is simulated."""
+    from adv3d_runner.attack.config import QuerySettings
+
+    store = HeldoutStore(tmp_path / "h.json.gz")
+    u = (0.5, 0.5, 0.5, 0.5, 0.5)
+    store.put("s|open|11", np.array(u), {"seed": 11, "cost": 3.0, "components": {"det": 1.0}, "metrics": {}})
+    tasks = [HeldoutTask("no-such-file.json", "s", "open", u, 11), HeldoutTask("no-such-file.json", "s", "closed", u, 11)]
+    done = []
+    assert run_heldout(tasks, QuerySettings(), store, on_done=done.append) == 0  # the scene file is never read
+    assert store.get("s|closed|11", np.array(u))["cost"] == 3.0 and [t.what for t in done] == ["closed"]
+
+
+def test_metric_value_and_scene_means():
+    rec = {"cost": 2.0, "metrics": {"detection": {"ap": 0.75, "recall": None}, "prediction": {"min_ade": 1.2}}}
+    assert metric_value(rec, "objective") == 2.0
+    assert metric_value(rec, "AP") == 75.0                         # in %
+    assert np.isnan(metric_value(rec, "Recall")) and np.isnan(metric_value(rec, "Drive jerk"))
+    pairs = [("a", {"cost": 1.0}), ("a", {"cost": 3.0}), ("b", {"cost": None}), ("b", {"cost": 4.0}), ("c", {})]
+    means = scene_means(pairs, lambda r: metric_value(r, "objective"))
+    assert means["a"] == 2.0 and means["b"] == 4.0 and np.isnan(means["c"])
