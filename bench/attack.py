@@ -14,7 +14,8 @@ CPU time goes.
    of a 100-query attack.
 3. ``--stages`` (alone): CPU seconds of one query (a 5 s episode with a decoded shape, scored and
    measured) in closed and open loop, with the plain and the incremental LiDAR (when the code has
-   it), split by stage: shape decoding, BVH build, LiDAR, detector, tracker, predictor, planner,
+   it), split by stage: shape decoding, the journal's realism figures (code that has them),
+   BVH build, LiDAR, detector, tracker, predictor, planner,
    evaluation (objective + metrics) and the rest. One process pinned to one core, one thread per
    library; ``time.process_time`` (the machine is shared: CPU time, not wall time). The same
    seeded shapes in every configuration, interleaved query by query so that load changes hit all
@@ -106,7 +107,7 @@ def throughput(scene: str, autonomy: str, queries: int, workers: int, seconds: f
         shutil.rmtree(tmp, ignore_errors=True)
 
 
-STAGES = ("decode", "bvh", "lidar", "detector", "tracker", "predictor", "planner", "evaluation")
+STAGES = ("decode", "realism", "bvh", "lidar", "detector", "tracker", "predictor", "planner", "evaluation")
 
 
 class _StageClock:
@@ -155,7 +156,13 @@ def query_stages(scenes: list[str], autonomy: str, queries: int, seconds: float 
     configs = [(loop, name, flag) for loop in ("closed", "open") for name, flag in variants]
     clock = _StageClock()
     clock.wrap(lidar_mod, "simulate_frame", "lidar")
-    clock.wrap(targets_mod, "decode_query", "decode")
+    try:  # the query's shapes: attack.shape_models (issue 14 on), attack.targets before
+        from adv3d_runner.attack.shape_models import ActorShapes
+
+        clock.wrap(ActorShapes, "decode_query", "decode")
+        clock.wrap(ActorShapes, "figures", "realism")  # the journal's per-query realism figures
+    except ImportError:
+        clock.wrap(targets_mod, "decode_query", "decode")
     clock.wrap(LidarWorld, "set_actor_mesh", "bvh")
     clock.wrap(evaluate_mod, "episode_evaluation", "evaluation")
     clock.wrap(evaluate_mod, "episode_metrics", "evaluation")
@@ -240,6 +247,7 @@ def main() -> None:
     ap.add_argument("--stages", action="store_true", help="only section 3: CPU per query by stage")
     ap.add_argument("--scenes", default="000000,000010,000041",
                     help="--stages: benchmark scene numbers (default 000000,000010,000041)")
+    ap.add_argument("--out", default=None, help="--stages: result file (default bench/results/attack_stages.json)")
     args = ap.parse_args()
     if args.stages:
         scenes = [str(ROOT / "scenes" / "highway" / f"highway-benchmark-{n}.json.gz") for n in args.scenes.split(",")]
@@ -250,7 +258,7 @@ def main() -> None:
                "machine": machine_info("numpy", "torch", "embreex"), "wall_s": time.time() - t0,
                "timing": "time.process_time of one process pinned to one core, one thread per library",
                "autonomy": args.autonomy, **stages}
-        out = ROOT / "bench" / "results" / "attack_stages.json"
+        out = Path(args.out) if args.out else ROOT / "bench" / "results" / "attack_stages.json"
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_text(json.dumps(doc, indent=1) + "\n")
         print(f"\nwrote {out}")

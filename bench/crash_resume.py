@@ -86,11 +86,14 @@ def _child(out: str, markers: str) -> None:
 
 
 def _mark(markers: str, unit) -> None:
-    line = json.dumps([[round(float(v), 9) for v in unit], time.time()]) + "\n"
+    # two times: when the worker had the result, and when its marker was durable (just before
+    # the result leaves the worker); an fsync stalled by other jobs' disk writes lies between
+    line = json.dumps([[round(float(v), 9) for v in unit], time.time()])
     fd = os.open(markers, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
     try:
-        os.write(fd, line.encode())
+        os.write(fd, (line + "\n").encode())
         os.fsync(fd)
+        os.write(fd, (json.dumps(["durable", [round(float(v), 9) for v in unit], time.time()]) + "\n").encode())
     finally:
         os.close(fd)
 
@@ -181,7 +184,9 @@ def synthetic_trials(code: Path, n: int, rng: np.random.Generator, work: Path) -
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
         proc.wait()
-        lines = [json.loads(x) for x in markers.read_text().splitlines()] if markers.exists() else []
+        every = [json.loads(x) for x in markers.read_text().splitlines()] if markers.exists() else []
+        lines = [x for x in every if x[0] != "durable"]
+        durable_when = {_key(x[1]): x[2] for x in every if x[0] == "durable"}
         finished = [u for u, _ in lines]
         finished_when = {_key(u): t for u, t in lines}
         written = {_key(r["unit"]) for r in _records(out / "queries.jsonl") + _records(out / "queries.pending.jsonl")}
@@ -193,7 +198,7 @@ def synthetic_trials(code: Path, n: int, rng: np.random.Generator, work: Path) -
         in_pending = len({_key(r["unit"]) for r in _records(out / "queries.pending.jsonl")} - journal_keys)
         before = len(finished)
         _finish(_start(me + [str(out), str(markers)], env))  # resume to the end
-        after = [json.loads(x)[0] for x in markers.read_text().splitlines()]
+        after = [x[0] for x in map(json.loads, markers.read_text().splitlines()) if x[0] != "durable"]
         evaluated = [_key(u) for u in after[before:]]
         redone = sorted(set(evaluated) & finished_keys)
         resumed = _strip(_records(out / "queries.jsonl"))
@@ -201,15 +206,19 @@ def synthetic_trials(code: Path, n: int, rng: np.random.Generator, work: Path) -
         # driver was writing (fsync) another record at the kill: a result still on its way to the
         # driver, or queued behind a write, is in flight
         lost_ms = [round(1000 * (t_kill - finished_when[q]), 1) for q in lost]
+        # None: the worker's marker was not yet durable at the kill, so its result had not left it
+        lost_left_ms = [round(1000 * (t_kill - durable_when[q]), 1) if q in durable_when else None for q in lost]
         writes = _writes(Path(str(markers) + ".writes"))
         busy = bool(writes) and writes[-1][1] is None
         trials.append({"kill_after_s": round(kill_at, 3), "finished_at_kill": len(finished_keys),
-                       "lost_finished_ms_before_kill": lost_ms, "driver_writing_at_kill": busy,
+                       "lost_finished_ms_before_kill": lost_ms, "lost_left_worker_ms_before_kill": lost_left_ms,
+                       "driver_writing_at_kill": busy,
                        "journalled": in_journal, "pending": in_pending, "lost_finished": len(lost),
                        "redone_by_resume": len(redone), "evaluated_by_resume": len(evaluated),
                        "resumed_equals_uninterrupted": resumed == reference})
         print(f"kill {k}: at {kill_at:.2f} s, {len(finished_keys)} finished, {in_journal} journalled + {in_pending} "
-              f"only pending, lost {len(lost)} {lost_ms} ms before the kill{' (driver writing)' if busy else ''}, "
+              f"only pending, lost {len(lost)} {lost_ms} ms before the kill (left the worker: {lost_left_ms})"
+              f"{' (driver writing)' if busy else ''}, "
               f"redone {len(redone)}, equal {resumed == reference}", flush=True)
     all_ms = write_ms + [1000 * (b - a) for k in range(n) for a, b in _writes(work / f"run{k}.markers.writes")
                          if b is not None]
@@ -223,6 +232,11 @@ def synthetic_trials(code: Path, n: int, rng: np.random.Generator, work: Path) -
                        "redone_by_resume": sum(t["redone_by_resume"] for t in trials),
                        "lost_finished_ms_before_kill_max": max((m for t in trials for m in
                                                                 t["lost_finished_ms_before_kill"]), default=None),
+                       "lost_after_leaving_worker": sum(m is not None for t in trials
+                                                        for m in t["lost_left_worker_ms_before_kill"]),
+                       "lost_left_worker_ms_before_kill_max": max((m for t in trials for m in
+                                                                   t["lost_left_worker_ms_before_kill"]
+                                                                   if m is not None), default=None),
                        "kills_with_a_loss_while_driver_writing": sum(bool(t["lost_finished"]) and
                                                                      t["driver_writing_at_kill"] for t in trials),
                        "resumed_equal": sum(t["resumed_equals_uninterrupted"] for t in trials)}}

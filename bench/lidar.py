@@ -1,6 +1,6 @@
 """LiDAR benchmark: per-frame time of the Embree pipeline against a raw Embree cast, culling, beams.
 
-    .venv/bin/python bench/lidar.py [--quick]
+    .venv/bin/python bench/lidar.py [--quick] [--ab COMMIT]
 
 The process is pinned to ONE core (``sched_setaffinity``): Embree's TBB pool (BVH builds) and
 numpy then share that core; embreex's ``run`` casts rays one by one (``rtcIntersect1``) on the
@@ -23,6 +23,9 @@ car/truck boxes when the vehicle library is present, boxes otherwise).
     cache): HDL-64E, 30 actors, the actor nearest the ego is the dynamic (attacked) one with a
     new shape; a frame whose geometry was seen before (cache hit) against the plain frame and
     the first sight (miss: the static layers cast and stored); points identical in all three.
+
+``--ab COMMIT``: (a) only, this code's pipeline against COMMIT's ``sensors/lidar.py``, the two
+alternating frame by frame in one process (``bench/results/lidar_ab.json``).
 
 Prints the tables and writes ``bench/results/lidar.json`` (``lidar.quick.json`` with --quick)
 with machine info and the command.
@@ -321,10 +324,66 @@ def section_d(repeats: int) -> dict:
     return row
 
 
+def section_ab(base: str, repeats: int) -> dict:
+    """(a) against another commit's ``sensors/lidar.py``, interleaved frame by frame in this
+    process (same world, rays and load): pipeline and Embree CPU ms per frame for both, and
+    whether the frames are the same bytes."""
+    import subprocess
+    import types
+
+    import adv3d_runner.sensors.lidar as new
+
+    src = subprocess.run(["git", "show", f"{base}:adv3d_runner/sensors/lidar.py"], cwd=ROOT, capture_output=True,
+                         text=True, check=True).stdout
+    old = types.ModuleType("adv3d_runner.sensors._lidar_base")
+    old.__package__ = "adv3d_runner.sensors"
+    sys.modules[old.__name__] = old  # dataclasses look their module up
+    exec(compile(src, f"{base}:adv3d_runner/sensors/lidar.py", "exec"), old.__dict__)
+    world, ego, poses, what, tris = build_scene_world(30)
+    mods = {"base": old, "this": new}
+    rigs = {k: m.LidarRig.single(get_model("hdl64"), mount=(0, 0, 1.73, 0, 0, 0), ego_dimensions=(4.6, 1.9, 1.5))
+            for k, m in mods.items()}
+    cpu = {k: [] for k in mods}
+    emb = {k: [] for k in mods}
+    frames = {}
+    for k, m in mods.items():  # warm-up
+        frames[k] = m.simulate_frame(world, rigs[k], ego, poses, np.random.default_rng(0))
+    for r in range(repeats):
+        for k in (("base", "this") if r % 2 else ("this", "base")):
+            stats = {"clock": CLOCK}
+            t0 = CLOCK()
+            mods[k].simulate_frame(world, rigs[k], ego, poses, np.random.default_rng(0), stats=stats)
+            cpu[k].append(CLOCK() - t0)
+            emb[k].append(stats["embree_s"])
+    same = all(getattr(frames["base"], f).tobytes() == getattr(frames["this"], f).tobytes()
+               for f in ("points", "ring", "label", "distance"))
+    out = {"world": what, "actors": len(poses), "base": base, "frames_identical": same}
+    for k in mods:
+        p, e = 1e3 * float(np.median(cpu[k])), 1e3 * float(np.median(emb[k]))
+        out[k] = {"pipeline_ms": p, "embree_ms": e, "other_ms": p - e, "pipeline_over_embree": p / e}
+        print(f"{k:5s} pipeline {p:6.2f} ms  Embree {e:6.2f} ms  rest {p - e:5.2f} ms  ratio {p / e:.3f}")
+    print(f"frames identical: {same}")
+    return out
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="fewer repeats")
+    parser.add_argument("--ab", metavar="COMMIT", default=None,
+                        help="only (a), against COMMIT's sensors/lidar.py, interleaved (bench/results/lidar_ab.json)")
     args = parser.parse_args()
+    if args.ab:
+        repeats = 101
+        result = {"benchmark": "lidar_ab", "command": " ".join([Path(sys.executable).name] + sys.argv),
+                  "repeats": repeats, "machine": machine_info(), "load_average_before": list(os.getloadavg()),
+                  "timing": "median CPU time of the (single) thread, time.thread_time; the two versions "
+                            "alternate frame by frame",
+                  "a_pipeline_vs_embree": section_ab(args.ab, repeats)}
+        result["load_average_after"] = list(os.getloadavg())
+        out = ROOT / "bench" / "results" / "lidar_ab.json"
+        write_json(out, result)
+        print(f"\nwrote {out.relative_to(ROOT)}")
+        return 0
     repeats = 5 if args.quick else 21
     # The merged-BVH reference needs the raw arrays: record them as actors are added.
     _patch_world_recording()

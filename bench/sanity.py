@@ -19,7 +19,7 @@ recorded future only (the ``--extend``-ed tail of a recording is IDM, not real t
 issue-17 targets on the real benchmark are checked at the end.
 
     .venv/bin/python bench/sanity.py [--quick] [--sets generated,real] [--real-part benchmark|train]
-                                     [--autonomy A|B|oracle|A-lanefollow] [--workers 2] [--seconds 5]
+                                     [--autonomy A|B|oracle|A-lanefollow] [--workers 2] [--seconds 5] [--tag NAME]
 
 ``--autonomy A`` needs the trained detector and predictor (assets/models/); without them use
 ``--autonomy oracle``. ``--autonomy B`` (instance-free, the implicit occupancy model) reports the
@@ -28,7 +28,8 @@ Soft-IoU, flow-grounded mAP and Soft-IoU, and the flow EPE) next to Autonomy-A's
 same scenes from ``bench/results/sanity.json`` (its ``real`` rows for the real set); the real
 targets on prediction do not apply to it (no trajectories). Writes ``bench/results/sanity[.<autonomy>][.quick].json`` when both sets
 run (the generated set under ``summary`` / ``rows`` as before, the real one under ``real``), and
-``bench/results/sanity.real-<part>[.<autonomy>].json`` for ``--sets real``.
+``bench/results/sanity.real-<part>[.<autonomy>].json`` for ``--sets real``; ``--tag NAME`` appends
+``.NAME`` to the file name (before/after pairs, e.g. an old detector).
 """
 from __future__ import annotations
 
@@ -58,8 +59,15 @@ _STACK = None
 _LIB = None
 
 
-def _run(job: tuple[str, str, float, bool]) -> dict:
-    path, autonomy, seconds, real = job
+#: ``--planner-limits before-issue17``: the proposals' jerk limits and leader speed window
+#: before issue 17 tuned them on real traffic (what Autonomy-B was developed with); a
+#: diagnosis of how those limits change a stack, not a shipped configuration.
+LIMITS_BEFORE_ISSUE17 = {"max_jerk": 4.0, "max_release_jerk": 10.0, "max_brake_jerk": 4.0, "leader_speed_window": 0.1}
+
+
+def _run(job: tuple) -> dict:
+    path, autonomy, seconds, real = job[:4]
+    limits = job[4] if len(job) > 4 else "shipped"
     global _STACK, _LIB
     from adv3d_runner.scene import load_scene
     from adv3d_runner.sensors.world import world_from_scene
@@ -70,6 +78,12 @@ def _run(job: tuple[str, str, float, bool]) -> dict:
     if _STACK is None:
         _STACK = make_stack(autonomy)
         _LIB = default_library()
+        if limits == "before-issue17":
+            from adv3d_runner.autonomy.planner import SamplingPlanner
+            from adv3d_runner.autonomy.planner.planner import PlannerConfig
+            from adv3d_runner.autonomy.planner.proposals import ProposalConfig
+
+            _STACK.planner = SamplingPlanner(PlannerConfig(proposals=ProposalConfig(**LIMITS_BEFORE_ISSUE17)))
     t0 = time.perf_counter()
     scene = load_scene(path)
     world = world_from_scene(scene, _LIB)
@@ -205,8 +219,9 @@ def check_targets(s: dict) -> dict:
     return {k: {"value": v, "target": tt, "met": bool(ok)} for k, (v, tt, ok) in rows.items()}
 
 
-def _run_set(paths: list[Path], autonomy: str, seconds: float, workers: int, real: bool) -> list[dict]:
-    jobs = [(str(p), autonomy, seconds, real) for p in paths]
+def _run_set(paths: list[Path], autonomy: str, seconds: float, workers: int, real: bool,
+             limits: str = "shipped") -> list[dict]:
+    jobs = [(str(p), autonomy, seconds, real, limits) for p in paths]
     rows = []
     if workers > 1:
         import multiprocessing as mp
@@ -231,11 +246,18 @@ def main() -> int:
     ap.add_argument("--autonomy", choices=("A", "B", "oracle", "A-lanefollow"), default="A")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--seconds", type=float, default=5.0)
+    ap.add_argument("--planner-limits", choices=("shipped", "before-issue17"), default="shipped",
+                    help="diagnosis: run the planner with the proposals' jerk limits of before issue 17")
     ap.add_argument("--name", default=None,
                     help="result file stem under bench/results/ (default sanity[.<autonomy>][.quick])")
     ap.add_argument("--reference", default="bench/results/sanity.json",
                     help="Autonomy-A's sanity file that --autonomy B is compared with (same scenes)")
+    ap.add_argument("--tag", default="",
+                    help="suffix of the result file name (e.g. old-detector: sanity.old-detector.json), so a "
+                         "before/after pair does not overwrite the kept result")
     args = ap.parse_args()
+    if args.tag and not all(c.isalnum() or c in "-_" for c in args.tag):
+        ap.error("--tag takes letters, digits, '-' and '_'")
     sets = [s.strip() for s in args.sets.split(",") if s.strip()]
     if not sets or set(sets) - {"generated", "real"}:
         ap.error("--sets takes generated and/or real")
@@ -250,13 +272,13 @@ def main() -> int:
         if args.quick:
             paths = paths[::10]
         print(f"generated benchmark: {len(paths)} scenes")
-        rows = _run_set(paths, args.autonomy, args.seconds, args.workers, real=False)
+        rows = _run_set(paths, args.autonomy, args.seconds, args.workers, real=False, limits=args.planner_limits)
         out["generated"] = (summarise(rows, real=False), rows)
     if "real" in sets:
         split = load_real_split()
         paths = split.paths(args.real_part)
         print(f"real {args.real_part} part: {len(paths)} scenes (recordings {list(split.recordings[args.real_part])})")
-        rows = _run_set(paths, args.autonomy, args.seconds, args.workers, real=True)
+        rows = _run_set(paths, args.autonomy, args.seconds, args.workers, real=True, limits=args.planner_limits)
         summary = summarise(rows, real=True)
         summary["part"] = args.real_part
         summary["recordings"] = list(split.recordings[args.real_part])
@@ -283,10 +305,13 @@ def main() -> int:
         name = "sanity" + tag + (".quick" if args.quick else "")
     else:
         name = f"sanity.real-{args.real_part}" + tag
+    if args.tag:
+        name += f".{args.tag}"
     doc = {"format": "adv3d-bench", "version": 1, "topic": "sanity",
            "command": " ".join(["bench/sanity.py"] + sys.argv[1:]),
            "machine": {"python": platform.python_version(), "platform": platform.platform(),
                        "processor": platform.processor(), "cpus": os.cpu_count()},
+           "planner_limits": args.planner_limits if args.planner_limits == "shipped" else LIMITS_BEFORE_ISSUE17,
            "paper_original_autonomy_a": PAPER_ORIGINAL_A, "paper_original_autonomy_b": PAPER_ORIGINAL_B,
            "wall_s": wall}
     strip = lambda rows: [{k: v for k, v in r.items() if k not in ("format", "version")} for r in rows]  # noqa: E731

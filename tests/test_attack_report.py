@@ -141,3 +141,22 @@ def test_results_doc_tables_match_the_kept_run_summaries(repo_root):
     assert len(rows) == 5 + 4
     for row in rows:
         assert row in doc, row
+
+
+def test_results_doc_autonomy_b_tables_match_the_kept_run_summary(repo_root):
+    """docs/results.md quotes Table 1's lower block (Autonomy-B) and its paired changes; the
+    run summary kept in docs/results/bo50-B must still produce exactly those rows."""
+    import json
+
+    from adv3d_runner.attack.report import COLUMNS_B, attach_realism, table1
+
+    folder = repo_root / "docs" / "results" / "bo50-B"
+    runs = [("runs/bo50-B", json.loads((folder / "run.json").read_text()), [],
+             json.loads((folder / "summary.json").read_text()))]
+    attach_realism(runs)
+    doc = (repo_root / "docs" / "results.md").read_text()
+    rows = [ln for ln in (table1(runs, COLUMNS_B) + paired_deltas(runs, COLUMNS_B)).splitlines()
+            if ln.startswith(("| Original", "| Adv."))]
+    assert len(rows) == 3 + 2
+    for row in rows:
+        assert row in doc, row

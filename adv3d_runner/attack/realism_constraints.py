@@ -34,7 +34,7 @@ from ..shapes.realism import regularised_covariance
 #: (keep >= 75 % of the unconstrained gain with the best shapes' JSD inside the library's
 #: leave-one-out range); see docs/realism.md for the evidence behind its values and their status.
 PRESETS: dict[str, dict[str, Any]] = {
-    "realistic": {"max_mahalanobis": 3.37, "class_scales": True, "realism_weight": 0.0},
+    "realistic": {"max_mahalanobis": None, "class_scales": True, "realism_weight": 300.0},
 }
 
 

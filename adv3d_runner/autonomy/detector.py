@@ -36,7 +36,7 @@ from torch import nn
 
 from ..errors import ConfigError, FileFormatError
 from ..fileio import REPO_ROOT
-from ..geometry.boxes import iou_pairwise
+from ..geometry.boxes import iou_paired
 from ..validate import Node, check_header
 from .interface import Detections
 
@@ -344,7 +344,9 @@ def rotated_nms(boxes: np.ndarray, scores: np.ndarray, iou_threshold: float, max
     order = np.argsort(-scores, kind="stable")
     boxes, scores = boxes[order], scores[order]
     # IoU is computed lazily, keeper against the alive boxes near it (most candidates are
-    # suppressed by few keepers, so this is far cheaper than the full K x K matrix).
+    # suppressed by few keepers, so this is far cheaper than the full K x K matrix), as paired
+    # boxes: the same arithmetic per pair as ``iou_pairwise`` (every pair here is one its
+    # circle test keeps, and has a positive area) without its all-pairs bookkeeping.
     radius = 0.5 * np.hypot(np.maximum(boxes[:, 2], 0), np.maximum(boxes[:, 3], 0))
     alive = np.ones(len(boxes), bool)
     keep_boxes, keep_scores = [], []
@@ -356,7 +358,7 @@ def rotated_nms(boxes: np.ndarray, scores: np.ndarray, iou_threshold: float, max
                                        < radius + radius[i]))
         cluster = np.array([i], np.int64)
         if near.size:
-            iou = iou_pairwise(boxes[i:i + 1], boxes[near])[0]
+            iou = iou_paired(np.broadcast_to(boxes[i], (near.size, 5)), boxes.take(near, axis=0))
             sup = near[iou > iou_threshold]
             alive[sup] = False
             cluster = np.concatenate([cluster, sup])

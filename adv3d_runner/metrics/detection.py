@@ -148,6 +148,74 @@ def ap_from_matches(scores: np.ndarray, tp: np.ndarray, n_gt: int) -> DetectionM
     return DetectionMetrics(ap, n_tp / n_gt, int(n_gt), n_det, n_tp, precision, recall)
 
 
+def grouped_average_precision(frames: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]],
+                              groups: Sequence, iou_threshold: float = IOU_THRESHOLD) -> dict:
+    """AP and recall per group of ground-truth boxes (e.g. vehicles whose mesh was seen in
+    training against vehicles whose mesh was left out), matching every detection once.
+
+    Each frame's detections are matched to *all* its ground truth (:func:`match_frame`), so a
+    group's numbers are what the overall evaluation says about that group's boxes. Then, per
+    group ``g``:
+
+    * a true positive matched to a box of ``g`` counts for ``g``; one matched to a box of
+      another group is left out of ``g`` (neither true nor false positive: KITTI's rule for
+      boxes of another difficulty);
+    * a false positive is *attributed* to the group of the ground-truth box it overlaps most
+      (best IoU > 0: a mislocalised or duplicate detection of that vehicle);
+    * a false positive that overlaps no ground-truth box ("background") belongs to no vehicle:
+      ``ap`` leaves it out; ``ap_with_background_fp`` counts every background false positive
+      against every group (a lower bound that penalises a small group more, because its true
+      positives are fewer for the same false positives).
+
+    Recall (matched boxes / boxes of the group) does not depend on the attribution.
+
+    Args:
+        frames: iterable of ``(gt_boxes (G, 5), gt_group (G,), det_boxes (D, 5), det_scores (D,))``
+            per frame; ``gt_group`` holds a label of ``groups`` per box (labels not in ``groups``
+            take part in the matching but are reported in no group).
+        groups: the group labels to report, in this order.
+        iou_threshold: BEV IoU of a true positive.
+    Returns:
+        ``{"groups": {label: {"ap", "recall", "n_gt", "n_tp", "n_fp", "ap_with_background_fp"}},
+        "n_det", "n_fp_background"}``; a group without boxes has NaN ap / recall.
+    """
+    labels = list(groups)
+    index = {g: k for k, g in enumerate(labels)}
+    all_scores, all_tp, all_owner = [], [], []
+    n_gt = np.zeros(len(labels), np.int64)
+    for gt, gt_group, det, sc in frames:
+        gt = as_boxes(gt).reshape(-1, 5)
+        det = as_boxes(det).reshape(-1, 5)
+        gidx = np.array([index.get(g, -2) for g in np.asarray(gt_group).reshape(-1)], np.int64)
+        if len(gidx) != len(gt):
+            raise ValueError(f"got {len(gidx)} group labels for {len(gt)} ground-truth boxes")
+        n_gt += np.bincount(gidx[gidx >= 0], minlength=len(labels))
+        m = match_frame(gt, det, sc, iou_threshold)
+        # owner: group index of the box a detection belongs to; -1 background, -2 unreported
+        owner = np.full(len(det), -1, np.int64)
+        if len(det) and len(gt):
+            iou = iou_pairwise(det, gt)
+            best = np.argmax(iou, axis=1)
+            near = iou[np.arange(len(det)), best] > 0
+            owner[near] = gidx[best[near]]
+            owner[m.tp] = gidx[m.matched_gt[m.tp]]
+        all_scores.append(_scores(sc, len(det)))
+        all_tp.append(m.tp)
+        all_owner.append(owner)
+    scores = np.concatenate(all_scores) if all_scores else np.zeros(0)
+    tp = np.concatenate(all_tp) if all_tp else np.zeros(0, bool)
+    owner = np.concatenate(all_owner) if all_owner else np.zeros(0, np.int64)
+    background = (owner == -1) & ~tp
+    out = {}
+    for k, label in enumerate(labels):
+        own = owner == k
+        m = ap_from_matches(scores[own], tp[own], int(n_gt[k]))
+        wide = ap_from_matches(scores[own | background], tp[own | background], int(n_gt[k]))
+        out[label] = {"ap": m.ap, "recall": m.recall, "n_gt": m.n_gt, "n_tp": m.n_tp, "n_fp": m.n_det - m.n_tp,
+                      "ap_with_background_fp": wide.ap}
+    return {"groups": out, "n_det": int(len(scores)), "n_fp_background": int(background.sum())}
+
+
 def voc_ap(recall: np.ndarray, precision: np.ndarray) -> float:
     """All-point interpolated AP (VOC 2010+): area under the monotone precision envelope.
 

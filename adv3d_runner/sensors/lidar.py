@@ -606,8 +606,8 @@ def _effects(world, rig: LidarRig, k: int, ego: np.ndarray, hits: RayHits, actor
         dist += rng.standard_normal(dist.size, dtype=np.float32) * np.float32(model.range_noise)
         np.maximum(dist, 0.0, out=dist)
     if rng is not None and drop and model.ray_drop > 0:
-        keep = rng.random(dist.size, dtype=np.float32) >= np.float32(model.ray_drop)
-        idx, dist = idx[keep], dist[keep]
+        keep = np.flatnonzero(rng.random(dist.size, dtype=np.float32) >= np.float32(model.ray_drop))
+        idx, dist = idx.take(keep), dist.take(keep)  # one mask scan, then two gathers
 
     # Columns are gathered one by one: 1-D gathers of contiguous arrays are the fast kind.
     m = idx.size
@@ -625,13 +625,14 @@ def _effects(world, rig: LidarRig, k: int, ego: np.ndarray, hits: RayHits, actor
     lab = label.take(idx)
     prim_b = hits.prim_bg.take(idx)
     refl = world.background_reflectivity.take(prim_b)  # prim -1 -> the trailing 0 slot
+    # The returns on actors (a sixth or so): their values are gathered for them alone.
     on_actor = None
     if hits.cos_actor is not None:
-        on_actor = lab >= 0
-        if not on_actor.any():
+        on_actor = np.flatnonzero(lab >= 0)
+        if on_actor.size == 0:
             on_actor = None
     if on_actor is not None:
-        np.copyto(refl, actor_refl.take(np.maximum(lab, 0)), where=on_actor)
+        refl[on_actor] = actor_refl.take(lab.take(on_actor))
     # |cos incidence| from unit face normals: background by face index (a miss indexes the
     # zero row), actors from the cast. n_map . d_map = n_ego . d_ego: the background's
     # normal table (small) is turned into the ego frame, then gathered per return.
@@ -646,7 +647,7 @@ def _effects(world, rig: LidarRig, k: int, ego: np.ndarray, hits: RayHits, actor
     cos_inc += tmp
     np.abs(cos_inc, out=cos_inc)
     if on_actor is not None:
-        np.copyto(cos_inc, hits.cos_actor.take(idx), where=on_actor)
+        cos_inc[on_actor] = hits.cos_actor.take(idx.take(on_actor))
     np.minimum(cos_inc, 1.0, out=cos_inc)
     cos_inc *= refl
     np.multiply(t.take(idx), np.float32(-rig.attenuation), out=tmp)

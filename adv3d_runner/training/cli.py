@@ -54,12 +54,19 @@ def add_train_detector(train_sub) -> None:
     p.add_argument("--seed", type=at.seed, default=0)
     p.add_argument("--threads", type=at.positive_int, default=1, help="torch threads for training")
     p.add_argument("--time-limit", type=at.positive, default=38 * 60,
-                   help="stop training after the epoch that passes this many seconds (data included)")
+                   help="stop training after the epoch that passes this many seconds (data included); the "
+                        "number of epochs then depends on the machine's load: for a reproducible model give a "
+                        "limit all --epochs fit in (the report records epochs_run)")
     p.add_argument("--cache", default=None, help="frame cache folder (default ~/.cache/adv3d/detector)")
     p.add_argument("--out", default="assets/models/detector", help="model folder")
     p.add_argument("--library", default=None,
                    help="vehicle library the scenes' actors draw their meshes from (default: the bundled one; "
                         "'none': boxes)")
+    p.add_argument("--holdout-assets", default="none", metavar="none|default|ID,ID,...",
+                   help="vehicle meshes left out of training (training scenes never place them; held-out "
+                        "scenes use every asset): 'default' = about 20%% of each class's assets "
+                        "(detector_data.default_holdout), or asset ids; AP is then also reported separately "
+                        "for vehicles whose mesh was seen in training and vehicles left out")
     p.add_argument("--quick", action="store_true",
                    help="small recipe for smoke tests and the resolution benchmark (24 scenes, 4 epochs)")
     _device_option(p)
@@ -69,6 +76,8 @@ def add_train_detector(train_sub) -> None:
 def _train_detector(args) -> int:
     import time
 
+    import numpy as np
+
     t0 = time.perf_counter()
     cpu0 = time.process_time()
 
@@ -76,7 +85,8 @@ def _train_detector(args) -> int:
     from ..errors import ConfigError
     from ..fileio import write_json
     from ..progress import status
-    from .detector_data import TRAIN_SEED0, VAL_SEED0, make_frames
+    from .detector_data import (TRAIN_SEED0, VAL_SEED0, box_assets, default_holdout, make_frames, resolve_holdout,
+                                without_assets)
     from .detector_train import evaluate_detector, machine_info, plot_losses, subset, train_detector
     from .device import device_info, resolve_device
 
@@ -100,7 +110,13 @@ def _train_detector(args) -> int:
     from ..shapes.library import library_fingerprint, resolve_library
 
     library = resolve_library(args.library)
-    train = make_frames(train_seeds, args.frames_per_scene, library=library, cache_dir=args.cache,
+    holdout = resolve_holdout(args.holdout_assets, library)
+    # training scenes draw from the library without the held-out meshes; held-out scenes from all
+    train_library = without_assets(library, holdout) if holdout else library
+    if holdout:
+        status(f"vehicle hold-out: {len(holdout)} of {len(library.assets)} assets never placed in training scenes: "
+               + ", ".join(holdout))
+    train = make_frames(train_seeds, args.frames_per_scene, library=train_library, cache_dir=args.cache,
                         desc="training scenes", stats=cache_stats)
     val = make_frames(val_seeds, args.frames_per_scene, library=library, cache_dir=args.cache,
                       desc="held-out scenes", stats=cache_stats)
@@ -113,21 +129,35 @@ def _train_detector(args) -> int:
                                device=device)
     train_s = time.perf_counter() - t_train
     t_eval = time.perf_counter()
-    metrics, operating = {}, {}
+    metrics, operating, by_vehicle = {}, {}, {}
     if len(val):
         from .detector_train import EVAL_THRESHOLD
         dets = det.detect_batch([val.frame_points(f) for f in range(len(val))], score_threshold=EVAL_THRESHOLD)
-        metrics = evaluate_detector(det, val, min_points=args.min_points, detections=dets)
+        # each ground-truth box's mesh: seen in training, or left out (the hold-out)
+        assets = box_assets(val, library) if library is not None else np.full(len(val.boxes), "", dtype=str)
+        seen = np.where(np.isin(assets, holdout), "held_out", "seen")
+        metrics = evaluate_detector(det, val, min_points=args.min_points, detections=dets,
+                                    box_groups=seen, groups=("seen", "held_out"))
         thr = cfg.score_threshold
         op = evaluate_detector(det, val, min_points=args.min_points,
-                               detections=[d.filter(d.scores >= thr) for d in dets])
+                               detections=[d.filter(d.scores >= thr) for d in dets],
+                               box_groups=seen, groups=("seen", "held_out"))
         operating = {"score_threshold": thr, "recall": op["recall"],
                      "precision": op["n_tp"] / op["n_det"] if op["n_det"] else None,
-                     "n_det": op["n_det"], "n_tp": op["n_tp"], "n_gt": op["n_gt"]}
+                     "n_det": op["n_det"], "n_tp": op["n_tp"], "n_gt": op["n_gt"], "by_group": op["by_group"]}
+        per_asset = evaluate_detector(det, val, min_points=args.min_points, detections=dets, box_groups=assets,
+                                      groups=sorted(set(assets.tolist())))["by_group"]
+        by_vehicle = {"rule": "ground-truth boxes grouped by the asset their actor drew (held-out scenes use every "
+                              "asset); per group: metrics.detection.grouped_average_precision",
+                      "assets": {a: dict(g, held_out=a in holdout) for a, g in per_asset["groups"].items()}}
     train_metrics = evaluate_detector(det, subset(train, 200), min_points=args.min_points)
     eval_s = time.perf_counter() - t_eval
     status(f"held-out AP@0.5 {metrics.get('ap', float('nan')):.4f} recall {metrics.get('recall', float('nan')):.4f}"
            f" ({metrics.get('n_gt', 0)} vehicles in ROI); training frames AP {train_metrics['ap']:.4f}")
+    if holdout and metrics:
+        for name, g in metrics["by_group"]["groups"].items():
+            status(f"  vehicles {name.replace('_', ' ')} in training: AP@0.5 {g['ap']:.4f} recall {g['recall']:.4f} "
+                   f"({g['n_gt']} in ROI)")
     command = "adv3d " + " ".join(shlex.quote(a) for a in sys.argv[1:]) if sys.argv and "adv3d" in sys.argv[0] \
         else "adv3d train detector " + _args_line(args)
     recipe = {"split": "train", "train_seeds": [train_seeds[0], train_seeds[-1]],
@@ -136,12 +166,22 @@ def _train_detector(args) -> int:
               "library": args.library or "bundled benign vehicle library",
               "library_fingerprint": library_fingerprint(library) if library is not None else None,
               "actor_meshes": "drawn per actor from every asset of its class (scene.actors.assign_assets)",
+              "holdout": {"assets": holdout, "n_assets": len(holdout),
+                          "n_library_assets": len(library.assets) if library is not None else 0,
+                          "rule": ("default_holdout: per class min(n - 1, round-half-up(0.2 n)) assets, ranked by "
+                                   "sha256 of the id" if holdout and holdout == default_holdout(library)
+                                   else "given ids" if holdout else "none"),
+                          "training_library_fingerprint": (library_fingerprint(train_library)
+                                                           if train_library is not None else None),
+                          "training_scenes": "draw from the library without the held-out assets",
+                          "held_out_scenes": "draw from every asset of the library"},
               "lidar": "scene rig (HDL-64E at 1.73 m) with noise and ray drop", "min_points": args.min_points,
               "train_frames": len(train), "val_frames": len(val),
               "cache": {"scenes_from_cache": cache_stats.get("cached", 0),
                         "scenes_simulated": cache_stats.get("simulated", 0),
                         "simulate_s": round(cache_stats.get("simulate_s", 0.0), 1)}}
-    training = {"epochs": args.epochs, "epochs_run": len(hist["epoch"]), "batch": args.batch, "lr": args.lr,
+    training = {"epochs": args.epochs, "epochs_run": len(hist["epoch"]), "time_limit_s": args.time_limit,
+                "stopped_early": bool(hist["stopped_early"]), "batch": args.batch, "lr": args.lr,
                 "seed": args.seed, "threads": args.threads, "optimizer": "AdamW + one-cycle cosine",
                 "augmentation": "random left/right mirror", "quick": bool(args.quick)}
     save_detector(det, out, {"seed": args.seed, "data": recipe, "training": training})
@@ -156,7 +196,7 @@ def _train_detector(args) -> int:
         "device": device_info(device),
         "data": recipe, "training": training, "detector": cfg.to_dict(),
         "history": hist,
-        "held_out": metrics, "held_out_operating_point": operating,
+        "held_out": metrics, "held_out_operating_point": operating, "held_out_by_vehicle": by_vehicle,
         "training_frames_subset": train_metrics,
         "parameters": int(sum(p.numel() for p in det.net.parameters())),
     }
@@ -170,6 +210,8 @@ def _train_detector(args) -> int:
 def _args_line(args) -> str:
     parts = [f"--scenes {args.scenes}", f"--val-scenes {args.val_scenes}", f"--frames-per-scene {args.frames_per_scene}",
              f"--epochs {args.epochs}", f"--resolution {args.resolution}", f"--seed {args.seed}", f"--out {args.out}"]
+    if args.holdout_assets and args.holdout_assets != "none":
+        parts.append(f"--holdout-assets {args.holdout_assets}")
     if args.quick:
         parts.append("--quick")
     return " ".join(parts)

@@ -7,7 +7,12 @@ Recipe (deterministic in its arguments):
   training seeds are 100 000 + [0, N) and the held-out evaluation seeds 900 000 + [0, M):
   disjoint ranges of the same split (see ``TRAIN_SEED0`` / ``VAL_SEED0``). Layouts and
   densities cycle with the seed, so any 20 consecutive seeds cover every combination.
-* actors get the benign vehicle library's meshes (``world_from_scene(scene, library)``).
+* actors get the benign vehicle library's meshes: each actor draws one from every asset of its
+  class (``scene.actors.assign_assets``, seeded by scene and actor id; :func:`frames_scene`).
+* vehicle hold-out (:func:`default_holdout`, :func:`without_assets`): training scenes may draw
+  from the library *without* some assets, while evaluation scenes draw from all of them, so
+  AP can be split into vehicles whose mesh was seen in training and vehicles left out
+  (:func:`box_assets` gives each ground-truth box its asset id).
 * frames: ``frames_per_scene`` frames per scene, evenly spaced over the 200 recorded frames with
   an offset drawn from ``default_rng([seed, 1])``; the LiDAR (the scene's rig, HDL-64E) with
   noise and ray drop from ``default_rng([seed, frame])``.
@@ -28,6 +33,7 @@ version, so a second run reuses the work.
 """
 from __future__ import annotations
 
+import hashlib
 import os
 import time
 from dataclasses import dataclass
@@ -43,6 +49,8 @@ TRAIN_SEED0 = 100_000     # training scenes: TRAIN_SEED0 + [0, N)
 VAL_SEED0 = 900_000       # held-out scenes (same split, disjoint seed range): VAL_SEED0 + [0, M)
 CROP = {"x": (-20.0, 80.0), "y": (-35.0, 35.0), "z": (0.15, 5.0)}
 DEFAULT_MIN_POINTS = 5
+HOLDOUT_FRACTION = 0.2            # share of each class's assets left out of training by default
+HOLDOUT_SALT = "adv3d-detector-holdout"  # names the default split (change it: another split)
 
 
 def default_cache_dir() -> Path:
@@ -166,6 +174,95 @@ def simulate_scene_frames(scene, world, rig, frames: Iterable[int], seed: int) -
                     np.full(n, seed, np.int64), np.array(fidx, np.int64))
 
 
+def default_holdout(library, fraction: float = HOLDOUT_FRACTION) -> list[str]:
+    """The default vehicle hold-out: about ``fraction`` of each class's assets (stratified).
+
+    Per class with ``n`` assets, ``min(n - 1, floor(fraction * n + 1/2))`` are held out (round
+    half up, and never a class's last asset, so every class keeps a mesh in training): for the
+    bundled 38-asset library 2 of 12 sedans and 1 of the 4 hatchbacks, sports cars, pickups and
+    trucks and of the 3 SUVs, 7 in all; classes of 1-2 assets keep all of them. Which ones: the
+    class's assets ranked by ``sha256(HOLDOUT_SALT + "\\0" + id)``, the first ones held out, so
+    the split depends on the ids only (not on the library's order) and adding an asset to a
+    class changes the split of that class only.
+
+    Returns:
+        the held-out asset ids, sorted.
+    """
+    by_class: dict[str, list[str]] = {}
+    for a in library.assets:
+        by_class.setdefault(a.vehicle_class, []).append(a.id)
+    out = []
+    for ids in by_class.values():
+        ranked = sorted(ids, key=lambda i: (hashlib.sha256(f"{HOLDOUT_SALT}\0{i}".encode()).hexdigest(), i))
+        n_hold = min(len(ids) - 1, int(np.floor(fraction * len(ids) + 0.5)))
+        out.extend(ranked[:n_hold])
+    return sorted(out)
+
+
+def resolve_holdout(arg: str | None, library) -> list[str]:
+    """The asset ids a ``--holdout-assets`` value names: ``none`` / empty -> [], ``default`` ->
+    :func:`default_holdout`, else comma-separated asset ids of ``library``.
+
+    Raises:
+        ConfigError: an unknown id, no library, or a class left without any asset.
+    """
+    from ..errors import ConfigError
+
+    text = (arg or "").strip()
+    if text.lower() in ("", "none"):
+        return []
+    if library is None:
+        raise ConfigError("--holdout-assets needs a vehicle library (not --library none)")
+    if text.lower() == "default":
+        return default_holdout(library)
+    ids = sorted({t.strip() for t in text.split(",") if t.strip()})
+    unknown = [i for i in ids if i not in set(library.ids())]
+    if unknown:
+        raise ConfigError(f"--holdout-assets: no asset {', '.join(unknown)} in the vehicle library at {library.root} "
+                          "(see `adv3d assets list`)")
+    kept = {a.vehicle_class for a in library.assets if a.id not in ids}
+    emptied = sorted({a.vehicle_class for a in library.assets} - kept)
+    if emptied:
+        raise ConfigError(f"--holdout-assets leaves no asset of class {', '.join(emptied)} for training "
+                          "(keep at least one per class)")
+    return ids
+
+
+def without_assets(library, asset_ids: Sequence[str]):
+    """A copy of ``library`` (same folder) without the assets ``asset_ids``: the training
+    library of a hold-out. Its fingerprint differs, so its frames are cached apart; an actor
+    that drew a held-out asset from the full library draws again among the class's other
+    assets (rendezvous hashing: every other actor keeps its mesh)."""
+    from ..shapes.library import VehicleLibrary
+
+    drop = set(asset_ids)
+    return VehicleLibrary(root=library.root, assets=[a for a in library.assets if a.id not in drop],
+                          excluded=[dict(e) for e in library.excluded])
+
+
+def frames_scene(seed: int, split: str, library):
+    """The scene :func:`make_frames` simulates for ``seed``: ``generate_scene(seed, split)``
+    with every actor's asset drawn from ``library`` (None: actors stay boxes)."""
+    from ..scene.actors import assign_assets
+    from ..scene.generate import generate_scene
+
+    scene = generate_scene(int(seed), split)
+    return assign_assets(scene, library) if library is not None else scene
+
+
+def box_assets(fs: FrameSet, library, split: str = "train") -> np.ndarray:
+    """The asset id of every box of ``fs`` (frames of ``split`` scenes made with ``library``):
+    (B,) str, "" for actors without a mesh. Re-generates each scene (about 0.35 s) instead of
+    storing ids in the frame cache."""
+    asset_of: dict[tuple[int, int], str] = {}
+    for seed in np.unique(fs.scene_seed):
+        scene = frames_scene(int(seed), split, library)
+        for actor in scene.actors:
+            asset_of[(int(seed), int(actor.id))] = actor.asset or ""
+    seeds = fs.scene_seed[fs.box_frame] if len(fs.box_frame) else np.zeros(0, np.int64)
+    return np.array([asset_of.get((int(s), int(a)), "") for s, a in zip(seeds, fs.box_actor)], dtype=str)
+
+
 def _cache_path(cache_dir: Path, split: str, seed: int, frames_per_scene: int, library_tag: str) -> Path:
     return cache_dir / f"v{DATA_VERSION}-{split}-{seed:09d}-f{frames_per_scene}-{library_tag}.npz"
 
@@ -202,7 +299,6 @@ def make_frames(seeds: Sequence[int], frames_per_scene: int, split: str = "train
         stats: if a dict, ``cached`` / ``simulated`` scene counts and ``simulate_s`` are added.
     """
     from ..progress import progress
-    from ..scene.generate import generate_scene
     from ..sensors.world import rig_from_scene, world_from_scene
 
     if isinstance(library, str) and library == "default":
@@ -226,7 +322,7 @@ def make_frames(seeds: Sequence[int], frames_per_scene: int, split: str = "train
                 stats["cached"] = stats.get("cached", 0) + 1
             continue
         t0 = time.perf_counter()
-        scene = generate_scene(int(seed), split)
+        scene = frames_scene(int(seed), split, library)
         world = world_from_scene(scene, library)
         rig = rig_from_scene(scene)
         fs = simulate_scene_frames(scene, world, rig, frame_indices(int(seed), frames_per_scene, scene.frames), int(seed))

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import math
 import time
-from typing import Callable
+from typing import Callable, Sequence
 
 import numpy as np
 import torch
@@ -24,7 +24,7 @@ import torch
 from ..autonomy.detector import BevDetector, DetectorConfig, PixorNet, encode_targets, voxelize
 from ..autonomy.interface import Detections
 from ..geometry.boxes import iou_pairwise
-from ..metrics.detection import ROI_AHEAD, average_precision
+from ..metrics.detection import ROI_AHEAD, average_precision, grouped_average_precision
 from .detector_data import DEFAULT_MIN_POINTS, FrameSet, split_gt
 
 ROI_LATERAL = 20.0
@@ -83,21 +83,28 @@ def detector_loss(logits: torch.Tensor, box: torch.Tensor, score: torch.Tensor, 
 
 def evaluate_detector(det: BevDetector, fs: FrameSet, min_points: int = DEFAULT_MIN_POINTS,
                       ahead: float = ROI_AHEAD, lateral: float = ROI_LATERAL, iou_threshold: float = 0.5,
-                      detections: list[Detections] | None = None, score_threshold: float | None = EVAL_THRESHOLD) -> dict:
+                      detections: list[Detections] | None = None, score_threshold: float | None = EVAL_THRESHOLD,
+                      box_groups: np.ndarray | None = None, groups: Sequence | None = None) -> dict:
     """AP / recall at BEV IoU ``iou_threshold`` over ``fs`` in the ROI (see module doc).
 
     Args:
         score_threshold: detections kept for the precision/recall curve (low, so AP sees the
             whole curve; None = the detector's operating threshold). Ignored with ``detections``.
+        box_groups: (B,) a group label per box of ``fs`` (e.g. "seen" / "held_out", or the
+            asset id); with ``groups`` (the labels to report) the result also holds
+            ``by_group`` (:func:`adv3d_runner.metrics.detection.grouped_average_precision`:
+            the same matching, per ground-truth group).
     Returns:
-        dict with ap, recall, n_gt, n_det, n_tp, n_frames and the ROI parameters.
+        dict with ap, recall, n_gt, n_det, n_tp, n_frames and the ROI parameters (+ by_group).
     """
     if detections is None:
         detections = det.detect_batch([fs.frame_points(f) for f in range(len(fs))], score_threshold=score_threshold)
-    frames = []
+    frames, grouped = [], []
+    target = fs.box_points >= min_points                      # split_gt's rule, per box of fs
     for f, d in enumerate(detections):
-        boxes, npts = fs.frame_boxes(f)
-        gt, ign = split_gt(boxes, npts, min_points)
+        in_frame = fs.box_frame == f
+        boxes = fs.boxes[in_frame]
+        gt, ign = boxes[target[in_frame]], boxes[~target[in_frame]]
         db, ds = d.boxes, d.scores
         if len(ign) and len(db):
             keep = iou_pairwise(db, ign).max(axis=1) < IGNORE_IOU
@@ -105,10 +112,14 @@ def evaluate_detector(det: BevDetector, fs: FrameSet, min_points: int = DEFAULT_
         in_roi = lambda b: (b[:, 0] >= 0) & (b[:, 0] <= ahead) & (np.abs(b[:, 1]) <= lateral)  # noqa: E731
         gm, dm = in_roi(gt), in_roi(db)
         frames.append((gt[gm], db[dm], ds[dm]))
+        if box_groups is not None:
+            grouped.append((gt[gm], np.asarray(box_groups)[in_frame][target[in_frame]][gm], db[dm], ds[dm]))
     m = average_precision(frames, iou_threshold)
     out = m.as_dict()
     out.update(n_frames=len(fs), iou_threshold=iou_threshold, roi_ahead_m=ahead, roi_lateral_m=lateral,
                min_points=min_points)
+    if box_groups is not None and groups is not None:
+        out["by_group"] = grouped_average_precision(grouped, groups, iou_threshold)
     return out
 
 
