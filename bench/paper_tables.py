@@ -260,6 +260,24 @@ def protocol_doc(spec: TableSpec, args, scenes) -> dict:
 PROTOCOL_KEYS = ("autonomy", "budget", "n_initial", "seconds", "batch", "eval_seeds", "pred_reduction")
 
 
+def model_versions(autonomy: str) -> dict:
+    """The shape space's content hash and the stack's weight fingerprints (what a table's
+    numbers depend on beyond its options: a retrained detector makes another table)."""
+    from adv3d_runner.attack.config import QuerySettings
+    from adv3d_runner.attack.evaluator import EpisodeEvaluator
+
+    v = EpisodeEvaluator(QuerySettings(autonomy=autonomy)).versions()
+    return {k: v[k] for k in ("shape_space", "models") if k in v}
+
+
+def kept_versions(results: Path) -> dict | None:
+    """The versions a table's kept runs were made with (their run.json), None without runs."""
+    for run_json in sorted((results / "runs").glob("*/seed*/*/run.json")):
+        v = json.loads(run_json.read_text()).get("versions") or {}
+        return {k: v[k] for k in ("shape_space", "models") if k in v}
+    return None
+
+
 def run_transfer(spec: TableSpec, args) -> Path:
     """The transfer table: table1's kept best shapes of the source stack re-evaluated with the
     target stack (``--autonomy``) on the same held-out seeds; no search. Kept like a table's runs
@@ -315,6 +333,7 @@ def run_table(spec: TableSpec, args) -> Path:
     work = Path(args.work) / folder
     scenes = select_scenes(args.scenes, args.real)
     proto = protocol_doc(spec, args, scenes)
+    proto["versions"] = model_versions(args.autonomy)
     proto_path = results / "protocol.json"
     if proto_path.exists():
         old = json.loads(proto_path.read_text())
@@ -322,6 +341,10 @@ def run_table(spec: TableSpec, args) -> Path:
         if diff:
             raise ConfigError(f"{proto_path} was grown with other protocol values ({', '.join(diff)}: "
                               f"{[old.get(k) for k in diff]} now {[proto.get(k) for k in diff]}); use another --results")
+        made_with = old.get("versions") or kept_versions(results)
+        if made_with and made_with != proto["versions"]:
+            raise ConfigError(f"{results} was made with other model weights or another shape space ({made_with}, now "
+                              f"{proto['versions']}): its numbers would mix two stacks; use another --results")
         known = {s["path"] for s in old.get("scenes", [])}
         proto["scenes"] = old.get("scenes", []) + [s.as_dict() for s in scenes if s.path not in known]
         proto["seeds"] = sorted(set(old.get("seeds", [])) | set(range(args.seeds)))
@@ -533,6 +556,7 @@ def build_table(spec: TableSpec, autonomy: str, results_root: Path, budget: int 
         paper = numbers.get(key)
     doc = {"format": "adv3d-paper-table", "version": 1, "table": spec.name, "title": spec.title, "autonomy": autonomy,
            "common_objective": spec.common_objective,
+           "versions": proto.get("versions") or kept_versions(results),
            "protocol": proto, "compute": {"cpu_s_total": compute.get("cpu_s_total"),
                                           "cpu_models": sorted({e.get("cpu_model") for e in compute.get("invocations", [])}),
                                           "invocations": len(compute.get("invocations", []))},
@@ -574,7 +598,10 @@ def table_markdown(spec: TableSpec, doc: dict, scene_part: dict) -> str:
               f", prediction term **{form.get('pred_reduction')}** over the waypoints"
               f"{' (Eq. 5 as written)' if form.get('pred_reduction') == 'sum' else ' (horizon mean)'}. Compute: "
               f"{_fmt(cpu / 60 if cpu else float('nan'))} CPU-minutes in all ({', '.join(doc['compute']['cpu_models'])}, "
-              f"shared 2-core machine).", ""]
+              f"shared 2-core machine)."
+              + (f" Weights: {', '.join(f'{k} `{v}`' for k, v in (doc.get('versions') or {}).get('models', {}).items())}; "
+                 f"shape space `{str((doc.get('versions') or {}).get('shape_space', '?'))[:14]}…`."
+                 if doc.get("versions") else ""), ""]
     cols = list(METRICS) + ["JSD"]
     lines.append("| | scenes | runs | " + " | ".join(cols) + " |")
     lines.append("|---|---:|---:|" + "---:|" * len(cols))

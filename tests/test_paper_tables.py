@@ -91,6 +91,14 @@ def test_driver_smoke_run_resume_and_rebuild(tmp_path):
     assert moved["protocol"]["transfer_from"] == "A" and moved["rows"]["Original"]["n_scenes"] == 1
     tk = tmp_path / "res" / "transfer_oracle_b2" / "runs" / "shapes" / "seed0" / "highway-benchmark-000000"
     assert sorted(read_json(tk / "heldout.json.gz")["evaluations"]) == sorted(evals)   # same keys, same seeds
+    # growing the table with other weights (a retrained detector) is refused
+    proto_path = folder / "protocol.json"
+    proto = json.loads(proto_path.read_text())
+    assert proto["versions"]["models"]["detector"]
+    proto_path.write_text(json.dumps({**proto, "versions": {**proto["versions"], "models": {"detector": "0" * 16}}}))
+    with pytest.raises(ConfigError, match="model weights"):
+        mod.main(args)
+    proto_path.write_text(json.dumps(proto))
     # growing the table with other protocol values is refused (another budget is another folder)
     with pytest.raises(ConfigError, match="seconds"):
         mod.main([*args[:11], "--seconds", "0.4", *args[13:]])
