@@ -116,7 +116,7 @@ def test_tables_listed_with_what_they_need(capsys):
 def test_results_doc_quotes_the_kept_table1():
     """docs/results.md quotes Table 1 of the protocol; the table rebuilt from the kept files of
     docs/results/table1_A_b20 must give exactly those rows (main table and paired tests)."""
-    folder = REPO / "docs" / "results" / "table1_A_b20"
+    folder = REPO / "docs" / "results" / "previous-detector" / "table1_A_b20"
     if not (folder / "protocol.json").exists():
         pytest.skip("Table 1 has not been run")
     import shutil
@@ -153,3 +153,19 @@ def test_worst_case_rows_pick_by_search_seed_and_common_objective():
     assert e["picked"] == {"setting": "M1-r1", "seed": 0} and e["candidates"] == 3
     assert e["heldout"][0]["cost"] == 2.0            # the held-out value of the pick, not the largest one
     assert rows["M2 closed-loop"] == []
+
+
+def test_planner_parameters_are_part_of_a_runs_versions(monkeypatch):
+    """A retuned planner changes every closed-loop result: its parameters are fingerprinted in
+    the versions a table refuses to mix."""
+    import dataclasses
+
+    from adv3d_runner.attack import evaluator
+    from adv3d_runner.autonomy.planner import planner as planner_mod
+
+    before = evaluator.planner_fingerprint()
+    assert before == evaluator.planner_fingerprint() and len(before) == 16
+    tuned = dataclasses.make_dataclass("PlannerConfig", [("min_gap", float, 2.5)], bases=(planner_mod.PlannerConfig,),
+                                       frozen=True)
+    monkeypatch.setattr(planner_mod, "PlannerConfig", tuned)
+    assert evaluator.planner_fingerprint() != before

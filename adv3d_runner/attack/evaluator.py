@@ -327,6 +327,8 @@ class EpisodeEvaluator:
             v["models"] = model_fingerprints()
         elif self.settings.autonomy == "B":
             v["models"] = model_fingerprints(("occupancy",))
+        if self.settings.autonomy in ("A", "B"):
+            v["planner"] = planner_fingerprint()
         return v
 
     def evaluate_best(self, ref: str, targets: list[int], unit: np.ndarray, out: Path, *, original: bool,
@@ -356,6 +358,19 @@ class EpisodeEvaluator:
                                      metadata=metadata)
         save_replay(replay, out / "replay.json.gz")
         return BestEvaluation(closed_loop=best.evaluation(), original=first, meshes=meshes, replay="replay.json.gz")
+
+
+def planner_fingerprint() -> str:
+    """sha256 (first 16 hex digits) of the planner's default parameters (limits, weights,
+    proposals): retuning the planner changes every closed-loop result, like new weights do."""
+    import dataclasses
+    import hashlib
+    import json
+
+    from ..autonomy.planner.planner import PlannerConfig
+
+    text = json.dumps(dataclasses.asdict(PlannerConfig()), sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
 def model_fingerprints(models: tuple[str, ...] = ("detector", "predictor")) -> dict[str, str]:
