@@ -155,6 +155,9 @@ def main() -> int:
     parser.add_argument("--autonomy", default="A")
     parser.add_argument("--seed", type=int, default=0, help="search and search-episode seed")
     parser.add_argument("--heldout-seed", type=int, default=1000, help="LiDAR noise seed of the evaluation")
+    parser.add_argument("--pred-reduction", default="sum", choices=("sum", "mean"),
+                        help="the objective's prediction term over the waypoints: sum (Eq. 5, the default) or "
+                             "mean (the form before issue 18, which the kept sweep of 2026-11-23 used)")
     parser.add_argument("--workers", type=int, default=1)
     parser.add_argument("--settings", default=None, help="NAME,NAME of the defaults or NAME=key:value+...;...")
     parser.add_argument("--work", default=None, help="run folders (default runs/realism_sweep[_smoke])")
@@ -183,6 +186,7 @@ def main() -> int:
     n_queries = 0
     for name, knobs in settings.items():
         cfg = AttackConfig(scenes, algo=args.algo, budget=args.budget, seconds=args.seconds, seed=args.seed,
+                           pred_reduction=args.pred_reduction,
                            autonomy=args.autonomy, n_initial=args.n_initial, batch=args.workers, **knobs)
         print(f"[{name}] attack ...", flush=True)
         summary = run_attack(cfg, work / name, workers=args.workers, show_progress=False)
@@ -238,6 +242,7 @@ def main() -> int:
                  else "campaign"),
         "command": "python bench/realism_sweep.py " + " ".join(sys.argv[1:]),
         "scenes": len(scenes), "budget": args.budget, "seconds": args.seconds, "algo": args.algo,
+        "pred_reduction": args.pred_reduction,
         "n_initial": args.n_initial, "autonomy": args.autonomy, "seed": args.seed, "heldout_seed": args.heldout_seed,
         "jsd_limit": limit, "target_gain_kept": TARGET_GAIN_KEPT, "settings": per,
         "front": front([(n, r["jsd_mean"], r["gain_mean"]) for n, r in per.items()]),

@@ -75,6 +75,9 @@ def main() -> int:
     parser.add_argument("--autonomy", default="A")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--bounds", default="0.1,0.2,0.5,1.0", help="VD l-infinity bounds in m")
+    parser.add_argument("--pred-reduction", default="sum", choices=("sum", "mean"),
+                        help="the objective's prediction term over the waypoints: sum (Eq. 5, the default) or "
+                             "mean (the form before issue 18, which the kept sweep of 2026-11-23 used)")
     parser.add_argument("--workers", type=int, default=1)
     parser.add_argument("--work", default=None, help="run folders (default runs/vd_table3[_smoke])")
     parser.add_argument("--out", default=None, help="JSON (default bench/results/vd_table3[_smoke].json)")
@@ -100,6 +103,7 @@ def main() -> int:
     for name, knobs in rows.items():
         folder = work / name.split(" (")[0].replace(" ", "_").replace(".", "p")
         cfg = AttackConfig(scenes, algo=args.algo, budget=args.budget, seconds=args.seconds, seed=args.seed,
+                           pred_reduction=args.pred_reduction,
                            autonomy=args.autonomy, n_initial=args.n_initial, batch=args.workers, **knobs)
         print(f"[{name}] attack -> {folder}", flush=True)
         summary = run_attack(cfg, folder, workers=args.workers, show_progress=False)
@@ -126,6 +130,7 @@ def main() -> int:
                  else "campaign"),
         "command": "python bench/vd_table3.py " + " ".join(sys.argv[1:]),
         "scenes": len(scenes), "budget": args.budget, "seconds": args.seconds, "algo": args.algo,
+        "pred_reduction": args.pred_reduction,
         "autonomy": args.autonomy, "seed": args.seed, "rows": table, "report": str(report),
         "cpu_s_this_process": round(time.process_time() - t_cpu, 1), "wall_s": round(time.perf_counter() - t_wall, 1),
         "cpu_s_total": _add_cpu(work, time.process_time() - t_cpu),
