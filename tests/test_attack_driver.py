@@ -64,11 +64,13 @@ def test_failed_queries_recorded_and_run_continues(tmp_path):
     assert m["n_failed"] == sum(r["status"] != "ok" for r in recs)
 
 
-@pytest.mark.parametrize("algo", ["bo", "random", "grid", "blendsearch"])
+@pytest.mark.parametrize("algo", ["bo", "random", "grid", "blendsearch", "skopt"])
 def test_resume_after_crash_does_not_redo_queries(tmp_path, algo):
     if algo == "blendsearch":
         pytest.importorskip("flaml")
         pytest.importorskip("optuna")
+    if algo == "skopt":
+        pytest.importorskip("skopt")
     full = tmp_path / "full"
     run_attack(cfg(algo=algo), full, show_progress=False)
     crashed = tmp_path / "crashed"
