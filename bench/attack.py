@@ -3,6 +3,7 @@ CPU time goes.
 
     .venv/bin/python bench/attack.py [--quick] [--scene FILE] [--autonomy oracle|A] [--queries N]
     .venv/bin/python bench/attack.py --stages [--autonomy A] [--queries 8] [--scenes 000000,000010,000041]
+    .venv/bin/python bench/attack.py --search-only [--quick]
 
 1. Convergence on the synthetic 5-D objective (``synthetic:peak``: a bowl with a narrow peak of
    height 2 at a fixed point; ``tests/attack_synthetic.py``, the tests' analytic stand-in for the
@@ -22,8 +23,11 @@ CPU time goes.
    of them alike; the first query of each (workspace build) is not counted. Runs against the
    code next to it, so the same script measures an older checkout (``before`` numbers).
 
+``--search-only``: section 1 alone, with scikit-optimize's GP optimiser (``skopt``) beside the
+others (needs the ``skopt`` extra), the searcher's time per query also as CPU time.
+
 Writes ``bench/results/attack.json`` (``attack.quick.json`` with --quick; ``attack_stages.json``
-with --stages).
+with --stages; ``attack_search.json`` with --search-only).
 """
 from __future__ import annotations
 
@@ -56,32 +60,35 @@ from tests.attack_synthetic import peak  # noqa: E402  (the synthetic objective 
 CHECKPOINTS = (10, 25, 50, 100)
 
 
-def synthetic_convergence(seeds: int, budget: int = 100) -> dict:
+def synthetic_convergence(seeds: int, budget: int = 100,
+                          algos: tuple[str, ...] = ("bo", "random", "grid", "blendsearch", "bruteforce")) -> dict:
     f = peak
     out = {}
-    for algo in ("bo", "random", "grid", "blendsearch", "bruteforce"):
-        curves, overhead = [], []
+    for algo in algos:
+        curves, overhead, cpu = [], [], []
         for seed in range(seeds):
             cands = np.random.default_rng(seed).random((budget, 5)) if algo == "bruteforce" else None
             s = make_searcher(algo, 5, seed=seed, budget=budget, candidates=cands)
-            best, vals, t = -np.inf, [], 0.0
+            best, vals, t, c = -np.inf, [], 0.0, 0.0
             while not s.exhausted:
-                t0 = time.perf_counter()
+                t0, c0 = time.perf_counter(), time.process_time()
                 X = s.ask(1)
-                t += time.perf_counter() - t0
+                t, c = t + time.perf_counter() - t0, c + time.process_time() - c0
                 y = [f(x) for x in X]
-                t0 = time.perf_counter()
+                t0, c0 = time.perf_counter(), time.process_time()
                 s.tell(X, y)
-                t += time.perf_counter() - t0
+                t, c = t + time.perf_counter() - t0, c + time.process_time() - c0
                 best = max(best, *y)
                 vals.append(best)
             curves.append(vals)
             overhead.append(t / max(len(vals), 1))
+            cpu.append(c / max(len(vals), 1))
         n = min(len(c) for c in curves)
         C = np.array([c[:n] for c in curves])
         out[algo] = {"best_at": {str(k): float(C[:, k - 1].mean()) for k in CHECKPOINTS if k <= n},
                      "best_std_at_end": float(C[:, -1].std()), "queries": n,
-                     "searcher_ms_per_query": 1000 * float(np.mean(overhead)), "seeds": seeds,
+                     "searcher_ms_per_query": 1000 * float(np.mean(overhead)),
+                     "searcher_cpu_ms_per_query": 1000 * float(np.mean(cpu)), "seeds": seeds,
                      "curve_mean": [float(v) for v in C.mean(axis=0)]}
     return out
 
@@ -245,6 +252,8 @@ def main() -> None:
     ap.add_argument("--queries", type=int, default=None,
                     help="queries per throughput run (default 8, 4 with --quick; 100 = the issue's target run)")
     ap.add_argument("--stages", action="store_true", help="only section 3: CPU per query by stage")
+    ap.add_argument("--search-only", action="store_true",
+                    help="only section 1, every searcher including skopt (bench/results/attack_search.json)")
     ap.add_argument("--scenes", default="000000,000010,000041",
                     help="--stages: benchmark scene numbers (default 000000,000010,000041)")
     ap.add_argument("--out", default=None, help="--stages: result file (default bench/results/attack_stages.json)")
@@ -266,12 +275,23 @@ def main() -> None:
     seeds = 2 if args.quick else 5
     nq = args.queries or (4 if args.quick else 8)
     t0 = time.time()
-    conv = synthetic_convergence(seeds)
+    algos = ("bo", "random", "grid", "blendsearch", "bruteforce") + (("skopt",) if args.search_only else ())
+    conv = synthetic_convergence(seeds, algos=algos)
     print(f"\nSearch on synthetic:peak (5-D, optimum 2.0), budget 100, mean over {seeds} seeds")
-    print(f"{'algorithm':12s} " + " ".join(f"{'@' + str(k):>8s}" for k in CHECKPOINTS) + f" {'ms/query':>9s}")
+    print(f"{'algorithm':12s} " + " ".join(f"{'@' + str(k):>8s}" for k in CHECKPOINTS) + f" {'ms/query':>9s} {'CPU ms':>7s}")
     for algo, r in conv.items():
         print(f"{algo:12s} " + " ".join(f"{r['best_at'].get(str(k), float('nan')):8.3f}" for k in CHECKPOINTS)
-              + f" {r['searcher_ms_per_query']:9.1f}")
+              + f" {r['searcher_ms_per_query']:9.1f} {r['searcher_cpu_ms_per_query']:7.1f}")
+    if args.search_only:
+        doc = {"format": "adv3d.bench", "topic": "attack_search", "command": " ".join([Path(sys.executable).name] + sys.argv),
+               "machine": machine_info("numpy", "scipy", "flaml", "scikit-optimize", "scikit-learn"), "wall_s": time.time() - t0,
+               "timing": "searcher_ms_per_query: perf_counter (wall); searcher_cpu_ms_per_query: time.process_time",
+               "synthetic_convergence": conv}
+        out = ROOT / "bench" / "results" / ("attack_search.quick.json" if args.quick else "attack_search.json")
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(doc, indent=1) + "\n")
+        print(f"\nwrote {out}")
+        return
     thr = []
     for w in (1, 2):
         thr.append(throughput(args.scene, args.autonomy, nq, w, args.seconds))

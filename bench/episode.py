@@ -275,17 +275,22 @@ def main() -> int:
     out = ROOT / "bench" / "results" / f"episode{'.quick' if args.quick else ''}.json"
     write_json(out, {"format": "adv3d-bench", "version": 1, "topic": "episode",
                      "command": " ".join(["bench/episode.py"] + sys.argv[1:]),
-                     "machine": {"python": platform.python_version(), "platform": platform.platform(),
-                                 "processor": platform.processor(), "cpus": os.cpu_count(),
-                                 "cores_used": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
-                                 "torch_threads": torch.get_num_threads(),
-                                 "load_avg": os.getloadavg() if hasattr(os, "getloadavg") else None},
+                     "machine": _machine(torch),
                      "timing": "CPU time of the (single) thread, time.thread_time",
                      "autonomy": autonomy, "stages_ms_cpu_mean": mean, "total_ms_cpu_mean": total,
                      "fps_cpu_mean": 1000 / total, "rows": rows, "detector_resolution": det_rows,
                      "detector_resolution_from_bench_detector": h7_rows})
     print(f"wrote {out.relative_to(ROOT)}")
     return 0
+
+
+def _machine(torch) -> dict:
+    """The result files' ``machine`` record (Python, platform, CPUs, torch threads, load)."""
+    return {"python": platform.python_version(), "platform": platform.platform(),
+            "processor": platform.processor(), "cpus": os.cpu_count(),
+            "cores_used": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
+            "torch_threads": torch.get_num_threads(),
+            "load_avg": os.getloadavg() if hasattr(os, "getloadavg") else None}
 
 
 def bench_b(names, quick: bool) -> int:
@@ -321,11 +326,7 @@ def bench_b(names, quick: bool) -> int:
     out = ROOT / "bench" / "results" / f"episode.B{'.quick' if quick else ''}.json"
     write_json(out, {"format": "adv3d-bench", "version": 1, "topic": "episode-autonomy-b",
                      "command": " ".join(["bench/episode.py"] + sys.argv[1:]),
-                     "machine": {"python": platform.python_version(), "platform": platform.platform(),
-                                 "processor": platform.processor(), "cpus": os.cpu_count(),
-                                 "cores_used": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
-                                 "torch_threads": torch.get_num_threads(),
-                                 "load_avg": os.getloadavg() if hasattr(os, "getloadavg") else None},
+                     "machine": _machine(torch),
                      "timing": "CPU time of the (single) thread, time.thread_time; machine shared with other jobs",
                      "stages_ms_cpu_mean": mean, "a_detector_tracker_predictor_ms": a_pp, "b_occupancy_ms": b_occ,
                      "b_over_a": b_occ / a_pp, "rows": rows})

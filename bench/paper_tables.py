@@ -72,6 +72,9 @@ class TableSpec:
     #: this preset's, recomputed from the held-out unweighted terms, so the rows compare
     common_objective: str | None = None
     needs: str | None = None  # why the table cannot run yet (None: it can)
+    #: per search row, the queries and the journal's query time per search (Table 5's compute
+    #: column: the algorithms spend different numbers of episodes)
+    compute_column: bool = False
     note: str = ""
 
     def folder(self, autonomy: str, budget: int = 100) -> str:
@@ -134,14 +137,18 @@ TABLES: dict[str, TableSpec] = {
         "table5", "Table 5: black-box search algorithms (closed loop)",
         settings={"bo": {"algo": "bo", "mode": "closed"}, "grid": {"algo": "grid", "mode": "closed"},
                   "random": {"algo": "random", "mode": "closed"}, "blendsearch": {"algo": "blendsearch", "mode": "closed"},
-                  "bruteforce": {"algo": "bruteforce", "mode": "closed"}},
+                  "bruteforce": {"algo": "bruteforce", "mode": "closed"}, "skopt": {"algo": "skopt", "mode": "closed"}},
         rows={"Original": "original", "GS": ("grid", "closed"), "RS": ("random", "closed"),
-              "BS": ("blendsearch", "closed"), "BO": ("bo", "closed"), "Brute-Force": ("bruteforce", "closed")},
-        comparisons=(("BO", "RS"), ("BO", "GS"), ("BO", "BS"), ("BO", "Brute-Force")),
+              "BS": ("blendsearch", "closed"), "BO": ("bo", "closed"), "Brute-Force": ("bruteforce", "closed"),
+              "BO (scikit-optimize)": ("skopt", "closed")},
+        comparisons=(("BO", "RS"), ("BO", "GS"), ("BO", "BS"), ("BO", "Brute-Force"), ("BO", "BO (scikit-optimize)")),
         paper="table5", paper_rows={k: k for k in ("Original", "GS", "RS", "BS", "BO", "Brute-Force")},
-        budget_scale={"grid": 2.43, "random": 5.0, "bruteforce": "all"},
+        budget_scale={"grid": 2.43, "random": 5.0, "bruteforce": "all"}, compute_column=True,
         note="Brute force enumerates the shape space's library vehicles (28 in the v2 space), not the paper's "
-             "746 real assets. scikit-optimize's GP optimiser as a cross-check of our BO is not a searcher yet."),
+             "746 real assets. BO (scikit-optimize) is not in the paper: scikit-optimize's GP optimiser (--algo skopt: "
+             "the same budget, initial Latin hypercube and UCB beta = 1 as our BO, with the library's fitted "
+             "Matern-5/2 kernel where ours fixes the paper's Matern-3/2, length scale 0.1), a library cross-check "
+             "of our BO."),
     "table6": TableSpec(
         "table6", "Table 6: reactive against replayed actors (BO)",
         settings={"replayed": {"algo": "bo", "mode": "both"}, "reactive": {"algo": "bo", "mode": "both", "reactive": True}},
@@ -395,6 +402,25 @@ def load_kept(results: Path) -> list[dict]:
     return out
 
 
+def journal_compute(results: Path, setting: str, seed: int, scene: str, mode: str) -> tuple[int, float]:
+    """(queries, sum of their ``wall_s``) of one kept search's journal, one mode: the episodes
+    the search spent and their wall time on the workers (s; the searcher's own ask/tell time,
+    in the driver, is not in the journal)."""
+    import gzip
+
+    path = results / "runs" / setting / f"seed{seed}" / scene / "queries.jsonl.gz"
+    if not path.exists():
+        return 0, 0.0
+    n, wall = 0, 0.0
+    with gzip.open(path, "rt") as fh:
+        for line in fh:
+            rec = json.loads(line)
+            if rec.get("mode") == mode:
+                n += 1
+                wall += float(rec.get("wall_s") or 0.0)
+    return n, wall
+
+
 def _jsd(ev: dict | None) -> float:
     vals = [r.get("jsd") for r in ((ev or {}).get("realism") or []) if isinstance(r, dict)]
     vals = [float(v) for v in vals if isinstance(v, (int, float))]
@@ -519,6 +545,10 @@ def build_table(spec: TableSpec, autonomy: str, results_root: Path, budget: int 
         row["search_seed_objective"] = {"mean": bootstrap_ci(list(search.values()))[0], "per_scene": search}
         setting = spec.rows[name][0] if spec.rows[name] != "original" else next(iter(spec.settings))
         setting = spec.groups.get(setting, (setting,))[0]
+        if spec.compute_column and spec.rows[name] != "original":
+            per = [journal_compute(results, e["setting"], e["seed"], e["scene"], spec.rows[name][1]) for e in rows[name]]
+            row["search_compute"] = {"searches": len(per), "queries_mean": float(np.mean([q for q, _ in per])),
+                                     "query_wall_s_mean": float(np.mean([w for _, w in per]))}
         if any("picked" in e for e in rows[name]):
             row["worst_case"] = {e["scene"]: {**e["picked"], "candidates": e["candidates"]} for e in rows[name]}
         w = weights.get(setting)
@@ -602,7 +632,7 @@ def table_markdown(spec: TableSpec, doc: dict, scene_part: dict) -> str:
               + (f" Weights: {', '.join(f'{k} `{v}`' for k, v in (doc.get('versions') or {}).get('models', {}).items())}; "
                  f"shape space `{str((doc.get('versions') or {}).get('shape_space', '?'))[:14]}…`."
                  if doc.get("versions") else ""), ""]
-    cols = list(METRICS) + ["JSD"]
+    cols = list(METRICS) + ["JSD"] + (["queries / search", "episode min / search"] if spec.compute_column else [])
     lines.append("| | scenes | runs | " + " | ".join(cols) + " |")
     lines.append("|---|---:|---:|" + "---:|" * len(cols))
     paper = doc.get("paper") or {}
@@ -610,6 +640,9 @@ def table_markdown(spec: TableSpec, doc: dict, scene_part: dict) -> str:
     for name, row in rows.items():
         cells = [_cell(row["metrics"][m]["mean"], *row["metrics"][m]["ci"]) for m in METRICS]
         cells.append(_cell(row["jsd"]["mean"], *row["jsd"]["ci"]) if "jsd" in row else "-")
+        if spec.compute_column:
+            c = row.get("search_compute")
+            cells += ([f"{c['queries_mean']:.0f}", _fmt(c["query_wall_s_mean"] / 60)] if c else ["-", "-"])
         lines.append(f"| {name} | {row['n_scenes']} | {row['n_runs']} | " + " | ".join(cells) + " |")
     for name, prow in (spec.paper_rows or {}).items():
         vals = paper.get("rows", {}).get(prow)
@@ -618,6 +651,7 @@ def table_markdown(spec: TableSpec, doc: dict, scene_part: dict) -> str:
         cells = ["-"] + [(_fmt(vals[pcols.index(m)]) if m in pcols and vals[pcols.index(m)] is not None else "-")
                          for m in list(METRICS)[1:]]
         cells.append(_fmt(vals[pcols.index("JSD")]) if "JSD" in pcols and vals[pcols.index("JSD")] is not None else "-")
+        cells += ["-", "-"] if spec.compute_column else []
         lines.append(f"| *paper: {prow}* | | | " + " | ".join(cells) + " |")
     lines += ["", "Held-out closed-loop evaluations: per scene the mean over run seeds and evaluation seeds, then "
               "the mean over scenes with its 95 % percentile bootstrap interval over scenes (10 000 resamples, seed "
@@ -628,6 +662,11 @@ def table_markdown(spec: TableSpec, doc: dict, scene_part: dict) -> str:
     if doc.get("common_objective"):
         lines[-1:-1] = [f"The objective column is {doc['common_objective']}'s for every row (its weights on each "
                         "row's unweighted held-out terms): the rows searched different objectives.", ""]
+    if spec.compute_column:
+        lines[-1:-1] = ["", "Compute: per search (scene x run seed), the queries it spent and the wall time of their "
+                        "episodes on the workers, from the kept journals (`wall_s`; minutes, mean over searches; "
+                        "the searcher's own ask/tell time is not in the journal: bench/attack.py --search-only "
+                        "measures it, docs/attack.md)."]
     if any("worst_case" in r for r in rows.values()):
         lines[-1:-1] = ["Worst-case rows: per scene, of the run seeds x target ranks of the group, the attack whose "
                         "best shape scored highest on its own search seed (table.json: `worst_case`), reported on "

@@ -348,11 +348,17 @@ def _print(out: dict, args) -> None:
     print(f"| paper Table 1, Autonomy-A, Original | - | - | - | {p['ap']:.3f} | {p['recall']:.3f} | {p['min_ade']:.2f} | "
           f"{p['mean_ade']:.2f} | {p['plan_lat']:.3f} | {p['plan_jerk']:.3f} | - | {p['drive_lat']:.3f} | "
           f"{p['drive_jerk']:.3f} | - | - |")
+    _print_failures_and_targets(out, args)
+
+
+def _print_failures_and_targets(out: dict, args, note: str = "") -> None:
+    """The tables' tail (A and B alike): every failed episode, then the issue-17 targets of the
+    real part and whether each is met (``note`` after the heading)."""
     for key in out:
         for fail in out[key][0]["failures"]:
             print(f"failure ({key}):", fail)
     if "real" in out:
-        print(f"\nissue-17 targets on the real {args.real_part} part:")
+        print(f"\nissue-17 targets on the real {args.real_part} part{note}:")
         for name, t in out["real"][0]["targets"].items():
             v = t["value"]
             print(f"  {name}: {v if v is None or isinstance(v, int) else round(v, 3)} (target {t['target']}): "
@@ -411,15 +417,7 @@ def _print_b(out: dict, reference: dict, args) -> None:
                   f"{f(ref['plan_lat'])} jerk {f(ref['plan_jerk'])} | drive lat {f(ref['drive_lat'])} jerk "
                   f"{f(ref['drive_jerk'])} | progress {f(ref['progress_ratio_mean'], 2)} "
                   f"({f(ref['progress_ratio_min'], 2)})")
-    for key in out:
-        for fail in out[key][0]["failures"]:
-            print(f"failure ({key}):", fail)
-    if "real" in out:
-        print(f"\nissue-17 targets on the real {args.real_part} part (prediction targets do not apply to B):")
-        for name, t in out["real"][0]["targets"].items():
-            v = t["value"]
-            print(f"  {name}: {v if v is None or isinstance(v, int) else round(v, 3)} (target {t['target']}): "
-                  f"{'met' if t['met'] else 'NOT met'}")
+    _print_failures_and_targets(out, args, " (prediction targets do not apply to B)")
 
 
 def _line(m: dict, i: int, n: int) -> None:

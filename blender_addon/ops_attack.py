@@ -25,7 +25,7 @@ from . import jobs, prefs, runner
 
 #: The attack CLI's searchers (``adv3d_runner.attack.search.ALGORITHMS``; a test keeps them equal:
 #: the add-on does not import the attack package, which needs torch).
-ALGORITHMS = ("bo", "random", "grid", "blendsearch", "bruteforce")
+ALGORITHMS = ("bo", "random", "grid", "blendsearch", "bruteforce", "skopt")
 POLL_S = 0.25  # how often the process and its journal are looked at
 TERMINATE_WAIT_S = 5.0
 

@@ -175,3 +175,47 @@ def test_bruteforce_hands_out_candidates_in_order():
     s.tell(X, [0, 1, 2])
     X2 = s.ask(3)
     assert np.array_equal(np.vstack([X, X2]), c) and s.exhausted
+
+
+# ---------------------------------------------------------------------------- scikit-optimize
+
+def _skopt_run(seed, batch, budget=10, f=peak, fail_every=0):
+    s = make_searcher("skopt", 5, seed=seed, budget=budget, n_initial=6)
+    k = 0
+    while not s.exhausted:
+        X = s.ask(batch)
+        y = []
+        for x in X:
+            k += 1
+            y.append(np.nan if fail_every and k % fail_every == 0 else f(x))
+        s.tell(X, y)
+    return s
+
+
+def test_skopt_same_seed_same_points_and_initial_latin_hypercube():
+    pytest.importorskip("skopt")
+    a = _skopt_run(seed=3, batch=2, fail_every=5)  # failed queries and batches (constant liar) included
+    b = _skopt_run(seed=3, batch=2, fail_every=5)
+    assert a.X.shape == (10, 5) and np.all((a.X >= 0) & (a.X <= 1))
+    assert np.array_equal(a.X, b.X)
+    assert not np.array_equal(_skopt_run(seed=4, batch=2, fail_every=5).X, a.X)
+    # the first n_initial queries are a Latin hypercube: one point per stratum of every dimension
+    strata = np.floor(a.X[:6] * 6).astype(int)
+    for d in range(5):
+        assert sorted(strata[:, d]) == list(range(6))
+    # the batch changes the asks after the initial design (constant liar), not before
+    c = _skopt_run(seed=3, batch=1, fail_every=5)
+    assert np.array_equal(c.X[:6], a.X[:6]) and not np.array_equal(c.X, a.X)
+
+
+def test_skopt_beats_random_and_finds_the_optimum_region():
+    """On the 5-D bowl (maximum at u = 0.4) skopt's GP gets closer with 20 queries than random
+    search does, for every seed, and its best point lies in the optimum's neighbourhood."""
+    pytest.importorskip("skopt")
+    for seed in range(2):
+        s = _skopt_run(seed=seed, batch=1, budget=20, f=lambda x: -float(np.sum((x - 0.4) ** 2)))
+        r = RandomSearch(5, seed=seed, budget=20)
+        run(r, lambda x: -float(np.sum((x - 0.4) ** 2)))
+        x, v = s.best()
+        assert v > r.best()[1] + 0.02, (seed, v, r.best()[1])
+        assert np.max(np.abs(x - 0.4)) < 0.1, x

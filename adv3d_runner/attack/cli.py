@@ -56,7 +56,7 @@ def register(subparsers) -> None:
                    help="stack under test: A (learned detector + predictor), B (instance-free: learned implicit "
                         "occupancy-and-flow model) or oracle perception")
     p.add_argument("--reactive", action="store_true", help="actors react to the ego (IDM/MOBIL)")
-    p.add_argument("--n-initial", type=at.integer(1, 1_000_000), default=11, help="BO initial queries (default 11)")
+    p.add_argument("--n-initial", type=at.integer(1, 1_000_000), default=11, help="BO and skopt initial queries (default 11)")
     p.add_argument("--shape-space", default=None, help="shape space .npz (default: the shipped one)")
     p.add_argument("--no-incremental", action="store_true",
                    help="simulate every LiDAR ray of every frame instead of reusing the static hits between "

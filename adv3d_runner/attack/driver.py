@@ -233,7 +233,7 @@ class _Search:
         """Build the searcher and read what the journal already holds (when the search opens)."""
         config = self.config
         cands = self.evaluator.candidates(self.ref, self.run.targets) if config.algo == "bruteforce" else None
-        options = {"n_initial": config.n_initial} if config.algo == "bo" else {}
+        options = {"n_initial": config.n_initial} if config.algo in ("bo", "skopt") else {}
         seed = config.seed
         if config.scene_seeds:  # this scene's own search sequence and LiDAR noise (config.scene_seed)
             digest = self.evaluator.scene_digest(self.ref)

@@ -62,6 +62,64 @@ def _range(node: Node) -> tuple[float, float]:
     return float(lo), float(hi)
 
 
+def grid_params(node: Node, dflt: Any) -> dict[str, Any]:
+    """The BEV input grid's fields of a model config (the detector's and the occupancy model's):
+    ``resolution``, ``x_range``, ``y_range``, ``z_edges`` read from ``node`` (an object of
+    parameters), each typed and bounded, ``dflt``'s value where absent. ``z_edges`` comes back
+    as a (E,) array, checked increasing by :func:`build_grid_config` once every field is read."""
+    g = node.get
+    return {"resolution": g("resolution", dflt.resolution).number(lo=0.01, hi=10.0),
+            "x_range": _range(g("x_range", list(dflt.x_range))),
+            "y_range": _range(g("y_range", list(dflt.y_range))),
+            "z_edges": g("z_edges", list(dflt.z_edges)).numbers(min_length=2, lo=-100.0, hi=100.0)}
+
+
+def build_grid_config(cls: type, node: Node, kw: dict[str, Any], what: str) -> Any:
+    """``cls(**kw)`` for a config read from ``node`` (``kw`` with :func:`grid_params`' fields):
+    increasing ``z_edges``, the class's own checks (a ``ConfigError`` becomes a
+    ``FileFormatError`` naming ``node``, expected ``valid <what>``), and a grid of at most
+    :data:`MAX_GRID_CELLS` cells."""
+    if np.any(np.diff(kw["z_edges"]) <= 0):
+        node.get("z_edges").fail("increasing height edges", np.asarray(kw["z_edges"]).tolist())
+    try:
+        cfg = cls(**kw)
+    except ConfigError as exc:
+        node.fail(f"valid {what}", str(exc))
+    nx, ny = cfg.grid_shape
+    if nx * ny > MAX_GRID_CELLS:
+        node.fail(f"a BEV grid of at most {MAX_GRID_CELLS} cells (x_range, y_range, resolution)", f"{nx} x {ny}")
+    return cfg
+
+
+def read_model_config(path: str | Path, config_name: str, config_format: str, version: int,
+                      missing: str) -> tuple[Path, Node]:
+    """A model folder's (or its config file's) ``config.json``: its path and parsed document,
+    header checked. ``missing``: what the error says was expected when there is no file."""
+    path = Path(path)
+    cfg_path = path / config_name if path.is_dir() else path
+    if not cfg_path.is_file():
+        raise FileFormatError(cfg_path, "$", missing, "no such file")
+    doc = Node.load(cfg_path)
+    check_header(doc, config_format, (version,))
+    return cfg_path, doc
+
+
+def load_state_into(net: nn.Module, doc: Node, cfg_path: Path, weights_name: str, what: str) -> None:
+    """Load the weights file that ``doc`` (the model's config, at ``cfg_path``) names, default
+    ``weights_name``, inside the model folder, into ``net`` (strict; :func:`load_weights`).
+
+    Raises:
+        FileFormatError: a path outside the folder, a file :func:`load_weights` refuses, or
+            weights that do not match ``net``'s architecture."""
+    weights = doc.get("weights", weights_name).file_in(cfg_path.parent, inside="the model folder")
+    state = load_weights(weights, what)
+    try:
+        net.load_state_dict(state, strict=True)
+    except RuntimeError as exc:
+        raise FileFormatError(weights, "$", f"weights matching the architecture in {cfg_path.name}",
+                              str(exc).splitlines()[0][:200]) from None
+
+
 def load_weights(path: Path, what: str):
     """A tensor-only state_dict from ``path`` (a regular file of at most
     :data:`MAX_WEIGHTS_BYTES`), read with ``torch.load(weights_only=True)`` (no pickle).
@@ -162,10 +220,7 @@ class DetectorConfig:
         dflt = cls()
         g = node.get
         kw: dict[str, Any] = {
-            "resolution": g("resolution", dflt.resolution).number(lo=0.01, hi=10.0),
-            "x_range": _range(g("x_range", list(dflt.x_range))),
-            "y_range": _range(g("y_range", list(dflt.y_range))),
-            "z_edges": g("z_edges", list(dflt.z_edges)).numbers(min_length=2, lo=-100.0, hi=100.0),
+            **grid_params(node, dflt),
             "channels": [c.integer(lo=1, hi=4096) for c in g("channels", list(dflt.channels)).items(length=3)],
             "head_channels": g("head_channels", dflt.head_channels).integer(lo=1, hi=4096),
             "out_stride": g("out_stride", dflt.out_stride).integer(lo=2, hi=4),
@@ -174,16 +229,7 @@ class DetectorConfig:
             "pre_nms": g("pre_nms", dflt.pre_nms).integer(lo=1, hi=1_000_000),
             "max_detections": g("max_detections", dflt.max_detections).integer(lo=1, hi=100_000),
         }
-        if np.any(np.diff(kw["z_edges"]) <= 0):
-            g("z_edges").fail("increasing height edges", kw["z_edges"].tolist())
-        try:
-            cfg = cls(**kw)
-        except ConfigError as exc:
-            node.fail("valid detector parameters", str(exc))
-        nx, ny = cfg.grid_shape
-        if nx * ny > MAX_GRID_CELLS:
-            node.fail(f"a BEV grid of at most {MAX_GRID_CELLS} cells (x_range, y_range, resolution)", f"{nx} x {ny}")
-        return cfg
+        return build_grid_config(cls, node, kw, "detector parameters")
 
 
 # ----------------------------------------------------------------------------- numpy parts
@@ -535,24 +581,13 @@ def load_detector(path: str | Path = DEFAULT_MODEL_DIR, threads: int | None = 1,
         FileFormatError: missing/invalid config, or weights that are not a plain tensor
             state_dict (anything needing pickle is refused by ``weights_only=True``).
     """
-    path = Path(path)
-    cfg_path = path / CONFIG_NAME if path.is_dir() else path
-    if not cfg_path.is_file():
-        raise FileFormatError(cfg_path, "$", "a detector config.json (train one with `adv3d train detector`)",
-                              "no such file")
-    doc = Node.load(cfg_path)
-    check_header(doc, CONFIG_FORMAT, (CONFIG_VERSION,))
+    cfg_path, doc = read_model_config(path, CONFIG_NAME, CONFIG_FORMAT, CONFIG_VERSION,
+                                      "a detector config.json (train one with `adv3d train detector`)")
     params = doc["detector"]
     params = Node({**params.object("an object of detector parameters"), **overrides}, params.path, cfg_path)
     cfg = DetectorConfig.from_dict(params)
-    weights = doc.get("weights", WEIGHTS_NAME).file_in(cfg_path.parent, inside="the model folder")
     net = PixorNet(cfg)
-    state = load_weights(weights, "detector weights (state_dict .pt)")
-    try:
-        net.load_state_dict(state, strict=True)
-    except RuntimeError as exc:
-        raise FileFormatError(weights, "$", f"weights matching the architecture in {cfg_path.name}",
-                              str(exc).splitlines()[0][:200]) from None
+    load_state_into(net, doc, cfg_path, WEIGHTS_NAME, "detector weights (state_dict .pt)")
     return BevDetector(cfg, net, threads=threads)
 
 

@@ -46,7 +46,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from ..errors import ConfigError, FileFormatError
+from ..errors import ConfigError
 from ..fileio import REPO_ROOT
 from .detector import DetectorConfig, _conv, voxelize
 
@@ -138,7 +138,7 @@ class OccupancyConfig:
         bounded (unknown keys refused), the input grid at most the detector's
         ``MAX_GRID_CELLS`` cells."""
         from ..validate import Node
-        from .detector import MAX_GRID_CELLS, _range
+        from .detector import build_grid_config, grid_params
 
         node = d if isinstance(d, Node) else Node(d, "$.occupancy", path)
         node.object("an object of occupancy model parameters")
@@ -146,10 +146,7 @@ class OccupancyConfig:
         dflt = cls()
         g = node.get
         kw: dict[str, Any] = {
-            "resolution": g("resolution", dflt.resolution).number(lo=0.01, hi=10.0),
-            "x_range": tuple(_range(g("x_range", list(dflt.x_range)))),
-            "y_range": tuple(_range(g("y_range", list(dflt.y_range)))),
-            "z_edges": tuple(g("z_edges", list(dflt.z_edges)).numbers(min_length=2, lo=-100.0, hi=100.0)),
+            **grid_params(node, dflt),
             "sweep_lags": tuple(c.integer(lo=0, hi=1000) for c in g("sweep_lags", list(dflt.sweep_lags)).items(non_empty=True)),
             "sweep_frame": g("sweep_frame", dflt.sweep_frame).string(choices=("ego", "map")),
             "channels": tuple(c.integer(lo=1, hi=4096) for c in g("channels", list(dflt.channels)).items(length=3)),
@@ -159,16 +156,7 @@ class OccupancyConfig:
             "horizon": g("horizon", dflt.horizon).number(lo=0.0, hi=60.0, lo_open=True),
             "dt": g("dt", dflt.dt).number(lo=1e-3, hi=10.0),
         }
-        if np.any(np.diff(kw["z_edges"]) <= 0):
-            g("z_edges").fail("increasing height edges", list(kw["z_edges"]))
-        try:
-            cfg = cls(**kw)
-        except ConfigError as exc:
-            node.fail("valid occupancy model parameters", str(exc))
-        nx, ny = cfg.grid_shape
-        if nx * ny > MAX_GRID_CELLS:
-            node.fail(f"a BEV grid of at most {MAX_GRID_CELLS} cells (x_range, y_range, resolution)", f"{nx} x {ny}")
-        return cfg
+        return build_grid_config(cls, node, kw, "occupancy model parameters")
 
 
 # ----------------------------------------------------------------------------- numpy parts
@@ -421,23 +409,11 @@ def load_occupancy(path: str | Path = DEFAULT_MODEL_DIR, threads: int | None = 1
         FileFormatError: missing/invalid config, or weights that are not a plain tensor
             state_dict matching the config (``torch.load(weights_only=True)`` refuses pickles).
     """
-    from ..validate import Node, check_header
-    from .detector import load_weights
+    from .detector import load_state_into, read_model_config
 
-    path = Path(path)
-    cfg_path = path / CONFIG_NAME if path.is_dir() else path
-    if not cfg_path.is_file():
-        raise FileFormatError(cfg_path, "$", "an occupancy config.json (train one with `adv3d train occupancy`)",
-                              "no such file")
-    doc = Node.load(cfg_path)
-    check_header(doc, CONFIG_FORMAT, (CONFIG_VERSION,))
+    cfg_path, doc = read_model_config(path, CONFIG_NAME, CONFIG_FORMAT, CONFIG_VERSION,
+                                      "an occupancy config.json (train one with `adv3d train occupancy`)")
     cfg = OccupancyConfig.from_dict(doc["occupancy"])
-    weights = doc.get("weights", WEIGHTS_NAME).file_in(cfg_path.parent, inside="the model folder")
-    state = load_weights(weights, "occupancy weights (state_dict .pt)")
     net = OccupancyNet(cfg)
-    try:
-        net.load_state_dict(state, strict=True)
-    except RuntimeError as exc:
-        raise FileFormatError(weights, "$", f"weights matching the architecture in {cfg_path.name}",
-                              str(exc).splitlines()[0][:200]) from None
+    load_state_into(net, doc, cfg_path, WEIGHTS_NAME, "occupancy weights (state_dict .pt)")
     return OccupancyModel(cfg, net, threads=threads)

@@ -14,7 +14,6 @@ truth = actors with >= ``min_points`` returns; detections whose best IoU with an
 """
 from __future__ import annotations
 
-import math
 import time
 from typing import Callable, Sequence
 
@@ -26,6 +25,7 @@ from ..autonomy.interface import Detections
 from ..geometry.boxes import iou_pairwise
 from ..metrics.detection import ROI_AHEAD, average_precision, grouped_average_precision
 from .detector_data import DEFAULT_MIN_POINTS, FrameSet, split_gt
+from .loop import one_cycle, optimiser_step, out_of_time, seeded_start
 
 ROI_LATERAL = 20.0
 IGNORE_IOU = 0.3
@@ -147,15 +147,9 @@ def train_detector(train: FrameSet, val: FrameSet | None, cfg: DetectorConfig, e
     """Train a :class:`PixorNet` on ``train`` (on ``device``: "cpu", the shipped weights, or a
     ``torch.device``); returns the detector (on the CPU) and a history dict (per-epoch
     train/val losses, seconds, stopped_early)."""
-    torch.manual_seed(seed)
-    torch.set_num_threads(threads)
-    device = torch.device(device)
-    rng = np.random.default_rng([seed, 7])
+    device, rng = seeded_start(seed, threads, device)
     net = PixorNet(cfg).to(device)
-    opt = torch.optim.AdamW(net.parameters(), lr=lr, weight_decay=weight_decay)
-    steps_per_epoch = max(1, math.ceil(len(train) / batch))
-    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=lr, total_steps=epochs * steps_per_epoch,
-                                                pct_start=0.15, anneal_strategy="cos")
+    opt, sched = one_cycle(net, lr, weight_decay, epochs, len(train), batch)
     hist = {"epoch": [], "train_score_loss": [], "train_box_loss": [], "val_score_loss": [], "val_box_loss": [],
             "seconds": [], "stopped_early": False}
     # Held-out loss per epoch on at most 120 evenly spread frames (the full held-out set is
@@ -174,12 +168,7 @@ def train_detector(train: FrameSet, val: FrameSet | None, cfg: DetectorConfig, e
             x, s, w, r = (t.to(device) for t in make_batch(train, idx, cfg, min_points, mirror[k:k + batch]))
             logits, box = net(x)
             c, b = detector_loss(logits, box, s, w, r)
-            loss = c + b
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            torch.nn.utils.clip_grad_norm_(net.parameters(), 10.0)
-            opt.step()
-            sched.step()
+            optimiser_step(net, opt, sched, c + b)
             sc += c.item() * len(idx)
             sb += b.item() * len(idx)
         hist["epoch"].append(ep + 1)
@@ -194,9 +183,7 @@ def train_detector(train: FrameSet, val: FrameSet | None, cfg: DetectorConfig, e
         hist["seconds"].append(time.perf_counter() - t_start)
         log(f"epoch {ep + 1}/{epochs}: train score {hist['train_score_loss'][-1]:.4f} box {hist['train_box_loss'][-1]:.4f}"
             f" | val score {vc:.4f} box {vb:.4f} | {hist['seconds'][-1]:.0f} s")
-        if time_limit_s is not None and time.perf_counter() - t_start > time_limit_s and ep + 1 < epochs:
-            hist["stopped_early"] = True
-            log(f"time limit {time_limit_s:.0f} s reached: stopping after epoch {ep + 1}")
+        if out_of_time(t_start, time_limit_s, ep, epochs, hist, log):
             break
     net = net.cpu().eval()
     return BevDetector(cfg, net, threads=1), hist

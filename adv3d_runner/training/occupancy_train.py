@@ -12,7 +12,6 @@ metrics (``sim.evaluate``, on a fixed grid): they track training.
 """
 from __future__ import annotations
 
-import math
 import time
 from typing import Callable
 
@@ -21,6 +20,7 @@ import torch
 
 from ..autonomy.occupancy import OccupancyConfig, OccupancyModel, OccupancyNet
 from ..metrics.occupancy import occupancy_ap, soft_iou
+from .loop import one_cycle, optimiser_step, out_of_time, seeded_start
 from .occupancy_data import SampleSet, decode_grid
 
 FLOW_WEIGHT = 0.4
@@ -104,15 +104,9 @@ def train_occupancy(train: SampleSet, val: SampleSet | None, cfg: OccupancyConfi
                     time_limit_s: float | None = None) -> tuple[OccupancyModel, dict]:
     """Train an :class:`OccupancyNet` on ``train``; returns the model (on the CPU) and a history
     dict (per-epoch train/held-out losses and held-out EPE/Soft-IoU, seconds, stopped_early)."""
-    torch.manual_seed(seed)
-    torch.set_num_threads(threads)
-    device = torch.device(device)
-    rng = np.random.default_rng([seed, 7])
+    device, rng = seeded_start(seed, threads, device)
     net = OccupancyNet(cfg).to(device)
-    opt = torch.optim.AdamW(net.parameters(), lr=lr, weight_decay=weight_decay)
-    steps_per_epoch = max(1, math.ceil(len(train) / batch))
-    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=lr, total_steps=epochs * steps_per_epoch,
-                                                pct_start=0.15, anneal_strategy="cos")
+    opt, sched = one_cycle(net, lr, weight_decay, epochs, len(train), batch)
     hist = {"epoch": [], "train_bce": [], "train_flow": [], "val_bce": [], "val_flow": [], "val_soft_iou": [],
             "val_epe": [], "seconds": [], "stopped_early": False}
     val_sub = val.subset(np.linspace(0, len(val) - 1, min(len(val), 60)).astype(int)) if val is not None and len(val) else None
@@ -126,12 +120,7 @@ def train_occupancy(train: SampleSet, val: SampleSet | None, cfg: OccupancyConfi
             x, q, v, o, f, m = (t.to(device) for t in make_batch(train, idx, cfg, rng))
             logit, fl = net(x, q, v)
             b, c = occupancy_loss(logit, fl, o, f, m)
-            loss = b + c
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            torch.nn.utils.clip_grad_norm_(net.parameters(), 10.0)
-            opt.step()
-            sched.step()
+            optimiser_step(net, opt, sched, b + c)
             sb += b.item() * len(idx)
             sf += c.item() * len(idx)
         hist["epoch"].append(ep + 1)
@@ -149,9 +138,7 @@ def train_occupancy(train: SampleSet, val: SampleSet | None, cfg: OccupancyConfi
         hist["seconds"].append(time.perf_counter() - t_start)
         log(f"epoch {ep + 1}/{epochs}: train bce {hist['train_bce'][-1]:.4f} flow {hist['train_flow'][-1]:.4f} | "
             f"held-out bce {vb:.4f} flow {vf:.4f} soft-IoU {vi:.3f} EPE {ve:.2f} m/s | {hist['seconds'][-1]:.0f} s")
-        if time_limit_s is not None and time.perf_counter() - t_start > time_limit_s and ep + 1 < epochs:
-            hist["stopped_early"] = True
-            log(f"time limit {time_limit_s:.0f} s reached: stopping after epoch {ep + 1}")
+        if out_of_time(t_start, time_limit_s, ep, epochs, hist, log):
             break
     net = net.cpu().eval()
     return OccupancyModel(cfg, net, threads=1), hist
