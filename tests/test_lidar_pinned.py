@@ -11,7 +11,6 @@ import hashlib
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 from adv3d_runner.sensors.beams import get_model
 from adv3d_runner.sensors.incremental import StaticRayCache
