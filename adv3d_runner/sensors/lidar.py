@@ -101,6 +101,12 @@ class MountedLidar:
         self.dy = np.ascontiguousarray(self.dirs[:, 1])
         self.dz = np.ascontiguousarray(self.dirs[:, 2])
         self.ring = np.ascontiguousarray(ring.reshape(-1), dtype=np.int16)
+        # Per ray: dx, dy, dz and the ring (int32 bits) in one 16-byte row, gathered per return
+        # as one complex128 element (one gather instead of four; 1-D gathers are the fast kind).
+        rows16 = np.empty((len(self.dirs), 4), np.float32)
+        rows16[:, :3] = self.dirs
+        rows16[:, 3].view(np.int32)[:] = self.ring
+        self.ray_rows = rows16.view(np.complex128).reshape(-1)
         self._row_offsets = _TWO_PI * np.arange(b)
         # Sensors without per-laser azimuth offsets or tilt have the same column azimuths in
         # every row (up to rounding far below the culling padding): one search serves all rows.
@@ -112,10 +118,10 @@ class MountedLidar:
         emin, emax = self.row_elevation[:, 0], self.row_elevation[:, 1]
         self._rows_sorted = bool((np.diff(emin) >= 0).all() and (np.diff(emax) >= 0).all())
         self._row_min_list, self._row_max_list = emin.tolist(), emax.tolist()
-        #: Rays from this flat index on point level or up (dz >= 0): they cannot reach a
-        #: background that lies wholly below the sensor (:meth:`_Cast.background`).
-        below = np.flatnonzero(self.dz < 0)
-        self.n_down = int(below[-1]) + 1 if below.size else 0
+        # Smallest dz of the rays from each flat index on (non-decreasing): the rays from index
+        # k on stay above height z_s + max_range * dz_suffix_min[k] within range, so they cannot
+        # reach a background wholly below that (:meth:`_Cast.background`).
+        self._dz_suffix_min = np.minimum.accumulate(self.dz[::-1])[::-1].astype(np.float64)
 
     @property
     def n_rays(self) -> int:
@@ -445,10 +451,16 @@ class _Cast:
         sensor, n = self.sensor, self.sensor.n_rays
         c, s = self.c, self.s
         origin_bg = (self.sensor_map - world.origin).astype(np.float32).reshape(1, 3)
-        # A ray pointing level or up from above the whole background cannot hit it: only the
-        # rays before sensor.n_down (a prefix: rows go from the lowest laser up) are cast.
+        # A ray that stays above the whole background up to max range (from a sensor above it:
+        # oz + max_range * dz > z_max) cannot hit it: the rays from the first index where every
+        # later ray does are not cast (a suffix: rows go from the lowest laser up, so these are
+        # the level and upward rows).
         bg = world.background
-        m = sensor.n_down if float(origin_bg[0, 2]) > bg.z_range[1] + _RADIUS_PAD else n
+        m = n
+        if bg.n_faces:
+            reach_dz = (bg.z_range[1] + _RADIUS_PAD - float(origin_bg[0, 2])) / float(self.model.max_range)
+            if reach_dz < 0:
+                m = int(np.searchsorted(sensor._dz_suffix_min, reach_dz, "right"))
         # Ray directions in the map frame (float32, elementwise: identical for any subset).
         dx, dy = sensor.dx[:m], sensor.dy[:m]
         dirs = np.empty((m, 3), np.float32)
@@ -744,22 +756,18 @@ def _effects(world, rig: LidarRig, k: int, ego: np.ndarray, hits: RayHits, actor
         keep = np.flatnonzero(rng.random(dist.size, dtype=np.float32) >= np.float32(model.ray_drop))
         idx, dist = idx.take(keep), dist.take(keep)  # one mask scan, then two gathers
 
-    # Columns are gathered one by one: 1-D gathers of contiguous arrays are the fast kind.
+    # One gather per return for its ray (dx, dy, dz, ring bits) and one for its background
+    # face (normal, reflectivity); the (m, 4) float32 ray rows become the points in place.
     m = idx.size
-    dxe, dye, dze = sensor.dx.take(idx), sensor.dy.take(idx), sensor.dz.take(idx)
-    points = np.empty((m, 4), np.float32)
-    px, py, pz = (np.float32(v) for v in sensor.position)
-    np.multiply(dxe, dist, out=points[:, 0])
-    points[:, 0] += px
-    np.multiply(dye, dist, out=points[:, 1])
-    points[:, 1] += py
-    np.multiply(dze, dist, out=points[:, 2])
-    points[:, 2] += pz
+    points = sensor.ray_rows.take(idx).view(np.float32).reshape(m, 4)
+    ring = points[:, 3].view(np.int32).astype(np.int16)
+    dxe, dye, dze = points[:, 0], points[:, 1], points[:, 2]
 
     # Intensity = reflectivity x |cos incidence| x exp(-attenuation x true range).
     lab = label.take(idx)
     prim_b = hits.prim_bg.take(idx)
-    refl = world.background_reflectivity.take(prim_b)  # prim -1 -> the trailing 0 slot
+    face = world.background_table.take(prim_b).view(np.float32).reshape(m, 4)  # prim -1 -> the zero row
+    fnx, fny, fnz, refl = face[:, 0], face[:, 1], face[:, 2], face[:, 3]
     # The returns on actors (a sixth or so): their values are gathered for them alone.
     on_actor = None
     if hits.cos_actor is not None:
@@ -768,17 +776,19 @@ def _effects(world, rig: LidarRig, k: int, ego: np.ndarray, hits: RayHits, actor
             on_actor = None
     if on_actor is not None:
         refl[on_actor] = actor_refl.take(lab.take(on_actor))
-    # |cos incidence| from unit face normals: background by face index (a miss indexes the
-    # zero row), actors from the cast. n_map . d_map = n_ego . d_ego: the background's
-    # normal table (small) is turned into the ego frame, then gathered per return.
+    # |cos incidence| from unit face normals: background by face index (a miss has the zero
+    # normal), actors from the cast. n_map . d_map = n_ego . d_ego with the normal turned into
+    # the ego frame: (c nx + s ny) dx + (c ny - s nx) dy + nz dz, in this order.
     c, s = np.float32(np.cos(ego[2])), np.float32(np.sin(ego[2]))
-    fnx, fny, fnz = world.background.normal_columns
-    cos_inc = (c * fnx + s * fny).take(prim_b)
+    cos_inc = c * fnx
+    tmp = s * fny
+    cos_inc += tmp
     cos_inc *= dxe
-    tmp = (c * fny - s * fnx).take(prim_b)
+    np.multiply(c, fny, out=tmp)
+    tmp -= s * fnx
     tmp *= dye
     cos_inc += tmp
-    np.multiply(fnz.take(prim_b), dze, out=tmp)
+    np.multiply(fnz, dze, out=tmp)
     cos_inc += tmp
     np.abs(cos_inc, out=cos_inc)
     if on_actor is not None:
@@ -787,5 +797,12 @@ def _effects(world, rig: LidarRig, k: int, ego: np.ndarray, hits: RayHits, actor
     cos_inc *= refl
     np.multiply(t.take(idx), np.float32(-rig.attenuation), out=tmp)
     cos_inc *= np.exp(tmp, out=tmp)
+
+    # Points: direction x range + sensor position, in place over the gathered ray rows.
+    # (Column by column: a 2-D in-place op would loop along rows of three, ten times slower.)
+    for j, p in enumerate(sensor.position.astype(np.float32)):
+        col = points[:, j]
+        col *= dist
+        col += p
     points[:, 3] = cos_inc
-    return LidarFrame(points, sensor.ring.take(idx), lab, np.full(m, k, np.int8), dist)
+    return LidarFrame(points, ring, lab, np.full(m, k, np.int8), dist)
