@@ -157,11 +157,11 @@ class MountedLidar:
                        z_range: tuple[float, float]) -> np.ndarray | None:
         """Flat indices of the rays of :meth:`footprint_segments` (None: all rays)."""
         seg = self.footprint_segments(rel_xy, actor_yaw, ego_yaw, footprint, z_range)
-        return None if seg is None else _segments_to_indices(*seg)
+        return None if seg is None else _segments_to_indices(seg[0], seg[1])
 
     def footprint_segments(self, rel_xy, actor_yaw: float, ego_yaw: float,
                            footprint: tuple[float, float, float, float],
-                           z_range: tuple[float, float]) -> tuple[np.ndarray, np.ndarray] | None:
+                           z_range: tuple[float, float]) -> tuple[np.ndarray, np.ndarray, float] | None:
         """Ray segments [start, end) (flat indices, two (S,) arrays) holding every ray that can
         hit a mesh inside a vertical box: its footprint
         ``(xmin, xmax, ymin, ymax)`` in the actor's frame (yaw ``actor_yaw``, origin at
@@ -171,7 +171,9 @@ class MountedLidar:
         the arc the footprint spans from the sensor and whose elevation lies between the
         box's lowest and highest point at its nearest and farthest horizontal distance.
         Padded like :meth:`candidate_rays`. Returns None for "all rays" (the sensor is above
-        the footprint). Python floats in, so that an actor costs microseconds."""
+        the footprint), else (starts, ends, rho0) with rho0 the horizontal distance from the
+        sensor to the padded footprint: no point of the mesh is nearer than that. Python floats
+        in, so that an actor costs microseconds."""
         ca, sa = math.cos(actor_yaw), math.sin(actor_yaw)
         sx = ca * rel_xy[0] + sa * rel_xy[1]  # the sensor in the actor's frame
         sy = -sa * rel_xy[0] + ca * rel_xy[1]
@@ -191,7 +193,7 @@ class MountedLidar:
         lo, hi = min(deltas), max(deltas)
         center = mid + 0.5 * (lo + hi) + actor_yaw - ego_yaw
         half = 0.5 * (hi - lo) + _ANGLE_PAD
-        return self._window_segments(rho0, rho1, z_range, center, half)
+        return (*self._window_segments(rho0, rho1, z_range, center, half), rho0)
 
     def _window_segments(self, rho0: float, rho1: float, z_range: tuple[float, float], center: float,
                          half: float) -> tuple[np.ndarray, np.ndarray]:
@@ -489,7 +491,9 @@ class _Cast:
 
     def segments(self, bvh, pose):
         """The rays that can reach an actor at ``pose`` as segments of flat indices
-        ((S,) starts, (S,) ends), None for all rays, or False when none can (out of range)."""
+        ((S,) starts, (S,) ends, and the nearest horizontal distance of its footprint, see
+        :meth:`MountedLidar.footprint_segments`), None for all rays, or False when none can
+        (out of range)."""
         relx, rely = self.sx - float(pose[0]), self.sy - float(pose[1])  # actor -> sensor, map frame
         if math.hypot(relx, rely) - bvh.xy_radius > self.reach:
             return False
@@ -504,7 +508,7 @@ class _Cast:
         seg = self.segments(bvh, pose)
         if seg is None or seg is False:
             return seg
-        rays = _segments_to_indices(*seg)
+        rays = _segments_to_indices(seg[0], seg[1])
         return rays if rays.size else False
 
     def frames(self, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -556,20 +560,24 @@ class _Cast:
         return hit, _cos_incidence(bvh.face_normals[prim[hit]], local[hit])
 
     def actors(self, world, hits: RayHits, rows, poses: np.ndarray, cull: bool = True, before_cast=None) -> None:
-        """Cast the actors ``rows`` (ascending) one after the other into ``hits``, each with the
-        current nearest distances as limits (as :meth:`actor` in a loop, the same hits).
+        """Cast the actors ``rows`` (ascending) one after the other into ``hits`` (fresh from
+        :meth:`background`), each with the current nearest distances as limits: the hits of
+        :meth:`actor` called in a loop.
 
         Batched: the windows of every actor are found first (Python), then one index array and
         one array of actor-frame directions hold the rays of all of them, and each actor's
-        Embree call gets its slice; the |cos incidence| of the actor hits is computed once at
-        the end for the rays whose nearest hit is an actor.
+        Embree call gets its slice, less the rays whose current hit is nearer than the actor's
+        footprint (they cannot change: every point of the mesh is at least that far). The
+        |cos incidence| of the rays whose nearest hit is an actor is computed once at the end.
 
         Args:
             before_cast: called as ``before_cast(i, rays)`` just before actor ``i`` is cast
-                (``rays``: its (M,) flat indices), for the static-hit cache.
+                (``rays``: its whole window, (M,) flat indices), for the static-hit cache.
         """
+        if hits.cos_actor is not None:
+            raise ValueError("actors() takes the hits of background() alone")
         n = self.sensor.n_rays
-        cast_rows, bvhs, starts, ends = [], [], [], []
+        cast_rows, bvhs, starts, ends, cuts = [], [], [], [], []
         for i in rows:
             i = int(i)
             bvh = world.actor_bvh(i)
@@ -579,53 +587,67 @@ class _Cast:
             if seg is False:
                 continue
             if seg is None:
-                seg = (np.zeros(1, np.intp), np.full(1, n, np.intp))
+                seg = (np.zeros(1, np.intp), np.full(1, n, np.intp), 0.0)
             cast_rows.append(i)
             bvhs.append(bvh)
             starts.append(seg[0])
             ends.append(seg[1])
+            # Embree's float32 distances are within 1e-5 relative of the true ones, far below
+            # the 1 mm the footprint is padded by.
+            cuts.append(seg[2] * (1.0 - 1e-5))
         if not cast_rows:
             return
-        counts = np.array([int((e - s).sum()) for s, e in zip(starts, ends)])
+        counts = [int((e - s).sum()) for s, e in zip(starts, ends)]
         rays = _segments_to_indices(np.concatenate(starts), np.concatenate(ends))
         if rays.size == 0:
             return
         origins, cp, sp = self.frames(poses[cast_rows])
         local = self.to_actor(rays, np.repeat(cp, counts), np.repeat(sp, counts))
-        self.actor_rays += len(rays)
         t, label = hits.t, hits.label
-        took = []  # (row, rays taken, their face normals, their index into local)
+        src = face = None  # per ray taken: its row in local, its face in the joint normal table
+        tables, offset = {}, 0  # id(bvh) -> (row offset in the joint table, normals)
         a = 0
         for j, i in enumerate(cast_rows):
-            b = a + int(counts[j])
+            b = a + counts[j]
             if b == a:
                 continue
             mine = rays[a:b]
             if before_cast is not None:
                 before_cast(i, mine)
             tfar = t.take(mine)
+            loc, at = local[a:b], a
+            reach = tfar >= cuts[j]
+            if not reach.all():
+                sel = np.flatnonzero(reach)
+                if sel.size == 0:
+                    a = b
+                    continue
+                mine, tfar, loc, at = mine.take(sel), tfar.take(sel), local.take(sel + a, axis=0), sel + a
             t0 = self.timer()
-            prim, _ = bvhs[j].intersect(origins[j:j + 1], local[a:b], tfar)  # closer hits overwrite tfar
+            prim, _ = bvhs[j].intersect(origins[j:j + 1], loc, tfar)  # closer hits overwrite tfar
             self.embree_s += self.timer() - t0
+            self.actor_rays += len(mine)
             hit = np.flatnonzero(prim >= 0)
             if hit.size:
                 taken = mine.take(hit)
                 t[taken] = tfar.take(hit)
                 label[taken] = i
-                took.append((i, taken, bvhs[j].face_normals.take(prim.take(hit), axis=0), hit + a))
+                key = id(bvhs[j])
+                if key not in tables:
+                    tables[key] = (offset, bvhs[j].face_normals)
+                    offset += len(bvhs[j].face_normals)
+                if src is None:
+                    src, face = np.empty(n, np.intp), np.empty(n, np.intp)
+                src[taken] = hit + at if isinstance(at, int) else at.take(hit)
+                face[taken] = prim.take(hit) + tables[key][0]
             a = b
-        if not took:
+        if src is None:
             return
-        # The last actor that took a ray is the one its label names: keep only those entries.
-        taken = np.concatenate([e[1] for e in took])
-        last = label.take(taken) == np.repeat([e[0] for e in took], [len(e[1]) for e in took])
-        normals = np.concatenate([e[2] for e in took])
-        src = np.concatenate([e[3] for e in took])
-        if not last.all():
-            taken, normals, src = taken[last], normals[last], src[last]
-        if hits.cos_actor is None:
-            hits.cos_actor = np.zeros(n, np.float32)
-        hits.cos_actor[taken] = _cos_incidence(normals, local.take(src, axis=0))
+        on = np.flatnonzero(label >= 0)  # every actor label was written above
+        normals = [nrm for _, nrm in tables.values()]
+        normals = (normals[0] if len(normals) == 1 else np.concatenate(normals)).take(face.take(on), axis=0)
+        hits.cos_actor = np.zeros(n, np.float32)
+        hits.cos_actor[on] = _cos_incidence(normals, local.take(src.take(on), axis=0))
 
     def record(self, stats: dict | None) -> None:
         if stats is not None:
