@@ -328,17 +328,9 @@ def section_ab(base: str, repeats: int) -> dict:
     """(a) against another commit's ``sensors/lidar.py``, interleaved frame by frame in this
     process (same world, rays and load): pipeline and Embree CPU ms per frame for both, and
     whether the frames are the same bytes."""
-    import subprocess
-    import types
-
     import adv3d_runner.sensors.lidar as new
 
-    src = subprocess.run(["git", "show", f"{base}:adv3d_runner/sensors/lidar.py"], cwd=ROOT, capture_output=True,
-                         text=True, check=True).stdout
-    old = types.ModuleType("adv3d_runner.sensors._lidar_base")
-    old.__package__ = "adv3d_runner.sensors"
-    sys.modules[old.__name__] = old  # dataclasses look their module up
-    exec(compile(src, f"{base}:adv3d_runner/sensors/lidar.py", "exec"), old.__dict__)
+    old = _module_at(base)
     world, ego, poses, what, tris = build_scene_world(30)
     mods = {"base": old, "this": new}
     rigs = {k: m.LidarRig.single(get_model("hdl64"), mount=(0, 0, 1.73, 0, 0, 0), ego_dimensions=(4.6, 1.9, 1.5))

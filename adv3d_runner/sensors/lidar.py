@@ -788,8 +788,18 @@ def _effects(world, rig: LidarRig, k: int, ego: np.ndarray, hits: RayHits, actor
     # Intensity = reflectivity x |cos incidence| x exp(-attenuation x true range).
     lab = label.take(idx)
     prim_b = hits.prim_bg.take(idx)
-    face = world.background_table.take(prim_b).view(np.float32).reshape(m, 4)  # prim -1 -> the zero row
-    fnx, fny, fnz, refl = face[:, 0], face[:, 1], face[:, 2], face[:, 3]
+    # The background's face table (normal, reflectivity; small) with its normals turned into
+    # the ego frame, n_map . d_map = n_ego . d_ego, then one 16-byte gather per return (a miss,
+    # face -1, gets the trailing zero row).
+    c, s = np.float32(np.cos(ego[2])), np.float32(np.sin(ego[2]))
+    table = world.background_table.view(np.float32).reshape(-1, 4)
+    fnx, fny = table[:, 0], table[:, 1]
+    turned = np.empty_like(table)
+    np.add(c * fnx, s * fny, out=turned[:, 0])
+    np.subtract(c * fny, s * fnx, out=turned[:, 1])
+    turned[:, 2:] = table[:, 2:]
+    face = turned.view(np.complex128).reshape(-1).take(prim_b).view(np.float32).reshape(m, 4)
+    nxe, nye, nze, refl = face[:, 0], face[:, 1], face[:, 2], face[:, 3]
     # The returns on actors (a sixth or so): their values are gathered for them alone.
     on_actor = None
     if hits.cos_actor is not None:
@@ -799,18 +809,11 @@ def _effects(world, rig: LidarRig, k: int, ego: np.ndarray, hits: RayHits, actor
     if on_actor is not None:
         refl[on_actor] = actor_refl.take(lab.take(on_actor))
     # |cos incidence| from unit face normals: background by face index (a miss has the zero
-    # normal), actors from the cast. n_map . d_map = n_ego . d_ego with the normal turned into
-    # the ego frame: (c nx + s ny) dx + (c ny - s nx) dy + nz dz, in this order.
-    c, s = np.float32(np.cos(ego[2])), np.float32(np.sin(ego[2]))
-    cos_inc = c * fnx
-    tmp = s * fny
+    # normal), actors from the cast: (c nx + s ny) dx + (c ny - s nx) dy + nz dz, in this order.
+    cos_inc = nxe * dxe
+    tmp = nye * dye
     cos_inc += tmp
-    cos_inc *= dxe
-    np.multiply(c, fny, out=tmp)
-    tmp -= s * fnx
-    tmp *= dye
-    cos_inc += tmp
-    np.multiply(fnz, dze, out=tmp)
+    np.multiply(nze, dze, out=tmp)
     cos_inc += tmp
     np.abs(cos_inc, out=cos_inc)
     if on_actor is not None:
