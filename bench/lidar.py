@@ -442,6 +442,71 @@ def section_ratio(repeats: int, base: str | None) -> dict:
     return out
 
 
+def _sensors_at(commit: str):
+    """``adv3d_runner/sensors`` as it was at ``commit``, as the package
+    ``adv3d_runner._sensors_COMMIT`` (its relative imports resolve inside it)."""
+    import importlib
+    import subprocess
+    import tempfile
+    import types
+
+    folder = Path(tempfile.mkdtemp(prefix="sensors-")) / "sensors"
+    folder.mkdir()
+    names = subprocess.run(["git", "ls-tree", "--name-only", f"{commit}:adv3d_runner/sensors"], cwd=ROOT,
+                           capture_output=True, text=True, check=True).stdout.split()
+    for name in names:
+        if name.endswith(".py"):
+            (folder / name).write_text(subprocess.run(["git", "show", f"{commit}:adv3d_runner/sensors/{name}"],
+                                                      cwd=ROOT, capture_output=True, text=True, check=True).stdout)
+    pkg = types.ModuleType(f"adv3d_runner._sensors_{commit}")
+    pkg.__path__ = [str(folder)]
+    pkg.__package__ = pkg.__name__
+    sys.modules[pkg.__name__] = pkg
+    return (importlib.import_module(f"{pkg.__name__}.lidar"), importlib.import_module(f"{pkg.__name__}.incremental"))
+
+
+def section_cache_ab(repeats: int, base: str) -> dict:
+    """(d)'s two cache paths against ``base``'s ``sensors`` package, alternating in this process:
+    a frame seen before (hit) and a frame cast and stored (miss: a new cache each time);
+    median CPU ms and whether the frames are the same bytes."""
+    import adv3d_runner.sensors.incremental as inc
+    import adv3d_runner.sensors.lidar as lid
+
+    world, ego, poses, _, _ = build_scene_world(30)
+    nearest = int(np.argmin(np.hypot(*(poses[:, :2] - ego[:2]).T)))
+    _, v, f = actor_meshes()[0]
+    world.set_actor_mesh(nearest, v * np.array([1.2, 1.15, 1.1]), f)
+    mods = {"this": (lid, inc), "base": _sensors_at(base)}
+    rigs = {k: m[0].LidarRig.single(get_model("hdl64"), mount=(0, 0, 1.73, 0, 0, 0), ego_dimensions=(4.6, 1.9, 1.5))
+            for k, m in mods.items()}
+    caches = {k: m[1].StaticRayCache(world, [nearest]) for k, m in mods.items()}
+    frames = {}
+    for k, (lm, _) in mods.items():
+        frames[k] = [lm.simulate_frame(world, rigs[k], ego, poses, np.random.default_rng(4), cache=caches[k])
+                     for _ in range(2)]  # a miss, then a hit
+    cpu = {k: {"hit": [], "miss": []} for k in mods}
+    for r in range(repeats):
+        for k in (("this", "base") if r % 2 else ("base", "this")):
+            lm, im = mods[k]
+            t0 = CLOCK()
+            lm.simulate_frame(world, rigs[k], ego, poses, np.random.default_rng(4), cache=caches[k])
+            cpu[k]["hit"].append(CLOCK() - t0)
+            fresh = im.StaticRayCache(world, [nearest])
+            t0 = CLOCK()
+            lm.simulate_frame(world, rigs[k], ego, poses, np.random.default_rng(4), cache=fresh)
+            cpu[k]["miss"].append(CLOCK() - t0)
+    same = all(getattr(a, f).tobytes() == getattr(b, f).tobytes()
+               for a, b in ((frames["this"][0], frames["base"][0]), (frames["this"][1], frames["base"][1]))
+               for f in ("points", "ring", "label", "sensor", "distance"))
+    out = {"base": base, "dynamic_actor": nearest, "repeats": repeats, "frames_identical_to_base": same}
+    print(f"\n(cache) static-hit cache paths, {repeats} repeats alternating this and {base} (median CPU ms)")
+    for k in mods:
+        out[k] = {p: 1e3 * float(np.median(cpu[k][p])) for p in ("hit", "miss")}
+        print(f"  {k:5s} hit {out[k]['hit']:6.2f}  miss {out[k]['miss']:6.2f}")
+    print(f"  frames identical: {same}")
+    return out
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="fewer repeats")
@@ -460,6 +525,8 @@ def main() -> int:
                   "timing": "CPU time of the (single) thread per call, time.thread_time; pipeline(s) and raw "
                             "cast alternate call by call",
                   "ratio": section_ratio(args.ratio, args.base)}
+        if args.base:
+            result["cache_paths"] = section_cache_ab(max(21, args.ratio // 5), args.base)
         result["load_average_after"] = list(os.getloadavg())
         out = Path(args.out) if args.out else ROOT / "bench" / "results" / "lidar_ratio.json"
         write_json(out, result)
