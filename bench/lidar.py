@@ -434,11 +434,64 @@ def section_ratio(repeats: int, base: str | None) -> dict:
         print(f"  {k:10s} median {1e3 * np.median(t):6.2f} ms  ratio median {q['median']:.3f} "
               f"(IQR {q['q25']:.3f}-{q['q75']:.3f}, 10-90% {q['p10']:.3f}-{q['p90']:.3f}); "
               f"ratio of medians {out[k]['ratio_of_medians']:.3f}")
+    out["breakdown_this"] = _breakdown(this, world, rigs["this"], ego, poses)
     if base:
         out["frames_identical_to_base"] = all(
             getattr(frames["base"], f).tobytes() == getattr(frames["this"], f).tobytes()
             for f in ("points", "ring", "label", "sensor", "distance"))
         print(f"  frames identical to {base}: {out['frames_identical_to_base']}")
+    return out
+
+
+def _breakdown(mod, world, rig, ego, poses, repeats: int = 41) -> dict:
+    """Where one frame's CPU time goes (after the timed rounds, instrumented, so not part of
+    the ratio): Embree calls on the background and on the actors, the sensor effects, and the
+    noise and drop draws alone (the same sizes drawn from a fresh generator); ms per frame."""
+    from adv3d_runner.sensors import raycast
+
+    acc = {"background_embree": 0.0, "actor_embree": 0.0, "actor_calls": 0, "effects": 0.0}
+    intersect, effects = raycast.MeshBVH.intersect, mod._effects
+    sizes = []
+
+    def timed_intersect(self, *a):
+        t0 = CLOCK()
+        r = intersect(self, *a)
+        key = "background_embree" if self is world.background else "actor_embree"
+        acc[key] += CLOCK() - t0
+        acc["actor_calls"] += key == "actor_embree"
+        return r
+
+    def timed_effects(*a):
+        t0 = CLOCK()
+        r = effects(*a)
+        acc["effects"] += CLOCK() - t0
+        return r
+
+    raycast.MeshBVH.intersect, mod._effects = timed_intersect, timed_effects
+    try:
+        total = 0.0
+        for _ in range(repeats):
+            t0 = CLOCK()
+            frame = mod.simulate_frame(world, rig, ego, poses, np.random.default_rng(0))
+            total += CLOCK() - t0
+            sizes.append(len(frame))
+    finally:
+        raycast.MeshBVH.intersect, mod._effects = intersect, effects
+    model = rig.sensors[0].model
+    valid = int(sizes[-1] / (1.0 - model.ray_drop))  # about the returns before the drop
+    draws = []
+    for _ in range(repeats):
+        rng = np.random.default_rng(0)
+        t0 = CLOCK()
+        rng.standard_normal(valid, dtype=np.float32)
+        rng.random(valid, dtype=np.float32)
+        draws.append(CLOCK() - t0)
+    out = {k: 1e3 * v / repeats for k, v in acc.items() if k != "actor_calls"}
+    out["actor_calls"] = acc["actor_calls"] / repeats
+    out["frame"] = 1e3 * total / repeats
+    out["rest"] = out["frame"] - out["background_embree"] - out["actor_embree"] - out["effects"]
+    out["draws_in_effects"] = 1e3 * float(np.median(draws))
+    print("  breakdown (this, ms per frame, instrumented): " + ", ".join(f"{k} {v:.2f}" for k, v in out.items()))
     return out
 
 
