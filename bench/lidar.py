@@ -328,17 +328,9 @@ def section_ab(base: str, repeats: int) -> dict:
     """(a) against another commit's ``sensors/lidar.py``, interleaved frame by frame in this
     process (same world, rays and load): pipeline and Embree CPU ms per frame for both, and
     whether the frames are the same bytes."""
-    import subprocess
-    import types
-
     import adv3d_runner.sensors.lidar as new
 
-    src = subprocess.run(["git", "show", f"{base}:adv3d_runner/sensors/lidar.py"], cwd=ROOT, capture_output=True,
-                         text=True, check=True).stdout
-    old = types.ModuleType("adv3d_runner.sensors._lidar_base")
-    old.__package__ = "adv3d_runner.sensors"
-    sys.modules[old.__name__] = old  # dataclasses look their module up
-    exec(compile(src, f"{base}:adv3d_runner/sensors/lidar.py", "exec"), old.__dict__)
+    old = _module_at(base)
     world, ego, poses, what, tris = build_scene_world(30)
     mods = {"base": old, "this": new}
     rigs = {k: m.LidarRig.single(get_model("hdl64"), mount=(0, 0, 1.73, 0, 0, 0), ego_dimensions=(4.6, 1.9, 1.5))
@@ -366,12 +358,233 @@ def section_ab(base: str, repeats: int) -> dict:
     return out
 
 
+def _module_at(commit: str):
+    """``sensors/lidar.py`` as it was at ``commit``, loaded as its own module."""
+    import subprocess
+    import types
+
+    src = subprocess.run(["git", "show", f"{commit}:adv3d_runner/sensors/lidar.py"], cwd=ROOT, capture_output=True,
+                         text=True, check=True).stdout
+    mod = types.ModuleType(f"adv3d_runner.sensors._lidar_{commit}")
+    mod.__package__ = "adv3d_runner.sensors"
+    sys.modules[mod.__name__] = mod  # dataclasses look their module up
+    exec(compile(src, f"{commit}:adv3d_runner/sensors/lidar.py", "exec"), mod.__dict__)
+    return mod
+
+
+def section_ratio(repeats: int, base: str | None) -> dict:
+    """(a)'s ratio measured pair by pair: the pipeline (this code, and ``base``'s
+    ``sensors/lidar.py`` when given) and the raw cast of the same rays on the merged static BVH
+    alternate call by call in this process (the order rotates every repeat), so both see the
+    same load; each repeat gives one ratio pipeline / raw from adjacent calls. Reports the
+    median and the spread (quartiles, 10-90 %) of those ratios and of the CPU times."""
+    import adv3d_runner.sensors.lidar as this
+
+    _patch_world_recording()
+    world, ego, poses, what, tris = build_scene_world(30)
+    mods = {"this": this}
+    if base:
+        mods["base"] = _module_at(base)
+    rigs = {k: m.LidarRig.single(get_model("hdl64"), mount=(0, 0, 1.73, 0, 0, 0), ego_dimensions=(4.6, 1.9, 1.5))
+            for k, m in mods.items()}
+    sensor = rigs["this"].sensors[0]
+    c, s = np.cos(ego[2]), np.sin(ego[2])
+    dirs = np.empty((sensor.n_rays, 3), np.float32)
+    dirs[:, 0] = np.float32(c) * sensor.dx - np.float32(s) * sensor.dy
+    dirs[:, 1] = np.float32(s) * sensor.dx + np.float32(c) * sensor.dy
+    dirs[:, 2] = sensor.dz
+    origin = (np.array([ego[0], ego[1], 1.73]) - world.origin).astype(np.float32).reshape(1, 3)
+    merged = merged_static_bvh(world, poses)
+
+    def raw():
+        t = np.full(sensor.n_rays, sensor.model.max_range, np.float32)
+        merged.intersect(origin, dirs, t)
+
+    calls = {"raw": raw}
+    frames = {}
+    for k, m in mods.items():
+        frames[k] = m.simulate_frame(world, rigs[k], ego, poses, np.random.default_rng(0))  # warm-up
+        calls[k] = (lambda m=m, rig=rigs[k]: m.simulate_frame(world, rig, ego, poses, np.random.default_rng(0)))
+    raw()
+    names = list(calls)
+    cpu = {k: [] for k in names}
+    for r in range(repeats):
+        for k in names[r % len(names):] + names[:r % len(names)]:
+            t0 = CLOCK()
+            calls[k]()
+            cpu[k].append(CLOCK() - t0)
+    out = {"world": what, "actors": len(poses), "actor_triangles": int(sum(tris)), "rays": sensor.n_rays,
+           "repeats": repeats, "base": base, "order": "rotating: " + ", ".join(names)}
+
+    def spread(x):
+        q = np.percentile(x, [10, 25, 50, 75, 90])
+        return {"median": float(q[2]), "q25": float(q[1]), "q75": float(q[3]), "p10": float(q[0]), "p90": float(q[4])}
+
+    raw_t = np.array(cpu["raw"])
+    out["raw_cast_ms"] = spread(1e3 * raw_t)
+    print(f"\n(ratio) HDL-64E, 30 actors, {repeats} repeats alternating {', '.join(names)} (CPU ms / ratio)")
+    print(f"  {'raw cast':10s} median {1e3 * np.median(raw_t):6.2f} ms  IQR {out['raw_cast_ms']['q25']:.2f}-"
+          f"{out['raw_cast_ms']['q75']:.2f}")
+    for k in mods:
+        t = np.array(cpu[k])
+        ratio = t / raw_t
+        out[k] = {"pipeline_ms": spread(1e3 * t), "ratio_pipeline_over_raw": spread(ratio),
+                  "ratio_of_medians": float(np.median(t) / np.median(raw_t))}
+        q = out[k]["ratio_pipeline_over_raw"]
+        print(f"  {k:10s} median {1e3 * np.median(t):6.2f} ms  ratio median {q['median']:.3f} "
+              f"(IQR {q['q25']:.3f}-{q['q75']:.3f}, 10-90% {q['p10']:.3f}-{q['p90']:.3f}); "
+              f"ratio of medians {out[k]['ratio_of_medians']:.3f}")
+    out["breakdown_this"] = _breakdown(this, world, rigs["this"], ego, poses)
+    if base:
+        out["frames_identical_to_base"] = all(
+            getattr(frames["base"], f).tobytes() == getattr(frames["this"], f).tobytes()
+            for f in ("points", "ring", "label", "sensor", "distance"))
+        print(f"  frames identical to {base}: {out['frames_identical_to_base']}")
+    return out
+
+
+def _breakdown(mod, world, rig, ego, poses, repeats: int = 41) -> dict:
+    """Where one frame's CPU time goes (after the timed rounds, instrumented, so not part of
+    the ratio): Embree calls on the background and on the actors, the sensor effects, and the
+    noise and drop draws alone (the same sizes drawn from a fresh generator); ms per frame."""
+    from adv3d_runner.sensors import raycast
+
+    acc = {"background_embree": 0.0, "actor_embree": 0.0, "actor_calls": 0, "effects": 0.0}
+    intersect, effects = raycast.MeshBVH.intersect, mod._effects
+    sizes = []
+
+    def timed_intersect(self, *a):
+        t0 = CLOCK()
+        r = intersect(self, *a)
+        key = "background_embree" if self is world.background else "actor_embree"
+        acc[key] += CLOCK() - t0
+        acc["actor_calls"] += key == "actor_embree"
+        return r
+
+    def timed_effects(*a):
+        t0 = CLOCK()
+        r = effects(*a)
+        acc["effects"] += CLOCK() - t0
+        return r
+
+    raycast.MeshBVH.intersect, mod._effects = timed_intersect, timed_effects
+    try:
+        total = 0.0
+        for _ in range(repeats):
+            t0 = CLOCK()
+            frame = mod.simulate_frame(world, rig, ego, poses, np.random.default_rng(0))
+            total += CLOCK() - t0
+            sizes.append(len(frame))
+    finally:
+        raycast.MeshBVH.intersect, mod._effects = intersect, effects
+    model = rig.sensors[0].model
+    valid = int(sizes[-1] / (1.0 - model.ray_drop))  # about the returns before the drop
+    draws = []
+    for _ in range(repeats):
+        rng = np.random.default_rng(0)
+        t0 = CLOCK()
+        rng.standard_normal(valid, dtype=np.float32)
+        rng.random(valid, dtype=np.float32)
+        draws.append(CLOCK() - t0)
+    out = {k: 1e3 * v / repeats for k, v in acc.items() if k != "actor_calls"}
+    out["actor_calls"] = acc["actor_calls"] / repeats
+    out["frame"] = 1e3 * total / repeats
+    out["rest"] = out["frame"] - out["background_embree"] - out["actor_embree"] - out["effects"]
+    out["draws_in_effects"] = 1e3 * float(np.median(draws))
+    print("  breakdown (this, ms per frame, instrumented): " + ", ".join(f"{k} {v:.2f}" for k, v in out.items()))
+    return out
+
+
+def _sensors_at(commit: str):
+    """``adv3d_runner/sensors`` as it was at ``commit``, as the package
+    ``adv3d_runner._sensors_COMMIT`` (its relative imports resolve inside it)."""
+    import importlib
+    import subprocess
+    import tempfile
+    import types
+
+    folder = Path(tempfile.mkdtemp(prefix="sensors-")) / "sensors"
+    folder.mkdir()
+    names = subprocess.run(["git", "ls-tree", "--name-only", f"{commit}:adv3d_runner/sensors"], cwd=ROOT,
+                           capture_output=True, text=True, check=True).stdout.split()
+    for name in names:
+        if name.endswith(".py"):
+            (folder / name).write_text(subprocess.run(["git", "show", f"{commit}:adv3d_runner/sensors/{name}"],
+                                                      cwd=ROOT, capture_output=True, text=True, check=True).stdout)
+    pkg = types.ModuleType(f"adv3d_runner._sensors_{commit}")
+    pkg.__path__ = [str(folder)]
+    pkg.__package__ = pkg.__name__
+    sys.modules[pkg.__name__] = pkg
+    return (importlib.import_module(f"{pkg.__name__}.lidar"), importlib.import_module(f"{pkg.__name__}.incremental"))
+
+
+def section_cache_ab(repeats: int, base: str) -> dict:
+    """(d)'s two cache paths against ``base``'s ``sensors`` package, alternating in this process:
+    a frame seen before (hit) and a frame cast and stored (miss: a new cache each time);
+    median CPU ms and whether the frames are the same bytes."""
+    import adv3d_runner.sensors.incremental as inc
+    import adv3d_runner.sensors.lidar as lid
+
+    world, ego, poses, _, _ = build_scene_world(30)
+    nearest = int(np.argmin(np.hypot(*(poses[:, :2] - ego[:2]).T)))
+    _, v, f = actor_meshes()[0]
+    world.set_actor_mesh(nearest, v * np.array([1.2, 1.15, 1.1]), f)
+    mods = {"this": (lid, inc), "base": _sensors_at(base)}
+    rigs = {k: m[0].LidarRig.single(get_model("hdl64"), mount=(0, 0, 1.73, 0, 0, 0), ego_dimensions=(4.6, 1.9, 1.5))
+            for k, m in mods.items()}
+    caches = {k: m[1].StaticRayCache(world, [nearest]) for k, m in mods.items()}
+    frames = {}
+    for k, (lm, _) in mods.items():
+        frames[k] = [lm.simulate_frame(world, rigs[k], ego, poses, np.random.default_rng(4), cache=caches[k])
+                     for _ in range(2)]  # a miss, then a hit
+    cpu = {k: {"hit": [], "miss": []} for k in mods}
+    for r in range(repeats):
+        for k in (("this", "base") if r % 2 else ("base", "this")):
+            lm, im = mods[k]
+            t0 = CLOCK()
+            lm.simulate_frame(world, rigs[k], ego, poses, np.random.default_rng(4), cache=caches[k])
+            cpu[k]["hit"].append(CLOCK() - t0)
+            fresh = im.StaticRayCache(world, [nearest])
+            t0 = CLOCK()
+            lm.simulate_frame(world, rigs[k], ego, poses, np.random.default_rng(4), cache=fresh)
+            cpu[k]["miss"].append(CLOCK() - t0)
+    same = all(getattr(a, f).tobytes() == getattr(b, f).tobytes()
+               for a, b in ((frames["this"][0], frames["base"][0]), (frames["this"][1], frames["base"][1]))
+               for f in ("points", "ring", "label", "sensor", "distance"))
+    out = {"base": base, "dynamic_actor": nearest, "repeats": repeats, "frames_identical_to_base": same}
+    print(f"\n(cache) static-hit cache paths, {repeats} repeats alternating this and {base} (median CPU ms)")
+    for k in mods:
+        out[k] = {p: 1e3 * float(np.median(cpu[k][p])) for p in ("hit", "miss")}
+        print(f"  {k:5s} hit {out[k]['hit']:6.2f}  miss {out[k]['miss']:6.2f}")
+    print(f"  frames identical: {same}")
+    return out
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="fewer repeats")
     parser.add_argument("--ab", metavar="COMMIT", default=None,
                         help="only (a), against COMMIT's sensors/lidar.py, interleaved (bench/results/lidar_ab.json)")
+    parser.add_argument("--ratio", type=int, metavar="REPEATS", default=None,
+                        help="only the pipeline / raw cast ratio, pair by pair, REPEATS rounds "
+                             "(bench/results/lidar_ratio.json)")
+    parser.add_argument("--base", metavar="COMMIT", default=None,
+                        help="with --ratio: also COMMIT's sensors/lidar.py, in the same rotation")
+    parser.add_argument("--out", default=None, help="with --ratio: the JSON to write")
     args = parser.parse_args()
+    if args.ratio:
+        result = {"benchmark": "lidar_ratio", "command": " ".join([Path(sys.executable).name] + sys.argv),
+                  "machine": machine_info(), "load_average_before": list(os.getloadavg()),
+                  "timing": "CPU time of the (single) thread per call, time.thread_time; pipeline(s) and raw "
+                            "cast alternate call by call",
+                  "ratio": section_ratio(args.ratio, args.base)}
+        if args.base:
+            result["cache_paths"] = section_cache_ab(max(21, args.ratio // 5), args.base)
+        result["load_average_after"] = list(os.getloadavg())
+        out = Path(args.out) if args.out else ROOT / "bench" / "results" / "lidar_ratio.json"
+        write_json(out, result)
+        print(f"\nwrote {out}")
+        return 0
     if args.ab:
         repeats = 101
         result = {"benchmark": "lidar_ab", "command": " ".join([Path(sys.executable).name] + sys.argv),

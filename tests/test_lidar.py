@@ -170,6 +170,33 @@ def test_culling_exact_for_sensor_inside_actor_circle():
     assert (a.label == 0).sum() > 100
 
 
+def test_background_rays_that_stay_above_it_are_skipped_exactly():
+    """Rays that stay above the whole background up to max range are not cast against it; the
+    hits equal those of casting every ray, and a background reaching above the sensor (a
+    gantry) turns the skip off."""
+    from adv3d_runner.sensors.lidar import cast_rays
+
+    world, poses = crowded_world_and_poses(EGO)
+    sensor = MountedLidar(get_model("hdl64", columns=500), (0.0, 0.0, 1.73, 0.0, 0.0, 0.0))
+    present = np.flatnonzero(np.isfinite(poses).all(axis=1))
+    skipped, every = {}, {}
+    a = cast_rays(world, sensor, EGO, poses, present, stats=skipped)
+    sensor._dz_suffix_min = np.full(sensor.n_rays, -np.inf)  # no ray qualifies: all are cast
+    b = cast_rays(world, sensor, EGO, poses, present, stats=every)
+    for name in ("t", "label", "prim_bg", "cos_actor"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+    assert skipped["rays_cast"] < every["rays_cast"] - 8 * 500  # the upper rows were skipped
+    # A canopy 2.5 m up over the road: the upward rays that reach it within range hit it.
+    gv, gf = plane(size=200.0, z=2.5, centre=EGO[:2])
+    ground_v, ground_f = plane(centre=EGO[:2])
+    gantry = LidarWorld(np.concatenate([ground_v, gv]), np.concatenate([ground_f, gf + 4]), 0.2)
+    sensor = MountedLidar(get_model("hdl64", columns=500), (0.0, 0.0, 1.73, 0.0, 0.0, 0.0))
+    hits = cast_rays(gantry, sensor, EGO, np.zeros((0, 3)), np.zeros(0, np.intp))
+    up = (sensor.dz > 0) & ((2.5 - 1.73) / np.maximum(sensor.dz, 1e-9) < 110.0)
+    assert up.sum() >= 3 * 500
+    assert (hits.prim_bg[up] >= 2).all() and np.allclose(hits.t[up] * sensor.dz[up], 2.5 - 1.73, atol=1e-3)
+
+
 # -- rigs and effects ---------------------------------------------------------------------------
 def test_multi_lidar_merge():
     world, poses = crowded_world_and_poses(EGO)

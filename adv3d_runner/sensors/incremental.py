@@ -50,7 +50,7 @@ class _Entry:
     cos_rows: np.ndarray               # (H,) int32 rays whose nearest static hit is an actor
     cos_vals: np.ndarray               # (H,) float32 their |cos incidence|
     before: dict                       # dynamic row -> (rays (D,) int32, t (D,) float32) where S differs
-    windows: dict                      # static row after the first dynamic one -> rays (int32) | None (all)
+    windows: dict                      # static row after the first dynamic one -> rays (int32)
     nbytes: int = 0
     used: int = 0                      # times served from the cache
 
@@ -166,25 +166,19 @@ class StaticRayCache:
         hits = cast.background(world)
         first_dynamic = int(self.dynamic[0]) if self.dynamic.size else None
         snapshots: dict[int, np.ndarray] = {}
-        windows: dict[int, np.ndarray | None] = {}
+        windows: dict[int, np.ndarray] = {}
         pending = list(self.dynamic)
-        for i in present:
-            i = int(i)
-            while pending and pending[0] < i:  # the limits a dynamic actor would get here
+
+        def before_cast(i: int, rays: np.ndarray) -> None:
+            # the limits a dynamic actor before this one would get (nothing changes hits.t
+            # between two casts, so the moment of the next cast is the moment of its row)
+            while pending and pending[0] < i:
                 snapshots[int(pending.pop(0))] = hits.t.copy()
-            if self._is_dynamic[i]:
-                continue
-            bvh = world.actor_bvh(i)
-            if bvh is None:
-                continue
-            rays = cast.window(bvh, poses[i], True)
-            if rays is False:
-                continue
             if first_dynamic is not None and i > first_dynamic:
-                windows[i] = None if rays is None else rays.astype(np.int32)
-            tfar = hits.t if rays is None else hits.t.take(rays)
-            hit, cos = cast.actor(bvh, poses[i], rays, tfar)
-            _take_hits(hits, i, rays, tfar, hit, cos)
+                windows[i] = rays.astype(np.int32)
+
+        static = [int(i) for i in present if not self._is_dynamic[i]]
+        cast.actors(world, hits, static, poses, True, before_cast)
         before = {}
         for a in self.dynamic:
             snap = snapshots.get(int(a))
@@ -234,22 +228,17 @@ class StaticRayCache:
                 tfar = limits.copy() if rays is None else limits.take(rays)
                 hit, cos = cast.actor(bvh, poses[i], rays, tfar)
                 if hit.size:
-                    rows = hit if rays is None else rays[hit]
-                    if not label_copied:
+                    if not label_copied:  # the entry's labels are shared until written
                         hits.label = hits.label.copy()
                         label_copied = True
-                    hits.t[rows] = tfar[hit]
-                    hits.label[rows] = i
-                    if hits.cos_actor is None:
-                        hits.cos_actor = np.zeros(n, np.float32)
-                    hits.cos_actor[rows] = cos
+                    rows = _take_hits(hits, i, rays, tfar, hit, cos)
                     if taken is None:
                         taken = np.zeros(n, bool)
                     taken[rows] = True
             elif taken is not None and i in entry.windows:
                 # a static actor after a dynamic one: again for the rays that one took
                 win = entry.windows[i]
-                rays = np.flatnonzero(taken) if win is None else win[taken[win]].astype(np.intp)
+                rays = win[taken[win]].astype(np.intp)
                 if rays.size == 0:
                     continue
                 bvh = world.actor_bvh(i)

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 import time
+from bisect import bisect_left, bisect_right
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -79,6 +80,7 @@ class MountedLidar:
         mount = np.asarray(mount, dtype=np.float64).reshape(6)
         self.mount = mount
         self.position = mount[:3].copy()
+        self._z = float(mount[2])
         b, c = self.model.beams, self.model.columns
         dirs_sensor, ring, _ = self.model.ray_table()
         dirs = (dirs_sensor @ rotation_rpy(*mount[3:]).T).reshape(c, b, 3).transpose(1, 0, 2)  # (B, C, 3)
@@ -99,11 +101,27 @@ class MountedLidar:
         self.dy = np.ascontiguousarray(self.dirs[:, 1])
         self.dz = np.ascontiguousarray(self.dirs[:, 2])
         self.ring = np.ascontiguousarray(ring.reshape(-1), dtype=np.int16)
+        # Per ray: dx, dy, dz and the ring (int32 bits) in one 16-byte row, gathered per return
+        # as one complex128 element (one gather instead of four; 1-D gathers are the fast kind).
+        rows16 = np.empty((len(self.dirs), 4), np.float32)
+        rows16[:, :3] = self.dirs
+        rows16[:, 3].view(np.int32)[:] = self.ring
+        self.ray_rows = rows16.view(np.complex128).reshape(-1)
         self._row_offsets = _TWO_PI * np.arange(b)
         # Sensors without per-laser azimuth offsets or tilt have the same column azimuths in
         # every row (up to rounding far below the culling padding): one search serves all rows.
         self._common_azimuth = az[0].copy() if np.abs(az - az[0]).max() < 1e-9 else None
         self._row_starts = np.arange(b, dtype=np.intp) * c
+        # Per-frame window searches run on Python lists (bisect): an actor's window costs a few
+        # microseconds of Python instead of a dozen small numpy calls.
+        self._azimuth_list = None if self._common_azimuth is None else self._common_azimuth.tolist()
+        emin, emax = self.row_elevation[:, 0], self.row_elevation[:, 1]
+        self._rows_sorted = bool((np.diff(emin) >= 0).all() and (np.diff(emax) >= 0).all())
+        self._row_min_list, self._row_max_list = emin.tolist(), emax.tolist()
+        # Smallest dz of the rays from each flat index on (non-decreasing): the rays from index
+        # k on stay above height z_s + max_range * dz_suffix_min[k] within range, so they cannot
+        # reach a background wholly below that (:meth:`_Cast.background`).
+        self._dz_suffix_min = np.minimum.accumulate(self.dz[::-1])[::-1].astype(np.float64)
 
     @property
     def n_rays(self) -> int:
@@ -132,12 +150,20 @@ class MountedLidar:
             return None
         half = math.asin(radius / dist) + _ANGLE_PAD
         center = math.atan2(-rel_xy[1], -rel_xy[0]) - ego_yaw
-        return self._window_rays(dist - radius, dist + radius, z_range, center, half)
+        return _segments_to_indices(*self._window_segments(dist - radius, dist + radius, z_range, center, half))
 
     def footprint_rays(self, rel_xy: np.ndarray, actor_yaw: float, ego_yaw: float,
                        footprint: tuple[float, float, float, float],
                        z_range: tuple[float, float]) -> np.ndarray | None:
-        """Flat indices of the rays that can hit a mesh inside a vertical box: its footprint
+        """Flat indices of the rays of :meth:`footprint_segments` (None: all rays)."""
+        seg = self.footprint_segments(rel_xy, actor_yaw, ego_yaw, footprint, z_range)
+        return None if seg is None else _segments_to_indices(seg[0], seg[1])
+
+    def footprint_segments(self, rel_xy, actor_yaw: float, ego_yaw: float,
+                           footprint: tuple[float, float, float, float],
+                           z_range: tuple[float, float]) -> tuple[np.ndarray, np.ndarray, float] | None:
+        """Ray segments [start, end) (flat indices, two (S,) arrays) holding every ray that can
+        hit a mesh inside a vertical box: its footprint
         ``(xmin, xmax, ymin, ymax)`` in the actor's frame (yaw ``actor_yaw``, origin at
         ``-rel_xy`` from the sensor, map frame) by ``z_range``. Tighter than the bounding
         cylinder of :meth:`candidate_rays` (a car seen from behind spans a third of its
@@ -145,7 +171,9 @@ class MountedLidar:
         the arc the footprint spans from the sensor and whose elevation lies between the
         box's lowest and highest point at its nearest and farthest horizontal distance.
         Padded like :meth:`candidate_rays`. Returns None for "all rays" (the sensor is above
-        the footprint)."""
+        the footprint), else (starts, ends, rho0) with rho0 the horizontal distance from the
+        sensor to the padded footprint: no point of the mesh is nearer than that. Python floats
+        in, so that an actor costs microseconds."""
         ca, sa = math.cos(actor_yaw), math.sin(actor_yaw)
         sx = ca * rel_xy[0] + sa * rel_xy[1]  # the sensor in the actor's frame
         sy = -sa * rel_xy[0] + ca * rel_xy[1]
@@ -165,45 +193,56 @@ class MountedLidar:
         lo, hi = min(deltas), max(deltas)
         center = mid + 0.5 * (lo + hi) + actor_yaw - ego_yaw
         half = 0.5 * (hi - lo) + _ANGLE_PAD
-        return self._window_rays(rho0, rho1, z_range, center, half)
+        return (*self._window_segments(rho0, rho1, z_range, center, half), rho0)
 
-    def _window_rays(self, rho0: float, rho1: float, z_range: tuple[float, float], center: float,
-                     half: float) -> np.ndarray:
-        """The rays within ``half`` of azimuth ``center`` (ego frame) that pass between heights
-        ``z_range`` somewhere between horizontal distances ``rho0`` > 0 and ``rho1``."""
-        z_lo = z_range[0] - self.position[2] - _RADIUS_PAD
-        z_hi = z_range[1] - self.position[2] + _RADIUS_PAD
+    def _window_segments(self, rho0: float, rho1: float, z_range: tuple[float, float], center: float,
+                         half: float) -> tuple[np.ndarray, np.ndarray]:
+        """Segments [start, end) of the rays within ``half`` of azimuth ``center`` (ego frame)
+        that pass between heights ``z_range`` somewhere between horizontal distances ``rho0`` > 0
+        and ``rho1``: one per row of the elevation window and azimuth interval (two across the
+        seam)."""
+        z_lo = z_range[0] - self._z - _RADIUS_PAD
+        z_hi = z_range[1] - self._z + _RADIUS_PAD
         e_lo = math.atan(z_lo / (rho0 if z_lo < 0 else rho1)) - _ANGLE_PAD
         e_hi = math.atan(z_hi / (rho0 if z_hi > 0 else rho1)) + _ANGLE_PAD
-        rows = np.flatnonzero((self.row_elevation[:, 1] >= e_lo) & (self.row_elevation[:, 0] <= e_hi))
-        if rows.size == 0:
-            return np.zeros(0, np.intp)
-        if self._common_azimuth is not None:
-            az = self._common_azimuth
-            cols = [np.arange(np.searchsorted(az, lo, "left"), np.searchsorted(az, hi, "right"))
-                    for lo, hi in _azimuth_intervals(center, half)]
-            cols = cols[0] if len(cols) == 1 else np.concatenate(cols)
-            return (self._row_starts[rows][:, None] + cols).reshape(-1)
+        if self._rows_sorted:  # rows with max elevation >= e_lo and min elevation <= e_hi
+            r0, r1 = bisect_left(self._row_max_list, e_lo), bisect_right(self._row_min_list, e_hi)
+            rows = self._row_starts[r0:r1] if r1 > r0 else None
+        else:
+            rows = np.flatnonzero((self.row_elevation[:, 1] >= e_lo) & (self.row_elevation[:, 0] <= e_hi))
+            rows = self._row_starts[rows] if rows.size else None
+        if rows is None:
+            return _NO_SEGMENT
+        intervals = _azimuth_intervals(center, half)
+        if self._azimuth_list is not None:
+            az = self._azimuth_list
+            if len(intervals) == 1:
+                lo, hi = intervals[0]
+                c0, c1 = bisect_left(az, lo), bisect_right(az, hi)
+                return rows + c0, rows + c1
+            cols = [(bisect_left(az, lo), bisect_right(az, hi)) for lo, hi in intervals]
+            return (np.concatenate([rows + c0 for c0, _ in cols]), np.concatenate([rows + c1 for _, c1 in cols]))
+        rows = rows // self.columns
         starts, ends = [], []
-        for lo, hi in _azimuth_intervals(center, half):
+        for lo, hi in intervals:
             s, e = self.window(rows, lo, hi)
             starts.append(s)
             ends.append(e)
-        starts = np.concatenate(starts) if len(starts) > 1 else starts[0]
-        ends = np.concatenate(ends) if len(ends) > 1 else ends[0]
-        return _segments_to_indices(starts, ends)
+        return (starts[0], ends[0]) if len(starts) == 1 else (np.concatenate(starts), np.concatenate(ends))
+
+
+_NO_SEGMENT = (np.zeros(0, np.intp), np.zeros(0, np.intp))
 
 
 def _segments_to_indices(starts: np.ndarray, ends: np.ndarray) -> np.ndarray:
-    """Concatenation of arange(s, e) for each segment, vectorised (segments in order)."""
+    """Concatenation of arange(s, e) for each segment [s, e) (e >= s), vectorised."""
     lengths = ends - starts
-    width = int(lengths.max()) if lengths.size else 0
-    if width <= 0:
+    total = int(lengths.sum())
+    if total <= 0:
         return np.zeros(0, np.intp)
-    grid = starts[:, None] + np.arange(width)
-    if int(lengths.min()) == width:  # every row's window has the same width: a plain grid
-        return grid.reshape(-1)
-    return grid[np.arange(width) < lengths[:, None]]
+    offsets = np.cumsum(lengths)
+    offsets -= lengths
+    return np.repeat(starts - offsets, lengths) + np.arange(total)
 
 
 def _azimuth_intervals(center: float, half: float) -> list[tuple[float, float]]:
@@ -396,10 +435,13 @@ class _Cast:
 
     def __init__(self, sensor: MountedLidar, ego: np.ndarray, stats: dict | None):
         self.sensor, self.model, self.ego = sensor, sensor.model, ego
+        self.ego_yaw = float(ego[2])
         self.c, self.s = float(np.cos(ego[2])), float(np.sin(ego[2]))
         px, py, pz = sensor.position
         self.pz = pz
         self.sensor_map = np.array([ego[0] + self.c * px - self.s * py, ego[1] + self.s * px + self.c * py, pz])
+        self.sx, self.sy = float(self.sensor_map[0]), float(self.sensor_map[1])
+        self.reach = float(self.model.max_range) + _RADIUS_PAD
         self.timer = stats.get("clock", time.perf_counter) if stats is not None else time.perf_counter
         self.embree_s = 0.0
         self.actor_rays = 0
@@ -410,17 +452,34 @@ class _Cast:
         the nearest distance."""
         sensor, n = self.sensor, self.sensor.n_rays
         c, s = self.c, self.s
-        # Ray directions in the map frame (float32, elementwise: identical for any subset).
-        dirs = np.empty((n, 3), np.float32)
-        np.subtract(np.float32(c) * sensor.dx, np.float32(s) * sensor.dy, out=dirs[:, 0])
-        np.add(np.float32(s) * sensor.dx, np.float32(c) * sensor.dy, out=dirs[:, 1])
-        dirs[:, 2] = sensor.dz
-        t = np.full(n, self.model.max_range, np.float32)
         origin_bg = (self.sensor_map - world.origin).astype(np.float32).reshape(1, 3)
+        # A ray that stays above the whole background up to max range (from a sensor above it:
+        # oz + max_range * dz > z_max) cannot hit it: the rays from the first index where every
+        # later ray does are not cast (a suffix: rows go from the lowest laser up, so these are
+        # the level and upward rows).
+        bg = world.background
+        m = n
+        if bg.n_faces:
+            reach_dz = (bg.z_range[1] + _RADIUS_PAD - float(origin_bg[0, 2])) / float(self.model.max_range)
+            if reach_dz < 0:
+                m = int(np.searchsorted(sensor._dz_suffix_min, reach_dz, "right"))
+        # Ray directions in the map frame (float32, elementwise: identical for any subset).
+        dx, dy = sensor.dx[:m], sensor.dy[:m]
+        dirs = np.empty((m, 3), np.float32)
+        np.subtract(np.float32(c) * dx, np.float32(s) * dy, out=dirs[:, 0])
+        np.add(np.float32(s) * dx, np.float32(c) * dy, out=dirs[:, 1])
+        dirs[:, 2] = sensor.dz[:m]
+        t = np.full(n, self.model.max_range, np.float32)
         t0 = self.timer()
-        prim_bg, _ = world.background.intersect(origin_bg, dirs, t)
+        prim, _ = bg.intersect(origin_bg, dirs, t[:m])  # a view: Embree writes into t
         self.embree_s += self.timer() - t0
-        self.background_rays += n
+        self.background_rays += m
+        if m < n:
+            prim_bg = np.empty(n, np.int32)
+            prim_bg[:m] = prim
+            prim_bg[m:] = -1
+        else:
+            prim_bg = prim
         label = np.full(n, BACKGROUND, np.int32)
         # The ego's own body (ego frame, rays in the ego frame): blocks rays, returns nothing.
         if world.ego is not None:
@@ -430,18 +489,56 @@ class _Cast:
             label[prim_e >= 0] = _EGO
         return RayHits(t, label, prim_bg, None)
 
+    def segments(self, bvh, pose):
+        """The rays that can reach an actor at ``pose`` as segments of flat indices
+        ((S,) starts, (S,) ends, and the nearest horizontal distance of its footprint, see
+        :meth:`MountedLidar.footprint_segments`), None for all rays, or False when none can
+        (out of range)."""
+        relx, rely = self.sx - float(pose[0]), self.sy - float(pose[1])  # actor -> sensor, map frame
+        if math.hypot(relx, rely) - bvh.xy_radius > self.reach:
+            return False
+        return self.sensor.footprint_segments((relx, rely), float(pose[2]), self.ego_yaw, bvh.footprint,
+                                              bvh.z_range)
+
     def window(self, bvh, pose, cull: bool):
         """The rays that can reach an actor at ``pose``: flat indices, None for all rays, or
         False when none can (out of range or an empty window)."""
         if not cull:
             return None
-        rel = self.sensor_map[:2] - (pose[0], pose[1])  # actor -> sensor, map frame
-        if np.hypot(rel[0], rel[1]) - bvh.xy_radius - _RADIUS_PAD > self.model.max_range:
-            return False
-        rays = self.sensor.footprint_rays(rel, float(pose[2]), self.ego[2], bvh.footprint, bvh.z_range)
-        if rays is not None and rays.size == 0:
-            return False
-        return rays
+        seg = self.segments(bvh, pose)
+        if seg is None or seg is False:
+            return seg
+        rays = _segments_to_indices(seg[0], seg[1])
+        return rays if rays.size else False
+
+    def frames(self, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Per actor pose (K, 3): the sensor origin in the actor's frame, (K, 3) float32, and
+        the cos and sin of the ego-to-actor rotation, (K,) float32 each. Elementwise float64
+        then one rounding, as for one actor."""
+        relx = self.sensor_map[0] - poses[:, 0]
+        rely = self.sensor_map[1] - poses[:, 1]
+        ca, sa = np.cos(poses[:, 2]), np.sin(poses[:, 2])
+        origins = np.empty((len(poses), 3), np.float32)
+        origins[:, 0] = ca * relx + sa * rely
+        origins[:, 1] = -sa * relx + ca * rely
+        origins[:, 2] = self.pz
+        phi = self.ego[2] - poses[:, 2]
+        return origins, np.cos(phi).astype(np.float32), np.sin(phi).astype(np.float32)
+
+    def to_actor(self, rays, cp, sp) -> np.ndarray:
+        """(M, 3) float32 directions of ``rays`` (None: all) turned by (cp, sp): float32 scalars,
+        or (M,) float32 arrays (one rotation per ray). Elementwise, so any subset or batch gives
+        the same per-ray values."""
+        sensor = self.sensor
+        if rays is None:
+            dx, dy, dz = sensor.dx, sensor.dy, sensor.dz
+        else:
+            dx, dy, dz = sensor.dx.take(rays), sensor.dy.take(rays), sensor.dz.take(rays)
+        local = np.empty((len(dx), 3), np.float32)
+        np.subtract(cp * dx, sp * dy, out=local[:, 0])
+        np.add(sp * dx, cp * dy, out=local[:, 1])
+        local[:, 2] = dz
+        return local
 
     def actor(self, bvh, pose, rays, tfar: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
         """Cast ``rays`` (None: all) against one actor's mesh with the limits ``tfar`` (their
@@ -451,32 +548,106 @@ class _Cast:
             hit: indices into ``rays`` (or ray indices for None) of the rays the actor took.
             cos: (len(hit),) float32 |cos incidence| of those hits, None when there are none.
         """
-        sensor = self.sensor
-        ax, ay, ayaw = pose
-        rel = self.sensor_map[:2] - (ax, ay)
-        ca, sa = np.cos(ayaw), np.sin(ayaw)
-        origin = np.array([[ca * rel[0] + sa * rel[1], -sa * rel[0] + ca * rel[1], self.pz]], np.float32)
-        phi = self.ego[2] - ayaw
-        cp, sp = np.float32(np.cos(phi)), np.float32(np.sin(phi))
-        # Rays in the actor's frame (elementwise, so any subset gives the same per-ray values).
-        if rays is None:
-            dx, dy, dz = sensor.dx, sensor.dy, sensor.dz
-        else:
-            dx, dy, dz = sensor.dx.take(rays), sensor.dy.take(rays), sensor.dz.take(rays)
-        m = len(dx)
-        local = np.empty((m, 3), np.float32)
-        np.subtract(cp * dx, sp * dy, out=local[:, 0])
-        np.add(sp * dx, cp * dy, out=local[:, 1])
-        local[:, 2] = dz
+        origins, cp, sp = self.frames(np.asarray(pose, dtype=np.float64).reshape(1, 3))
+        local = self.to_actor(rays, cp[0], sp[0])
         t0 = self.timer()
-        prim, _ = bvh.intersect(origin, local, tfar)  # closer hits overwrite tfar
+        prim, _ = bvh.intersect(origins, local, tfar)  # closer hits overwrite tfar
         self.embree_s += self.timer() - t0
-        self.actor_rays += m
+        self.actor_rays += len(local)
         hit = np.flatnonzero(prim >= 0)
         if hit.size == 0:
             return hit, None
-        # |cos incidence| in the actor's frame, from its unit face normals.
-        return hit, np.abs(np.einsum("ij,ij->i", bvh.face_normals[prim[hit]], local[hit]))
+        return hit, _cos_incidence(bvh.face_normals[prim[hit]], local[hit])
+
+    def actors(self, world, hits: RayHits, rows, poses: np.ndarray, cull: bool = True, before_cast=None) -> None:
+        """Cast the actors ``rows`` (ascending) one after the other into ``hits`` (fresh from
+        :meth:`background`), each with the current nearest distances as limits: the hits of
+        :meth:`actor` called in a loop.
+
+        Batched: the windows of every actor are found first (Python), then one index array and
+        one array of actor-frame directions hold the rays of all of them, and each actor's
+        Embree call gets its slice, less the rays whose current hit is nearer than the actor's
+        footprint (they cannot change: every point of the mesh is at least that far). The
+        |cos incidence| of the rays whose nearest hit is an actor is computed once at the end.
+
+        Args:
+            before_cast: called as ``before_cast(i, rays)`` just before actor ``i`` is cast
+                (``rays``: its whole window, (M,) flat indices), for the static-hit cache.
+        """
+        if hits.cos_actor is not None:
+            raise ValueError("actors() takes the hits of background() alone")
+        n = self.sensor.n_rays
+        cast_rows, bvhs, starts, ends, cuts = [], [], [], [], []
+        for i in rows:
+            i = int(i)
+            bvh = world.actor_bvh(i)
+            if bvh is None:
+                continue
+            seg = self.segments(bvh, poses[i]) if cull else None
+            if seg is False:
+                continue
+            if seg is None:
+                seg = (np.zeros(1, np.intp), np.full(1, n, np.intp), 0.0)
+            cast_rows.append(i)
+            bvhs.append(bvh)
+            starts.append(seg[0])
+            ends.append(seg[1])
+            # Embree's float32 distances are within 1e-5 relative of the true ones, far below
+            # the 1 mm the footprint is padded by.
+            cuts.append(seg[2] * (1.0 - 1e-5))
+        if not cast_rows:
+            return
+        counts = [int((e - s).sum()) for s, e in zip(starts, ends)]
+        rays = _segments_to_indices(np.concatenate(starts), np.concatenate(ends))
+        if rays.size == 0:
+            return
+        origins, cp, sp = self.frames(poses[cast_rows])
+        local = self.to_actor(rays, np.repeat(cp, counts), np.repeat(sp, counts))
+        t, label = hits.t, hits.label
+        src = face = None  # per ray taken: its row in local, its face in the joint normal table
+        tables, offset = {}, 0  # id(bvh) -> (row offset in the joint table, normals)
+        a = 0
+        for j, i in enumerate(cast_rows):
+            b = a + counts[j]
+            if b == a:
+                continue
+            mine = rays[a:b]
+            if before_cast is not None:
+                before_cast(i, mine)
+            tfar = t.take(mine)
+            loc, at = local[a:b], a
+            reach = tfar >= cuts[j]
+            if not reach.all():
+                sel = np.flatnonzero(reach)
+                if sel.size == 0:
+                    a = b
+                    continue
+                mine, tfar, loc, at = mine.take(sel), tfar.take(sel), local.take(sel + a, axis=0), sel + a
+            t0 = self.timer()
+            prim, _ = bvhs[j].intersect(origins[j:j + 1], loc, tfar)  # closer hits overwrite tfar
+            self.embree_s += self.timer() - t0
+            self.actor_rays += len(mine)
+            hit = np.flatnonzero(prim >= 0)
+            if hit.size:
+                taken = mine.take(hit)
+                t[taken] = tfar.take(hit)
+                label[taken] = i
+                key = id(bvhs[j])
+                if key not in tables:
+                    tables[key] = (offset, bvhs[j].face_normals)
+                    offset += len(bvhs[j].face_normals)
+                if src is None:
+                    src, face = np.empty(n, np.intp), np.empty(n, np.intp)
+                src[taken] = hit + at if isinstance(at, int) else at.take(hit)
+                face[taken] = prim.take(hit) + tables[key][0]
+            a = b
+        if src is None:
+            return
+        on = np.flatnonzero(label >= 0)  # every actor label was written above
+        normals = [nrm for _, nrm in tables.values()]
+        normals = (normals[0] if len(normals) == 1 else np.concatenate(normals)).take(face.take(on), axis=0)
+        hits.cos_actor = np.zeros(n, np.float32)
+        hits.cos_actor[on] = _cos_incidence(normals, local.take(src.take(on), axis=0))
 
     def record(self, stats: dict | None) -> None:
         if stats is not None:
@@ -485,10 +656,16 @@ class _Cast:
             stats["actor_rays"] = stats.get("actor_rays", 0) + self.actor_rays
 
 
-def _take_hits(hits: RayHits, i: int, rays, tfar: np.ndarray, hit: np.ndarray, cos: np.ndarray | None) -> None:
-    """Write an actor's hits (from :meth:`_Cast.actor`) into ``hits``."""
+def _cos_incidence(normals: np.ndarray, local: np.ndarray) -> np.ndarray:
+    """|cos incidence| from (H, 3) unit face normals and (H, 3) ray directions, float32."""
+    return np.abs(np.einsum("ij,ij->i", normals, local))
+
+
+def _take_hits(hits: RayHits, i: int, rays, tfar: np.ndarray, hit: np.ndarray, cos: np.ndarray | None) -> np.ndarray:
+    """Write an actor's hits (from :meth:`_Cast.actor`) into ``hits``; returns the ray
+    indices it took."""
     if hit.size == 0:
-        return
+        return hit
     rows = hit if rays is None else rays[hit]
     if tfar is not hits.t:
         hits.t[rows] = tfar[hit]
@@ -496,6 +673,7 @@ def _take_hits(hits: RayHits, i: int, rays, tfar: np.ndarray, hit: np.ndarray, c
     if hits.cos_actor is None:
         hits.cos_actor = np.zeros(len(hits.t), np.float32)
     hits.cos_actor[rows] = cos
+    return rows
 
 
 def cast_rays(world, sensor: MountedLidar, ego: np.ndarray, poses: np.ndarray, present: np.ndarray,
@@ -512,16 +690,7 @@ def cast_rays(world, sensor: MountedLidar, ego: np.ndarray, poses: np.ndarray, p
     """
     cast = _Cast(sensor, ego, stats)
     hits = cast.background(world)
-    for i in present:
-        bvh = world.actor_bvh(i)
-        if bvh is None:
-            continue
-        rays = cast.window(bvh, poses[i], cull)
-        if rays is False:
-            continue
-        tfar = hits.t if rays is None else hits.t.take(rays)
-        hit, cos = cast.actor(bvh, poses[i], rays, tfar)
-        _take_hits(hits, int(i), rays, tfar, hit, cos)
+    cast.actors(world, hits, present, poses, cull)
     cast.record(stats)
     return hits
 
@@ -609,22 +778,28 @@ def _effects(world, rig: LidarRig, k: int, ego: np.ndarray, hits: RayHits, actor
         keep = np.flatnonzero(rng.random(dist.size, dtype=np.float32) >= np.float32(model.ray_drop))
         idx, dist = idx.take(keep), dist.take(keep)  # one mask scan, then two gathers
 
-    # Columns are gathered one by one: 1-D gathers of contiguous arrays are the fast kind.
+    # One gather per return for its ray (dx, dy, dz, ring bits) and one for its background
+    # face (normal, reflectivity); the (m, 4) float32 ray rows become the points in place.
     m = idx.size
-    dxe, dye, dze = sensor.dx.take(idx), sensor.dy.take(idx), sensor.dz.take(idx)
-    points = np.empty((m, 4), np.float32)
-    px, py, pz = (np.float32(v) for v in sensor.position)
-    np.multiply(dxe, dist, out=points[:, 0])
-    points[:, 0] += px
-    np.multiply(dye, dist, out=points[:, 1])
-    points[:, 1] += py
-    np.multiply(dze, dist, out=points[:, 2])
-    points[:, 2] += pz
+    points = sensor.ray_rows.take(idx).view(np.float32).reshape(m, 4)
+    ring = points[:, 3].view(np.int32).astype(np.int16)
+    dxe, dye, dze = points[:, 0], points[:, 1], points[:, 2]
 
     # Intensity = reflectivity x |cos incidence| x exp(-attenuation x true range).
     lab = label.take(idx)
     prim_b = hits.prim_bg.take(idx)
-    refl = world.background_reflectivity.take(prim_b)  # prim -1 -> the trailing 0 slot
+    # The background's face table (normal, reflectivity; small) with its normals turned into
+    # the ego frame, n_map . d_map = n_ego . d_ego, then one 16-byte gather per return (a miss,
+    # face -1, gets the trailing zero row).
+    c, s = np.float32(np.cos(ego[2])), np.float32(np.sin(ego[2]))
+    table = world.background_table.view(np.float32).reshape(-1, 4)
+    fnx, fny = table[:, 0], table[:, 1]
+    turned = np.empty_like(table)
+    np.add(c * fnx, s * fny, out=turned[:, 0])
+    np.subtract(c * fny, s * fnx, out=turned[:, 1])
+    turned[:, 2:] = table[:, 2:]
+    face = turned.view(np.complex128).reshape(-1).take(prim_b).view(np.float32).reshape(m, 4)
+    nxe, nye, nze, refl = face[:, 0], face[:, 1], face[:, 2], face[:, 3]
     # The returns on actors (a sixth or so): their values are gathered for them alone.
     on_actor = None
     if hits.cos_actor is not None:
@@ -633,17 +808,12 @@ def _effects(world, rig: LidarRig, k: int, ego: np.ndarray, hits: RayHits, actor
             on_actor = None
     if on_actor is not None:
         refl[on_actor] = actor_refl.take(lab.take(on_actor))
-    # |cos incidence| from unit face normals: background by face index (a miss indexes the
-    # zero row), actors from the cast. n_map . d_map = n_ego . d_ego: the background's
-    # normal table (small) is turned into the ego frame, then gathered per return.
-    c, s = np.float32(np.cos(ego[2])), np.float32(np.sin(ego[2]))
-    fnx, fny, fnz = world.background.normal_columns
-    cos_inc = (c * fnx + s * fny).take(prim_b)
-    cos_inc *= dxe
-    tmp = (c * fny - s * fnx).take(prim_b)
-    tmp *= dye
+    # |cos incidence| from unit face normals: background by face index (a miss has the zero
+    # normal), actors from the cast: (c nx + s ny) dx + (c ny - s nx) dy + nz dz, in this order.
+    cos_inc = nxe * dxe
+    tmp = nye * dye
     cos_inc += tmp
-    np.multiply(fnz.take(prim_b), dze, out=tmp)
+    np.multiply(nze, dze, out=tmp)
     cos_inc += tmp
     np.abs(cos_inc, out=cos_inc)
     if on_actor is not None:
@@ -652,5 +822,12 @@ def _effects(world, rig: LidarRig, k: int, ego: np.ndarray, hits: RayHits, actor
     cos_inc *= refl
     np.multiply(t.take(idx), np.float32(-rig.attenuation), out=tmp)
     cos_inc *= np.exp(tmp, out=tmp)
+
+    # Points: direction x range + sensor position, in place over the gathered ray rows.
+    # (Column by column: a 2-D in-place op would loop along rows of three, ten times slower.)
+    for j, p in enumerate(sensor.position.astype(np.float32)):
+        col = points[:, j]
+        col *= dist
+        col += p
     points[:, 3] = cos_inc
-    return LidarFrame(points, sensor.ring.take(idx), lab, np.full(m, k, np.int8), dist)
+    return LidarFrame(points, ring, lab, np.full(m, k, np.int8), dist)

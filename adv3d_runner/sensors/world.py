@@ -63,6 +63,12 @@ class LidarWorld:
             raise ValueError(f"reflectivity must be a scalar or ({len(faces)},), got {refl.shape}")
         # One extra slot at the end so a miss (face -1) indexes safely.
         self.background_reflectivity = np.append(refl, np.float32(0.0))
+        # Per face: unit normal and reflectivity in one 16-byte row (a trailing zero row for a
+        # miss), gathered per return as one complex128 element (one gather instead of four).
+        table = np.zeros((len(faces) + 1, 4), np.float32)
+        table[:, :3] = self.background.face_normals
+        table[:, 3] = self.background_reflectivity
+        self.background_table = table.view(np.complex128).reshape(-1)
         self._bvh: dict[str, MeshBVH] = {}
         self._actors: list[ActorSlot] = []
         self._index: dict[str, int] = {}
