@@ -267,22 +267,35 @@ def protocol_doc(spec: TableSpec, args, scenes) -> dict:
 PROTOCOL_KEYS = ("autonomy", "budget", "n_initial", "seconds", "batch", "eval_seeds", "pred_reduction")
 
 
+#: What a table's numbers depend on beyond its options (run.json ``versions``): the shape space,
+#: the stack's weights and the planner's parameters; a table is never grown across two of them.
+VERSION_KEYS = ("shape_space", "models", "planner")
+
+
 def model_versions(autonomy: str) -> dict:
-    """The shape space's content hash and the stack's weight fingerprints (what a table's
-    numbers depend on beyond its options: a retrained detector makes another table)."""
+    """The shape space's content hash, the stack's weight fingerprints and the planner's
+    (what a table's numbers depend on beyond its options: a retrained detector or a retuned
+    planner makes another table)."""
     from adv3d_runner.attack.config import QuerySettings
     from adv3d_runner.attack.evaluator import EpisodeEvaluator
 
     v = EpisodeEvaluator(QuerySettings(autonomy=autonomy)).versions()
-    return {k: v[k] for k in ("shape_space", "models") if k in v}
+    return {k: v[k] for k in VERSION_KEYS if k in v}
 
 
 def kept_versions(results: Path) -> dict | None:
     """The versions a table's kept runs were made with (their run.json), None without runs."""
     for run_json in sorted((results / "runs").glob("*/seed*/*/run.json")):
         v = json.loads(run_json.read_text()).get("versions") or {}
-        return {k: v[k] for k in ("shape_space", "models") if k in v}
+        return {k: v[k] for k in VERSION_KEYS if k in v}
     return None
+
+
+def made_with(proto: dict, results: Path) -> dict | None:
+    """The versions a kept table was made with: its protocol.json's, completed from its runs'
+    run.json (tables made before the planner was fingerprinted name it only there)."""
+    merged = {**(kept_versions(results) or {}), **(proto.get("versions") or {})}
+    return merged or None
 
 
 def run_transfer(spec: TableSpec, args) -> Path:
@@ -348,10 +361,11 @@ def run_table(spec: TableSpec, args) -> Path:
         if diff:
             raise ConfigError(f"{proto_path} was grown with other protocol values ({', '.join(diff)}: "
                               f"{[old.get(k) for k in diff]} now {[proto.get(k) for k in diff]}); use another --results")
-        made_with = old.get("versions") or kept_versions(results)
-        if made_with and made_with != proto["versions"]:
-            raise ConfigError(f"{results} was made with other model weights or another shape space ({made_with}, now "
-                              f"{proto['versions']}): its numbers would mix two stacks; use another --results")
+        made = made_with(old, results)
+        if made and made != proto["versions"]:
+            raise ConfigError(f"{results} was made with other model weights, another shape space or another "
+                              f"planner ({made}, now {proto['versions']}): its numbers would mix two stacks; use "
+                              f"another --results")
         known = {s["path"] for s in old.get("scenes", [])}
         proto["scenes"] = old.get("scenes", []) + [s.as_dict() for s in scenes if s.path not in known]
         proto["seeds"] = sorted(set(old.get("seeds", [])) | set(range(args.seeds)))
@@ -586,7 +600,7 @@ def build_table(spec: TableSpec, autonomy: str, results_root: Path, budget: int 
         paper = numbers.get(key)
     doc = {"format": "adv3d-paper-table", "version": 1, "table": spec.name, "title": spec.title, "autonomy": autonomy,
            "common_objective": spec.common_objective,
-           "versions": proto.get("versions") or kept_versions(results),
+           "versions": made_with(proto, results),
            "protocol": proto, "compute": {"cpu_s_total": compute.get("cpu_s_total"),
                                           "cpu_models": sorted({e.get("cpu_model") for e in compute.get("invocations", [])}),
                                           "invocations": len(compute.get("invocations", []))},
@@ -630,8 +644,9 @@ def table_markdown(spec: TableSpec, doc: dict, scene_part: dict) -> str:
               f"{_fmt(cpu / 60 if cpu else float('nan'))} CPU-minutes in all ({', '.join(doc['compute']['cpu_models'])}, "
               f"shared 2-core machine)."
               + (f" Weights: {', '.join(f'{k} `{v}`' for k, v in (doc.get('versions') or {}).get('models', {}).items())}; "
-                 f"shape space `{str((doc.get('versions') or {}).get('shape_space', '?'))[:14]}…`."
-                 if doc.get("versions") else ""), ""]
+                 f"shape space `{str((doc.get('versions') or {}).get('shape_space', '?'))[:14]}…`"
+                 + (f"; planner `{doc['versions']['planner']}`" if (doc.get("versions") or {}).get("planner") else "")
+                 + "." if doc.get("versions") else ""), ""]
     cols = list(METRICS) + ["JSD"] + (["queries / search", "episode min / search"] if spec.compute_column else [])
     lines.append("| | scenes | runs | " + " | ".join(cols) + " |")
     lines.append("|---|---:|---:|" + "---:|" * len(cols))

@@ -113,20 +113,24 @@ def test_tables_listed_with_what_they_need(capsys):
     assert all(line.endswith("; runs") for line in out.strip().splitlines())  # every table has its entry
 
 
-def test_results_doc_quotes_the_kept_table1():
-    """docs/results.md quotes Table 1 of the protocol; the table rebuilt from the kept files of
-    docs/results/table1_A_b20 must give exactly those rows (main table and paired tests)."""
-    folder = REPO / "docs" / "results" / "previous-detector" / "table1_A_b20"
-    if not (folder / "protocol.json").exists():
-        pytest.skip("Table 1 has not been run")
+@pytest.mark.parametrize("folder, table, autonomy", [("table1_A_b20", "table1", "A"), ("table1_B_b20", "table1", "B")])
+def test_results_doc_quotes_the_kept_tables(folder, table, autonomy):
+    """docs/results.md quotes the protocol's tables; each table rebuilt from its kept files in
+    docs/results/<folder> must give exactly the rows the doc shows (main table and paired
+    tests)."""
+    path = REPO / "docs" / "results" / folder
+    if not (path / "protocol.json").exists():
+        pytest.skip(f"{folder} has not been run")
     import shutil
     import tempfile
 
     mod = _driver()
+    budget = json.loads((path / "protocol.json").read_text())["budget"]
     with tempfile.TemporaryDirectory() as tmp:  # rebuild from a copy: the kept files stay untouched
-        shutil.copytree(folder, Path(tmp) / folder.name)
-        assert mod.main(["table1", "--table-only", "--budget", "20", "--results", tmp]) == 0
-        rebuilt = (Path(tmp) / folder.name / "table.md").read_text()
+        shutil.copytree(path, Path(tmp) / folder)
+        assert mod.main([table, "--autonomy", autonomy, "--table-only", "--budget", str(budget), "--results", tmp]) == 0
+        rebuilt = (Path(tmp) / folder / "table.md").read_text()
+    assert rebuilt == (path / "table.md").read_text()  # the kept table is what its files give
     doc = (REPO / "docs" / "results.md").read_text()
     rows = [ln for ln in rebuilt.splitlines() if ln.startswith(("| Original", "| Adv.", "| *paper"))]
     assert len(rows) >= 6
