@@ -59,6 +59,17 @@ ACTOR_COUNTS = (0, 5, 10, 20, 30)
 DIMS = {"car": (4.6, 1.85, 1.5), "suv": (4.9, 1.95, 1.8), "truck": (9.0, 2.5, 3.4)}
 
 
+def raw_rays(sensor, world, ego: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The raw cast's rays: origin (1, 3) float32 at the 1.73 m mount in the world's local frame
+    and unit directions (n_rays, 3) float32 turned by the ego's yaw (``ego`` = x, y, yaw)."""
+    c, s = np.cos(ego[2]), np.sin(ego[2])
+    dirs = np.empty((sensor.n_rays, 3), np.float32)
+    dirs[:, 0] = np.float32(c) * sensor.dx - np.float32(s) * sensor.dy
+    dirs[:, 1] = np.float32(s) * sensor.dx + np.float32(c) * sensor.dy
+    dirs[:, 2] = sensor.dz
+    origin = (np.array([ego[0], ego[1], 1.73]) - world.origin).astype(np.float32).reshape(1, 3)
+    return origin, dirs
+
 def machine_info() -> dict:
     return _machine_info(
         "numpy", "embreex",
@@ -196,12 +207,7 @@ def section_a(repeats: int) -> dict:
     embree_in_pipe = float(np.median(embree_times))
     # Raw: one cast of the same rays on a merged static BVH.
     sensor = rig.sensors[0]
-    c, s = np.cos(ego[2]), np.sin(ego[2])
-    dirs = np.empty((sensor.n_rays, 3), np.float32)
-    dirs[:, 0] = np.float32(c) * sensor.dx - np.float32(s) * sensor.dy
-    dirs[:, 1] = np.float32(s) * sensor.dx + np.float32(c) * sensor.dy
-    dirs[:, 2] = sensor.dz
-    origin = (np.array([ego[0], ego[1], 1.73]) - world.origin).astype(np.float32).reshape(1, 3)
+    origin, dirs = raw_rays(sensor, world, ego)
     t_build, merged = timed(lambda: merged_static_bvh(world, poses), max(2, repeats // 3))
 
     def raw():
@@ -388,12 +394,7 @@ def section_ratio(repeats: int, base: str | None) -> dict:
     rigs = {k: m.LidarRig.single(get_model("hdl64"), mount=(0, 0, 1.73, 0, 0, 0), ego_dimensions=(4.6, 1.9, 1.5))
             for k, m in mods.items()}
     sensor = rigs["this"].sensors[0]
-    c, s = np.cos(ego[2]), np.sin(ego[2])
-    dirs = np.empty((sensor.n_rays, 3), np.float32)
-    dirs[:, 0] = np.float32(c) * sensor.dx - np.float32(s) * sensor.dy
-    dirs[:, 1] = np.float32(s) * sensor.dx + np.float32(c) * sensor.dy
-    dirs[:, 2] = sensor.dz
-    origin = (np.array([ego[0], ego[1], 1.73]) - world.origin).astype(np.float32).reshape(1, 3)
+    origin, dirs = raw_rays(sensor, world, ego)
     merged = merged_static_bvh(world, poses)
 
     def raw():
