@@ -318,7 +318,9 @@ def run_transfer(spec: TableSpec, args) -> Path:
                           f"--budget {args.budget} first")
     results = Path(args.results) / spec.folder(args.autonomy, args.budget)
     proto = json.loads((source / "protocol.json").read_text())
-    proto.update(table="transfer", autonomy=args.autonomy, transfer_from=src, source_folder=source.name)
+    # the numbers are the target stack's (its weights evaluate); the shapes were found with the source's
+    proto.update(table="transfer", autonomy=args.autonomy, transfer_from=src, source_folder=source.name,
+                 source_versions=made_with(proto, source), versions=model_versions(args.autonomy))
     results.mkdir(parents=True, exist_ok=True)
     write_json(results / "protocol.json", proto)
     compute = Compute(results / "compute.json", "python bench/paper_tables.py " + shlex.join(sys.argv[1:]))
@@ -646,7 +648,11 @@ def table_markdown(spec: TableSpec, doc: dict, scene_part: dict) -> str:
               + (f" Weights: {', '.join(f'{k} `{v}`' for k, v in (doc.get('versions') or {}).get('models', {}).items())}; "
                  f"shape space `{str((doc.get('versions') or {}).get('shape_space', '?'))[:14]}…`"
                  + (f"; planner `{doc['versions']['planner']}`" if (doc.get("versions") or {}).get("planner") else "")
-                 + "." if doc.get("versions") else ""), ""]
+                 + "." if doc.get("versions") else "")
+              + (f" Shapes: the best shapes of Autonomy-{proto['transfer_from']}'s table "
+                 f"`{proto.get('source_folder')}` (its weights: "
+                 f"{', '.join(f'{k} `{v}`' for k, v in (proto.get('source_versions') or {}).get('models', {}).items())})."
+                 if proto.get("transfer_from") else ""), ""]
     cols = list(METRICS) + ["JSD"] + (["queries / search", "episode min / search"] if spec.compute_column else [])
     lines.append("| | scenes | runs | " + " | ".join(cols) + " |")
     lines.append("|---|---:|---:|" + "---:|" * len(cols))

@@ -89,6 +89,9 @@ def test_driver_smoke_run_resume_and_rebuild(tmp_path):
                      "--results", str(tmp_path / "res")]) == 0
     moved = json.loads((tmp_path / "res" / "transfer_oracle_b2" / "table.json").read_text())
     assert moved["protocol"]["transfer_from"] == "A" and moved["rows"]["Original"]["n_scenes"] == 1
+    # its versions are the evaluating stack's; the shapes' stack is named apart
+    assert "detector" not in moved["protocol"]["versions"].get("models", {})
+    assert moved["protocol"]["source_versions"]["models"]["detector"] == table["versions"]["models"]["detector"]
     tk = tmp_path / "res" / "transfer_oracle_b2" / "runs" / "shapes" / "seed0" / "highway-benchmark-000000"
     assert sorted(read_json(tk / "heldout.json.gz")["evaluations"]) == sorted(evals)   # same keys, same seeds
     # growing the table with other weights (a retrained detector) is refused
