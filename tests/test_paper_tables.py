@@ -120,7 +120,7 @@ def test_tables_listed_with_what_they_need(capsys):
     ("table1_A_b20", "table1", "A", True), ("table1_B_b20", "table1", "B", True),
     ("transfer_A_b20", "transfer", "A", False), ("transfer_B_b20", "transfer", "B", False),
     ("table3_A_b20", "table3", "A", False), ("table6_A_b20", "table6", "A", False),
-    ("table4_A_b20", "table4", "A", False)])
+    ("table4_A_b20", "table4", "A", False), ("realism_A_b20", "realism", "A", False)])
 def test_results_doc_quotes_the_kept_tables(folder, table, autonomy, with_tests):
     """docs/results.md quotes the protocol's tables; each table rebuilt from its kept files in
     docs/results/<folder> must give exactly the rows the doc shows (main table and paired
@@ -139,7 +139,7 @@ def test_results_doc_quotes_the_kept_tables(folder, table, autonomy, with_tests)
         rebuilt = (Path(tmp) / folder / "table.md").read_text()
     assert rebuilt == (path / "table.md").read_text()  # the kept table is what its files give
     doc = (REPO / "docs" / "results.md").read_text()
-    rows = [ln for ln in rebuilt.splitlines() if ln.startswith(("| Original", "| Adv", "| VD", "| m = ", "| *paper"))
+    rows = [ln for ln in rebuilt.splitlines() if ln.startswith(("| Original", "| Adv", "| VD", "| m = ", "| Unconstrained", "| Realistic", "| *paper"))
             and (with_tests or " - " not in ln.split("|")[1])]  # the main rows, and the paired tests if quoted
     assert len(rows) >= 3
     for row in rows:
