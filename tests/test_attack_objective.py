@@ -141,16 +141,21 @@ def test_decode_query_dimensions_follow_shape():
     assert ov[7].faces.dtype == np.int64 and ov[7].faces.max() < len(ov[7].vertices)
 
 
-def test_select_targets_in_front_nearest_first(repo_root):
+def _first_bundled_scene(repo_root):
     import glob
 
-    from adv3d_runner.attack.targets import select_targets
     from adv3d_runner.scene.schema import load_scene
 
     files = sorted(glob.glob(str(repo_root / "scenes" / "highway" / "*.json.gz")))
     if not files:
         pytest.skip("no bundled scenes")
-    scene = load_scene(files[0])
+    return load_scene(files[0])
+
+
+def test_select_targets_in_front_nearest_first(repo_root):
+    from adv3d_runner.attack.targets import select_targets
+
+    scene = _first_bundled_scene(repo_root)
     ids = select_targets(scene, 3)
     ego = scene.ego_poses()[0]
     fwd = np.array([np.cos(ego[2]), np.sin(ego[2])])
@@ -165,15 +170,9 @@ def test_select_targets_in_front_nearest_first(repo_root):
 
 
 def test_select_targets_rank_skips_the_closest(repo_root):
-    import glob
-
     from adv3d_runner.attack.targets import select_targets
-    from adv3d_runner.scene.schema import load_scene
 
-    files = sorted(glob.glob(str(repo_root / "scenes" / "highway" / "*.json.gz")))
-    if not files:
-        pytest.skip("no bundled scenes")
-    scene = load_scene(files[0])
+    scene = _first_bundled_scene(repo_root)
     three = select_targets(scene, 3)
     assert [select_targets(scene, 1, rank=k)[0] for k in range(3)] == three   # each of the 3 closest alone
     assert select_targets(scene, 2, rank=1) == three[1:]
