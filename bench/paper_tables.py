@@ -222,20 +222,32 @@ def export_run(work_dir: Path, keep_dir: Path) -> None:
         atomic_write_text(keep_dir / "queries.jsonl.gz", (work_dir / "queries.jsonl").read_text())
 
 
+#: The libraries whose versions a run's floating point depends on (recorded per invocation: a
+#: table made elsewhere, e.g. on a lent many-core machine, says so).
+ENV_PACKAGES = ("numpy", "torch", "embreex", "scipy", "trimesh")
+
+
 class Compute:
     """``compute.json`` of a table: one record per invocation (command, CPU s of this process and
-    its workers, wall s, new queries and held-out evaluations, CPU model), rewritten after every
-    unit of work so a killed campaign keeps its count."""
+    its workers, wall s, new queries and held-out evaluations, CPU model and the numerical
+    libraries' versions), rewritten after every unit of work so a killed campaign keeps its count.
+
+    A shard of a campaign (``--shard I/N``, one of N processes side by side) writes its own
+    ``compute-shard<I>of<N>-<start>.json`` so the processes never race on one file;
+    :func:`load_compute` merges them."""
 
     def __init__(self, path: Path, command: str):
-        from adv3d_runner.machine import cpu_model
+        from adv3d_runner.machine import cpu_model, machine_info
 
         self.path = path
         self.doc = json.loads(path.read_text()) if path.exists() else {"invocations": []}
+        info = machine_info(*ENV_PACKAGES)
         self.entry = {"started": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "command": command,
                       "cpu_model": cpu_model(), "cores": os.cpu_count(),
                       "load_average_at_start": list(os.getloadavg()),
-                      "note": "2-core machine shared with other jobs; CPU s = this process + its finished workers",
+                      "note": f"{os.cpu_count()}-core machine, maybe shared with other jobs; "
+                              "CPU s = this process + its finished workers",
+                      "environment": {k: info.get(k) for k in ("python", "platform", *ENV_PACKAGES)},
                       "cpu_s": 0.0, "wall_s": 0.0, "queries": 0, "heldout_evaluations": 0}
         self.doc["invocations"].append(self.entry)
         self.t_cpu, self.t_wall = cpu_now(), time.perf_counter()
@@ -250,6 +262,42 @@ class Compute:
         self.doc["cpu_s_total"] = round(sum(e["cpu_s"] for e in self.doc["invocations"]), 1)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         write_json(self.path, self.doc)
+
+
+def compute_path(results: Path, shard: tuple[int, int] | None) -> Path:
+    """Where an invocation records its compute: ``compute.json``, or a shard's own file."""
+    if shard is None:
+        return results / "compute.json"
+    stamp = time.strftime("%Y%m%dT%H%M%S", time.gmtime())
+    return results / f"compute-shard{shard[0]}of{shard[1]}-{stamp}.json"
+
+
+def load_compute(results: Path) -> dict:
+    """A table's compute records: ``compute.json`` and every shard's file, merged (invocations
+    in start order, ``cpu_s_total`` their sum)."""
+    invocations = []
+    for path in [results / "compute.json", *sorted(results.glob("compute-shard*.json"))]:
+        if path.exists():
+            invocations += json.loads(path.read_text()).get("invocations", [])
+    if not invocations:
+        return {}
+    invocations.sort(key=lambda e: e.get("started", ""))
+    return {"invocations": invocations, "cpu_s_total": round(sum(e.get("cpu_s", 0.0) for e in invocations), 1)}
+
+
+def parse_shard(text: str | None) -> tuple[int, int] | None:
+    """``"I/N"`` -> (I, N) with 0 <= I < N; None for None."""
+    from adv3d_runner.errors import ConfigError
+
+    if text is None:
+        return None
+    try:
+        i, n = (int(x) for x in text.split("/"))
+    except ValueError:
+        raise ConfigError(f"--shard: expected I/N (e.g. 3/16), got {text!r}") from None
+    if not (n >= 1 and 0 <= i < n):
+        raise ConfigError(f"--shard: need 0 <= I < N, got {text!r}")
+    return i, n
 
 
 def protocol_doc(spec: TableSpec, args, scenes) -> dict:
@@ -378,30 +426,35 @@ def run_table(spec: TableSpec, args) -> Path:
         proto["seeds"] = list(range(args.seeds))
     results.mkdir(parents=True, exist_ok=True)
     write_json(proto_path, proto)
-    compute = Compute(results / "compute.json", "python bench/paper_tables.py " + shlex.join(sys.argv[1:]))
+    shard = parse_shard(args.shard)
+    compute = Compute(compute_path(results, shard), "python bench/paper_tables.py " + shlex.join(sys.argv[1:]))
     compute.update()
-    for seed in range(args.seeds):
-        for setting in spec.settings:
-            for sc in scenes:
-                sid = scene_id_of(sc.path)
-                tag = f"{setting}/seed{seed}/{sid}"
-                cfg = setting_config(spec, setting, sc.path, seed, args)
-                work_dir, keep_dir = work / setting / f"seed{seed}" / sid, results / "runs" / setting / f"seed{seed}" / sid
-                t0 = time.perf_counter()
-                summary = run_attack(cfg, work_dir, workers=args.workers, show_progress=False)
-                new_q = sum(1 for _ in open(work_dir / "queries.jsonl")) if (work_dir / "queries.jsonl").exists() else 0
-                kept_q = 0
-                if (keep_dir / "queries.jsonl.gz").exists():
-                    import gzip
+    units = [(seed, setting, sc) for seed in range(args.seeds) for setting in spec.settings for sc in scenes]
+    if shard is not None:  # every N-th unit, seed 0's first: N processes side by side finish seeds in order
+        units = units[shard[0]::shard[1]]
+    for seed, setting, sc in units:
+        sid = scene_id_of(sc.path)
+        tag = f"{setting}/seed{seed}/{sid}"
+        cfg = setting_config(spec, setting, sc.path, seed, args)
+        work_dir, keep_dir = work / setting / f"seed{seed}" / sid, results / "runs" / setting / f"seed{seed}" / sid
+        t0 = time.perf_counter()
+        summary = run_attack(cfg, work_dir, workers=args.workers, show_progress=False)
+        new_q = sum(1 for _ in open(work_dir / "queries.jsonl")) if (work_dir / "queries.jsonl").exists() else 0
+        kept_q = 0
+        if (keep_dir / "queries.jsonl.gz").exists():
+            import gzip
 
-                    kept_q = sum(1 for _ in gzip.open(keep_dir / "queries.jsonl.gz", "rt"))
-                export_run(work_dir, keep_dir)
-                store = HeldoutStore(keep_dir / "heldout.json.gz")
-                n_new = run_heldout(heldout_tasks(summary, seed, args.eval_seeds), cfg.settings, store,
-                                    workers=args.workers)
-                compute.update(queries=max(0, new_q - kept_q), heldout=n_new)
-                print(f"[{spec.name}] {tag}: {new_q} queries ({new_q - kept_q} new), {n_new} held-out evaluations, "
-                      f"{time.perf_counter() - t0:.0f} s", flush=True)
+            kept_q = sum(1 for _ in gzip.open(keep_dir / "queries.jsonl.gz", "rt"))
+        export_run(work_dir, keep_dir)
+        store = HeldoutStore(keep_dir / "heldout.json.gz")
+        n_new = run_heldout(heldout_tasks(summary, seed, args.eval_seeds), cfg.settings, store,
+                            workers=args.workers)
+        compute.update(queries=max(0, new_q - kept_q), heldout=n_new)
+        print(f"[{spec.name}] {tag}: {new_q} queries ({new_q - kept_q} new), {n_new} held-out evaluations, "
+              f"{time.perf_counter() - t0:.0f} s", flush=True)
+    if shard is not None:  # the other shards may still run: the table is built once they are all done
+        print(f"[{spec.name}] shard {shard[0]}/{shard[1]} done; build the table with --table-only", flush=True)
+        return results
     return build_table(spec, args.autonomy, Path(args.results), args.budget)
 
 
@@ -509,7 +562,7 @@ def build_table(spec: TableSpec, autonomy: str, results_root: Path, budget: int 
     METRICS = metrics_for(autonomy)
     kept = load_kept(results)
     proto = json.loads((results / "protocol.json").read_text()) if (results / "protocol.json").exists() else {}
-    compute = json.loads((results / "compute.json").read_text()) if (results / "compute.json").exists() else {}
+    compute = load_compute(results)
     rows = collect(spec, kept)
     weights = {}
     for k in kept:
@@ -608,11 +661,27 @@ def build_table(spec: TableSpec, autonomy: str, results_root: Path, budget: int 
            "versions": made_with(proto, results),
            "protocol": proto, "compute": {"cpu_s_total": compute.get("cpu_s_total"),
                                           "cpu_models": sorted({e.get("cpu_model") for e in compute.get("invocations", [])}),
-                                          "invocations": len(compute.get("invocations", []))},
+                                          "invocations": len(compute.get("invocations", [])),
+                                          "cores": sorted({e.get("cores") for e in compute.get("invocations", [])
+                                                           if e.get("cores")}),
+                                          "environments": sorted({json.dumps(e["environment"], sort_keys=True)
+                                                                  for e in compute.get("invocations", [])
+                                                                  if e.get("environment")})},
            "paper": paper, "note": spec.note, **table}
     write_json(results / "table.json", doc)
     atomic_write_text(results / "table.md", table_markdown(spec, doc, scene_part))
     return results / "table.md"
+
+
+def _machine_words(compute: dict) -> str:
+    """Where a table ran, for its header: the shared 2-core machine, or another one with the
+    numerical libraries it used (their floating point differs from this machine's)."""
+    cores = compute.get("cores") or [2]
+    if cores == [2]:
+        return "shared 2-core machine"
+    envs = [json.loads(e) for e in compute.get("environments", [])]
+    libs = "; ".join(", ".join(f"{k} {e.get(k)}" for k in ("python", *ENV_PACKAGES) if e.get(k)) for e in envs)
+    return f"{'/'.join(map(str, cores))}-core machine, one process per core" + (f"; {libs}" if libs else "")
 
 
 def table_markdown(spec: TableSpec, doc: dict, scene_part: dict) -> str:
@@ -647,7 +716,7 @@ def table_markdown(spec: TableSpec, doc: dict, scene_part: dict) -> str:
               f", prediction term **{form.get('pred_reduction')}** over the waypoints"
               f"{' (Eq. 5 as written)' if form.get('pred_reduction') == 'sum' else ' (horizon mean)'}. Compute: "
               f"{_fmt(cpu / 60 if cpu else float('nan'))} CPU-minutes in all ({', '.join(doc['compute']['cpu_models'])}, "
-              f"shared 2-core machine)."
+              f"{_machine_words(doc['compute'])})."
               + (f" Weights: {', '.join(f'{k} `{v}`' for k, v in (doc.get('versions') or {}).get('models', {}).items())}; "
                  f"shape space `{str((doc.get('versions') or {}).get('shape_space', '?'))[:14]}…`"
                  + (f"; planner `{doc['versions']['planner']}`" if (doc.get("versions") or {}).get("planner") else "")
@@ -773,6 +842,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--batch", type=int, default=1, help="queries a search asks at once (default 1, the paper's BO)")
     p.add_argument("--work", default=str(REPO / "runs" / "paper"), help="run folders (default runs/paper)")
     p.add_argument("--results", default=str(REPO / "docs" / "results"), help="kept files (default docs/results)")
+    p.add_argument("--shard", default=None, metavar="I/N",
+                   help="run only every N-th unit (seed, setting, scene) from the I-th: N processes side by side "
+                        "on one machine, each with its own compute file; then --table-only")
     p.add_argument("--table-only", action="store_true", help="rebuild table.md/json from the kept files, run nothing")
     p.add_argument("--source-autonomy", default=None,
                    help="transfer: the stack whose table1 shapes are evaluated (default: the other of A and B)")

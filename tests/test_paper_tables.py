@@ -107,6 +107,38 @@ def test_driver_smoke_run_resume_and_rebuild(tmp_path):
         mod.main([*args[:11], "--seconds", "0.4", *args[13:]])
 
 
+def test_shards_split_the_units_and_merge_their_compute(tmp_path):
+    """--shard I/N: N processes side by side run disjoint units (seed, setting, scene), each
+    with its own compute file; together they make the table one process makes."""
+    mod = _driver()
+    from adv3d_runner.errors import ConfigError
+
+    common = ["table4", "--scenes", "1", "--real", "0", "--seeds", "1", "--budget", "1", "--n-initial", "1",
+              "--seconds", "0.2", "--eval-seeds", "1", "--work", str(tmp_path / "work")]
+    folder = tmp_path / "res" / "table4_A_b1"
+    for i in range(3):   # 4 units (m = 1, 2, 3, 5) over 3 shards: 2, 1 and 1 of them
+        assert mod.main([*common, "--results", str(tmp_path / "res"), "--shard", f"{i}/3"]) == 0
+    assert not (folder / "table.json").exists()          # a shard never builds the table
+    shards = sorted(folder.glob("compute-shard*.json"))
+    assert [p.name[:17] for p in shards] == ["compute-shard0of3", "compute-shard1of3", "compute-shard2of3"]
+    runs = sorted(p.parent.parent.parent.name for p in (folder / "runs").glob("*/seed0/*/run.json"))
+    assert runs == ["m1", "m2", "m3", "m5"]
+    merged = mod.load_compute(folder)
+    assert len(merged["invocations"]) == 3
+    assert merged["cpu_s_total"] == pytest.approx(sum(e["cpu_s"] for e in merged["invocations"]), abs=0.2)
+    assert merged["invocations"][0]["environment"]["numpy"]
+    assert mod.main(["table4", "--table-only", "--budget", "1", "--results", str(tmp_path / "res")]) == 0
+    sharded = json.loads((folder / "table.json").read_text())
+    assert sharded["compute"]["invocations"] == 3
+    # the same table from one process: the same rows, bit for bit
+    assert mod.main([*common, "--results", str(tmp_path / "one"), "--work", str(tmp_path / "work1")]) == 0
+    single = json.loads((tmp_path / "one" / "table4_A_b1" / "table.json").read_text())
+    assert sharded["rows"] == single["rows"]
+    for bad in ("3/3", "x/2", "1"):
+        with pytest.raises(ConfigError, match="--shard"):
+            mod.parse_shard(bad)
+
+
 def test_tables_listed_with_what_they_need(capsys):
     mod = _driver()
     assert mod.main(["--list"]) == 0
