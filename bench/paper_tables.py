@@ -16,8 +16,13 @@ resumes from the journals. It then re-evaluates the original scene and every bes
 ``--results``/``<table>``/``runs/<setting>/seed<k>/<scene id>/``: ``run.json``, ``summary.json``,
 ``queries.jsonl.gz`` (the journal, compressed) and ``heldout.json.gz``. The table
 (``table.md``, ``table.json``) is built from those kept files alone; ``compute.json`` records
-the CPU seconds of every invocation (this process and its workers), the CPU model and the
-command.
+the CPU seconds of every invocation (this process and its workers), the CPU model, the
+numerical libraries' versions and the command.
+
+On a many-core machine run N shards side by side, then build the table::
+
+    for i in $(seq 0 15); do python bench/paper_tables.py table5 ... --shard $i/16 & done; wait
+    python bench/paper_tables.py table5 --budget 20 --table-only
 
 Tables (:data:`TABLES`): ``table1`` (Original / Adv. open-loop / Adv. closed-loop, BO),
 ``table3`` (vertex deformation against latent shapes), ``table4`` (m = 1, 2, 3, 5 actors),
