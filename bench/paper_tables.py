@@ -443,14 +443,20 @@ def run_table(spec: TableSpec, args) -> Path:
         cfg = setting_config(spec, setting, sc.path, seed, args)
         work_dir, keep_dir = work / setting / f"seed{seed}" / sid, results / "runs" / setting / f"seed{seed}" / sid
         t0 = time.perf_counter()
-        summary = run_attack(cfg, work_dir, workers=args.workers, show_progress=False)
-        new_q = sum(1 for _ in open(work_dir / "queries.jsonl")) if (work_dir / "queries.jsonl").exists() else 0
-        kept_q = 0
-        if (keep_dir / "queries.jsonl.gz").exists():
-            import gzip
+        if (keep_dir / "summary.json").exists() and not (work_dir / "queries.jsonl").exists():
+            # finished, and its work folder is elsewhere (another machine, or removed): the kept
+            # files are the record; searching again would only rewrite them
+            summary = json.loads((keep_dir / "summary.json").read_text())
+            new_q = kept_q = 0
+        else:
+            summary = run_attack(cfg, work_dir, workers=args.workers, show_progress=False)
+            new_q = sum(1 for _ in open(work_dir / "queries.jsonl")) if (work_dir / "queries.jsonl").exists() else 0
+            kept_q = 0
+            if (keep_dir / "queries.jsonl.gz").exists():
+                import gzip
 
-            kept_q = sum(1 for _ in gzip.open(keep_dir / "queries.jsonl.gz", "rt"))
-        export_run(work_dir, keep_dir)
+                kept_q = sum(1 for _ in gzip.open(keep_dir / "queries.jsonl.gz", "rt"))
+            export_run(work_dir, keep_dir)
         store = HeldoutStore(keep_dir / "heldout.json.gz")
         n_new = run_heldout(heldout_tasks(summary, seed, args.eval_seeds), cfg.settings, store,
                             workers=args.workers)

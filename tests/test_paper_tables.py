@@ -134,6 +134,15 @@ def test_shards_split_the_units_and_merge_their_compute(tmp_path):
     assert mod.main([*common, "--results", str(tmp_path / "one"), "--work", str(tmp_path / "work1")]) == 0
     single = json.loads((tmp_path / "one" / "table4_A_b1" / "table.json").read_text())
     assert sharded["rows"] == single["rows"]
+    # a finished unit whose work folder is gone (made on another machine) is not searched again:
+    # its kept files stay as they are, and the table grows by another seed beside it
+    import shutil
+
+    kept_before = {p: p.read_bytes() for p in (folder / "runs").rglob("*") if p.is_file()}
+    shutil.rmtree(tmp_path / "work")
+    assert mod.main([*common[:6], "2", *common[7:], "--results", str(tmp_path / "res"), "--shard", "0/1"]) == 0
+    assert all(p.read_bytes() == b for p, b in kept_before.items())
+    assert sorted(p.parent.parent.name for p in (folder / "runs").glob("m1/seed*/*/run.json")) == ["seed0", "seed1"]
     for bad in ("3/3", "x/2", "1"):
         with pytest.raises(ConfigError, match="--shard"):
             mod.parse_shard(bad)
