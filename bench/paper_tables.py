@@ -681,7 +681,76 @@ def build_table(spec: TableSpec, autonomy: str, results_root: Path, budget: int 
            "paper": paper, "note": spec.note, **table}
     write_json(results / "table.json", doc)
     atomic_write_text(results / "table.md", table_markdown(spec, doc, scene_part))
+    if doc["rows"]:
+        table_figure(spec, doc, scene_part, results / "table.png")
     return results / "table.md"
+
+
+def baseline_row(spec: TableSpec, name: str) -> str | None:
+    """The original row a search row is measured against: the one with the same
+    parenthesised kind of traffic (Table 6), else the first original row; None for originals."""
+    originals = [n for n, r in spec.rows.items() if r == "original" or (isinstance(r, tuple) and r[1] == "original")]
+    if name in originals or not originals:
+        return None
+    suffix = name[name.rfind("("):] if name.endswith(")") else None
+    return next((o for o in originals if suffix and o.endswith(suffix)), originals[0])
+
+
+def table_figure(spec: TableSpec, doc: dict, scene_part: dict, path: Path) -> None:
+    """``table.png``: per search row, the held-out change against its original row, scene by
+    scene (dots, by kind of scene) with the mean and its 95 % bootstrap interval over scenes,
+    for the objective and for AP. Pictures what the table's rows say; made from table.json."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from adv3d_runner.fileio import atomic_write_bytes
+    from adv3d_runner.metrics.stats import bootstrap_ci
+
+    rows = doc["rows"]
+    names = [n for n in rows if baseline_row(spec, n) in rows]
+    if not names:
+        return
+    from adv3d_runner.attack.protocol import LOWER_IS_WORSE
+
+    metrics = list(next(iter(rows.values()))["metrics"])[:2]   # the objective and AP (A) or occupancy mAP (B)
+
+    def part(scene: str) -> str:
+        return str(scene_part.get(scene.replace("commonroad-", ""), {}).get("part", "generated"))
+
+    kinds = sorted({str(info.get("part", "generated")) for info in scene_part.values()})
+    colours = dict(zip(kinds, ("tab:blue", "tab:orange", "tab:green")))
+    fig, axes = plt.subplots(1, len(metrics), figsize=(1.1 * len(names) + 3.0, 3.6) if len(metrics) == 1 else
+                             (2 * (0.9 * len(names) + 1.6), 3.6), squeeze=False)
+    for ax, metric in zip(axes[0], metrics):
+        for i, name in enumerate(names):
+            base = rows[baseline_row(spec, name)]["metrics"][metric]["per_scene"]
+            per = rows[name]["metrics"][metric]["per_scene"]
+            scenes = sorted(set(per) & set(base))
+            diff = np.array([per[s] - base[s] for s in scenes])
+            # the scenes left of the interval, spread so none hides behind it
+            jitter = -0.2 + (np.linspace(-0.12, 0.12, len(scenes)) if len(scenes) > 1 else np.zeros(1))
+            for x, s, d in zip(i + jitter, scenes, diff):
+                ax.plot(x, d, "o", ms=4, alpha=0.7, color=colours.get(part(s), "tab:gray"))
+            mean, lo, hi = bootstrap_ci(diff)
+            ax.errorbar(i + 0.1, mean, yerr=[[mean - lo], [hi - mean]], fmt="_", ms=18, mew=2, color="black", capsize=4)
+        ax.axhline(0.0, color="0.6", lw=0.8)
+        ax.set_xticks(range(len(names)), [n.replace(" (", "\n(") for n in names], fontsize=7, rotation=20)
+        ax.set_ylabel(f"{metric}: held-out change vs original", fontsize=8)
+        ax.set_title(f"{metric} ({'lower' if metric in LOWER_IS_WORSE else 'higher'} = worse for the stack)", fontsize=9)
+    handles = [plt.Line2D([], [], ls="", marker="o", color=c, label=k) for k, c in colours.items()]
+    handles.append(plt.Line2D([], [], ls="", marker="_", ms=12, mew=2, color="black", label="mean, 95 % CI"))
+    axes[0][-1].legend(handles=handles, fontsize=7, loc="best")
+    fig.suptitle(f"{doc['title']}, Autonomy-{doc['autonomy']}: {max(r['n_scenes'] for r in rows.values())} scenes, "
+                 f"run seeds {', '.join(map(str, sorted({s for r in rows.values() for s in r['seeds']})))}", fontsize=9)
+    fig.tight_layout()
+    import io
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110, metadata={"Software": None})
+    plt.close(fig)
+    atomic_write_bytes(path, buf.getvalue())
 
 
 def _machine_words(compute: dict) -> str:

@@ -71,6 +71,7 @@ def test_driver_smoke_run_resume_and_rebuild(tmp_path):
     evals = read_json(kept / "heldout.json.gz")["evaluations"]
     assert all(r["seed"] not in (m["search_seed"], m["noise_seed"]) for r in evals.values())
     assert len(evals) == 3                                   # original, open best, closed best on 1 seed
+    assert (folder / "table.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"   # the table's picture
     md = (folder / "table.md").read_text()
     assert "*paper: Adv. closed-loop*" in md and "prediction term **sum**" in md
     before = (folder / "table.json").read_text()
@@ -146,6 +147,16 @@ def test_shards_split_the_units_and_merge_their_compute(tmp_path):
     for bad in ("3/3", "x/2", "1"):
         with pytest.raises(ConfigError, match="--shard"):
             mod.parse_shard(bad)
+
+
+def test_each_search_row_is_pictured_against_its_own_original():
+    mod = _driver()
+    t6, t1 = mod.TABLES["table6"], mod.TABLES["table1"]
+    assert mod.baseline_row(t6, "Adv. closed-loop (reactive)") == "Original (reactive)"
+    assert mod.baseline_row(t6, "Adv. open-loop (replayed)") == "Original (replayed)"
+    assert mod.baseline_row(t6, "Original (reactive)") is None
+    assert mod.baseline_row(t1, "Adv. closed-loop") == "Original"
+    assert mod.baseline_row(mod.TABLES["table2"], "M3 open-loop") == "Original"
 
 
 def test_tables_listed_with_what_they_need(capsys):
