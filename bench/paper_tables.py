@@ -443,9 +443,10 @@ def run_table(spec: TableSpec, args) -> Path:
         cfg = setting_config(spec, setting, sc.path, seed, args)
         work_dir, keep_dir = work / setting / f"seed{seed}" / sid, results / "runs" / setting / f"seed{seed}" / sid
         t0 = time.perf_counter()
-        if (keep_dir / "summary.json").exists() and not (work_dir / "queries.jsonl").exists():
-            # finished, and its work folder is elsewhere (another machine, or removed): the kept
-            # files are the record; searching again would only rewrite them
+        if (keep_dir / "summary.json").exists():
+            # finished (a run is kept only once its budget is spent): the kept files are the
+            # record. Replaying the journal would only rewrite them, and fails where the unit ran
+            # on another machine, whose numerical libraries propose other BO points
             summary = json.loads((keep_dir / "summary.json").read_text())
             new_q = kept_q = 0
         else:

@@ -261,7 +261,8 @@ class _Search:
                     if (u.shape != np.shape(x) or not np.allclose(u, x, rtol=0, atol=1e-9)
                             or rec.get("actors") != self.run.targets):
                         raise ConfigError(f"{self.journal.path}: query {i} of {self.scene_id}/{self.mode} does not "
-                                          f"match this run (different code or options?); use a new --out")
+                                          f"match this run (different code, options, or numerical libraries: a search resumes "
+                                          f"only where its journal was written); use a new --out")
                     self.results[i] = rec
                     self.run.reused += 1
                 else:
