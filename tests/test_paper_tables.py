@@ -272,3 +272,45 @@ def test_table5_runs_every_searcher_with_its_compute(tmp_path):
     assert any(c["a"] == "BO" and c["b"] == "BO (scikit-optimize)" for c in table["comparisons"])
     md = (folder / "table.md").read_text()
     assert "| queries / search | episode min / search |" in md and "| BO (scikit-optimize) | 1 | 1 |" in md
+
+
+def test_budget_effect_pairs_two_budgets_on_shared_runs(tmp_path):
+    """bench/budget_effect.py: two budgets of one table compared on their shared scenes and run
+    seeds; the originals must agree exactly, else the comparison is refused."""
+    spec = importlib.util.spec_from_file_location("budget_effect", REPO / "bench" / "budget_effect.py")
+    be = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(be)
+    from adv3d_runner.errors import ConfigError
+
+    mod = _driver()
+    common = ["table1", "--scenes", "1", "--real", "0", "--budget", "{b}", "--n-initial", "1", "--seconds", "0.2",
+              "--eval-seeds", "1", "--work", str(tmp_path / "work{b}"), "--results", str(tmp_path / "res")]
+    for budget, seeds in ((1, "2"), (3, "1")):   # the small budget has a run seed the large one lacks
+        assert mod.main([a.format(b=budget) for a in common] + ["--seeds", seeds]) == 0
+    a, b = tmp_path / "res" / "table1_A_b3", tmp_path / "res" / "table1_A_b1"
+    assert be.main([str(a), str(b)]) == 0
+    res = json.loads((a / "budget_effect.json").read_text())
+    assert res["run_seeds"] == [0] and res["budget_a"] == 3 and res["budget_b"] == 1
+    assert list(res["rows"]) == ["Adv. open-loop", "Adv. closed-loop"]
+    obj = res["rows"]["Adv. closed-loop"]["objective"]
+    # the difference is that of the two folders' own held-out records for run seed 0
+    from adv3d_runner.fileio import read_json
+
+    def closed(folder):
+        ev = read_json(folder / "runs" / "bo" / "seed0" / "highway-benchmark-000000" / "heldout.json.gz")["evaluations"]
+        return np.mean([r["cost"] for k, r in ev.items() if k.split("|")[1] == "closed"])
+
+    assert obj["n"] == 1 and obj["mean_diff"] == pytest.approx(closed(a) - closed(b))
+    assert "| Adv. closed-loop | objective |" in (a / "budget_effect.md").read_text()
+    # another stack's (or machine's) originals: refused, naming the scene
+    held = b / "runs" / "bo" / "seed0" / "highway-benchmark-000000" / "heldout.json.gz"
+    doc = read_json(held)
+    for key, rec in doc["evaluations"].items():
+        if key.split("|")[1] == "original":
+            rec["cost"] += 1.0
+    from adv3d_runner.fileio import write_json
+
+    write_json(held, doc)
+    with pytest.raises(ConfigError, match="highway-benchmark-000000 run seed 0: the originals differ"):
+        be.compare(a, b)
+    assert be.main([str(a), str(tmp_path)]) == 2     # not a table folder: a clear error, exit 2
