@@ -290,6 +290,20 @@ def load_compute(results: Path) -> dict:
     return {"invocations": invocations, "cpu_s_total": round(sum(e.get("cpu_s", 0.0) for e in invocations), 1)}
 
 
+def campaign_units(seeds, settings: list, scenes: list) -> list[tuple]:
+    """The (seed, setting, scene) units of a campaign in the order they run, seed by seed.
+
+    Each setting's scenes start one further along (setting j from scene j mod S): with
+    ``--shard I/N`` taking every N-th unit, a plain setting-major order gives a shard all the
+    units of the scenes at its positions whenever N divides the scene count S (2 shards, 6
+    scenes: one shard gets every unit of the slow congested scene); rotated, each scene's units
+    spread over the shards.
+    """
+    n = len(scenes)
+    return [(seed, setting, scenes[(j + q) % n]) for seed in seeds for j, setting in enumerate(settings)
+            for q in range(n)]
+
+
 def parse_shard(text: str | None) -> tuple[int, int] | None:
     """``"I/N"`` -> (I, N) with 0 <= I < N; None for None."""
     from adv3d_runner.errors import ConfigError
@@ -434,7 +448,7 @@ def run_table(spec: TableSpec, args) -> Path:
     shard = parse_shard(args.shard)
     compute = Compute(compute_path(results, shard), "python bench/paper_tables.py " + shlex.join(sys.argv[1:]))
     compute.update()
-    units = [(seed, setting, sc) for seed in range(args.seeds) for setting in spec.settings for sc in scenes]
+    units = campaign_units(range(args.seeds), list(spec.settings), scenes)
     if shard is not None:  # every N-th unit, seed 0's first: N processes side by side finish seeds in order
         units = units[shard[0]::shard[1]]
     for seed, setting, sc in units:

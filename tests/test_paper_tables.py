@@ -151,6 +151,14 @@ def test_shards_split_the_units_and_merge_their_compute(tmp_path):
     assert mod.main([*common[:6], "2", *common[7:], "--results", str(tmp_path / "res"), "--shard", "0/1"]) == 0
     assert all(p.read_bytes() == b for p, b in kept_before.items())
     assert sorted(p.parent.parent.name for p in (folder / "runs").glob("m1/seed*/*/run.json")) == ["seed0", "seed1"]
+    # every scene's units spread over the shards, also where the shard count divides the scenes'
+    settings, scenes = [f"M{m}-r{r}" for m in range(6) for r in range(3)], list("abcdef")
+    units = mod.campaign_units(range(2), settings, scenes)
+    assert sorted(units) == sorted((s, m, sc) for s in range(2) for m in settings for sc in scenes)
+    assert [u[0] for u in units] == sorted(u[0] for u in units)       # seed by seed
+    for i in range(2):
+        mine = units[i::2]
+        assert all(sum(u[2] == sc for u in mine) == 18 for sc in scenes)
     for bad in ("3/3", "x/2", "1"):
         with pytest.raises(ConfigError, match="--shard"):
             mod.parse_shard(bad)
