@@ -539,3 +539,31 @@ def test_string_and_bool_numbers_are_refused(tmp_path):
     write_json(path, doc)
     with pytest.raises(FileFormatError, match=r"\$\.outputs\[0\]\.plan\.trajectory\[1\]\[1\]: expected a number"):
         load_replay(path)
+
+
+def test_a_run_folder_has_one_writer_at_a_time(tmp_path):
+    """Two processes on one run folder (a campaign shard started twice) would interleave their
+    queries in one journal: the second is refused while the first holds the folder's lock, and
+    may go on once it has let go; within one process a later journal takes the lock over."""
+    import subprocess
+    import sys
+
+    cfg = AttackConfig(["synthetic:peak"], algo="random", budget=2, seed=1)
+    run_attack(cfg, tmp_path / "run", evaluator=SyntheticEvaluator, show_progress=False)
+    held = Journal(tmp_path / "run")
+    stored = held.start(read_run(tmp_path / "run")[0])
+    probe = ("import sys; from adv3d_runner.attack.journal import Journal, read_run\n"
+             "from adv3d_runner.errors import ConfigError\n"
+             "try:\n    Journal(sys.argv[1]).start(read_run(sys.argv[1])[0])\n"
+             "except ConfigError as e:\n    print(e); sys.exit(3)\n")
+    other = subprocess.run([sys.executable, "-c", probe, str(tmp_path / "run")], capture_output=True, text=True)
+    assert other.returncode == 3, other.stderr
+    assert "another process is writing this run" in other.stdout and str(tmp_path / "run") in other.stdout
+    before = (tmp_path / "run" / "queries.jsonl").read_bytes()
+    # the same process: the resumed run takes the lock over and finds nothing to do
+    run_attack(cfg, tmp_path / "run", evaluator=SyntheticEvaluator, show_progress=False)
+    assert (tmp_path / "run" / "queries.jsonl").read_bytes() == before
+    held.close()
+    again = subprocess.run([sys.executable, "-c", probe, str(tmp_path / "run")], capture_output=True, text=True)
+    assert again.returncode == 0, again.stdout + again.stderr
+    assert stored["budget"] == 2

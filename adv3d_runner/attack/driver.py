@@ -554,6 +554,7 @@ def run_attack(config: AttackConfig, out: str | Path, *, workers: int | None = 1
                 search.bar.close()
     if not stopped:
         journal.canonicalize([(sid, mode) for sid in ids for mode in config.modes])
+    journal.close()
     return _ordered_summary(summary, config, ids)
 
 

@@ -46,6 +46,12 @@ from ..errors import ConfigError, FileFormatError
 from ..fileio import MAX_JSON_BYTES, parse_json, read_bytes, resolve_inside, write_json
 from ..validate import Node, check_header
 
+#: The run folder's lock file: held (``flock``, exclusive) by the one process writing the run.
+LOCK_NAME = ".adv3d-run.lock"
+
+#: Run folders whose lock this process holds: real path -> (fd, id of the journal owning it).
+_HELD_LOCKS: dict[str, tuple[int, int]] = {}
+
 RUN_FORMAT = "adv3d.attack_run"
 SUMMARY_FORMAT = "adv3d.attack_summary"
 QUERY_FORMAT = "adv3d.attack_query"
@@ -119,6 +125,42 @@ class Journal:
         self.pending_path = self.root / PENDING_NAME
         self.records: list[dict] = []
         self.pending: dict[tuple[str, str, int], dict] = {}
+        self._lock_key: str | None = None
+
+    def _lock(self) -> None:
+        """Hold the run folder's lock for as long as this journal lives (the OS drops it when
+        the process ends, however it ends): two processes appending to one journal would
+        interleave their queries and ruin the run, e.g. a campaign shard started twice. A
+        journal of a run this process already holds (an earlier one not yet collected) takes
+        the lock over."""
+        key = os.path.realpath(self.root)
+        if key in _HELD_LOCKS:
+            _HELD_LOCKS[key] = (_HELD_LOCKS[key][0], id(self))
+            self._lock_key = key
+            return
+        try:
+            import fcntl
+        except ImportError:  # no flock (Windows): one writer per folder is then the user's care
+            return
+        fd = os.open(self.root / LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            os.close(fd)
+            raise ConfigError(f"{self.root}: another process is writing this run (its lock {LOCK_NAME} is "
+                              f"held); wait for it to finish, or use another --out") from None
+        _HELD_LOCKS[key] = (fd, id(self))
+        self._lock_key = key
+
+    def close(self) -> None:
+        """Release the run folder's lock (also done when the journal is collected or the
+        process ends)."""
+        key, self._lock_key = self._lock_key, None
+        if key is not None and _HELD_LOCKS.get(key, (0, None))[1] == id(self):
+            os.close(_HELD_LOCKS.pop(key)[0])
+
+    def __del__(self) -> None:
+        self.close()
 
     # ------------------------------------------------------------------ run.json
     def start(self, config: dict) -> dict:
@@ -130,19 +172,22 @@ class Journal:
         before anything is written: the user's files are never overwritten.
 
         Raises:
-            ConfigError: the folder holds a run with a different config, or other files.
+            ConfigError: the folder holds a run with a different config, or other files, or
+                another process is writing it (the folder's lock, :data:`LOCK_NAME`).
             FileFormatError: its run.json or journal is damaged.
         """
         run_path = self.root / "run.json"
         if self.root.exists() or self.root.is_symlink():
             if not self.root.is_dir():
                 raise ConfigError(f"--out {self.root}: exists and is not a folder; give a new or empty folder")
-            if not run_path.exists() and any(self.root.iterdir()):
-                names = sorted(p.name for p in self.root.iterdir())
+            names = sorted(p.name for p in self.root.iterdir() if p.name != LOCK_NAME)
+            if not run_path.exists() and names:
                 shown = ", ".join(names[:5]) + (", ..." if len(names) > 5 else "")
                 raise ConfigError(f"--out {self.root}: the folder holds files that are not an adv3d run "
                                   f"({shown}; no run.json); give a new or empty folder")
         doc = _clean({"format": RUN_FORMAT, "version": RUN_VERSION, **config})
+        self.root.mkdir(parents=True, exist_ok=True)
+        self._lock()
         if run_path.exists():
             old = _read_doc(run_path, RUN_FORMAT)
             if old.get("version") != RUN_VERSION:
@@ -171,7 +216,6 @@ class Journal:
                                   f"use another --out or the same options to resume it")
             self.load(repair=True)
             return old
-        self.root.mkdir(parents=True, exist_ok=True)
         write_json(run_path, doc, indent=1)
         self.load(repair=True)
         return doc
