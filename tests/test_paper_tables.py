@@ -188,7 +188,8 @@ def test_tables_listed_with_what_they_need(capsys):
     ("transfer_A_b20", "transfer", "A", False), ("transfer_B_b20", "transfer", "B", False),
     ("table3_A_b20", "table3", "A", False), ("table6_A_b20", "table6", "A", False),
     ("table4_A_b20", "table4", "A", False), ("realism_A_b20", "realism", "A", False),
-    ("table5_A_b20", "table5", "A", False), ("table2_A_b20", "table2", "A", False)])
+    ("table5_A_b20", "table5", "A", False), ("table2_A_b20", "table2", "A", False),
+    ("table1_A", "table1", "A", False)])
 def test_results_doc_quotes_the_kept_tables(folder, table, autonomy, with_tests):
     """docs/results.md quotes the protocol's tables; each table rebuilt from its kept files in
     docs/results/<folder> must give exactly the rows the doc shows (main table and paired
@@ -214,6 +215,15 @@ def test_results_doc_quotes_the_kept_tables(folder, table, autonomy, with_tests)
     assert len(rows) >= 3
     for row in rows:
         assert row in doc, row
+    if (path / "budget_effect.json").exists():   # the budget comparison the doc quotes, recomputed
+        spec = importlib.util.spec_from_file_location("budget_effect", REPO / "bench" / "budget_effect.py")
+        be = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(be)
+        kept = json.loads((path / "budget_effect.json").read_text())
+        md = be.markdown(be.compare(REPO / kept["a"], REPO / kept["b"]))
+        assert md == (path / "budget_effect.md").read_text()
+        quoted = [ln for ln in md.splitlines() if ln.startswith("| Adv.") and "| objective |" in ln]
+        assert quoted and all(ln in doc for ln in quoted)
 
 
 def test_worst_case_rows_pick_by_search_seed_and_common_objective():
