@@ -885,8 +885,14 @@ def table_markdown(spec: TableSpec, doc: dict, scene_part: dict) -> str:
         lines += ["", "det: -alpha sum_TP IoU x conf + beta sum_FP (1 - IoU) x conf; pred: metres summed over the "
                   "waypoints (pred sum) or averaged (pred mean), averaged over modes and matched actors; plan: "
                   "|jerk| + |lateral acceleration| of the plans; all summed over the frames.", ""]
+    src = proto.get("transfer_from")
     lines += ["Search seed against held-out seeds (objective, mean over scenes): what the search saw on its own "
-              "noise seed, and the same shapes on the held-out seeds.", "", "| | search seed | held-out |", "|---|---:|---:|"]
+              "noise seed, and the same shapes on the held-out seeds."
+              # a transfer's two columns are two stacks' objectives (other terms and weights): never compare them
+              + (f" Here the search seed's column is Autonomy-{src}'s objective, the held-out column this stack's: "
+                 "they do not compare." if src else ""),
+              "", "| | search seed | held-out |" if not src else
+              f"| | search seed (Autonomy-{src}'s objective) | held-out (this stack's) |", "|---|---:|---:|"]
     for name, row in rows.items():
         lines.append(f"| {name} | {_fmt(row['search_seed_objective']['mean'])} | {_fmt(row['metrics']['objective']['mean'])} |")
     second = list(METRICS)[1]  # AP (Autonomy-A), occupancy mAP (B)
