@@ -190,7 +190,7 @@ def test_tables_listed_with_what_they_need(capsys):
     ("table4_A_b20", "table4", "A", False), ("realism_A_b20", "realism", "A", False),
     ("table5_A_b20", "table5", "A", False), ("table2_A_b20", "table2", "A", False),
     ("table1_A", "table1", "A", False), ("transfer_B", "transfer", "B", False),
-    ("table1_B", "table1", "B", False)])
+    ("table1_B", "table1", "B", False), ("transfer_A", "transfer", "A", False)])
 def test_results_doc_quotes_the_kept_tables(folder, table, autonomy, with_tests):
     """docs/results.md quotes the protocol's tables; each table rebuilt from its kept files in
     docs/results/<folder> must give exactly the rows the doc shows (main table and paired
