@@ -39,6 +39,7 @@ import os
 import resource
 import shlex
 import sys
+import textwrap
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -757,8 +758,10 @@ def table_figure(spec: TableSpec, doc: dict, scene_part: dict, path: Path) -> No
     handles = [plt.Line2D([], [], ls="", marker="o", color=c, label=k) for k, c in colours.items()]
     handles.append(plt.Line2D([], [], ls="", marker="_", ms=12, mew=2, color="black", label="mean, 95 % CI"))
     axes[0][-1].legend(handles=handles, fontsize=7, loc="best")
-    fig.suptitle(f"{doc['title']}, Autonomy-{doc['autonomy']}: {max(r['n_scenes'] for r in rows.values())} scenes, "
-                 f"run seeds {', '.join(map(str, sorted({s for r in rows.values() for s in r['seeds']})))}", fontsize=9)
+    title = (f"{doc['title']}, Autonomy-{doc['autonomy']}: {max(r['n_scenes'] for r in rows.values())} scenes, "
+             f"run seeds {', '.join(map(str, sorted({s for r in rows.values() for s in r['seeds']})))}")
+    # wrapped to the figure's width (about 15 characters per inch at 9 pt), so no title is cut off
+    fig.suptitle(textwrap.fill(title, width=max(40, int(15 * fig.get_figwidth()))), fontsize=9)
     fig.tight_layout()
     import io
 
