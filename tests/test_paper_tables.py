@@ -3,25 +3,20 @@ budget 2, 0.3 s episodes): run, resume without new work, rebuild the table from 
 refuse to grow a table with other protocol values; and the paper's numbers against its tex."""
 from __future__ import annotations
 
-import importlib.util
 import json
 import re
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import load_bench
 
 REPO = Path(__file__).resolve().parent.parent
 TEX = Path("/work/shared/seed/adv3d_paper.tex")
 
 
 def _driver():
-    spec = importlib.util.spec_from_file_location("paper_tables", REPO / "bench" / "paper_tables.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod  # its dataclasses look their module up
-    spec.loader.exec_module(mod)
-    return mod
+    return load_bench("paper_tables")
 
 
 def _numbers(text: str) -> list[float]:
@@ -217,9 +212,7 @@ def test_results_doc_quotes_the_kept_tables(folder, table, autonomy, with_tests)
     for row in rows:
         assert row in doc, row
     if (path / "budget_effect.json").exists():   # the budget comparison the doc quotes, recomputed
-        spec = importlib.util.spec_from_file_location("budget_effect", REPO / "bench" / "budget_effect.py")
-        be = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(be)
+        be = load_bench("budget_effect")
         kept = json.loads((path / "budget_effect.json").read_text())
         md = be.markdown(be.compare(REPO / kept["a"], REPO / kept["b"]))
         assert md == (path / "budget_effect.md").read_text()
@@ -296,9 +289,7 @@ def test_table5_runs_every_searcher_with_its_compute(tmp_path):
 def test_budget_effect_pairs_two_budgets_on_shared_runs(tmp_path):
     """bench/budget_effect.py: two budgets of one table compared on their shared scenes and run
     seeds; the originals must agree exactly, else the comparison is refused."""
-    spec = importlib.util.spec_from_file_location("budget_effect", REPO / "bench" / "budget_effect.py")
-    be = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(be)
+    be = load_bench("budget_effect")
     from adv3d_runner.errors import ConfigError
 
     mod = _driver()

@@ -1,24 +1,19 @@
 """bench/results_glance.py: the "At a glance" picture lines up the kept tables' own comparisons."""
 from __future__ import annotations
 
-import importlib.util
 import json
 import shutil
-import sys
 from pathlib import Path
 
 import pytest
+from conftest import load_bench
 
 REPO = Path(__file__).resolve().parent.parent
 RESULTS = REPO / "docs" / "results"
 
 
 def _glance():
-    spec = importlib.util.spec_from_file_location("results_glance", REPO / "bench" / "results_glance.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules.setdefault("results_glance", mod)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_bench("results_glance")
 
 
 def test_rows_are_the_tables_objective_comparisons():
