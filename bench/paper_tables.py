@@ -501,6 +501,57 @@ def load_kept(results: Path) -> list[dict]:
     return out
 
 
+def unit_complete(k: dict, eval_seeds: int) -> bool:
+    """Whether a kept run is finished: its search kept (it is in ``load_kept`` only then) and
+    every held-out evaluation it needs stored (``eval_seeds`` per attacked scene for the original
+    and each mode's best shape; a skipped scene needs none)."""
+    for sid, entry in k["summary"].get("scenes", {}).items():
+        if "skipped" in entry or not entry.get("modes"):
+            continue
+        whats = ["original"] + [m for m, v in entry["modes"].items() if v.get("best_unit") is not None]
+        for what in whats:
+            if sum(1 for key in k["heldout"] if key.split("|")[:2] == [sid, what]) < eval_seeds:
+                return False
+    return True
+
+
+def complete_block(kept: list[dict], settings: list[str], seeds: list[int], scenes: list[str],
+                   eval_seeds: int, floor: tuple[list[int], list[str]] | None = None) -> tuple[list[int], list[str]]:
+    """The run seeds and scenes a table reports: a block of run seeds ``0..j`` x the scenes
+    whose every setting is finished (:func:`unit_complete`) for each of those seeds.
+
+    A table grows over several sittings, by seeds or by scenes, and its kept folder holds what
+    is finished so far; reporting a half-grown seed would mix scenes with different numbers of
+    run seeds (and change a worst-case row's candidates scene by scene). So a seed or scene
+    enters the table once its block is whole, and the table never shrinks while it grows: of
+    the blocks that contain ``floor`` (the block the table reported before; ignored when no
+    finished block contains it) the one with the most seed x scene cells, ties to more seeds.
+    ``seeds``: the protocol's, in order; ``scenes``: scene ids."""
+    done = {(k["seed"], k["scene"], k["setting"]) for k in kept if unit_complete(k, eval_seeds)}
+    blocks = []
+    for j in range(len(seeds)):
+        block_seeds = seeds[: j + 1]
+        block_scenes = [c for c in scenes if all((s, c, t) in done for s in block_seeds for t in settings)]
+        if block_scenes:
+            blocks.append((block_seeds, block_scenes))
+    if floor is not None:
+        grown = [b for b in blocks if set(floor[0]) <= set(b[0]) and set(floor[1]) <= set(b[1])]
+        blocks = grown or blocks
+    if not blocks:
+        return [], []
+    return max(blocks, key=lambda b: (len(b[0]) * len(b[1]), len(b[0])))
+
+
+def reported_block(table_json: Path) -> tuple[list[int], list[str]] | None:
+    """The run seeds and scenes a kept ``table.json`` reports (None without one)."""
+    if not table_json.exists():
+        return None
+    rows = json.loads(table_json.read_text()).get("rows", {}).values()
+    seeds = sorted({s for r in rows for s in r.get("seeds", [])})
+    scenes = sorted({c for r in rows for m in r.get("metrics", {}).values() for c in m.get("per_scene", {})})
+    return (seeds, scenes) if seeds and scenes else None
+
+
 def journal_compute(results: Path, setting: str, seed: int, scene: str, mode: str) -> tuple[int, float]:
     """(queries, sum of their ``wall_s``) of one kept search's journal, one mode: the episodes
     the search spent and their wall time on the workers (s; the searcher's own ask/tell time,
@@ -589,6 +640,16 @@ def build_table(spec: TableSpec, autonomy: str, results_root: Path, budget: int 
     METRICS = metrics_for(autonomy)
     kept = load_kept(results)
     proto = json.loads((results / "protocol.json").read_text()) if (results / "protocol.json").exists() else {}
+    outside = {}
+    if proto.get("scenes") and proto.get("seeds"):
+        scene_ids = [scene_id_of(s["path"]) for s in proto["scenes"]]
+        seeds, scenes = complete_block(kept, list(spec.settings), list(proto["seeds"]), scene_ids,
+                                       int(proto.get("eval_seeds") or 0), reported_block(results / "table.json"))
+        # what is kept beyond the reported block: searches of a seed or scene still growing
+        for k in kept:
+            if not (k["seed"] in seeds and k["scene"] in scenes):
+                outside[k["seed"]] = outside.get(k["seed"], 0) + 1
+        kept = [k for k in kept if k["seed"] in seeds and k["scene"] in scenes]
     compute = load_compute(results)
     rows = collect(spec, kept)
     weights = {}
@@ -695,6 +756,9 @@ def build_table(spec: TableSpec, autonomy: str, results_root: Path, budget: int 
                                                                   for e in compute.get("invocations", [])
                                                                   if e.get("environment")})},
            "paper": paper, "note": spec.note, **table}
+    if outside:
+        units = len(spec.settings) * len(proto.get("scenes", []))
+        doc["growing"] = {str(seed): {"kept_searches": n, "searches": units} for seed, n in sorted(outside.items())}
     write_json(results / "table.json", doc)
     atomic_write_text(results / "table.md", table_markdown(spec, doc, scene_part))
     if doc["rows"]:
@@ -807,6 +871,10 @@ def table_markdown(spec: TableSpec, doc: dict, scene_part: dict) -> str:
               f"{', '.join(map(str, done_seeds))}"
               + ("" if done_seeds == proto.get("seeds", done_seeds) else
                  f" (of {', '.join(map(str, proto.get('seeds', [])))}: the table is growing)")
+              + ("" if not doc.get("growing") else
+                 " (kept beyond it until their run seed is finished on its scenes: "
+                 + ", ".join(f"run seed {s} {g['kept_searches']} of {g['searches']} searches"
+                             for s, g in doc["growing"].items()) + ")")
               + f"; {proto.get('eval_seeds')} held-out evaluation seeds per "
               f"scene and run seed; budget {proto.get('budget')} queries per search (BO: {proto.get('n_initial')} "
               f"Latin-hypercube points first), {proto.get('seconds')} s episodes, batch {proto.get('batch')}; objective "

@@ -324,3 +324,36 @@ def test_budget_effect_pairs_two_budgets_on_shared_runs(tmp_path):
     with pytest.raises(ConfigError, match="highway-benchmark-000000 run seed 0: the originals differ"):
         be.compare(a, b)
     assert be.main([str(a), str(tmp_path)]) == 2     # not a table folder: a clear error, exit 2
+
+
+def test_a_table_reports_only_whole_blocks_of_seeds_and_scenes():
+    """A table growing over several sittings keeps finished searches of a half-done seed (or
+    scene) in its folder, but reports only the largest block of run seeds 0..j x scenes finished
+    for every setting, held-out evaluations included."""
+    mod = _driver()
+
+    def kept(seed, scene, setting, n_held=2):
+        summary = {"scenes": {scene: {"ref": f"{scene}.json", "original": {},
+                                      "modes": {"closed": {"best_unit": [0.5]}}}}}
+        held = {f"{scene}|{what}|{s}": {} for what in ("original", "closed") for s in range(n_held)}
+        return {"seed": seed, "scene": scene, "setting": setting, "summary": summary, "heldout": held}
+
+    full = [kept(s, c, t) for s in (0, 1) for c in ("a", "b", "c") for t in ("x", "y")]
+    assert mod.complete_block(full, ["x", "y"], [0, 1, 2], ["a", "b", "c"], 2) == ([0, 1], ["a", "b", "c"])
+    # seed 2 half done: reported as before
+    growing_seed = full + [kept(2, "a", "x"), kept(2, "a", "y"), kept(2, "b", "x")]
+    assert mod.complete_block(growing_seed, ["x", "y"], [0, 1, 2], ["a", "b", "c"], 2) == ([0, 1], ["a", "b", "c"])
+    # a fourth scene finished on seed 0 only: the 2 seeds x 3 scenes stay (6 cells against 4)
+    growing_scene = full + [kept(0, "d", "x"), kept(0, "d", "y")]
+    assert mod.complete_block(growing_scene, ["x", "y"], [0, 1], ["a", "b", "c", "d"], 2) == ([0, 1], ["a", "b", "c"])
+    # seed 1 finished on two of three scenes: more cells (4 against 3), but the table reported
+    # seed 0 on all three before, and it does not drop a scene while it grows
+    half = [k for k in full if not (k["seed"] == 1 and k["scene"] == "c")]
+    assert mod.complete_block(half, ["x", "y"], [0, 1], ["a", "b", "c"], 2) == ([0, 1], ["a", "b"])
+    assert mod.complete_block(half, ["x", "y"], [0, 1], ["a", "b", "c"], 2, ([0], ["a", "b", "c"])) == ([0], ["a", "b", "c"])
+    # a search whose held-out evaluations are not all stored is not finished
+    short = [k if (k["seed"], k["scene"], k["setting"]) != (1, "b", "y") else kept(1, "b", "y", n_held=1) for k in full]
+    assert mod.complete_block(short, ["x", "y"], [0, 1], ["a", "b", "c"], 2) == ([0, 1], ["a", "c"])
+    # a skipped scene (too few actors) needs no held-out evaluation
+    skipped = {"seed": 0, "scene": "e", "setting": "x", "summary": {"scenes": {"e": {"skipped": "1 actor"}}}, "heldout": {}}
+    assert mod.unit_complete(skipped, 3)
