@@ -842,8 +842,23 @@ def _machine_words(compute: dict) -> str:
     if cores == [2]:
         return "shared 2-core machine"
     envs = [json.loads(e) for e in compute.get("environments", [])]
-    libs = "; ".join(", ".join(f"{k} {e.get(k)}" for k in ("python", *ENV_PACKAGES) if e.get(k)) for e in envs)
+    # environments that differ only in what is not listed (the kernel's build) are named once
+    libs = "; ".join(dict.fromkeys(", ".join(f"{k} {e.get(k)}" for k in ("python", *ENV_PACKAGES) if e.get(k))
+                                   for e in envs))
     return f"{'/'.join(map(str, cores))}-core machine, one process per core" + (f"; {libs}" if libs else "")
+
+
+def growth_words(done_seeds: list[int], seeds: list[int], growing: dict | None) -> str:
+    """The header's note on a table still growing: the run seeds it is to have, and what is kept
+    beyond the reported block (``table.json``'s ``growing``); empty for a whole table."""
+    parts = []
+    if done_seeds != seeds:
+        parts.append(f"of {', '.join(map(str, seeds))}: the table is growing")
+    if growing:
+        parts.append("kept beyond it until their run seed is finished on its scenes: "
+                     + ", ".join(f"run seed {s}, {g['kept_searches']} of {g['searches']} searches"
+                                 for s, g in growing.items()))
+    return f" ({'; '.join(parts)})" if parts else ""
 
 
 def table_markdown(spec: TableSpec, doc: dict, scene_part: dict) -> str:
@@ -869,12 +884,7 @@ def table_markdown(spec: TableSpec, doc: dict, scene_part: dict) -> str:
     lines += [f"Scenes: {done_scenes}" + (f" of the {chosen} chosen" if chosen != done_scenes else "")
               + f" ({', '.join(f'{k} {v}' for k, v in parts.items())}); run seeds "
               f"{', '.join(map(str, done_seeds))}"
-              + ("" if done_seeds == proto.get("seeds", done_seeds) else
-                 f" (of {', '.join(map(str, proto.get('seeds', [])))}: the table is growing)")
-              + ("" if not doc.get("growing") else
-                 " (kept beyond it until their run seed is finished on its scenes: "
-                 + ", ".join(f"run seed {s} {g['kept_searches']} of {g['searches']} searches"
-                             for s, g in doc["growing"].items()) + ")")
+              + growth_words(done_seeds, proto.get("seeds", done_seeds), doc.get("growing"))
               + f"; {proto.get('eval_seeds')} held-out evaluation seeds per "
               f"scene and run seed; budget {proto.get('budget')} queries per search (BO: {proto.get('n_initial')} "
               f"Latin-hypercube points first), {proto.get('seconds')} s episodes, batch {proto.get('batch')}; objective "
