@@ -357,3 +357,8 @@ def test_a_table_reports_only_whole_blocks_of_seeds_and_scenes():
     # a skipped scene (too few actors) needs no held-out evaluation
     skipped = {"seed": 0, "scene": "e", "setting": "x", "summary": {"scenes": {"e": {"skipped": "1 actor"}}}, "heldout": {}}
     assert mod.unit_complete(skipped, 3)
+    # the header says what is kept beyond the block, and nothing for a whole table
+    assert mod.growth_words([0], [0], None) == ""
+    words = mod.growth_words([0], [0, 1, 2], {"1": {"kept_searches": 7, "searches": 108}})
+    assert words == (" (of 0, 1, 2: the table is growing; kept beyond it until their run seed is finished on "
+                     "its scenes: run seed 1, 7 of 108 searches)")
