@@ -217,15 +217,17 @@ def setting_config(spec: TableSpec, setting: str, scene: str, seed: int, args) -
 
 
 def export_run(work_dir: Path, keep_dir: Path) -> None:
-    """Copy a run's run.json and summary.json and gzip its journal into the kept folder."""
+    """Gzip a run's journal and copy its run.json and summary.json into the kept folder, each
+    file atomically and the summary last: a kept summary marks a finished search, so a campaign
+    killed (or a folder copied) half-way never shows a finished search without its journal."""
     from adv3d_runner.fileio import atomic_write_bytes, atomic_write_text
 
     keep_dir.mkdir(parents=True, exist_ok=True)
+    if (work_dir / "queries.jsonl").exists():
+        atomic_write_text(keep_dir / "queries.jsonl.gz", (work_dir / "queries.jsonl").read_text())
     for name in ("run.json", "summary.json"):
         if (work_dir / name).exists():
             atomic_write_bytes(keep_dir / name, (work_dir / name).read_bytes())
-    if (work_dir / "queries.jsonl").exists():
-        atomic_write_text(keep_dir / "queries.jsonl.gz", (work_dir / "queries.jsonl").read_text())
 
 
 #: The libraries whose versions a run's floating point depends on (recorded per invocation: a
