@@ -1000,11 +1000,26 @@ def table_markdown(spec: TableSpec, doc: dict, scene_part: dict) -> str:
     return "\n".join(lines)
 
 
-def list_tables() -> str:
+def list_tables(results_root: Path | None = None) -> str:
+    """The tables and whether each can run; then, for each kept table folder under
+    ``results_root``, what its last build reports and what it has kept beyond that."""
     out = []
     for name, spec in TABLES.items():
         status = f"needs {spec.needs}" if spec.needs else "runs"
         out.append(f"{name}: {spec.title}; settings {', '.join(spec.settings) or '-'}; {status}")
+    folders = sorted(p.parent for p in (results_root or Path()).glob("*/table.json")) if results_root else []
+    if folders:
+        out += ["", f"Kept tables in {results_root} (as last built with --table-only):"]
+    for folder in folders:
+        doc = json.loads((folder / "table.json").read_text())
+        proto = doc.get("protocol", {})
+        seeds, scenes = reported_block(folder / "table.json") or ([], [])
+        line = (f"{folder.name}: run seeds {', '.join(map(str, seeds)) or '-'} x {len(scenes)} scenes reported"
+                f" (protocol: seeds {', '.join(map(str, proto.get('seeds', [])))}, {len(proto.get('scenes', []))}"
+                f" scenes, budget {proto.get('budget')})")
+        for seed, g in (doc.get("growing") or {}).items():
+            line += f"; run seed {seed}: {g['kept_searches']} of {g['searches']} searches kept"
+        out.append(line)
     return "\n".join(out)
 
 
@@ -1034,7 +1049,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="transfer: the stack whose table1 shapes are evaluated (default: the other of A and B)")
     args = p.parse_args(argv)
     if args.list or not args.table:
-        print(list_tables())
+        print(list_tables(Path(args.results)))
         return 0
     spec = TABLES[args.table]
     if args.table_only:

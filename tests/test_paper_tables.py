@@ -362,3 +362,19 @@ def test_a_table_reports_only_whole_blocks_of_seeds_and_scenes():
     words = mod.growth_words([0], [0, 1, 2], {"1": {"kept_searches": 7, "searches": 108}})
     assert words == (" (of 0, 1, 2: the table is growing; kept beyond it until their run seed is finished on "
                      "its scenes: run seed 1, 7 of 108 searches)")
+
+
+def test_list_names_each_kept_tables_block_and_what_grows_beyond_it(tmp_path):
+    """``--list`` says, per kept table folder, the block its last build reports and the
+    searches kept beyond it, so a campaign spread over sittings can be picked up."""
+    mod = _driver()
+    folder = tmp_path / "table2_A_b20"
+    folder.mkdir()
+    row = {"seeds": [0], "metrics": {"objective": {"per_scene": {"s1": 1.0, "s2": 2.0}}}}
+    (folder / "table.json").write_text(json.dumps({
+        "rows": {"Original": row}, "protocol": {"seeds": [0, 1, 2], "scenes": [{}, {}], "budget": 20},
+        "growing": {"1": {"kept_searches": 7, "searches": 36}}}))
+    text = mod.list_tables(tmp_path)
+    assert ("table2_A_b20: run seeds 0 x 2 scenes reported (protocol: seeds 0, 1, 2, 2 scenes, budget 20); "
+            "run seed 1: 7 of 36 searches kept") in text
+    assert "table2: Table 2" in text
