@@ -693,8 +693,12 @@ def build_table(spec: TableSpec, autonomy: str, results_root: Path, budget: int 
                 v = np.array([value_of(r, metric) for r in e["heldout"]])
                 by_seed.setdefault(e["seed"], []).append(float(np.nanmean(v)) if np.isfinite(v).any() else np.nan)
             seed_means = [float(np.nanmean(v)) for v in by_seed.values()]
+            # a worst-case row holds one picked attack per scene, not a run per seed: its
+            # "seeds" are the picks' and a spread over them would compare different scenes
+            worst_case = any("picked" in e for e in rows[name])
             row["metrics"][metric] = {"mean": est, "ci": [lo, hi], "per_scene": ps,
-                                      "seed_sd": float(np.std(seed_means, ddof=1)) if len(seed_means) > 1 else None}
+                                      "seed_sd": float(np.std(seed_means, ddof=1))
+                                      if len(seed_means) > 1 and not worst_case else None}
         jsd = scene_means(((e["scene"], e) for e in rows[name]), lambda e: e["jsd"] if e["jsd"] is not None else np.nan)
         if any(np.isfinite(v) for v in jsd.values()):
             est, lo, hi = bootstrap_ci(list(jsd.values()))
