@@ -146,8 +146,12 @@ def test_reference_file_matches_fresh_computation(space, ref):
     assert np.array_equal(fresh.histogram, ref.histogram), "stale: run `adv3d shapes realism-reference`"
     assert fresh.histogram.sum() == len(ref.asset_ids) * R.REFERENCE_POINTS_PER_MODEL
     assert np.array_equal(fresh.points.astype(np.float32), ref.points)
+    # The leave-one-out values come from meshes the shape space decodes in float32, whose last
+    # bits follow the CPU's SIMD path (an AVX-512 machine gave chamfer_loo 0.11438299 against
+    # the file's 0.11438301): compared to float32 precision, not float64. A stale file differs
+    # in the histogram above, exactly.
     for key in ("jsd_loo", "chamfer_loo", "mahalanobis_loo"):
-        assert np.allclose(getattr(fresh, key), getattr(ref, key), rtol=1e-9, atol=1e-12), key
+        assert np.allclose(getattr(fresh, key), getattr(ref, key), rtol=1e-6, atol=1e-9), key
     assert ref.matches(space) and ref.meta["shape_space_hash"] == space.content_hash
     assert ref.meta["library_fingerprint"] == space.build["library_fingerprint"]
 
