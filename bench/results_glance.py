@@ -20,6 +20,7 @@ import argparse
 import io
 import json
 import sys
+import textwrap
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -112,9 +113,12 @@ def draw(rows: list[dict], path: Path) -> None:
         ax.set_xlabel(f"held-out objective difference, Autonomy-{stack}'s objective (higher = worse for the stack)",
                       fontsize=7.5)
         ax.tick_params(axis="x", labelsize=7)
-    axes[0, 0].set_title("Every kept table's objective comparisons: mean over scenes, 95 % bootstrap CI; "
-                         "red: p <= 0.05,\norange: mean > 0, blue: mean < 0 (scenes where a is worse / scenes, "
-                         "permutation p: with n scenes it cannot go below 2/2^n; * = the other stack's shapes)", fontsize=8)
+    # a figure title, wrapped to the figure's width: over the axes it was centred right of the long
+    # tick labels and ran off the canvas
+    fig.suptitle("\n".join(textwrap.wrap(
+        "Every kept table's objective comparisons: mean over scenes, 95 % bootstrap CI; red: p <= 0.05, "
+        "orange: mean > 0, blue: mean < 0 (scenes where a is worse / scenes, permutation p: with n scenes it "
+        "cannot go below 2/2^n; * = the other stack's shapes)", width=int(15 * fig.get_figwidth()))), fontsize=8)
     fig.tight_layout()
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=110, metadata={"Software": None})
