@@ -177,7 +177,7 @@ def test_tables_listed_with_what_they_need(capsys):
     for name in ("table1", "table2", "table3", "table4", "table5", "table6", "realism", "transfer"):
         assert specs.count(f"{name}:") == 1
     assert all(line.endswith("; runs") for line in specs.strip().splitlines())  # every table has its entry
-    assert "table1_A: run seeds 0, 1, 2 x 7 scenes reported" in kept
+    assert "table1_A: run seeds 0, 1, 2 x 8 scenes reported" in kept
 
 
 @pytest.mark.parametrize("folder, table, autonomy, with_tests", [
