@@ -102,14 +102,19 @@ def main() -> int:
     import torch
 
     torch.set_num_threads(1)
-    from adv3d_runner.autonomy.planner import CostWeights, PlannerConfig, ProposalConfig
+    from adv3d_runner.autonomy.planner import PlannerConfig
+    from adv3d_runner.errors import ConfigError
     from adv3d_runner.autonomy.predictor import DEFAULT_MODEL_DIR, load_predictor
     from adv3d_runner.fileio import write_json
     from adv3d_runner.scene.real import load_real_split
 
-    over = json.loads(args.config)
-    config = PlannerConfig(proposals=ProposalConfig(**over.get("proposals", {})),
-                           weights=CostWeights(**over.get("weights", {})), **over.get("planner", {}))
+    try:
+        over = json.loads(args.config)
+        config = PlannerConfig.from_overrides(over, "--config")
+    except json.JSONDecodeError as exc:
+        ap.error(f"--config: not JSON ({exc.msg}, column {exc.colno})")
+    except ConfigError as exc:
+        ap.error(str(exc))
     predictor = load_predictor(args.predictor or DEFAULT_MODEL_DIR)
     t0 = time.process_time()
     rows = []

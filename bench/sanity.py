@@ -30,10 +30,17 @@ targets on prediction do not apply to it (no trajectories). Writes ``bench/resul
 run (the generated set under ``summary`` / ``rows`` as before, the real one under ``real``), and
 ``bench/results/sanity.real-<part>[.<autonomy>].json`` for ``--sets real``; ``--tag NAME`` appends
 ``.NAME`` to the file name (before/after pairs, e.g. an old detector).
+
+Tuning the planner without editing code (issue 17: on ``--real-part train`` only):
+``--planner-config '{"proposals": {"max_brake_jerk": 4}}'`` (or a .json file) runs every scene
+with those fields of ``PlannerConfig`` / ``ProposalConfig`` / ``CostWeights`` replaced; unknown
+fields are refused by name, and the result needs ``--name`` or ``--tag``. The overrides are kept
+in the result (``planner_overrides``).
 """
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import platform
 import sys
@@ -47,6 +54,8 @@ import numpy as np  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
+
+from adv3d_runner.errors import ConfigError  # noqa: E402
 
 PAPER_ORIGINAL_A = {"ap": 0.882, "recall": 0.894, "min_ade": 2.14, "mean_ade": 4.90, "plan_lat": 0.203,
                     "plan_jerk": 0.336, "drive_lat": 0.194, "drive_jerk": 0.331}
@@ -67,7 +76,7 @@ LIMITS_BEFORE_ISSUE17 = {"max_jerk": 4.0, "max_release_jerk": 10.0, "max_brake_j
 
 def _run(job: tuple) -> dict:
     path, autonomy, seconds, real = job[:4]
-    limits = job[4] if len(job) > 4 else "shipped"
+    overrides = job[4] if len(job) > 4 else {}
     global _STACK, _LIB
     from adv3d_runner.scene import load_scene
     from adv3d_runner.sensors.world import world_from_scene
@@ -78,12 +87,10 @@ def _run(job: tuple) -> dict:
     if _STACK is None:
         _STACK = make_stack(autonomy)
         _LIB = default_library()
-        if limits == "before-issue17":
-            from adv3d_runner.autonomy.planner import SamplingPlanner
-            from adv3d_runner.autonomy.planner.planner import PlannerConfig
-            from adv3d_runner.autonomy.planner.proposals import ProposalConfig
+        if overrides:
+            from adv3d_runner.autonomy.planner import PlannerConfig, SamplingPlanner
 
-            _STACK.planner = SamplingPlanner(PlannerConfig(proposals=ProposalConfig(**LIMITS_BEFORE_ISSUE17)))
+            _STACK.planner = SamplingPlanner(PlannerConfig.from_overrides(overrides))
     t0 = time.perf_counter()
     scene = load_scene(path)
     world = world_from_scene(scene, _LIB)
@@ -219,9 +226,37 @@ def check_targets(s: dict) -> dict:
     return {k: {"value": v, "target": tt, "met": bool(ok)} for k, (v, tt, ok) in rows.items()}
 
 
+def _planner_overrides(args) -> dict:
+    """The planner overrides that ``--planner-limits`` / ``--planner-config`` ask for ({} for the
+    shipped planner), checked against the config classes.
+
+    Raises:
+        ConfigError: both options, unreadable JSON, or a field the planner does not have.
+    """
+    from adv3d_runner.autonomy.planner import PlannerConfig
+
+    if args.planner_config is None:
+        return {"proposals": dict(LIMITS_BEFORE_ISSUE17)} if args.planner_limits == "before-issue17" else {}
+    if args.planner_limits != "shipped":
+        raise ConfigError("--planner-limits and --planner-config are exclusive")
+    text, source = args.planner_config, "--planner-config"
+    if text.strip().endswith(".json") and not text.lstrip().startswith("{"):
+        source = text
+        try:
+            text = Path(text).read_text()
+        except OSError as exc:
+            raise ConfigError(f"--planner-config: cannot read {source}: {exc.strerror}") from None
+    try:
+        overrides = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise ConfigError(f"{source}: not JSON ({exc.msg}, line {exc.lineno} column {exc.colno})") from None
+    PlannerConfig.from_overrides(overrides, source)
+    return overrides
+
+
 def _run_set(paths: list[Path], autonomy: str, seconds: float, workers: int, real: bool,
-             limits: str = "shipped") -> list[dict]:
-    jobs = [(str(p), autonomy, seconds, real, limits) for p in paths]
+             overrides: dict | None = None) -> list[dict]:
+    jobs = [(str(p), autonomy, seconds, real, overrides or {}) for p in paths]
     rows = []
     if workers > 1:
         import multiprocessing as mp
@@ -248,6 +283,10 @@ def main() -> int:
     ap.add_argument("--seconds", type=float, default=5.0)
     ap.add_argument("--planner-limits", choices=("shipped", "before-issue17"), default="shipped",
                     help="diagnosis: run the planner with the proposals' jerk limits of before issue 17")
+    ap.add_argument("--planner-config", default=None, metavar="JSON",
+                    help="diagnosis and tuning: planner fields to override, as JSON or a .json file: "
+                         '{"proposals": {...}, "weights": {...}, "planner": {...}} (see PlannerConfig.from_overrides); '
+                         "name the result with --name or --tag so the kept one is not overwritten")
     ap.add_argument("--name", default=None,
                     help="result file stem under bench/results/ (default sanity[.<autonomy>][.quick])")
     ap.add_argument("--reference", default="bench/results/sanity.json",
@@ -264,6 +303,12 @@ def main() -> int:
     from adv3d_runner.autonomy.stacks import make_stack
     from adv3d_runner.scene.real import load_real_split
 
+    try:
+        overrides = _planner_overrides(args)
+    except ConfigError as exc:
+        ap.error(str(exc))
+    if overrides and not (args.name or args.tag):
+        ap.error("a planner other than the shipped one needs --name or --tag (the kept result would be overwritten)")
     make_stack(args.autonomy)  # fail early (e.g. no weights) before starting workers
     t0 = time.time()
     out: dict = {}
@@ -272,13 +317,13 @@ def main() -> int:
         if args.quick:
             paths = paths[::10]
         print(f"generated benchmark: {len(paths)} scenes")
-        rows = _run_set(paths, args.autonomy, args.seconds, args.workers, real=False, limits=args.planner_limits)
+        rows = _run_set(paths, args.autonomy, args.seconds, args.workers, real=False, overrides=overrides)
         out["generated"] = (summarise(rows, real=False), rows)
     if "real" in sets:
         split = load_real_split()
         paths = split.paths(args.real_part)
         print(f"real {args.real_part} part: {len(paths)} scenes (recordings {list(split.recordings[args.real_part])})")
-        rows = _run_set(paths, args.autonomy, args.seconds, args.workers, real=True, limits=args.planner_limits)
+        rows = _run_set(paths, args.autonomy, args.seconds, args.workers, real=True, overrides=overrides)
         summary = summarise(rows, real=True)
         summary["part"] = args.real_part
         summary["recordings"] = list(split.recordings[args.real_part])
@@ -312,6 +357,7 @@ def main() -> int:
            "machine": {"python": platform.python_version(), "platform": platform.platform(),
                        "processor": platform.processor(), "cpus": os.cpu_count()},
            "planner_limits": args.planner_limits if args.planner_limits == "shipped" else LIMITS_BEFORE_ISSUE17,
+           "planner_overrides": overrides,
            "paper_original_autonomy_a": PAPER_ORIGINAL_A, "paper_original_autonomy_b": PAPER_ORIGINAL_B,
            "wall_s": wall}
     strip = lambda rows: [{k: v for k, v in r.items() if k not in ("format", "version")} for r in rows]  # noqa: E731

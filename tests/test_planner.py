@@ -426,3 +426,33 @@ def test_firm_braking_builds_up_faster_than_comfortable_changes():
     plan = planner.plan(ego, preds, tracks)
     assert abs(plan.acceleration[0]) <= pc.max_jerk * DT + 1e-9
     assert ProposalConfig().max_brake_jerk * DT <= ProposalConfig().max_decel
+
+
+# ---------------------------------------------------------------- config overrides (tuning runs)
+def test_config_overrides_replace_only_the_named_fields():
+    from adv3d_runner.autonomy.planner import PlannerConfig
+
+    assert PlannerConfig.from_overrides({}) == PlannerConfig()
+    c = PlannerConfig.from_overrides({"proposals": {"max_brake_jerk": 4, "speed_fractions": [0, 0.5, 1]},
+                                      "weights": {"jerk": 0.5}, "planner": {"buffer": 2.0}})
+    assert c.proposals.max_brake_jerk == 4.0 and isinstance(c.proposals.max_brake_jerk, float)
+    assert c.proposals.speed_fractions == (0, 0.5, 1)
+    assert c.weights.jerk == 0.5 and c.buffer == 2.0
+    assert c.proposals.max_jerk == PlannerConfig().proposals.max_jerk  # the rest untouched
+
+
+@pytest.mark.parametrize("bad, names", [
+    ({"proposal": {}}, "proposal"),
+    ({"proposals": {"max_jerks": 1.0}}, "proposals.max_jerks"),
+    ({"weights": {"jerk": "high"}}, "weights.jerk"),
+    ({"planner": {"exempt_rear_end": 1}}, "planner.exempt_rear_end"),
+    ({"planner": {"proposals": {}}}, "planner.proposals"),
+    ([1, 2], "expected an object"),
+])
+def test_config_overrides_refuse_unknown_or_mistyped_fields_by_name(bad, names):
+    from adv3d_runner.autonomy.planner import PlannerConfig
+    from adv3d_runner.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=names.replace(".", r"\.")) as info:
+        PlannerConfig.from_overrides(bad, "tune.json")
+    assert "tune.json" in str(info.value)

@@ -19,10 +19,11 @@ stop along its heading: there is no road to plan on.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 import numpy as np
 
 from ...dynamics.bicycle import BicycleParams, rollout
+from ...errors import ConfigError
 from ...geometry.angles import wrap_angle
 from ...scene.corridor import DEFAULT_SPEED_LIMIT, CorridorSet
 from ...scene.lanemap import LaneMap
@@ -70,6 +71,44 @@ class PlannerConfig:
     exempt_rear_end: bool = True
     offset_confirm_factor: float = 4.0
     occupancy: occmodel.OccupancyPlanConfig = field(default_factory=occmodel.OccupancyPlanConfig)
+
+    @classmethod
+    def from_overrides(cls, overrides: dict, source: str = "planner overrides") -> "PlannerConfig":
+        """The default config with some fields replaced, for diagnosis and tuning runs
+        (``bench/sanity.py --planner-config``, ``bench/real_planner.py --config``).
+
+        ``overrides`` is ``{"proposals": {...}, "weights": {...}, "planner": {...}}`` (each part
+        optional): fields of :class:`.proposals.ProposalConfig`, :class:`.scorer.CostWeights` and
+        of this class. Numbers stay numbers (a JSON ``1`` for a float field is fine).
+
+        Raises:
+            ConfigError: an unknown part or field, or a value of the wrong type, naming it and
+                ``source``.
+        """
+        if not isinstance(overrides, dict):
+            raise ConfigError(f"{source}: expected an object with parts proposals, weights, planner")
+        unknown = set(overrides) - {"proposals", "weights", "planner"}
+        if unknown:
+            raise ConfigError(f"{source}: unknown part(s) {sorted(unknown)}; use proposals, weights, planner")
+        parts = {"proposals": ProposalConfig, "weights": CostWeights, "planner": cls}
+        kwargs: dict[str, dict] = {}
+        for part, klass in parts.items():
+            given = overrides.get(part, {})
+            if not isinstance(given, dict):
+                raise ConfigError(f"{source}: {part} must be an object of field: value")
+            known = {f.name: f for f in fields(klass) if f.name not in ("proposals", "weights", "occupancy")}
+            for name, value in given.items():
+                if name not in known:
+                    raise ConfigError(f"{source}: {part}.{name} is not a field; choose from {', '.join(sorted(known))}")
+                default = getattr(klass(), name)
+                if isinstance(default, bool) != isinstance(value, bool) or (
+                        isinstance(default, (int, float)) and not isinstance(value, (int, float))) or (
+                        isinstance(default, tuple) and not isinstance(value, (list, tuple))):
+                    raise ConfigError(f"{source}: {part}.{name} = {value!r}, expected a value like {default!r}")
+            kwargs[part] = {k: tuple(v) if isinstance(v, list) else
+                            float(v) if isinstance(getattr(klass(), k), float) else v for k, v in given.items()}
+        return cls(proposals=ProposalConfig(**kwargs["proposals"]), weights=CostWeights(**kwargs["weights"]),
+                   **kwargs["planner"])
 
 
 def forecast_from(predictions: Predictions | None, tracks: Tracks | None, steps: int, dt: float,

@@ -1,0 +1,38 @@
+"""bench/sanity.py's planner options fail early, with the field named, and write nothing."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _sanity(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(ROOT / "bench" / "sanity.py"), "--sets", "real", *args],
+                          capture_output=True, text=True, timeout=120, cwd=ROOT)
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--planner-config", '{"proposals": {"max_jerk": 1}}'], "needs --name or --tag"),
+    (["--planner-config", '{"proposals": {"max_jerks": 1}}', "--tag", "t"], "proposals.max_jerks is not a field"),
+    (["--planner-config", "{bad", "--tag", "t"], "not JSON"),
+    (["--planner-config", "missing-dir/tune.json", "--tag", "t"], "cannot read missing-dir/tune.json"),
+    (["--planner-config", "{}", "--planner-limits", "before-issue17", "--tag", "t"], "exclusive"),
+])
+def test_bad_planner_options_stop_before_any_episode(args, message):
+    before = sorted((ROOT / "bench" / "results").iterdir())
+    done = _sanity(*args)
+    assert done.returncode == 2, done.stderr
+    assert message in done.stderr
+    assert sorted((ROOT / "bench" / "results").iterdir()) == before
+
+
+def test_planner_config_file_is_read(tmp_path):
+    bad = tmp_path / "tune.json"
+    bad.write_text(json.dumps({"weights": {"no_such_term": 1.0}}))
+    done = _sanity("--planner-config", str(bad), "--tag", "t")
+    assert done.returncode == 2 and f"{bad}: weights.no_such_term is not a field" in done.stderr
