@@ -4,7 +4,9 @@ NGSIM US-101 recordings (issue 4 acceptance 5, issue 17 acceptance 3-4).
 Every scene: a 5 s closed-loop episode (actors replay their logs), the full LiDAR simulation
 (the scene's 64-beam rig, library meshes) and the chosen stack. Two sets:
 
-* **generated**: the 100 scenes of ``scenes/highway/`` (``--quick``: every 10th);
+* **generated**: the 100 scenes of ``scenes/highway/`` (``--quick``: every 10th), or with
+  ``--generated-dir DIR`` the scenes of DIR (tuning on the generator's *train* split:
+  ``adv3d scenes generate --out runs/gentrain --count 40 --seed 500000 --split train``);
 * **real**: the *benchmark* part of ``scenes/real/`` (``scenes/real/split.json``, recordings
   held out from every training and tuning step; ``--real-part train`` runs the training part,
   which is what the planner's comfort limits were tuned on).
@@ -287,6 +289,9 @@ def main() -> int:
                     help="diagnosis and tuning: planner fields to override, as JSON or a .json file: "
                          '{"proposals": {...}, "weights": {...}, "planner": {...}} (see PlannerConfig.from_overrides); '
                          "name the result with --name or --tag so the kept one is not overwritten")
+    ap.add_argument("--generated-dir", default=None, metavar="DIR",
+                    help="run the generated set on the scene files of DIR instead of scenes/highway (e.g. scenes of "
+                         "the generator's train split, for tuning without looking at the benchmark)")
     ap.add_argument("--name", default=None,
                     help="result file stem under bench/results/ (default sanity[.<autonomy>][.quick])")
     ap.add_argument("--reference", default="bench/results/sanity.json",
@@ -297,6 +302,10 @@ def main() -> int:
     args = ap.parse_args()
     if args.tag and not all(c.isalnum() or c in "-_" for c in args.tag):
         ap.error("--tag takes letters, digits, '-' and '_'")
+    if args.name and not all(c.isalnum() or c in "-_." for c in args.name):
+        ap.error("--name is a file stem under bench/results/: letters, digits, '-', '_' and '.'")
+    if args.generated_dir and not args.name:
+        ap.error("--generated-dir needs --name (the kept generated-benchmark result would be overwritten)")
     sets = [s.strip() for s in args.sets.split(",") if s.strip()]
     if not sets or set(sets) - {"generated", "real"}:
         ap.error("--sets takes generated and/or real")
@@ -313,10 +322,15 @@ def main() -> int:
     t0 = time.time()
     out: dict = {}
     if "generated" in sets:
-        paths = sorted((ROOT / "scenes" / "highway").glob("highway-benchmark-*.json*"))
+        if args.generated_dir:
+            paths = sorted(p for p in Path(args.generated_dir).glob("*.json*") if p.is_file())
+            if not paths:
+                ap.error(f"--generated-dir {args.generated_dir}: no scene files (*.json, *.json.gz)")
+        else:
+            paths = sorted((ROOT / "scenes" / "highway").glob("highway-benchmark-*.json*"))
         if args.quick:
             paths = paths[::10]
-        print(f"generated benchmark: {len(paths)} scenes")
+        print(f"generated {'scenes of ' + args.generated_dir if args.generated_dir else 'benchmark'}: {len(paths)} scenes")
         rows = _run_set(paths, args.autonomy, args.seconds, args.workers, real=False, overrides=overrides)
         out["generated"] = (summarise(rows, real=False), rows)
     if "real" in sets:

@@ -120,3 +120,18 @@ def test_layers_of_the_lane_map_and_the_training_package():
                "adv3d_runner.sim.cli", "adv3d_runner.attack.driver")
     loaded = _modules_after_import(*runtime)
     assert set(runtime) <= loaded and not {m for m in loaded if m.startswith("adv3d_runner.training")}, loaded
+
+
+def test_border_ends_are_the_lanes_that_stop_where_the_map_stops():
+    xs = np.linspace(0.0, 600.0, 61)
+    # three lanes to the map's edge at x = 600; the right one drops at x = 300 (a lane drop)
+    lanes = [Lane(0, np.c_[xs[:31], np.full(31, 0.0)], 3.7, left=1),
+             Lane(1, np.c_[xs, np.full(61, 3.7)], 3.7, left=2, right=0),
+             Lane(2, np.c_[xs, np.full(61, 7.4)], 3.7, right=1)]
+    m = LaneMap(lanes)
+    assert m.border_ends() == frozenset({1, 2})
+    assert m.border_ends() is m.border_ends()  # kept
+    # a lane with a successor never ends; an oncoming lane going on does not make an end a drop
+    lanes = [Lane(0, np.c_[xs[:31], np.zeros(31)], 3.7, successors=[1]), Lane(1, np.c_[xs[30:], np.zeros(31)], 3.7),
+             Lane(2, np.c_[xs[::-1], np.full(61, -3.7)], 3.7)]
+    assert LaneMap(lanes).border_ends() == frozenset({1, 2})

@@ -416,8 +416,9 @@ def test_firm_braking_builds_up_faster_than_comfortable_changes():
     pc = planner.config.proposals
     assert pc.max_brake_jerk > pc.max_jerk
     ego = EgoState(np.array([0.0, 0.0, 0.0]), 15.0, length=4.8, width=1.9)
-    # a standing car 30 m ahead: the IDM asks for more than idm_decel at once
-    tracks, preds = actor_inputs(np.array([[30.0, 0.0, 4.6, 1.9, 0.0]]), np.tile([[30.0, 0.0]], (60, 1))[None])
+    # a standing car 40 m ahead: the IDM asks for more than idm_decel at once (at 30 m only the
+    # emergency stop avoids it with the firm-braking limit of 4 m/s^3)
+    tracks, preds = actor_inputs(np.array([[40.0, 0.0, 4.6, 1.9, 0.0]]), np.tile([[40.0, 0.0]], (60, 1))[None])
     plan = planner.plan(ego, preds, tracks)
     assert plan.acceleration[0] == pytest.approx(-pc.max_brake_jerk * DT)
     # a slightly slower car far ahead: a comfortable change, at most max_jerk per second
@@ -456,3 +457,155 @@ def test_config_overrides_refuse_unknown_or_mistyped_fields_by_name(bad, names):
     with pytest.raises(ConfigError, match=names.replace(".", r"\.")) as info:
         PlannerConfig.from_overrides(bad, "tune.json")
     assert "tune.json" in str(info.value)
+
+
+# ------------------------------------------------ real traffic, second round (issue 17)
+
+def _two_mode_leader(slow_prob):
+    """One car 25 m ahead in the ego's lane, two predicted modes: 15 m/s (likely) and 11 m/s."""
+    t = np.arange(1, 61) * DT
+    now = np.array([[25.0, 0.0, 4.6, 1.9, 0.0]])
+    fast, slow = np.stack([25 + 15.0 * t, 0 * t], -1), np.stack([25 + 11.0 * t, 0 * t], -1)
+    tracks = Tracks(np.array([7]), now, np.zeros((1, 2)), np.ones(1), np.zeros(1, np.int64), np.zeros((1, 1, 3)),
+                    np.ones((1, 1), bool))
+    preds = Predictions(np.array([7]), np.stack([fast, slow])[None], np.array([[1 - slow_prob, slow_prob]]))
+    return tracks, preds
+
+
+def test_the_idm_follows_an_actors_expected_mode_not_its_slowest():
+    """Following the nearest of an actor's modes made the IDM follow a 20 % mode that is slower
+    than the likely one, and the step-0 tie picked another mode than step 1: every plan asked
+    for a hard brake one step ahead that the next plan took back."""
+    from adv3d_runner.autonomy.planner import PlannerConfig, ProposalConfig
+
+    ego = EgoState(np.array([0.0, 0.0, 0.0]), 15.0, length=4.8, width=1.9)
+
+    def gaps_and_accel(modes, slow_prob):
+        pc = ProposalConfig(leader_modes=modes, idm_coolness=0.0)
+        planner = planner_on(straight_lanes(1), SamplingPlanner(PlannerConfig(proposals=pc)))
+        tracks, preds = _two_mode_leader(slow_prob)
+        plan, cands, table = planner.plan_with_scores(ego, preds, tracks)
+        keep = [i for i, lab in enumerate(cands.spec.labels) if lab.endswith("d+0.0/v25.0")][0]
+        # the leader's rear bumper along the lane: the ego's arc length plus its gap
+        return cands.leader_gap[keep] + cands.s[keep], cands.accel[keep]
+
+    gap_near, acc_near = gaps_and_accel("nearest", 0.2)
+    gap_exp, acc_exp = gaps_and_accel("expected", 0.2)
+    # the expected leader is where 0.8 x fast + 0.2 x slow puts it: 3.2 m further at 4 s than the slow mode
+    t = 4.0
+    assert gap_exp[40] - gap_near[40] == pytest.approx(0.8 * (15 - 11) * t, abs=0.05)
+    # and the IDM brakes less behind it over the first second
+    assert acc_exp[:10].mean() > acc_near[:10].mean() + 0.2
+    # a mode below min_mode_prob does not lead at all, and with all probability on the slow mode
+    # the expected leader is that mode
+    gap_all_slow, _ = gaps_and_accel("expected", 1.0)
+    assert gap_all_slow[40] == pytest.approx(gap_near[40], abs=1e-6)
+    with pytest.raises(ValueError, match="leader_modes"):
+        ProposalConfig(leader_modes="slowest")
+
+
+def test_acc_model_softens_the_idm_for_a_cut_in_that_is_not_closing():
+    """A car that cuts in 8 m ahead but drives faster than the ego: the plain IDM brakes hard (its
+    desired gap is far longer), the ACC model (coolness 0.9) brakes about idm_decel at most; for
+    a slower car at the same gap both brake firmly."""
+    from adv3d_runner.autonomy.planner.proposals import _acc_blend
+
+    v, gap, b, a_max = np.array([14.0]), np.array([8.0]), 2.0, 1.5
+    s_star = 3.0 + 14.0 * 1.5 + 14.0 * (14.0 - 16.0) / (2 * np.sqrt(a_max * b))
+    a_idm = a_max * (1 - (14.0 / 25.0) ** 4 - (s_star / 8.0) ** 2)
+    assert a_idm < -4.0
+    faster = _acc_blend(np.array([a_idm]), v, np.array([16.0]), np.array([0.0]), gap, a_max, b, 0.9)[0]
+    assert -b - 0.5 < faster < 0.0
+    assert _acc_blend(np.array([a_idm]), v, np.array([16.0]), np.array([0.0]), gap, a_max, b, 0.0)[0] == a_idm
+    slower = _acc_blend(np.array([-6.0]), v, np.array([8.0]), np.array([0.0]), gap, a_max, b, 0.9)[0]
+    assert slower < -b  # closing at 6 m/s on 8 m: firm braking stays
+    assert _acc_blend(np.array([1.0]), v, np.array([16.0]), np.array([0.0]), gap, a_max, b, 0.9)[0] == 1.0
+
+
+def test_emergency_stop_only_when_every_other_candidate_collides():
+    """An unlikely mode (8 %) of the car in the next lane swerves in and stops ahead: it touches
+    every candidate but the emergency stop, and with its small expected collision the emergency
+    stop's -7 m/s^2 scored lowest (in real traffic: a standstill for nothing). It may only be
+    chosen when every other candidate expects at least ``emergency_min_collision`` collisions;
+    a car standing across the lane close ahead still triggers it."""
+    from adv3d_runner.autonomy.planner import PlannerConfig
+
+    ego = EgoState(np.array([0.0, 0.0, 0.0]), 15.0, length=4.8, width=1.9)
+    t = np.arange(1, 61) * DT
+    keeps = np.stack([8 + 15.0 * t, LANE_W + 0 * t], -1)
+    x_in = np.minimum(8 + 15.0 * t - 2.5 * t ** 2, 8 + 15.0 ** 2 / 10.0)  # brakes at 5 m/s^2 to a stop
+    swerves = np.stack([x_in, np.maximum(LANE_W - 4.0 * t, 0.0)], -1)
+    now = np.array([[8.0, LANE_W, 4.6, 1.9, 0.0]])
+    tracks = Tracks(np.array([3]), now, np.zeros((1, 2)), np.ones(1), np.zeros(1, np.int64), np.zeros((1, 1, 3)),
+                    np.ones((1, 1), bool))
+    preds = Predictions(np.array([3]), np.stack([keeps, swerves])[None], np.array([[0.92, 0.08]]))
+    lanes = straight_lanes(2)
+    for gate in (None, 0.5):
+        plan, cands, table = planner_on(lanes, SamplingPlanner(PlannerConfig(
+            emergency_min_collision=gate))).plan_with_scores(ego, preds, tracks)
+        others = ~cands.spec.emergency
+        assert 0.0 < table.raw["collision"][others].min() < 0.5
+        assert plan.label.endswith("emergency-stop") == (gate is None), plan.label
+    # a car standing across the lane 19 m ahead: only the emergency stop stops short of it
+    wall = np.array([[22.0, 0.0, 4.6, 1.9, np.pi / 2]])
+    tracks, preds = actor_inputs(wall, np.tile([[22.0, 0.0]], (60, 1))[None])
+    plan, cands, table = planner_on(straight_lanes(1)).plan_with_scores(ego, preds, tracks)
+    assert table.raw["collision"][~cands.spec.emergency].min() >= 0.5
+    assert plan.label.endswith("emergency-stop")
+
+
+def test_an_actor_overlapping_the_ego_now_is_no_collision_to_avoid():
+    """A box that already overlaps the ego's footprint (a mislocalised detection beside it) made
+    every candidate collide; no plan can undo a present overlap, so it counts in neither the
+    collision nor the buffer term."""
+    from adv3d_runner.autonomy.planner import PlannerConfig
+
+    ego = EgoState(np.array([0.0, 0.0, 0.0]), 10.0, length=4.8, width=1.9)
+    t = np.arange(1, 61) * DT
+    ghost = np.array([[1.0, 1.5, 4.6, 1.9, 0.0]])  # 1.5 m left of the ego's centre: overlapping
+    tracks, preds = actor_inputs(ghost, np.stack([1 + 10.0 * t, 1.5 + 0 * t], -1)[None])
+    on = planner_on(straight_lanes(1)).plan_with_scores(ego, preds, tracks)
+    off = planner_on(straight_lanes(1), SamplingPlanner(PlannerConfig(exempt_overlap_now=False))).plan_with_scores(
+        ego, preds, tracks)
+    assert off[2].raw["collision"].min() > 0.5
+    assert on[2].raw["collision"].max() == 0.0 and on[2].raw["buffer"].max() == 0.0
+
+
+def test_firm_braking_is_released_as_fast_as_it_builds_up():
+    from adv3d_runner.autonomy.planner import PlannerConfig, ProposalConfig
+
+    ego = EgoState(np.array([0.0, 0.0, 0.0]), 10.0, acceleration=-6.0, length=4.8, width=1.9)
+    for firm in (True, False):
+        pc = ProposalConfig(firm_release=firm)
+        plan = planner_on(straight_lanes(1), SamplingPlanner(PlannerConfig(proposals=pc))).plan(ego)
+        step = plan.acceleration[0] - ego.acceleration
+        assert step == pytest.approx((pc.max_brake_jerk if firm else pc.max_release_jerk) * DT)
+
+
+def test_progress_reference_is_the_best_safe_candidate_within_floor_and_limit():
+    d = np.array([2.0, 6.0, 9.0, 40.0])
+    safe = np.array([True, True, True, False])  # the longest one collides
+    assert costs.progress_reference(d, safe, 125.0, 5.0) == 9.0
+    assert costs.progress_reference(d, safe, 8.0, 5.0) == 8.0  # never beyond the speed limit's distance
+    assert costs.progress_reference(np.array([1.0, 2.0]), np.array([True, True]), 125.0, 5.0) == 5.0  # the floor
+    assert costs.progress_reference(d, np.zeros(4, bool), 125.0, 5.0) == 40.0  # none safe: all count
+    # at crawl speed a stop now costs as much as at speed: 1 - 0 / 9 against 1 - 0 / 125
+    assert costs.progress_cost(np.array([0.0]), 9.0)[0] == 1.0
+
+
+def test_quantile_leader_is_the_probability_weighted_quantile_of_the_in_lane_modes():
+    from adv3d_runner.autonomy.planner.proposals import _expected_leaders
+
+    # one group, one actor with three modes at 10, 20, 30 m (p 0.2, 0.5, 0.3), all in the lane
+    s = np.array([10.0, 20.0, 30.0])[None, :, None]
+    ok = np.ones((1, 3, 1), bool)
+    probs = np.array([[0.2, 0.5, 0.3]])
+    mean, lead = _expected_leaders(s, ok, probs, 0.1)
+    assert lead.all() and mean[0, 0, 0] == pytest.approx(0.2 * 10 + 0.5 * 20 + 0.3 * 30)
+    assert _expected_leaders(s, ok, probs, 0.1, 0.0)[0][0, 0, 0] == 10.0
+    assert _expected_leaders(s, ok, probs, 0.1, 0.5)[0][0, 0, 0] == 20.0
+    assert _expected_leaders(s, ok, probs, 0.1, 0.75)[0][0, 0, 0] == 30.0
+    # a mode outside the lane does not count; below min_prob of in-lane mass the actor does not lead
+    ok_out = np.array([False, True, True])[None, :, None]
+    assert _expected_leaders(s, ok_out, probs, 0.1, 0.0)[0][0, 0, 0] == 20.0
+    assert not _expected_leaders(s, np.array([True, False, False])[None, :, None], probs, 0.25)[1].any()

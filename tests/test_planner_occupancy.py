@@ -201,10 +201,12 @@ def test_same_behaviour_as_instance_based_planning_of_the_same_car():
 # ------------------------------------------------------------------ Autonomy-A unchanged
 
 def test_autonomy_a_plans_are_unchanged_on_a_recorded_scene():
-    """tests/data/planner_a_plans.npz was made by tests/planner_regression.py with main's planner
-    without Autonomy-B's occupancy terms (main at 23dd95b, after issue 17 retuned its comfort
-    limits; ``git archive main`` + ``PYTHONPATH=<that tree> python tests/planner_regression.py``):
-    the merged code gives the same plans, bit for bit."""
+    """tests/data/planner_a_plans.npz was made by tests/planner_regression.py (first with main's
+    planner without Autonomy-B's occupancy terms, main at 23dd95b, to show that they change
+    nothing; made again, ``python tests/planner_regression.py tests/data/planner_a_plans.npz``,
+    when issue 17's third round changed the planner on purpose: expected leaders, the ACC
+    model, the emergency-stop gate): Autonomy-A's plans on a recorded scene, bit for bit, so
+    that an unintended change to the planner shows."""
     sys.path.insert(0, str(Path(__file__).parent))
     from planner_regression import a_plans
 

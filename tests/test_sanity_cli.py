@@ -22,6 +22,9 @@ def _sanity(*args: str) -> subprocess.CompletedProcess:
     (["--planner-config", "{bad", "--tag", "t"], "not JSON"),
     (["--planner-config", "missing-dir/tune.json", "--tag", "t"], "cannot read missing-dir/tune.json"),
     (["--planner-config", "{}", "--planner-limits", "before-issue17", "--tag", "t"], "exclusive"),
+    (["--name", "/tmp/out"], "--name is a file stem"),
+    (["--sets", "generated", "--generated-dir", "scenes/highway"], "--generated-dir needs --name"),
+    (["--sets", "generated", "--generated-dir", "no-such-dir", "--name", "x"], "no scene files"),
 ])
 def test_bad_planner_options_stop_before_any_episode(args, message):
     before = sorted((ROOT / "bench" / "results").iterdir())

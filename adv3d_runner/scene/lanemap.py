@@ -17,7 +17,8 @@ keeps lane geometry of its own. It holds:
   map shares them): ``lane_corridor(id, ahead)`` (a whole lane plus its successors as a
   one-corridor :class:`~.corridor.CorridorSet`, the lane-following baseline) and
   ``index(chain_step, chain_ahead)`` (:class:`LaneIndex`, padded segment and chain arrays for
-  the learned predictor's batched queries).
+  the learned predictor's batched queries); ``border_ends()`` (the lanes that stop at the edge
+  of the mapped area rather than in a lane drop).
 
 The map is read-only: the lane objects must not be edited while a map of them is in use (build
 a new map instead). Lane input is the scene's :class:`~.schema.Lane` or anything with the same
@@ -50,6 +51,7 @@ class LaneMap:
                         for lane in self.lanes}
         self._lane_corridors: dict[tuple[int, float], CorridorSet] = {}
         self._indexes: dict[tuple[float, float, float], LaneIndex] = {}
+        self._border: dict[tuple[float, float], frozenset[int]] = {}
 
     @classmethod
     def from_scene(cls, scene: Any) -> "LaneMap":
@@ -119,6 +121,50 @@ class LaneMap:
         ``behind`` m behind its projection to ``ahead`` m in front (see
         :func:`~.corridor.build_corridor`). Built on every call (it depends on the point)."""
         return build_corridor(self.by_id, lane_id, xy, behind, ahead, spacing, default_speed_limit)
+
+    def border_ends(self, tolerance: float = 5.0, reach: float = 10.0) -> frozenset[int]:
+        """Ids of the lanes without successor that end at the edge of the mapped area: no point of
+        any other lane's centre line (driven the same way, i.e. on a segment within 90 degrees of
+        the lane's final direction) lies more than ``tolerance`` m beyond the lane's end along
+        that direction and within ``reach`` m of its end across it. A lane that stops while a
+        lane beside it goes on (a lane drop, a merge lane) is not in the set. Computed on the
+        first call and kept.
+
+        Why: real recordings (``scenes/real/``) are cut out of a longer road, and every lane of
+        the road stops at the same cross-section; for the planner that is not a dead end."""
+        key = (float(tolerance), float(reach))
+        out = self._border.get(key)
+        if out is not None:
+            return out
+        lines = {int(lane.id): np.asarray(lane.centerline, dtype=np.float64).reshape(-1, 2) for lane in self.lanes}
+        border = []
+        for lane in self.lanes:
+            lid = int(lane.id)
+            c = lines[lid]
+            if [q for q in (getattr(lane, "successors", None) or []) if int(q) in self.by_id] or len(c) < 2:
+                continue
+            t = c[-1] - c[-2]
+            norm = float(np.hypot(*t))
+            if norm <= 0.0:
+                continue
+            t = t / norm
+            beyond = False
+            for oid, o in lines.items():
+                if oid == lid or len(o) < 2:
+                    continue
+                seg = np.diff(o, axis=0)
+                same_way = seg @ t > 0.0
+                rel = o[1:] - c[-1]  # each segment's end point
+                lon = rel @ t
+                lat = np.abs(rel[:, 0] * t[1] - rel[:, 1] * t[0])
+                if np.any(same_way & (lon > tolerance) & (lat < reach)):
+                    beyond = True
+                    break
+            if not beyond:
+                border.append(lid)
+        out = frozenset(border)
+        self._border[key] = out
+        return out
 
     def lane_corridor(self, lane_id: int, ahead: float) -> CorridorSet:
         """The lane from its first point, ``ahead`` m along it and its successors (``behind`` 0,

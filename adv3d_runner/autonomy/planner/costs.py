@@ -242,6 +242,18 @@ def progress_cost(distance: np.ndarray, reference: float) -> np.ndarray:
     return np.clip(1.0 - np.asarray(distance, dtype=np.float64) / max(reference, 1e-6), 0.0, 1.0)
 
 
+def progress_reference(distance: np.ndarray, safe: np.ndarray, limit_distance: float, floor: float) -> float:
+    """The distance that counts as full progress (m), as nuPlan's PDM scorer normalises ego
+    progress: the longest ``distance`` (B,) m among the ``safe`` (B,) bool candidates (all of
+    them when none is safe), at least ``floor`` m and at most ``limit_distance`` m (driving at
+    the speed limit for the horizon). Against the speed limit alone, at crawl speeds stopping
+    cost a tenth of a full progress loss and lost to a few units of headway cost (issue 17)."""
+    d = np.asarray(distance, dtype=np.float64)
+    pool = d[np.asarray(safe, bool)] if np.any(safe) else d
+    best = float(np.max(pool)) if pool.size else 0.0
+    return float(min(max(best, floor), limit_distance))
+
+
 def jerk_cost(accel: np.ndarray, accel_now: float, dt: float) -> np.ndarray:
     """Mean |longitudinal jerk| (m/s^3), including the step from the current acceleration.
     accel (B, T) m/s^2 per step."""

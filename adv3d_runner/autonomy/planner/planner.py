@@ -19,7 +19,7 @@ stop along its heading: there is no road to plan on.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 import numpy as np
 
 from ...dynamics.bicycle import BicycleParams, rollout
@@ -57,6 +57,26 @@ class PlannerConfig:
             choice of the previous plan costs this much more in the offset-change term
             (:func:`.costs.offset_change_cost`): nudges need two consecutive plans to agree.
         occupancy: how an occupancy field is queried (Autonomy-B, :mod:`.occupancy`).
+        open_map_border: a corridor whose last lane stops at the edge of the mapped area
+            (:meth:`~adv3d_runner.scene.lanemap.LaneMap.border_ends`: no lane goes on beyond it)
+            is not a dead end: the road goes on. Real recordings are cut out of a longer road,
+            and braking for the cut slowed the ego down before the end of most real scenes
+            (issue 17). Lane drops stay dead ends.
+        exempt_overlap_now: an actor-mode whose box overlaps the ego's footprint already now
+            counts in neither the collision nor the buffer term: no plan can undo a present
+            overlap, and on the learned stack it is nearly always a mislocalised detection
+            beside the ego, for which every candidate "collided" and the emergency stop won
+            (NGSIM US-101 train recordings, issue 17).
+        progress_floor: None: full progress is driving at the speed limit for the horizon; a
+            number (m): full progress is the longest distance among the candidates without
+            expected collision, at least this much (:func:`.costs.progress_reference`, as
+            nuPlan's PDM scorer), so that stopping costs as much at crawl speeds as at speed.
+        emergency_min_collision: the emergency stop may be chosen only when every other
+            candidate expects at least this many collisions (its collision term, unweighted);
+            None: it competes like any candidate. Otherwise soft terms or an unlikely mode
+            decided it: a track that appeared beside the ego filled every candidate's buffer
+            term, or a 5 % mode touched every candidate, and the emergency stop's -7 m/s^2 scored
+            lowest (NGSIM US-101 train recordings, issue 17).
     """
 
     proposals: ProposalConfig = field(default_factory=ProposalConfig)
@@ -71,6 +91,10 @@ class PlannerConfig:
     exempt_rear_end: bool = True
     offset_confirm_factor: float = 4.0
     occupancy: occmodel.OccupancyPlanConfig = field(default_factory=occmodel.OccupancyPlanConfig)
+    open_map_border: bool = True
+    exempt_overlap_now: bool = True
+    progress_floor: float | None = None
+    emergency_min_collision: float | None = 0.5
 
     @classmethod
     def from_overrides(cls, overrides: dict, source: str = "planner overrides") -> "PlannerConfig":
@@ -79,7 +103,8 @@ class PlannerConfig:
 
         ``overrides`` is ``{"proposals": {...}, "weights": {...}, "planner": {...}}`` (each part
         optional): fields of :class:`.proposals.ProposalConfig`, :class:`.scorer.CostWeights` and
-        of this class. Numbers stay numbers (a JSON ``1`` for a float field is fine).
+        of this class. Numbers stay numbers (a JSON ``1`` for a float field is fine); an optional
+        field (``emergency_min_collision``, ``progress_floor``) takes ``null``.
 
         Raises:
             ConfigError: an unknown part or field, or a value of the wrong type, naming it and
@@ -101,12 +126,15 @@ class PlannerConfig:
                 if name not in known:
                     raise ConfigError(f"{source}: {part}.{name} is not a field; choose from {', '.join(sorted(known))}")
                 default = getattr(klass(), name)
+                if value is None and "None" in str(known[name].type):  # an optional field switched off
+                    continue
                 if isinstance(default, bool) != isinstance(value, bool) or (
                         isinstance(default, (int, float)) and not isinstance(value, (int, float))) or (
                         isinstance(default, tuple) and not isinstance(value, (list, tuple))):
                     raise ConfigError(f"{source}: {part}.{name} = {value!r}, expected a value like {default!r}")
             kwargs[part] = {k: tuple(v) if isinstance(v, list) else
-                            float(v) if isinstance(getattr(klass(), k), float) else v for k, v in given.items()}
+                            float(v) if v is not None and isinstance(getattr(klass(), k), float) else v
+                            for k, v in given.items()}
         return cls(proposals=ProposalConfig(**kwargs["proposals"]), weights=CostWeights(**kwargs["weights"]),
                    **kwargs["planner"])
 
@@ -249,8 +277,12 @@ class SamplingPlanner:
             if nid is not None and int(nid) in by_id:
                 chain_ids.append(int(nid))
                 names.append(f"{side}{int(nid)}")
-        corridors = CorridorSet([lanes.corridor(lid, ego.pose[:2], cfg.corridor_behind, ahead,
-                                                default_speed_limit=cfg.default_speed_limit) for lid in chain_ids])
+        cors = [lanes.corridor(lid, ego.pose[:2], cfg.corridor_behind, ahead, default_speed_limit=cfg.default_speed_limit)
+                for lid in chain_ids]
+        if cfg.open_map_border:
+            border = lanes.border_ends()
+            cors = [replace(c, ends=False) if c.ends and c.lane_ids[-1] in border else c for c in cors]
+        corridors = CorridorSet(cors)
         limit_now = float(corridors.limit_at(np.array(0), np.array(cfg.corridor_behind)))
         spec = make_specs(corridors, names, limit_now, pc, current_index=0)
         if occupancy is not None:  # instance-free: the lane leaders the occupancy shows
@@ -265,7 +297,7 @@ class SamplingPlanner:
         raw_oc = table.raw["offset_change"]  # > 0 exactly where the plain |change| is > 0
         plain_oc = costs.offset_change_cost(spec.offset, raw_oc > 0, self._prev_offset)
         base = table.total - cfg.weights.offset_change * (raw_oc - plain_oc)
-        w = int(np.argmin(base))
+        w = table.argmin(base)
         self._confirmed_offset = None if spec.emergency[w] else float(spec.offset[w])
         self._prev_target_ids = frozenset(corridors.corridors[int(spec.corridor[i])].lane_ids)
         self._prev_offset = None if spec.emergency[i] else float(spec.offset[i])
@@ -312,8 +344,15 @@ class SamplingPlanner:
             exempt = None
             if cfg.exempt_rear_end and len(fc):
                 exempt = costs.from_behind(poses, fc.poses) & (cands.spec.corridor == 0)[:, None, None, None]
+            if cfg.exempt_overlap_now and len(fc):
+                now = np.broadcast_to((dist[0, :, :, 0] <= 1e-9)[None, :, :, None], dist.shape)
+                exempt = now if exempt is None else exempt | now
             k_col, collision = "collision", costs.collision_cost(dist, fc.probs, exempt)
             k_buf, buffer = "buffer", costs.buffer_cost(dist, fc.probs, cfg.buffer, exempt)
+        reference = limit_now * horizon
+        if cfg.progress_floor is not None:  # relative to the best safe candidate (PDM)
+            safe = (collision <= 0.0) & ~cands.spec.emergency
+            reference = costs.progress_reference(travelled[:, -1], safe, reference, cfg.progress_floor)
         raw = {
             k_col: collision,
             "drivable_area": costs.drivable_area_cost(excess),
@@ -321,7 +360,7 @@ class SamplingPlanner:
             "headway": costs.headway_cost(poses, speeds, dims, fh.poses, fh.dims, fh.probs,
                                           cfg.time_headway, cfg.min_gap),
             "speed_limit": costs.speed_limit_cost(speeds, limits),
-            "progress": costs.progress_cost(travelled[:, -1], limit_now * horizon),
+            "progress": costs.progress_cost(travelled[:, -1], reference),
             "lane_center": costs.lane_center_cost(dev),
             "lane_change": costs.lane_change_cost(cands.spec.corridor == 0, same),
             "offset_change": costs.offset_change_cost(cands.spec.offset, same, self._prev_offset,
@@ -329,7 +368,12 @@ class SamplingPlanner:
             "jerk": costs.jerk_cost(cands.accel, ego.acceleration, cands.dt),
             "lat_accel": costs.lateral_accel_cost(speeds[:, :-1], cands.curvature),
         }
-        return score(raw, cfg.weights)
+        eligible = None
+        if cfg.emergency_min_collision is not None and cands.spec.emergency.any():
+            others = ~cands.spec.emergency
+            if np.any(raw[k_col][others] < cfg.emergency_min_collision):
+                eligible = others
+        return score(raw, cfg.weights, eligible)
 
     def _occupancy_terms(self, occupancy, cands: Candidates, ego: EgoState) -> tuple[tuple[str, np.ndarray], ...]:
         """(name, (B,) raw cost) of the occupancy collision and buffer terms (:mod:`.occupancy`)."""

@@ -54,10 +54,19 @@ class ProposalConfig:
             the acceleration rises from a negative value (releasing the brakes);
             max_brake_jerk: the limit while the IDM asks for harder braking than
             ``idm_decel`` (firm braking builds up faster than comfortable speed changes).
+        firm_release: braking harder than ``idm_decel`` is released at ``max_brake_jerk`` (as
+            fast as it builds up) instead of ``max_release_jerk``.
         min_mode_prob: predicted modes below this probability are ignored as leaders.
         lane_margin: extra lateral margin when deciding that an actor is in a corridor, m.
         leader_speed_window: s over which a leader's predicted speed is averaged for the IDM
             (0.1 = one step; predicted positions jitter by centimetres per step).
+        idm_coolness: c of the ACC model (:func:`_acc_blend`): 0 is the plain IDM; towards 1
+            the IDM's braking for a gap that is short but not closing is softened to about
+            ``idm_decel`` (a car that cuts in ahead, the short headways of dense traffic).
+        leader_modes: how an actor's predicted modes lead the IDM: ``"expected"``, one leader
+            per actor at the probability-weighted mean of its in-lane modes
+            (:func:`_expected_leaders`); ``"nearest"``, every mode a leader of its own, so the
+            IDM follows the nearest, i.e. slowest, mode (the planner before issue 17's fix).
     """
 
     horizon: float = 5.0
@@ -78,10 +87,18 @@ class ProposalConfig:
     max_decel: float = 7.0
     max_jerk: float = 1.5
     max_release_jerk: float = 3.0
-    max_brake_jerk: float = 8.0
+    max_brake_jerk: float = 4.0
     min_mode_prob: float = 0.1
     lane_margin: float = 0.3
     leader_speed_window: float = 1.5
+    idm_coolness: float = 0.9
+    firm_release: bool = True
+    leader_modes: str = "expected"
+    leader_quantile: float = 0.0
+
+    def __post_init__(self):
+        if self.leader_modes not in ("expected", "quantile", "nearest"):
+            raise ValueError(f"leader_modes must be 'expected', 'quantile' or 'nearest', got {self.leader_modes!r}")
 
     @property
     def steps(self) -> int:
@@ -281,6 +298,10 @@ def rollout_candidates(ego_pose: np.ndarray, ego_speed: float, ego_accel: float,
         ahead_w = np.minimum(np.arange(T) + w, T)
         lead_v = np.maximum((lead_s_t[ahead_w] - lead_s_t[:-1]) / ((ahead_w - np.arange(T)) * dt)[:, None, None], 0.0)
         any_lead = lead_ok_t.any(axis=(1, 2))
+        if config.idm_coolness > 0.0:  # (T, B, M) leader accelerations over the same window, for the CAH
+            ahead_v = np.minimum(np.arange(T) + w, T - 1)
+            span = np.maximum(ahead_v - np.arange(T), 1) * dt
+            lead_a = (lead_v[ahead_v] - lead_v) / span[:, None, None]
     x, y, yaw, v = (states[i, 0].copy() for i in range(4))
     # the proposal's own limits are within the vehicle's: the step's clamps would be no-ops
     clamp_accel = not (-max_dec <= -config.max_decel and config.idm_accel <= max_acc)
@@ -299,6 +320,8 @@ def rollout_candidates(ego_pose: np.ndarray, ego_speed: float, ego_accel: float,
             gap_hist[k] = gap
             if k < T:
                 v_lead = lead_v[k][rows, j]
+                if config.idm_coolness > 0.0:
+                    a_lead = lead_a[k][rows, j]
         if k == T:
             break
         # ---- longitudinal: IDM towards the target speed
@@ -312,12 +335,23 @@ def rollout_candidates(ego_pose: np.ndarray, ego_speed: float, ego_accel: float,
             if finite.any():
                 s_star = config.idm_gap + np.maximum(0.0, v * config.idm_headway + v * (v - v_lead) / sqrt_ab)
                 q = s_star / np.maximum(gap, 0.1)
-                a = np.where(finite, np.where(gap <= 0.0, -config.max_decel, a - config.idm_accel * (q * q)), a)
+                a_idm = a - config.idm_accel * (q * q)
+                if config.idm_coolness > 0.0:
+                    # rows without a leader get a finite stand-in gap (their result is not used)
+                    a_idm = _acc_blend(a_idm, v, v_lead, a_lead, np.where(finite, np.maximum(gap, 0.1), 1e3),
+                                       config.idm_accel, config.idm_decel, config.idm_coolness)
+                a = np.where(finite, np.where(gap <= 0.0, -config.max_decel, a_idm), a)
         a = np.minimum(np.maximum(a, -config.max_decel), config.idm_accel)
         # jerk limit; releasing the brakes may be faster (max_release_jerk) so that a plan that
         # braked hard does not keep the ego decelerating for seconds after the reason is gone
         down = jerk_dn if brake_dn == jerk_dn else np.where(a < -config.idm_decel, brake_dn, jerk_dn)
-        a = np.minimum(np.maximum(a, a_prev - down), a_prev + up_jerk[(a_prev < 0).view(np.int8)])
+        up = up_jerk[(a_prev < 0).view(np.int8)]
+        if config.firm_release and brake_dn > up_jerk[1]:
+            # firm braking is released as fast as it builds up: released at the comfortable
+            # rate, one emergency stop kept the ego braking for seconds and brought it to a
+            # standstill after the reason was gone
+            up = np.where(a_prev < -config.idm_decel, brake_dn, up)
+        a = np.minimum(np.maximum(a, a_prev - down), a_prev + up)
         if len(em_rows):
             a[em_rows] = -config.max_decel
         if v.min() <= 1e-6:
@@ -484,6 +518,80 @@ def _actor_frenet(actors: ActorForecast, corridors: CorridorSet, spec: Candidate
     # an actor is in the candidate's lane when its footprint overlaps the ego's lateral band
     lat = np.abs(d_all[gc] - groups[:, 1][:, None, None])  # (G, M, T+1)
     ok = (lat < (0.5 * ego_width + half_w[None, :, None] + config.lane_margin)) & prob_ok[None, :, None]
+    if config.leader_modes != "nearest" and K > 1:
+        q = None if config.leader_modes == "expected" else config.leader_quantile
+        s_g, ok_g = _expected_leaders(s_all[gc], ok, actors.probs, config.min_mode_prob, q)
+        used = ok_g.any(axis=(0, 2))
+        return s_g[:, used][inv], ok_g[:, used][inv], (0.5 * actors.dims[:, 0])[used]
     used = ok.any(axis=(0, 2))
     s = s_all[:, used][gc[inv]]  # (B, M_used, T+1)
     return s, ok[:, used][inv], half_l[used]
+
+
+def _acc_blend(a_idm: np.ndarray, v: np.ndarray, v_lead: np.ndarray, a_lead: np.ndarray, gap: np.ndarray,
+               a_max: float, b: float, coolness: float) -> np.ndarray:
+    """The ACC model's acceleration (Kesting, Treiber & Helbing 2010, "Enhanced intelligent driver
+    model to access the impact of driving strategies on traffic capacity", Phil. Trans. R. Soc. A
+    368, Eqs. 2.3-2.5): the IDM blended with the constant-acceleration heuristic (CAH).
+
+    The IDM brakes hard whenever the gap is below its desired gap, even when the leader is not
+    slower (a car that cuts in, or the short headways of dense real traffic); the CAH (both cars
+    keep their accelerations) says such a situation is not critical, and the blend then brakes at
+    most about ``b``. Where the CAH is itself negative (closing in on a slower or braking
+    leader), the blend follows it less ``b``: as firm as the situation needs.
+
+    Args:
+        a_idm, v, v_lead, a_lead, gap: (B,) IDM acceleration (m/s^2), ego and leader speed (m/s),
+            leader acceleration (m/s^2), bumper gap (m, > 0).
+        a_max: the ego's maximum acceleration; b: comfortable deceleration, m/s^2;
+        coolness: c in [0, 1] (0.99 in the paper; 0 is the IDM).
+    Returns:
+        (B,) m/s^2.
+    """
+    a_l = np.minimum(a_lead, a_max)
+    closing = v - v_lead
+    # the leader stops before the gap closes: the braking that stops the ego behind it
+    stops_first = v_lead * closing <= -2.0 * gap * a_l
+    denom = np.maximum(v_lead * v_lead - 2.0 * gap * a_l, 1e-6)
+    a_cah = np.where(stops_first, v * v * a_l / denom,
+                     a_l - np.square(np.maximum(closing, 0.0)) / (2.0 * gap))
+    blend = (1.0 - coolness) * a_idm + coolness * (a_cah + b * np.tanh((a_idm - a_cah) / b))
+    return np.where(a_idm >= a_cah, a_idm, blend)
+
+
+def _expected_leaders(s: np.ndarray, ok: np.ndarray, probs: np.ndarray, min_prob: float,
+                      quantile: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """One leader per actor: its modes merged into their expected arc length.
+
+    Why: following the nearest of an actor's modes makes the IDM follow its slowest mode (a
+    mode of probability 0.2 that is 20 % slower than the likely one), and at the first step,
+    where every mode starts at the tracked pose, the tie picks the first mode instead: the
+    leader's speed jumps between step 0 and step 1 of every plan, so each plan asks for a hard
+    brake one step ahead that the next plan takes back (NGSIM US-101 train recordings, issue
+    17). The interaction cost terms still see every mode with its probability.
+
+    Args:
+        s: (G, N * K, T + 1) arc lengths of the actor-modes on each group's corridor, m.
+        ok: (G, N * K, T + 1) bool, the actor-mode is inside the group's lane strip.
+        probs: (N, K) mode probabilities (normalised per actor).
+        min_prob: an actor leads at a step when its in-lane modes hold at least this much
+            probability.
+    Returns:
+        s (G, N, T + 1): the probability-weighted mean of the in-lane modes' arc lengths;
+        ok (G, N, T + 1) bool.
+    """
+    G, M, T1 = s.shape
+    N, K = probs.shape
+    w = np.where(ok.reshape(G, N, K, T1), probs[None, :, :, None], 0.0)
+    mass = w.sum(axis=2)  # (G, N, T+1)
+    lead = mass >= min_prob - 1e-12
+    s4 = s.reshape(G, N, K, T1)
+    if quantile is None:
+        s_lead = (w * s4).sum(axis=2) / np.maximum(mass, 1e-12)
+    else:  # the probability-weighted quantile of the in-lane modes' arc lengths
+        order = np.argsort(np.where(w > 0, s4, np.inf), axis=2, kind="stable")
+        w_sorted = np.take_along_axis(w, order, axis=2)
+        cum = np.cumsum(w_sorted, axis=2) / np.maximum(mass, 1e-12)[:, :, None]
+        first = np.argmax((cum >= quantile - 1e-12) & (w_sorted > 0), axis=2)[:, :, None]
+        s_lead = np.take_along_axis(np.take_along_axis(s4, order, axis=2), first, axis=2)[:, :, 0]
+    return np.where(lead, s_lead, 0.0), lead

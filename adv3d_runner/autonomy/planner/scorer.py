@@ -71,7 +71,10 @@ class ScoreTable:
         raw: term -> (B,) unweighted cost.
         weighted: term -> (B,) weight x raw.
         total: (B,) sum of the weighted terms.
-        best: index of the lowest total (ties: the lowest index, i.e. the earlier candidate).
+        best: index of the lowest total among the eligible candidates (ties: the lowest index,
+            i.e. the earlier candidate).
+        eligible: (B,) bool, the candidates that may be chosen (all unless :func:`score` was
+            given a mask).
     """
 
     raw: dict[str, np.ndarray]
@@ -79,6 +82,13 @@ class ScoreTable:
     total: np.ndarray
     best: int
     weights: dict[str, float] = field(default_factory=dict)
+    eligible: np.ndarray | None = None
+
+    def argmin(self, values: np.ndarray) -> int:
+        """Index of the lowest of ``values`` (B,) among the eligible candidates."""
+        if self.eligible is None or not self.eligible.any():
+            return int(np.argmin(values))
+        return int(np.argmin(np.where(self.eligible, values, np.inf)))
 
     def breakdown(self, i: int | None = None) -> dict[str, float]:
         """Weighted per-term costs of candidate ``i`` (default: the best)."""
@@ -86,8 +96,12 @@ class ScoreTable:
         return {k: float(v[i]) for k, v in self.weighted.items()}
 
 
-def score(raw_terms: dict[str, np.ndarray], weights: CostWeights = CostWeights()) -> ScoreTable:
-    """Weight and sum the terms (every term of :data:`TERMS` that is present; unknown terms raise)."""
+def score(raw_terms: dict[str, np.ndarray], weights: CostWeights = CostWeights(),
+          eligible: np.ndarray | None = None) -> ScoreTable:
+    """Weight and sum the terms (every term of :data:`TERMS` that is present; unknown terms raise).
+
+    ``eligible`` (B,) bool: the candidates the best may be chosen from (PDM-Closed's gating, as
+    opposed to a weighted term); all when None or when none is eligible."""
     w = weights.as_dict()
     unknown = set(raw_terms) - set(w)
     if unknown:
@@ -95,4 +109,6 @@ def score(raw_terms: dict[str, np.ndarray], weights: CostWeights = CostWeights()
     raw = {k: np.nan_to_num(np.asarray(v, dtype=np.float64), nan=1e6, posinf=1e6) for k, v in raw_terms.items()}
     weighted = {k: w[k] * v for k, v in raw.items()}
     total = np.sum(np.stack(list(weighted.values())), axis=0)
-    return ScoreTable(raw, weighted, total, int(np.argmin(total)), w)
+    table = ScoreTable(raw, weighted, total, 0, w, None if eligible is None else np.asarray(eligible, bool))
+    table.best = table.argmin(total)
+    return table
