@@ -394,7 +394,8 @@ def _print(out: dict, args) -> None:
     print("| set | scenes | ok | collisions (at fault) | AP | recall | minADE | meanADE | plan lat | plan jerk | "
           "plan peak jerk | drive lat | drive jerk | drive peak jerk (max) | progress vs log (min) |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
-    for key, label in (("generated", "generated benchmark"), ("real", f"real, {args.real_part} part")):
+    gen_label = f"generated, {args.generated_dir}" if args.generated_dir else "generated benchmark"
+    for key, label in (("generated", gen_label), ("real", f"real, {args.real_part} part")):
         if key not in out:
             continue
         s = out[key][0]
@@ -456,7 +457,8 @@ def _print_b(out: dict, reference: dict, args) -> None:
     print("| set | scenes | ok | collisions (at fault) | occ. mAP | occ. Soft-IoU | flow-gr. mAP | flow-gr. Soft-IoU | "
           "EPE m/s | plan lat | plan jerk | drive lat | drive jerk | drive peak jerk (max) | progress vs log (min) |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
-    for key, label in (("generated", "generated benchmark"), ("real", f"real, {args.real_part} part")):
+    gen_label = f"generated, {args.generated_dir}" if args.generated_dir else "generated benchmark"
+    for key, label in (("generated", gen_label), ("real", f"real, {args.real_part} part")):
         if key not in out:
             continue
         s = out[key][0]
