@@ -398,7 +398,8 @@ def test_leader_speed_is_averaged_so_prediction_jitter_does_not_shake_the_ego():
     ego = EgoState(np.array([0.0, 0.0, 0.0]), 15.0, length=4.8, width=1.9)
     spread = {}
     for window in (0.1, 1.5):
-        pc = ProposalConfig(leader_speed_window=window, max_jerk=10.0, max_release_jerk=10.0, max_brake_jerk=10.0)
+        pc = ProposalConfig(leader_speed_window=window, max_jerk=10.0, max_release_jerk=10.0, max_brake_jerk=10.0,
+                            accel_deadband=0.0)
         firsts = []
         for seed in range(6):
             planner = planner_on(straight_lanes(1), SamplingPlanner(PlannerConfig(proposals=pc)))
@@ -609,3 +610,30 @@ def test_quantile_leader_is_the_probability_weighted_quantile_of_the_in_lane_mod
     ok_out = np.array([False, True, True])[None, :, None]
     assert _expected_leaders(s, ok_out, probs, 0.1, 0.0)[0][0, 0, 0] == 20.0
     assert not _expected_leaders(s, np.array([True, False, False])[None, :, None], probs, 0.25)[1].any()
+
+
+def test_acceleration_deadband_holds_through_small_changes_of_the_demand():
+    """In steady following the leader's gap and speed jitter from frame to frame; without a
+    deadband each plan passed that on to the executed acceleration. Within the band the
+    acceleration is held; a real change of the demand (a braking leader) still goes through."""
+    from adv3d_runner.autonomy.planner import PlannerConfig, ProposalConfig
+
+    ego = EgoState(np.array([0.0, 0.0, 0.0]), 15.0, acceleration=0.0, length=4.8, width=1.9)
+    firsts = {}
+    for band in (0.0, 0.2):
+        pc = ProposalConfig(accel_deadband=band)
+        out = []
+        for gap in (31.0, 32.0, 33.0):  # the leader's distance jittering by a metre
+            now = np.array([[gap, 0.0, 4.6, 1.9, 0.0]])
+            t = np.arange(1, 61) * DT
+            tracks, preds = actor_inputs(now, np.stack([gap + 15.0 * t, 0 * t], -1)[None])
+            out.append(planner_on(straight_lanes(1), SamplingPlanner(PlannerConfig(proposals=pc))).plan(
+                ego, preds, tracks).acceleration[0])
+        firsts[band] = np.array(out)
+    assert np.ptp(firsts[0.0]) > 0.01 and np.all(firsts[0.2] == 0.0)
+    # a leader braking hard 20 m ahead: the demand leaves the band, braking starts at once
+    t = np.arange(1, 61) * DT
+    x = 20.0 + np.maximum(15.0 * t - 2.5 * t ** 2, 0.0) * (t < 3) + 22.5 * (t >= 3)
+    tracks, preds = actor_inputs(np.array([[20.0, 0.0, 4.6, 1.9, 0.0]]), np.stack([x, 0 * t], -1)[None])
+    plan = planner_on(straight_lanes(1)).plan(ego, preds, tracks)
+    assert plan.acceleration[0] < -0.1

@@ -56,6 +56,8 @@ class ProposalConfig:
             ``idm_decel`` (firm braking builds up faster than comfortable speed changes).
         firm_release: braking harder than ``idm_decel`` is released at ``max_brake_jerk`` (as
             fast as it builds up) instead of ``max_release_jerk``.
+        accel_deadband: m/s^2; an IDM candidate keeps its previous step's acceleration while
+            the IDM's demand differs from it by less than this (0: off).
         min_mode_prob: predicted modes below this probability are ignored as leaders.
         lane_margin: extra lateral margin when deciding that an actor is in a corridor, m.
         leader_speed_window: s over which a leader's predicted speed is averaged for the IDM
@@ -93,6 +95,7 @@ class ProposalConfig:
     leader_speed_window: float = 1.5
     idm_coolness: float = 0.9
     firm_release: bool = True
+    accel_deadband: float = 0.2
     leader_modes: str = "expected"
     leader_quantile: float = 0.0
 
@@ -342,6 +345,11 @@ def rollout_candidates(ego_pose: np.ndarray, ego_speed: float, ego_accel: float,
                                        config.idm_accel, config.idm_decel, config.idm_coolness)
                 a = np.where(finite, np.where(gap <= 0.0, -config.max_decel, a_idm), a)
         a = np.minimum(np.maximum(a, -config.max_decel), config.idm_accel)
+        if config.accel_deadband > 0.0:
+            # hold the acceleration while the demand stays within the band: the leader's gap and
+            # speed jitter by centimetres and tenths of m/s from frame to frame, and every plan
+            # passed that on to the executed acceleration at up to max_jerk
+            a = np.where(np.abs(a - a_prev) < config.accel_deadband, a_prev, a)
         # jerk limit; releasing the brakes may be faster (max_release_jerk) so that a plan that
         # braked hard does not keep the ego decelerating for seconds after the reason is gone
         down = jerk_dn if brake_dn == jerk_dn else np.where(a < -config.idm_decel, brake_dn, jerk_dn)
