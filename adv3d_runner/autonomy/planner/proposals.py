@@ -18,9 +18,12 @@ then simulated for ``horizon`` s at ``dt`` with all candidates in one vectorised
 * steering: pure pursuit on the reference path (look-ahead ``max(min_lookahead, speed x
   lookahead_time)``), curvature clipped by the steering limit and the lateral acceleration
   limit ``max_lat_accel / v^2``;
-* speed: the Intelligent Driver Model (IDM) towards the target speed, following the nearest
-  predicted actor ahead in the candidate's corridor (modes with probability >= ``min_mode_prob``
-  count), with a jerk limit (not for the emergency stop);
+* speed: the ACC model (the Intelligent Driver Model blended with the constant-acceleration
+  heuristic, :func:`_acc_blend`) towards the target speed, following the nearest predicted
+  actor ahead in the candidate's corridor, each actor at the expected position of its modes
+  inside the corridor's lane strip (:func:`_expected_leaders`; modes with probability >=
+  ``min_mode_prob`` count), with an acceleration deadband and jerk limits (not for the
+  emergency stop);
 * motion: :func:`adv3d_runner.dynamics.bicycle.step` (exact arcs, speed >= 0).
 """
 from __future__ import annotations
@@ -67,8 +70,11 @@ class ProposalConfig:
             ``idm_decel`` (a car that cuts in ahead, the short headways of dense traffic).
         leader_modes: how an actor's predicted modes lead the IDM: ``"expected"``, one leader
             per actor at the probability-weighted mean of its in-lane modes
-            (:func:`_expected_leaders`); ``"nearest"``, every mode a leader of its own, so the
-            IDM follows the nearest, i.e. slowest, mode (the planner before issue 17's fix).
+            (:func:`_expected_leaders`); ``"quantile"``, at the ``leader_quantile``
+            probability-weighted quantile of those modes (0: the slowest); ``"nearest"``, every
+            mode a leader of its own, so the IDM follows the nearest, i.e. slowest, mode, and at
+            step 0 (a tie) the first one (the planner before issue 17's third round).
+        leader_quantile: see ``leader_modes``.
     """
 
     horizon: float = 5.0
