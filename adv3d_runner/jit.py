@@ -1,0 +1,30 @@
+"""Compiled loops: the one place that says how numba compiles adv3d's kernels.
+
+Why numba (issue 16): the per-frame hot loops (the planner's rollout of ~25 candidates over 50
+steps, the LiDAR effects over ~110k returns, rotated NMS over a few dozen boxes) are short
+sequences of operations on small arrays, or one pass that numpy can only express as dozens of
+passes. numpy's per-call overhead (~1 us) and its temporaries then cost more than the
+arithmetic; a compiled loop does not pay them. numba compiles plain Python over numpy arrays,
+needs no C toolchain, and its compiled functions are cached on disk next to their module.
+
+Conventions for every kernel:
+
+* no ``fastmath`` and no ``parallel``: IEEE arithmetic in the written order (the results are
+  deterministic and, where a kernel replaces numpy code, bit for bit the same unless its
+  docstring says otherwise), and no thread pool spinning against the process's other threads
+  (:mod:`adv3d_runner.machine`, ``bench/threads.py``);
+* ``cache=True``: compiled once per machine (the first call of a fresh checkout compiles, a few
+  seconds per kernel), then loaded from ``__pycache__`` by every process, workers included;
+* a kernel takes and returns arrays (the caller checks shapes and dtypes, so a kernel sees one
+  signature and compiles once).
+"""
+from __future__ import annotations
+
+from typing import Callable
+
+import numba
+
+
+def kernel(fn: Callable) -> Callable:
+    """Compile ``fn`` as an adv3d kernel (see the module docstring)."""
+    return numba.njit(cache=True, nogil=True, fastmath=False, error_model="numpy")(fn)
