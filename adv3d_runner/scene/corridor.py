@@ -22,6 +22,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from ..jit import kernel
+
 from . import lanes as lanegeo
 
 DEFAULT_SPEED_LIMIT = 29.0  # m/s (~65 mph, US highway) when a lane has none
@@ -277,23 +279,12 @@ class CorridorSet:
         xy = np.asarray(xy, dtype=np.float64)
         c, s_guess = np.broadcast_arrays(np.asarray(c), np.asarray(s_guess, dtype=np.float64))
         shape = s_guess.shape
-        c, s_guess, q = c.reshape(-1), s_guess.reshape(-1), xy.reshape(-1, 2)
-        n = len(c)
-        last = self.n_points[c] - 2  # last segment index per query
-        idx = np.clip(self._seg_index(c, s_guess)[:, None] + np.arange(-window, window + 1), 0, last[:, None])
-        kp = c[:, None] * self._P + idx  # (n, W) flat indices
-        ku = c[:, None] * (self._P - 1) + idx
-        ux, uy = self._ux[ku], self._uy[ku]
-        rx, ry = q[:, None, 0] - self._px[kp], q[:, None, 1] - self._py[kp]
-        t = rx * ux + ry * uy
-        lo = np.where(idx == 0, -np.inf, 0.0)
-        hi = np.where(idx == last[:, None], np.inf, self.spacing[c][:, None])
-        tc = np.minimum(np.maximum(t, lo), hi)
-        ex, ey = rx - tc * ux, ry - tc * uy
-        best = np.argmin(ex * ex + ey * ey, axis=1)
-        rows = np.arange(n)
-        s = idx[rows, best] * self.spacing[c] + tc[rows, best]
-        d = ux[rows, best] * ry[rows, best] - uy[rows, best] * rx[rows, best]
+        c = np.ascontiguousarray(c.reshape(-1), dtype=np.int64)
+        q = xy.reshape(-1, 2)
+        s, d = _project_local_many(c, np.ascontiguousarray(q[:, 0]), np.ascontiguousarray(q[:, 1]),
+                                   np.ascontiguousarray(s_guess.reshape(-1)), int(window), self._px, self._py,
+                                   self._ux, self._uy, int(self._P), self.spacing.astype(np.float64),
+                                   self.n_points.astype(np.int64))
         return s.reshape(shape), d.reshape(shape)
 
     def project(self, c: int, xy: np.ndarray, chunk: int = 2048) -> tuple[np.ndarray, np.ndarray]:
@@ -364,3 +355,51 @@ class CorridorSet:
         lat = np.maximum(np.abs(d) - half, 0.0)
         over = np.where(self.ends[c], np.maximum(s - self.length[c], 0.0), 0.0)
         return np.hypot(lat, over)
+
+
+@kernel
+def project_on_segments(x: float, y: float, i0: int, window: int, px: np.ndarray, py: np.ndarray,
+                        ux: np.ndarray, uy: np.ndarray, base_p: int, base_u: int, spacing: float,
+                        last_i: int) -> tuple[float, float]:
+    """Frenet (s, d) of the point (x, y) (m) on one corridor of a :class:`CorridorSet`, searched
+    over the segments ``i0 - window .. i0 + window`` (clamped; the first / last segment extend
+    to infinity); the first of equally near segments wins.
+
+    Compiled (:mod:`adv3d_runner.jit`): the planner projects one point per candidate per step,
+    and as numpy calls on (n, 2 window + 1) arrays their overhead was most of the cost.
+
+    Args:
+        px, py, ux, uy: the set's flattened points and segment unit vectors;
+        base_p, base_u: the corridor's first flat point and segment index; spacing: m;
+        last_i: the corridor's last segment index.
+    """
+    i0 = min(max(i0, 0), last_i)
+    best, s_best, d_best = np.inf, 0.0, 0.0
+    for off in range(-window, window + 1):
+        i = min(max(i0 + off, 0), last_i)
+        kp, ku = base_p + i, base_u + i
+        rx, ry = x - px[kp], y - py[kp]
+        t = rx * ux[ku] + ry * uy[ku]
+        lo = -np.inf if i == 0 else 0.0
+        hi = np.inf if i == last_i else spacing
+        tc = min(max(t, lo), hi)
+        ex, ey = rx - tc * ux[ku], ry - tc * uy[ku]
+        e2 = ex * ex + ey * ey
+        if e2 < best or off == -window:
+            best, s_best, d_best = e2, i * spacing + tc, ux[ku] * ry - uy[ku] * rx
+    return s_best, d_best
+
+
+@kernel
+def _project_local_many(c, qx, qy, s_guess, window, px, py, ux, uy, P, spacing, n_points):
+    """:meth:`CorridorSet.project_local` of n points: c, qx, qy, s_guess (n,) -> s, d (n,)."""
+    n = len(c)
+    s = np.empty(n)
+    d = np.empty(n)
+    for k in range(n):
+        ci = c[k]
+        last_i = n_points[ci] - 2
+        i0 = min(max(np.int64(np.floor(s_guess[k] / spacing[ci])), 0), last_i)
+        s[k], d[k] = project_on_segments(qx[k], qy[k], i0, window, px, py, ux, uy, ci * P, ci * (P - 1),
+                                         spacing[ci], last_i)
+    return s, d

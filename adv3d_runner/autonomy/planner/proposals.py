@@ -34,7 +34,8 @@ import numpy as np
 
 from ...dynamics.bicycle import BicycleParams
 from ...geometry.angles import wrap_angle
-from ...scene.corridor import CorridorSet
+from ...jit import kernel
+from ...scene.corridor import CorridorSet, project_on_segments
 
 
 @dataclass(frozen=True)
@@ -256,215 +257,215 @@ def rollout_candidates(ego_pose: np.ndarray, ego_speed: float, ego_accel: float,
     leader_s, leader_ok, leader_len = _actor_frenet(actors, corridors, spec, target_d, ego_width, config, T)
     has_leaders = leader_s.shape[1] > 0
 
-    # time-major buffers (one contiguous row per step), transposed once at the end
-    states = np.empty((4, T + 1, B))
-    states[:, 0] = np.array([pose[0], pose[1], pose[2], v0])[:, None]
-    acc = np.zeros((T, B))
-    kap = np.zeros((T, B))
-    s_hist = np.empty((T + 1, B))
-    d_hist = np.full((T + 1, B), np.nan)
-    gap_hist = np.full((T + 1, B), np.inf)
-    s_cur = s0.copy()
-    a_prev = np.full(B, float(ego_accel))
-    half_len = 0.5 * ego_length
-    sqrt_ab = 2.0 * np.sqrt(config.idm_accel * config.idm_decel)
-    rows = np.arange(B)
-    v_des = np.maximum(spec.target_speed, 0.0)
-    stop_target = v_des <= 0.1
-    v_des_safe = np.maximum(v_des, 0.1)
-    # everything per candidate that does not change over the rollout is gathered once: the loop
-    # below runs T times over ~25 candidates, so numpy's per-call overhead dominates its cost
-    emergency = np.asarray(spec.emergency, bool)
-    em_rows = np.flatnonzero(emergency)
-    path = _PathQuery(corridors, c)
-    inv_trans = 1.0 / trans_len
-    # the reference path's lateral offset as a function of u (Hermite coefficients per candidate)
-    h3 = 2 * d0 + slope0 - 2 * target_d
-    h2 = -3 * d0 - 2 * slope0 + 3 * target_d
-    h1 = slope0
-    h0 = d0
-    la_time, la_min = config.lookahead_time, config.min_lookahead
-    lat_lim = config.max_lat_accel
-    kappa_max = params.max_curvature
-    jerk_dn = config.max_jerk * dt
-    brake_dn = config.max_brake_jerk * dt
-    up_jerk = np.array([config.max_jerk * dt, config.max_release_jerk * dt])
-    # the bicycle step (:func:`adv3d_runner.dynamics.bicycle.step` with a curvature input) is
-    # inlined below with its parameter-derived constants computed once
-    max_acc, max_dec, max_speed = params.max_accel, params.max_decel, params.max_speed
-    lr = params.lr
-    half_dt2 = 0.5 * dt * dt
-    two_pi = 2 * np.pi
-    if has_leaders:  # time-major (one contiguous (B, M) slab per step), step-independent parts first
+    # time-major leader arrays (one contiguous (B, M) slab per step), step-independent parts first
+    if has_leaders:
         lead_s_t = np.ascontiguousarray(leader_s.transpose(2, 0, 1))
         lead_ok_t = leader_ok.transpose(2, 0, 1)
-        lead_s_ok = np.where(lead_ok_t, lead_s_t, -np.inf)  # actor-modes out of the lane never lead
-        lead_back = lead_s_t - (leader_len + half_len)  # the leader's rear bumper less the ego's half length
+        lead_s_ok = np.ascontiguousarray(np.where(lead_ok_t, lead_s_t, -np.inf))  # out of the lane: never leads
+        lead_back = lead_s_t - (leader_len + 0.5 * ego_length)  # the leader's rear bumper less the ego's half length
         # (T, B, M) leader speeds, as the mean over ``leader_speed_window`` s ahead: predicted
         # positions jitter by centimetres per step, which one-step differences turn into
         # +-0.3 m/s of speed noise that the IDM passes on to the ego's acceleration
         w = max(1, int(round(config.leader_speed_window / dt)))
         ahead_w = np.minimum(np.arange(T) + w, T)
         lead_v = np.maximum((lead_s_t[ahead_w] - lead_s_t[:-1]) / ((ahead_w - np.arange(T)) * dt)[:, None, None], 0.0)
-        any_lead = lead_ok_t.any(axis=(1, 2))
         if config.idm_coolness > 0.0:  # (T, B, M) leader accelerations over the same window, for the CAH
             ahead_v = np.minimum(np.arange(T) + w, T - 1)
             span = np.maximum(ahead_v - np.arange(T), 1) * dt
             lead_a = (lead_v[ahead_v] - lead_v) / span[:, None, None]
-    x, y, yaw, v = (states[i, 0].copy() for i in range(4))
-    # the proposal's own limits are within the vehicle's: the step's clamps would be no-ops
-    clamp_accel = not (-max_dec <= -config.max_decel and config.idm_accel <= max_acc)
-    for k in range(T + 1):
-        if k % 5 == 0 or k == T:  # exact projection now and then; in between the arc length driven
-            s_cur, d_cur = path.project(x, y, s_cur, window=2)
-            d_hist[k] = d_cur
-        s_hist[k] = s_cur
-        # leader: nearest predicted actor ahead in the candidate's corridor at this time
-        leading = has_leaders and any_lead[k]
-        if leading:
-            sc = s_cur[:, None]
-            gaps = np.where(lead_s_ok[k] > sc, lead_back[k] - sc, np.inf)
-            j = gaps.argmin(axis=1)
-            gap = gaps[rows, j]
-            gap_hist[k] = gap
-            if k < T:
-                v_lead = lead_v[k][rows, j]
-                if config.idm_coolness > 0.0:
-                    a_lead = lead_a[k][rows, j]
-        if k == T:
-            break
-        # ---- longitudinal: IDM towards the target speed
-        r = v / v_des_safe
-        r *= r
-        free = np.where(stop_target, -config.idm_decel * np.minimum(1.0, v),  # stop target: brake comfortably
-                        config.idm_accel * (1.0 - r * r))
-        a = np.maximum(free, -config.idm_decel)  # above the target: slow down comfortably
-        if leading:
-            finite = gap < np.inf
-            if finite.any():
-                s_star = config.idm_gap + np.maximum(0.0, v * config.idm_headway + v * (v - v_lead) / sqrt_ab)
-                q = s_star / np.maximum(gap, 0.1)
-                a_idm = a - config.idm_accel * (q * q)
-                if config.idm_coolness > 0.0:
-                    # rows without a leader get a finite stand-in gap (their result is not used)
-                    a_idm = _acc_blend(a_idm, v, v_lead, a_lead, np.where(finite, np.maximum(gap, 0.1), 1e3),
-                                       config.idm_accel, config.idm_decel, config.idm_coolness)
-                a = np.where(finite, np.where(gap <= 0.0, -config.max_decel, a_idm), a)
-        a = np.minimum(np.maximum(a, -config.max_decel), config.idm_accel)
-        if config.accel_deadband > 0.0:
-            # hold the acceleration while the demand stays within the band: the leader's gap and
-            # speed jitter by centimetres and tenths of m/s from frame to frame, and every plan
-            # passed that on to the executed acceleration at up to max_jerk
-            a = np.where(np.abs(a - a_prev) < config.accel_deadband, a_prev, a)
-        # jerk limit; releasing the brakes may be faster (max_release_jerk) so that a plan that
-        # braked hard does not keep the ego decelerating for seconds after the reason is gone
-        down = jerk_dn if brake_dn == jerk_dn else np.where(a < -config.idm_decel, brake_dn, jerk_dn)
-        up = up_jerk[(a_prev < 0).view(np.int8)]
-        if config.firm_release and brake_dn > up_jerk[1]:
-            # firm braking is released as fast as it builds up: released at the comfortable
-            # rate, one emergency stop kept the ego braking for seconds and brought it to a
-            # standstill after the reason was gone
-            up = np.where(a_prev < -config.idm_decel, brake_dn, up)
-        a = np.minimum(np.maximum(a, a_prev - down), a_prev + up)
-        if len(em_rows):
-            a[em_rows] = -config.max_decel
-        if v.min() <= 1e-6:
-            a[(v <= 1e-6) & (a < 0)] = 0.0  # standing still: no braking "stored up"
-        # ---- lateral: pure pursuit on the reference path
-        s_la = s_cur + np.maximum(la_min, v * la_time)
-        u = np.minimum(np.maximum((s_la - s0) * inv_trans, 0.0), 1.0)
-        tx, ty = path.point(s_la, ((h3 * u + h2) * u + h1) * u + h0)
-        dx, dy = tx - x, ty - y
-        kappa = 2.0 * (np.cos(yaw) * dy - np.sin(yaw) * dx) / np.maximum(dx * dx + dy * dy, 1e-6)
-        k_lim = np.minimum(kappa_max, lat_lim / np.maximum(v * v, 1e-6))
-        kappa = np.minimum(np.maximum(kappa, -k_lim), k_lim)
-        # ---- motion: exact arc of the kinematic bicycle, speed >= 0 (bicycle.step)
-        vc = v  # >= 0: the start speed is clamped and every step keeps it so
-        if clamp_accel:
-            a = np.minimum(np.maximum(a, -max_dec), max_acc)
-        kappa_s = kappa  # already within +-kappa_max (the vehicle's steering limit)
-        v_end = vc + a * dt
-        stops = v_end < 0
-        if stops.any():  # a braking vehicle stops when v reaches 0 and stays there
-            t_stop = np.where(stops, vc / np.where(a < 0, -a, 1.0), dt)
-            s_step = np.maximum(np.where(stops, 0.5 * vc * t_stop, vc * dt + a * half_dt2), 0.0)
         else:
-            s_step = np.maximum(vc * dt + a * half_dt2, 0.0)
-        direction = yaw if not lr else yaw + np.arcsin(np.clip(kappa_s * lr, -1.0, 1.0))
-        dth = kappa_s * s_step
-        # s sin(dth / 2) / (dth / 2), as numpy.sinc computes it (exact and finite at dth = 0)
-        xs = dth / two_pi
-        ys = np.pi * np.where(xs == 0, 1.0e-20, xs)
-        chord = s_step * (np.sin(ys) / ys)
-        mid = direction + 0.5 * dth
-        x = x + chord * np.cos(mid)
-        y = y + chord * np.sin(mid)
-        yaw = yaw + dth
-        v1 = np.minimum(np.maximum(v_end, 0.0), max_speed)
-        states[0, k + 1], states[1, k + 1], states[2, k + 1], states[3, k + 1] = x, y, yaw, v1
-        # the acceleration actually applied (speed clamped at 0 when braking to a stop)
-        a_applied = (v1 - v) / dt
-        acc[k] = a_applied
-        kap[k] = kappa
-        a_prev = a_applied
-        s_cur = s_cur + 0.5 * (v + v1) * dt  # arc length driven (next guess)
-        v = v1
-    return Candidates(spec, np.ascontiguousarray(states.transpose(2, 1, 0)), np.ascontiguousarray(acc.T),
-                      np.ascontiguousarray(kap.T), np.ascontiguousarray(s_hist.T), np.ascontiguousarray(d_hist.T),
-                      np.ascontiguousarray(gap_hist.T), dt)
+            lead_a = np.zeros_like(lead_v)
+    else:
+        lead_s_ok = lead_back = np.full((T + 1, B, 0), -np.inf)
+        lead_v = lead_a = np.zeros((T, B, 0))
+    P = corridors._P
+    geometry = (corridors._px, corridors._py, corridors._ux, corridors._uy,
+                (c * P).astype(np.int64), (c * (P - 1)).astype(np.int64),
+                np.ascontiguousarray(corridors.spacing[c], dtype=np.float64),
+                (corridors.n_points[c] - 2).astype(np.int64))
+    # the reference path's lateral offset as a function of u (Hermite coefficients per candidate)
+    hermite = np.ascontiguousarray(np.stack([d0, slope0, -3 * d0 - 2 * slope0 + 3 * target_d,
+                                             2 * d0 + slope0 - 2 * target_d]), dtype=np.float64)
+    v_des = np.maximum(spec.target_speed, 0.0)
+    up_release = config.max_release_jerk * dt
+    limits = np.array([
+        config.idm_accel, config.idm_decel, config.idm_gap, config.idm_headway, config.max_decel,
+        config.max_jerk * dt, config.max_brake_jerk * dt, up_release,
+        config.accel_deadband, config.idm_coolness, config.lookahead_time, config.min_lookahead,
+        config.max_lat_accel, params.max_curvature, params.max_accel, params.max_decel, params.max_speed,
+        params.lr, dt,
+        1.0 if (config.firm_release and config.max_brake_jerk * dt > up_release) else 0.0,
+        # the proposal's own limits are within the vehicle's: the step's clamps would be no-ops
+        0.0 if (-params.max_decel <= -config.max_decel and config.idm_accel <= params.max_accel) else 1.0,
+    ], dtype=np.float64)
+    states, acc, kap, s_hist, d_hist, gap_hist = _rollout_kernel(
+        pose, v0, float(ego_accel), np.ascontiguousarray(s0, dtype=np.float64), 1.0 / trans_len, hermite,
+        v_des, np.ascontiguousarray(spec.emergency, dtype=np.bool_), *geometry,
+        lead_s_ok, np.ascontiguousarray(lead_back), np.ascontiguousarray(lead_v), np.ascontiguousarray(lead_a),
+        limits, T)
+    return Candidates(spec, states, acc, kap, s_hist, d_hist, gap_hist, dt)
 
 
-class _PathQuery:
-    """:meth:`CorridorSet.pose_at` (position only) for a fixed corridor per candidate, with the
-    per-candidate gathers done once (the rollout asks every step)."""
+# indices into the ``limits`` vector of :func:`_rollout_kernel`
+(_IDM_ACCEL, _IDM_DECEL, _IDM_GAP, _IDM_HEADWAY, _MAX_DECEL, _JERK_DN, _BRAKE_DN, _UP_RELEASE, _DEADBAND,
+ _COOLNESS, _LA_TIME, _LA_MIN, _LAT_LIM, _KAPPA_MAX, _VEH_ACC, _VEH_DEC, _VEH_SPEED, _LR, _DT, _FIRM_RELEASE,
+ _CLAMP_VEHICLE) = range(21)
 
-    def __init__(self, corridors: CorridorSet, c: np.ndarray):
-        P = corridors._P
-        self.spacing = corridors.spacing[c]
-        self.inv_spacing = 1.0 / self.spacing
-        self.last = (corridors.n_points[c] - 2).astype(np.float64)
-        self.base_p = c * P
-        self.base_u = c * (P - 1)
-        self.cs = corridors
-        self.last_i = corridors.n_points[c] - 2
-        self.spacing_col = self.spacing[:, None]
-        self._window = None
 
-    def project(self, x: np.ndarray, y: np.ndarray, s_guess: np.ndarray, window: int = 2) -> tuple[np.ndarray, np.ndarray]:
-        """:meth:`CorridorSet.project_local` of one point per candidate (same arithmetic)."""
-        if self._window != window:
-            self._window = window
-            self._offs = np.arange(-window, window + 1)
-        cs = self.cs
-        i0 = np.floor(s_guess * self.inv_spacing).astype(np.int64)
-        i0 = np.minimum(np.maximum(i0, 0), self.last_i)
-        idx = np.minimum(np.maximum(i0[:, None] + self._offs, 0), self.last_i[:, None])
-        kp = self.base_p[:, None] + idx
-        ku = self.base_u[:, None] + idx
-        ux, uy = cs._ux[ku], cs._uy[ku]
-        rx, ry = x[:, None] - cs._px[kp], y[:, None] - cs._py[kp]
-        t = rx * ux + ry * uy
-        # the first / last segment extend to infinity
-        lo = np.where(idx == 0, -np.inf, 0.0)
-        hi = np.where(idx == self.last_i[:, None], np.inf, self.spacing_col)
-        tc = np.minimum(np.maximum(t, lo), hi)
-        ex, ey = rx - tc * ux, ry - tc * uy
-        best = np.argmin(ex * ex + ey * ey, axis=1)
-        r = np.arange(len(best))
-        ib, tb = idx[r, best], tc[r, best]
-        s = ib * self.spacing + tb
-        d = ux[r, best] * ry[r, best] - uy[r, best] * rx[r, best]
-        return s, d
+@kernel
+def _rollout_kernel(pose, v0, a0, s0, inv_trans, hermite, v_des, emergency, px, py, ux, uy, base_p, base_u,
+                    spacing, last_i, lead_s_ok, lead_back, lead_v, lead_a, limits, T):
+    """The closed-loop rollout of every candidate (module docstring), one candidate at a time.
 
-    def point(self, s: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        fi = np.minimum(np.maximum(np.floor(s * self.inv_spacing), 0.0), self.last)
-        i = fi.astype(np.int64)
-        ku = self.base_u + i
-        kp = self.base_p + i
-        cs = self.cs
-        ux, uy = cs._ux[ku], cs._uy[ku]
-        t = s - fi * self.spacing
-        return cs._px[kp] + t * ux - d * uy, cs._py[kp] + t * uy + d * ux
+    Compiled (:mod:`adv3d_runner.jit`): the same loop in numpy ran ~100 small array calls per
+    step for ~25 candidates, and their overhead was most of the planner's time.
+
+    Args:
+        pose: (3,) ego x, y, yaw (m, rad); v0: speed >= 0, m/s; a0: present acceleration, m/s^2.
+        s0, inv_trans: (B,) start arc length on the candidate's corridor (m) and 1 / its lateral
+            transition length (1/m); hermite: (4, B) the lateral offset's cubic in u, low order
+            first; v_des: (B,) target speed (m/s, <= 0.1: stop); emergency: (B,) bool.
+        px, py, ux, uy: the CorridorSet's flattened points and segment unit vectors;
+        base_p, base_u, spacing, last_i: (B,) the candidate's corridor: its first point and
+            segment index, point spacing (m) and last segment index.
+        lead_s_ok: (T + 1, B, M) leader arc lengths, -inf where not in the lane; lead_back:
+            (T + 1, B, M) rear bumper less the ego's half length, m; lead_v, lead_a: (T, B, M)
+            leader speed (m/s) and acceleration (m/s^2).
+        limits: see the ``_IDM_ACCEL`` ... indices; T: steps.
+    Returns:
+        states (B, T + 1, 4), accel (B, T), curvature (B, T), s (B, T + 1), d (B, T + 1),
+        leader_gap (B, T + 1).
+    """
+    B = s0.shape[0]
+    M = lead_s_ok.shape[2]
+    idm_accel, idm_decel, dt = limits[_IDM_ACCEL], limits[_IDM_DECEL], limits[_DT]
+    max_decel, jerk_dn, brake_dn = limits[_MAX_DECEL], limits[_JERK_DN], limits[_BRAKE_DN]
+    up_release, up_accel, deadband = limits[_UP_RELEASE], limits[_JERK_DN], limits[_DEADBAND]
+    coolness, lr = limits[_COOLNESS], limits[_LR]
+    sqrt_ab = 2.0 * np.sqrt(idm_accel * idm_decel)
+    half_dt2 = 0.5 * dt * dt
+    two_pi = 2 * np.pi
+    states = np.empty((B, T + 1, 4))
+    acc = np.zeros((B, T))
+    kap = np.zeros((B, T))
+    s_hist = np.empty((B, T + 1))
+    d_hist = np.full((B, T + 1), np.nan)
+    gap_hist = np.full((B, T + 1), np.inf)
+    for b in range(B):
+        x, y, yaw, v = pose[0], pose[1], pose[2], v0
+        states[b, 0, 0], states[b, 0, 1], states[b, 0, 2], states[b, 0, 3] = x, y, yaw, v
+        s_cur = s0[b]
+        a_prev = a0
+        stop_target = v_des[b] <= 0.1
+        v_des_safe = max(v_des[b], 0.1)
+        v_lead = 0.0
+        a_lead = 0.0
+        for k in range(T + 1):
+            if k % 5 == 0 or k == T:  # exact projection now and then; in between the arc length driven
+                i0 = np.int64(np.floor(s_cur * (1.0 / spacing[b])))
+                s_cur, d_cur = project_on_segments(x, y, i0, 2, px, py, ux, uy, base_p[b], base_u[b], spacing[b],
+                                                   last_i[b])
+                d_hist[b, k] = d_cur
+            s_hist[b, k] = s_cur
+            # leader: the nearest predicted actor ahead in the candidate's corridor at this time
+            gap = np.inf
+            j = 0
+            for m in range(M):
+                if lead_s_ok[k, b, m] > s_cur:
+                    g = lead_back[k, b, m] - s_cur
+                    if g < gap:
+                        gap, j = g, m
+            if M > 0:
+                gap_hist[b, k] = gap
+            if k == T:
+                break
+            if gap < np.inf:
+                v_lead = lead_v[k, b, j]
+                a_lead = lead_a[k, b, j]
+            # ---- longitudinal: IDM (ACC model) towards the target speed
+            if stop_target:  # stop target: brake comfortably
+                free = -idm_decel * min(1.0, v)
+            else:
+                r = v / v_des_safe
+                r *= r
+                free = idm_accel * (1.0 - r * r)
+            a = max(free, -idm_decel)  # above the target: slow down comfortably
+            if gap < np.inf:
+                if gap <= 0.0:
+                    a = -max_decel
+                else:
+                    s_star = limits[_IDM_GAP] + max(0.0, v * limits[_IDM_HEADWAY] + v * (v - v_lead) / sqrt_ab)
+                    q = s_star / max(gap, 0.1)
+                    a = a - idm_accel * (q * q)
+                    if coolness > 0.0:
+                        a = _acc_blend_one(a, v, v_lead, a_lead, max(gap, 0.1), idm_accel, idm_decel, coolness)
+            a = min(max(a, -max_decel), idm_accel)
+            if deadband > 0.0 and abs(a - a_prev) < deadband:
+                # hold the acceleration while the demand stays within the band: the leader's gap
+                # and speed jitter by centimetres and tenths of m/s from frame to frame, and every
+                # plan passed that on to the executed acceleration at up to max_jerk
+                a = a_prev
+            # jerk limit; releasing the brakes may be faster (max_release_jerk) so that a plan that
+            # braked hard does not keep the ego decelerating for seconds after the reason is gone
+            down = brake_dn if (brake_dn != jerk_dn and a < -idm_decel) else jerk_dn
+            up = up_release if a_prev < 0 else up_accel
+            if limits[_FIRM_RELEASE] > 0.0 and a_prev < -idm_decel:
+                # firm braking is released as fast as it builds up: released at the comfortable
+                # rate, one emergency stop kept the ego braking for seconds after the reason was gone
+                up = brake_dn
+            a = min(max(a, a_prev - down), a_prev + up)
+            if emergency[b]:
+                a = -max_decel
+            if v <= 1e-6 and a < 0:
+                a = 0.0  # standing still: no braking "stored up"
+            # ---- lateral: pure pursuit on the reference path
+            s_la = s_cur + max(limits[_LA_MIN], v * limits[_LA_TIME])
+            u = min(max((s_la - s0[b]) * inv_trans[b], 0.0), 1.0)
+            d_ref = ((hermite[3, b] * u + hermite[2, b]) * u + hermite[1, b]) * u + hermite[0, b]
+            tx, ty = _path_point(s_la, d_ref, px, py, ux, uy, base_p[b], base_u[b], spacing[b], last_i[b])
+            dx, dy = tx - x, ty - y
+            kappa = 2.0 * (np.cos(yaw) * dy - np.sin(yaw) * dx) / max(dx * dx + dy * dy, 1e-6)
+            k_lim = min(limits[_KAPPA_MAX], limits[_LAT_LIM] / max(v * v, 1e-6))
+            kappa = min(max(kappa, -k_lim), k_lim)
+            # ---- motion: exact arc of the kinematic bicycle, speed >= 0 (bicycle.step)
+            if limits[_CLAMP_VEHICLE] > 0.0:
+                a = min(max(a, -limits[_VEH_DEC]), limits[_VEH_ACC])
+            v_end = v + a * dt
+            if v_end < 0:  # a braking vehicle stops when v reaches 0 and stays there
+                t_stop = v / (-a if a < 0 else 1.0)
+                s_step = max(0.5 * v * t_stop, 0.0)
+            else:
+                s_step = max(v * dt + a * half_dt2, 0.0)
+            direction = yaw if lr == 0.0 else yaw + np.arcsin(min(max(kappa * lr, -1.0), 1.0))
+            dth = kappa * s_step
+            # s sin(dth / 2) / (dth / 2), as numpy.sinc computes it (exact and finite at dth = 0)
+            xs = dth / two_pi
+            ys = np.pi * (1.0e-20 if xs == 0 else xs)
+            chord = s_step * (np.sin(ys) / ys)
+            mid = direction + 0.5 * dth
+            x = x + chord * np.cos(mid)
+            y = y + chord * np.sin(mid)
+            yaw = yaw + dth
+            v1 = min(max(v_end, 0.0), limits[_VEH_SPEED])
+            states[b, k + 1, 0], states[b, k + 1, 1], states[b, k + 1, 2], states[b, k + 1, 3] = x, y, yaw, v1
+            # the acceleration actually applied (speed clamped at 0 when braking to a stop)
+            a_applied = (v1 - v) / dt
+            acc[b, k] = a_applied
+            kap[b, k] = kappa
+            a_prev = a_applied
+            s_cur = s_cur + 0.5 * (v + v1) * dt  # arc length driven (next guess)
+            v = v1
+    return states, acc, kap, s_hist, d_hist, gap_hist
+
+
+@kernel
+def _path_point(s, d, px, py, ux, uy, base_p, base_u, spacing, last_i):
+    """:meth:`CorridorSet.pose_at` (position only) of (s, d) on one corridor: (x, y), m."""
+    fi = min(max(np.floor(s * (1.0 / spacing)), 0.0), np.float64(last_i))
+    i = np.int64(fi)
+    ku, kp = base_u + i, base_p + i
+    t = s - fi * spacing
+    return px[kp] + t * ux[ku] - d * uy[ku], py[kp] + t * uy[ku] + d * ux[ku]
 
 
 def _actor_frenet(actors: ActorForecast, corridors: CorridorSet, spec: CandidateSpec, target_d: np.ndarray,
@@ -542,6 +543,7 @@ def _actor_frenet(actors: ActorForecast, corridors: CorridorSet, spec: Candidate
     return s, ok[:, used][inv], half_l[used]
 
 
+@kernel
 def _acc_blend(a_idm: np.ndarray, v: np.ndarray, v_lead: np.ndarray, a_lead: np.ndarray, gap: np.ndarray,
                a_max: float, b: float, coolness: float) -> np.ndarray:
     """The ACC model's acceleration (Kesting, Treiber & Helbing 2010, "Enhanced intelligent driver
@@ -562,15 +564,25 @@ def _acc_blend(a_idm: np.ndarray, v: np.ndarray, v_lead: np.ndarray, a_lead: np.
     Returns:
         (B,) m/s^2.
     """
-    a_l = np.minimum(a_lead, a_max)
+    out = np.empty_like(a_idm)
+    for i in range(len(a_idm)):
+        out[i] = _acc_blend_one(a_idm[i], v[i], v_lead[i], a_lead[i], gap[i], a_max, b, coolness)
+    return out
+
+
+@kernel
+def _acc_blend_one(a_idm, v, v_lead, a_lead, gap, a_max, b, coolness):
+    """:func:`_acc_blend` of one candidate (scalars)."""
+    a_l = min(a_lead, a_max)
     closing = v - v_lead
-    # the leader stops before the gap closes: the braking that stops the ego behind it
-    stops_first = v_lead * closing <= -2.0 * gap * a_l
-    denom = np.maximum(v_lead * v_lead - 2.0 * gap * a_l, 1e-6)
-    a_cah = np.where(stops_first, v * v * a_l / denom,
-                     a_l - np.square(np.maximum(closing, 0.0)) / (2.0 * gap))
-    blend = (1.0 - coolness) * a_idm + coolness * (a_cah + b * np.tanh((a_idm - a_cah) / b))
-    return np.where(a_idm >= a_cah, a_idm, blend)
+    if v_lead * closing <= -2.0 * gap * a_l:  # the leader stops before the gap closes
+        a_cah = v * v * a_l / max(v_lead * v_lead - 2.0 * gap * a_l, 1e-6)
+    else:
+        closing_pos = max(closing, 0.0)
+        a_cah = a_l - closing_pos * closing_pos / (2.0 * gap)
+    if a_idm >= a_cah:
+        return a_idm
+    return (1.0 - coolness) * a_idm + coolness * (a_cah + b * np.tanh((a_idm - a_cah) / b))
 
 
 def _expected_leaders(s: np.ndarray, ok: np.ndarray, probs: np.ndarray, min_prob: float,
