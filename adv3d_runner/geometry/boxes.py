@@ -16,10 +16,17 @@ each box inside the other and (b) the crossings of their edges. We gather these 
 many pairs at once, order them by angle around their mean and apply the shoelace formula. Pairs
 too far apart to touch (centre distance > sum of half diagonals) are skipped, so pairwise IoU
 over a frame of detections costs little more than the candidate pairs that actually overlap.
+The per-pair loops (corners, candidates, ordering, shoelace) are compiled
+(:mod:`adv3d_runner.jit`) and give the bits the numpy passes they replaced gave; the angles
+stay ``np.arctan2`` (issue 16).
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
+
+from ..jit import kernel
 
 # Candidate vertices per pair: 4 + 4 corners and 4 x 4 edge crossings.
 _N_CAND = 24
@@ -47,14 +54,36 @@ def box_corners(boxes: np.ndarray) -> np.ndarray:
         widths are clipped to 0 (a degenerate box collapses to a segment or a point).
     """
     b = as_boxes(boxes)
-    hl = 0.5 * np.maximum(b[..., 2], 0.0)
-    hw = 0.5 * np.maximum(b[..., 3], 0.0)
-    c, s = np.cos(b[..., 4]), np.sin(b[..., 4])
-    lx = np.stack([hl, hl, -hl, -hl], axis=-1)  # (..., 4) local x of each corner
-    ly = np.stack([-hw, hw, hw, -hw], axis=-1)
-    x = b[..., 0, None] + c[..., None] * lx - s[..., None] * ly
-    y = b[..., 1, None] + s[..., None] * lx + c[..., None] * ly
-    return np.stack([x, y], axis=-1)
+    flat = b.reshape(-1, 5)
+    # cos / sin in numpy (its SIMD versions), the rest compiled: a dozen numpy calls' overhead
+    # per call was most of the cost of an IoU over a few boxes.
+    return _corners(flat, np.cos(flat[:, 4]), np.sin(flat[:, 4])).reshape(b.shape[:-1] + (4, 2))
+
+
+@kernel
+def _corners(b: np.ndarray, c: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """:func:`box_corners` of boxes ``b`` (n, 5) with c = cos(yaw), s = sin(yaw) (n,) -> (n, 4, 2) m.
+
+    Corner k has local coordinates (lx, ly) = (hl, -hw), (hl, hw), (-hl, hw), (-hl, -hw) and is
+    x + c lx - s ly, y + s lx + c ly (half length and width clipped at 0 as ``np.maximum`` does,
+    NaN kept)."""
+    n = b.shape[0]
+    out = np.empty((n, 4, 2))
+    for i in range(n):
+        hl = 0.5 * _clip0(b[i, 2])
+        hw = 0.5 * _clip0(b[i, 3])
+        for k in range(4):
+            lx = hl if k < 2 else -hl
+            ly = -hw if k == 0 or k == 3 else hw
+            out[i, k, 0] = b[i, 0] + c[i] * lx - s[i] * ly
+            out[i, k, 1] = b[i, 1] + s[i] * lx + c[i] * ly
+    return out
+
+
+@kernel
+def _clip0(v: float) -> float:
+    """``np.maximum(v, 0.0)`` of one float (NaN stays NaN, -0.0 becomes 0.0)."""
+    return v if v > 0.0 or v != v else 0.0
 
 
 def box_areas(boxes: np.ndarray) -> np.ndarray:
@@ -69,94 +98,226 @@ def polygon_area(poly: np.ndarray) -> np.ndarray:
     return 0.5 * np.sum(x * np.roll(y, -1, axis=-1) - np.roll(x, -1, axis=-1) * y, axis=-1)
 
 
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
-
-
-def _inside(points: np.ndarray, poly: np.ndarray, tol: np.ndarray) -> np.ndarray:
-    """points (n, P, 2) inside (or on) convex CCW quads poly (n, 4, 2) -> (n, P) bool."""
-    edge = np.roll(poly, -1, axis=1) - poly  # (n, 4, 2)
-    rel = points[:, :, None, :] - poly[:, None, :, :]  # (n, P, 4, 2)
-    cr = _cross(edge[:, None, :, :], rel)  # (n, P, 4)
-    return np.all(cr >= -tol[:, None, None], axis=-1)
-
-
 def _intersection_area_pairs(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Exact intersection area of paired boxes a[i], b[i] ((n, 5) each, positive area) -> (n,)."""
+    """Exact intersection area of paired boxes a[i], b[i] ((n, 5) each, positive area) -> (n,) m^2.
+
+    The corners come from :func:`box_corners` and the candidates' angles from ``np.arctan2``
+    (numpy's SIMD transcendentals, which a compiled ``atan2`` need not match bit for bit); the
+    loops around them are compiled (:func:`_clip_candidates`, :func:`_ordered_area`).
+    """
     n = len(a)
     if n == 0:
         return np.zeros(0)
-    # Work relative to a's centre: keeps precision for large map coordinates.
-    origin = a[:, None, :2]
-    pa = box_corners(a) - origin
-    pb = box_corners(b) - origin
-    scale = np.maximum(np.max(np.abs(np.concatenate([pa, pb], axis=1)), axis=(1, 2)), 1e-12)
-    tol = _REL_TOL * scale * scale  # cross products are m^2
+    rel, valid, count = _clip_candidates(box_corners(a), box_corners(b), np.ascontiguousarray(a[:, :2]))
+    ang = np.arctan2(rel[..., 1], rel[..., 0])
+    return _ordered_area(rel, valid, count, ang)
 
-    in_a = _inside(pa, pb, tol)  # corners of a inside b
-    in_b = _inside(pb, pa, tol)
 
-    # Edge crossings: a_i + t r_i = b_j + u s_j.
-    r = np.roll(pa, -1, axis=1) - pa  # (n, 4, 2)
-    s = np.roll(pb, -1, axis=1) - pb
-    denom = _cross(r[:, :, None, :], s[:, None, :, :])  # (n, 4, 4)
-    qp = pb[:, None, :, :] - pa[:, :, None, :]  # (n, 4, 4, 2)
-    parallel = np.abs(denom) <= tol[:, None, None]
-    safe = np.where(parallel, 1.0, denom)
-    t = _cross(qp, s[:, None, :, :]) / safe
-    u = _cross(qp, r[:, :, None, :]) / safe
+# Compiled (adv3d_runner.jit): per pair 8 inside tests and 16 edge crossings over 4-vertex
+# arrays, which numpy can only do as ~40 passes over (n, 24)-sized temporaries; the loops below
+# are the same IEEE operations in the same order as those passes were, so the same bits.
+
+@kernel
+def _clip_candidates(ca: np.ndarray, cb: np.ndarray, origin: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Candidate vertices of the intersection of each pair of convex CCW quads.
+
+    Args:
+        ca, cb: (n, 4, 2) corners of boxes a[i] and b[i] (m, map frame).
+        origin: (n, 2) a[i]'s centre (m); everything is computed relative to it (precision
+            with large map coordinates).
+    Returns:
+        rel (n, 24, 2) m: the candidates (a's 4 corners, b's 4 corners, the 16 crossings of
+        a's edge k with b's edge l at 8 + 4 k + l) relative to the mean of the valid ones
+        (0 where not valid); valid (n, 24) bool: a corner inside (or on) the other box, an edge
+        crossing within both segments; count (n,) int64 valid candidates.
+    """
+    n = ca.shape[0]
+    rel = np.zeros((n, _N_CAND, 2))
+    valid = np.zeros((n, _N_CAND), np.bool_)
+    count = np.zeros(n, np.int64)
+    pts = np.empty((_N_CAND, 2))
+    pa = np.empty((4, 2))
+    pb = np.empty((4, 2))
+    r = np.empty((4, 2))
+    s = np.empty((4, 2))
     eps = 1e-9
-    cross_ok = (~parallel) & (t >= -eps) & (t <= 1 + eps) & (u >= -eps) & (u <= 1 + eps)
-    cross_pts = pa[:, :, None, :] + t[..., None] * r[:, :, None, :]  # (n, 4, 4, 2)
+    for i in range(n):
+        scale = 0.0  # max |coordinate| (NaN propagates, as in np.max)
+        for k in range(4):
+            for d in range(2):
+                pa[k, d] = ca[i, k, d] - origin[i, d]
+                pb[k, d] = cb[i, k, d] - origin[i, d]
+                for v in (abs(pa[k, d]), abs(pb[k, d])):
+                    if v > scale or v != v:
+                        scale = v
+        if scale < 1e-12:
+            scale = 1e-12
+        tol = _REL_TOL * scale * scale  # cross products are m^2
+        for k in range(4):
+            k1 = (k + 1) % 4
+            for d in range(2):
+                r[k, d] = pa[k1, d] - pa[k, d]
+                s[k, d] = pb[k1, d] - pb[k, d]
+        for k in range(4):
+            pts[k, 0], pts[k, 1] = pa[k, 0], pa[k, 1]
+            pts[4 + k, 0], pts[4 + k, 1] = pb[k, 0], pb[k, 1]
+            valid[i, k] = _inside(pa[k, 0], pa[k, 1], pb, s, tol)  # corners of a inside b
+            valid[i, 4 + k] = _inside(pb[k, 0], pb[k, 1], pa, r, tol)
+        for k in range(4):  # edge crossings: pa[k] + t r[k] = pb[l] + u s[l]
+            for m in range(4):
+                c = 8 + 4 * k + m
+                denom = r[k, 0] * s[m, 1] - r[k, 1] * s[m, 0]
+                qx = pb[m, 0] - pa[k, 0]
+                qy = pb[m, 1] - pa[k, 1]
+                parallel = abs(denom) <= tol
+                safe = 1.0 if parallel else denom
+                t = (qx * s[m, 1] - qy * s[m, 0]) / safe
+                u = (qx * r[k, 1] - qy * r[k, 0]) / safe
+                valid[i, c] = (not parallel) and t >= -eps and t <= 1 + eps and u >= -eps and u <= 1 + eps
+                pts[c, 0] = pa[k, 0] + t * r[k, 0]
+                pts[c, 1] = pa[k, 1] + t * r[k, 1]
+        cnt = 0
+        cx = 0.0  # numpy's sum over this axis: from 0.0, term by term
+        cy = 0.0
+        for c in range(_N_CAND):
+            if valid[i, c]:
+                cx += pts[c, 0]
+                cy += pts[c, 1]
+                cnt += 1
+            else:
+                cx += 0.0
+                cy += 0.0
+        count[i] = cnt
+        cx /= max(cnt, 1)
+        cy /= max(cnt, 1)
+        for c in range(_N_CAND):
+            if valid[i, c]:
+                rel[i, c, 0] = pts[c, 0] - cx
+                rel[i, c, 1] = pts[c, 1] - cy
+    return rel, valid, count
 
-    pts = np.concatenate([pa, pb, cross_pts.reshape(n, 16, 2)], axis=1)  # (n, 24, 2)
-    valid = np.concatenate([in_a, in_b, cross_ok.reshape(n, 16)], axis=1)
-    count = valid.sum(axis=1)
 
-    # Order the valid candidates by angle around their mean (an interior point of the convex
-    # intersection); invalid ones sort last and are replaced by the last valid vertex, which
-    # adds zero-length edges and so leaves the shoelace sum unchanged.
-    cnt = np.maximum(count, 1)
-    centre = np.sum(np.where(valid[..., None], pts, 0.0), axis=1) / cnt[:, None]
-    rel = pts - centre[:, None, :]
-    ang = np.where(valid, np.arctan2(rel[..., 1], rel[..., 0]), 10.0)
-    order = np.argsort(ang, axis=1, kind="stable")
-    rel = np.take_along_axis(rel, order[..., None], axis=1)
-    last = rel[np.arange(n), cnt - 1]  # (n, 2)
-    pad = np.arange(_N_CAND)[None, :] >= count[:, None]
-    rel = np.where(pad[..., None], last[:, None, :], rel)
-    area = np.abs(polygon_area(rel))
-    area[count < 3] = 0.0
+@kernel
+def _inside(px: float, py: float, poly: np.ndarray, edge: np.ndarray, tol: float) -> bool:
+    """Point (px, py) inside (or on, within ``tol`` m^2) the convex CCW quad ``poly`` (4, 2)
+    whose edges are ``edge`` (4, 2) (edge k from vertex k to k + 1)."""
+    for k in range(4):
+        if not edge[k, 0] * (py - poly[k, 1]) - edge[k, 1] * (px - poly[k, 0]) >= -tol:
+            return False
+    return True
+
+
+@kernel
+def _ordered_area(rel: np.ndarray, valid: np.ndarray, count: np.ndarray, ang: np.ndarray) -> np.ndarray:
+    """Shoelace area (m^2) of each pair's valid candidates ordered by angle around their mean.
+
+    Args:
+        rel, valid, count: from :func:`_clip_candidates`. ang: (n, 24) rad, arctan2 of ``rel``.
+    Returns:
+        (n,) m^2, 0 with fewer than 3 valid candidates.
+
+    The valid candidates sort by angle (a stable sort, invalid ones last); the places after
+    them repeat the last valid vertex (zero-length edges) so that the 24 shoelace terms are
+    summed in numpy's pairwise order for 24 numbers.
+    """
+    n = rel.shape[0]
+    area = np.zeros(n)
+    key = np.empty(_N_CAND)
+    order = np.empty(_N_CAND, np.int64)
+    x = np.empty(_N_CAND)
+    y = np.empty(_N_CAND)
+    terms = np.empty(_N_CAND)
+    for i in range(n):
+        if count[i] < 3:
+            continue
+        for c in range(_N_CAND):  # stable insertion sort, NaN after everything (as np.argsort)
+            key[c] = ang[i, c] if valid[i, c] else 10.0
+            j = c
+            while j > 0 and (key[c] < key[order[j - 1]]
+                             or (key[order[j - 1]] != key[order[j - 1]] and key[c] == key[c])):
+                order[j] = order[j - 1]
+                j -= 1
+            order[j] = c
+        for c in range(_N_CAND):
+            o = order[min(c, count[i] - 1)]
+            x[c] = rel[i, o, 0]
+            y[c] = rel[i, o, 1]
+        for c in range(_N_CAND):
+            c1 = (c + 1) % _N_CAND
+            terms[c] = x[c] * y[c1] - x[c1] * y[c]
+        area[i] = abs(0.5 * _pairwise_sum24(terms))
     return area
 
 
-def _pair_candidates(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Index pairs (i, j) whose boxes can overlap: both finite with positive area, and centres
-    closer than the sum of their half diagonals."""
-    fa = np.all(np.isfinite(a), axis=1) & (box_areas(np.nan_to_num(a)) > 0)
-    fb = np.all(np.isfinite(b), axis=1) & (box_areas(np.nan_to_num(b)) > 0)
+@kernel
+def _pairwise_sum24(v: np.ndarray) -> float:
+    """Sum of 24 float64 in numpy's order (``np.sum`` over a contiguous axis of 24: 0.0 plus
+    eight running sums over three blocks of 8 added as a balanced tree)."""
+    r0, r1, r2, r3 = v[0], v[1], v[2], v[3]
+    r4, r5, r6, r7 = v[4], v[5], v[6], v[7]
+    for i in range(8, 24, 8):
+        r0 += v[i]
+        r1 += v[i + 1]
+        r2 += v[i + 2]
+        r3 += v[i + 3]
+        r4 += v[i + 4]
+        r5 += v[i + 5]
+        r6 += v[i + 6]
+        r7 += v[i + 7]
+    return 0.0 + (((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7)))  # from numpy's 0.0
+
+
+@kernel
+def _finite_areas(b: np.ndarray) -> np.ndarray:
+    """:func:`box_areas` (m^2) of boxes ``b`` (n, 5) with 0 for non-finite boxes -> (n,).
+
+    Compiled: the same arithmetic, without the ~10 numpy calls (isfinite, nan_to_num, ...) it
+    took per call."""
+    n = b.shape[0]
+    out = np.zeros(n)
+    for i in range(n):
+        finite = True
+        for k in range(5):
+            finite = finite and math.isfinite(b[i, k])
+        if finite:
+            out[i] = _clip0(b[i, 2]) * _clip0(b[i, 3])
+    return out
+
+
+def _pair_candidates(a: np.ndarray, b: np.ndarray, area_a: np.ndarray, area_b: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Index pairs (i, j) whose boxes can overlap: both finite with positive area (``area_a``,
+    ``area_b``: :func:`_finite_areas`), and centres closer than the sum of their half diagonals."""
     ra = 0.5 * np.hypot(a[:, 2], a[:, 3])
     rb = 0.5 * np.hypot(b[:, 2], b[:, 3])
     with np.errstate(invalid="ignore"):
         dist = np.hypot(a[:, None, 0] - b[None, :, 0], a[:, None, 1] - b[None, :, 1])
         near = dist <= (ra[:, None] + rb[None, :]) * (1 + 1e-9)
-    near &= fa[:, None] & fb[None, :]
+    near &= (area_a > 0)[:, None] & (area_b > 0)[None, :]
     return np.nonzero(near)
+
+
+def _intersections(a: np.ndarray, b: np.ndarray, area_a: np.ndarray, area_b: np.ndarray,
+                   chunk: int = 20000) -> np.ndarray:
+    """:func:`intersection_area_pairwise` of (N, 5) and (M, 5) boxes with their
+    :func:`_finite_areas` -> (N, M) m^2."""
+    out = np.zeros((len(a), len(b)))
+    if len(a) == 0 or len(b) == 0:
+        return out
+    ii, jj = _pair_candidates(a, b, area_a, area_b)
+    for lo in range(0, len(ii), chunk):
+        i, j = ii[lo:lo + chunk], jj[lo:lo + chunk]
+        out[i, j] = _intersection_area_pairs(a[i], b[j])
+    # Exactness guard: the intersection can never exceed either area (rounding only).
+    return np.minimum(out, np.minimum(area_a[:, None], area_b[None, :]))
 
 
 def intersection_area_pairwise(a: np.ndarray, b: np.ndarray, chunk: int = 20000) -> np.ndarray:
     """Intersection areas (m^2) of every box in ``a`` (N, 5) with every box in ``b`` (M, 5) -> (N, M)."""
     a = as_boxes(a).reshape(-1, 5)
     b = as_boxes(b).reshape(-1, 5)
-    out = np.zeros((len(a), len(b)))
-    if len(a) == 0 or len(b) == 0:
-        return out
-    ii, jj = _pair_candidates(a, b)
-    for lo in range(0, len(ii), chunk):
-        i, j = ii[lo:lo + chunk], jj[lo:lo + chunk]
-        out[i, j] = _intersection_area_pairs(a[i], b[j])
-    # Exactness guard: the intersection can never exceed either area (rounding only).
-    return np.minimum(out, np.minimum(box_areas(np.nan_to_num(a))[:, None], box_areas(np.nan_to_num(b))[None, :]))
+    return _intersections(a, b, _finite_areas(a), _finite_areas(b), chunk)
 
 
 def iou_pairwise(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -165,9 +326,8 @@ def iou_pairwise(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     Zero-area or non-finite boxes give 0 (never NaN)."""
     a = as_boxes(a).reshape(-1, 5)
     b = as_boxes(b).reshape(-1, 5)
-    inter = intersection_area_pairwise(a, b)
-    area_a = np.where(np.all(np.isfinite(a), axis=1), box_areas(np.nan_to_num(a)), 0.0)
-    area_b = np.where(np.all(np.isfinite(b), axis=1), box_areas(np.nan_to_num(b)), 0.0)
+    area_a, area_b = _finite_areas(a), _finite_areas(b)
+    inter = _intersections(a, b, area_a, area_b)
     union = area_a[:, None] + area_b[None, :] - inter
     iou = np.where(union > 1e-12, inter / np.where(union > 1e-12, union, 1.0), 0.0)
     return np.clip(iou, 0.0, 1.0)
@@ -182,12 +342,11 @@ def iou_paired(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     out = np.zeros(len(a))
     if len(a) == 0:
         return out
-    ok = np.all(np.isfinite(a), axis=1) & np.all(np.isfinite(b), axis=1)
-    ok &= (box_areas(np.nan_to_num(a)) > 0) & (box_areas(np.nan_to_num(b)) > 0)
-    idx = np.nonzero(ok)[0]
-    inter = np.minimum(_intersection_area_pairs(a[idx], b[idx]),
-                       np.minimum(box_areas(a[idx]), box_areas(b[idx])))
-    union = box_areas(a[idx]) + box_areas(b[idx]) - inter
+    area_a, area_b = _finite_areas(a), _finite_areas(b)
+    idx = np.flatnonzero((area_a > 0) & (area_b > 0))
+    area_a, area_b = area_a[idx], area_b[idx]
+    inter = np.minimum(_intersection_area_pairs(a[idx], b[idx]), np.minimum(area_a, area_b))
+    union = area_a + area_b - inter
     out[idx] = np.clip(inter / np.maximum(union, 1e-12), 0.0, 1.0)
     return out
 
