@@ -1,5 +1,6 @@
-"""Rotated NMS benchmark: this code's ``rotated_nms`` against another commit's, on the inputs a
-detector really gives it, interleaved call by call.
+"""Rotated NMS benchmark: this code's ``rotated_nms`` against another commit's (with that
+commit's ``geometry/boxes.py``), on the inputs a detector really gives it, interleaved call by
+call.
 
     .venv/bin/python bench/nms.py --base COMMIT [--seconds 3]
 
@@ -31,6 +32,41 @@ sys.path.insert(0, str(ROOT))
 from adv3d_runner.machine import limit_threads, machine_info  # noqa: E402
 
 
+def _git_show(commit: str, path: str) -> str:
+    return subprocess.run(["git", "show", f"{commit}:{path}"], cwd=ROOT, capture_output=True, text=True,
+                          check=True).stdout
+
+
+def _file_module(name: str, source: str, names: dict | None = None):
+    """A module run from ``source`` written to a temporary file (numba caches only file-backed
+    kernels), inside ``adv3d_runner.geometry`` so relative imports resolve; ``names`` are set
+    before it runs."""
+    import importlib.util
+    import tempfile
+
+    path = Path(tempfile.mkdtemp(prefix="adv3d-nms-base-")) / f"{name}.py"
+    path.write_text(source)
+    spec = importlib.util.spec_from_file_location(f"adv3d_runner.geometry.{name}", path)
+    mod = importlib.util.module_from_spec(spec)
+    mod.__dict__.update(names or {})
+    sys.modules[spec.name] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _base_nms(commit: str):
+    """``rotated_nms`` (and the helpers up to ``decode``) of ``commit``, calling that commit's
+    ``geometry/boxes.py``."""
+    import adv3d_runner.geometry  # noqa: F401  (the package the base modules live in)
+
+    base_boxes = _file_module("_nms_base_boxes", _git_show(commit, "adv3d_runner/geometry/boxes.py"))
+    src = _git_show(commit, "adv3d_runner/autonomy/detector.py")
+    a, b = src.index("def rotated_nms("), src.index("\ndef decode(")
+    head = "from __future__ import annotations\nimport math\nimport numpy as np\nfrom adv3d_runner.jit import kernel\n\n\n"
+    names = {k: getattr(base_boxes, k) for k in dir(base_boxes) if not k.startswith("__")}
+    return _file_module("_nms_base_detector", head + src[a:b], names).rotated_nms
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--base", required=True, help="commit whose rotated_nms is compared")
@@ -40,14 +76,8 @@ def main() -> int:
     import adv3d_runner.autonomy.detector as D
     from adv3d_runner.attack.config import QuerySettings
     from adv3d_runner.attack.evaluator import SceneWorkspace
-    from adv3d_runner.geometry import boxes
 
-    src = subprocess.run(["git", "show", f"{args.base}:adv3d_runner/autonomy/detector.py"], cwd=ROOT,
-                         capture_output=True, text=True, check=True).stdout
-    a, b = src.index("def rotated_nms("), src.index("\ndef decode(")
-    ns = {"np": np, "math": math, **{k: getattr(boxes, k) for k in dir(boxes) if not k.startswith("__")}}
-    exec(src[a:b], ns)
-    base_nms = ns["rotated_nms"]
+    base_nms = _base_nms(args.base)
     inputs, this_nms = [], D.rotated_nms
 
     def grab(bx, sc, *a, **k):
