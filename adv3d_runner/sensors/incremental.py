@@ -225,13 +225,12 @@ class StaticRayCache:
                     else:
                         keep = ~taken[back_rays]
                         limits[back_rays[keep]] = back_t[keep]
-                tfar = limits.copy() if rays is None else limits.take(rays)
-                hit, cos = cast.actor(bvh, poses[i], rays, tfar)
-                if hit.size:
+                actor = cast.actor(bvh, poses[i], rays, limits)
+                if (actor.prim >= 0).any():
                     if not label_copied:  # the entry's labels are shared until written
                         hits.label = hits.label.copy()
                         label_copied = True
-                    rows = _take_hits(hits, i, rays, tfar, hit, cos)
+                    rows = _take_hits(hits, i, actor)
                     if taken is None:
                         taken = np.zeros(n, bool)
                     taken[rows] = True
@@ -241,8 +240,5 @@ class StaticRayCache:
                 rays = win[taken[win]].astype(np.intp)
                 if rays.size == 0:
                     continue
-                bvh = world.actor_bvh(i)
-                tfar = hits.t.take(rays)
-                hit, cos = cast.actor(bvh, poses[i], rays, tfar)
-                _take_hits(hits, i, rays, tfar, hit, cos)
+                _take_hits(hits, i, cast.actor(world.actor_bvh(i), poses[i], rays, hits.t))
         return hits

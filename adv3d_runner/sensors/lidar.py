@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from . import kernels
 from .beams import LidarModel, get_model
 
 __all__ = ["MountedLidar", "LidarRig", "LidarFrame", "simulate_frame", "rotation_rpy",
@@ -35,7 +36,7 @@ __all__ = ["MountedLidar", "LidarRig", "LidarFrame", "simulate_frame", "rotation
 
 #: Label of background points.
 BACKGROUND = -1
-_EGO = -3
+_EGO = kernels.EGO
 #: Atmospheric attenuation of the returned intensity, 1/m (CARLA's default rate).
 DEFAULT_ATTENUATION = 0.004
 _TWO_PI = 2.0 * np.pi
@@ -101,12 +102,6 @@ class MountedLidar:
         self.dy = np.ascontiguousarray(self.dirs[:, 1])
         self.dz = np.ascontiguousarray(self.dirs[:, 2])
         self.ring = np.ascontiguousarray(ring.reshape(-1), dtype=np.int16)
-        # Per ray: dx, dy, dz and the ring (int32 bits) in one 16-byte row, gathered per return
-        # as one complex128 element (one gather instead of four; 1-D gathers are the fast kind).
-        rows16 = np.empty((len(self.dirs), 4), np.float32)
-        rows16[:, :3] = self.dirs
-        rows16[:, 3].view(np.int32)[:] = self.ring
-        self.ray_rows = rows16.view(np.complex128).reshape(-1)
         self._row_offsets = _TWO_PI * np.arange(b)
         # Sensors without per-laser azimuth offsets or tilt have the same column azimuths in
         # every row (up to rounding far below the culling padding): one search serves all rows.
@@ -311,8 +306,10 @@ class LidarRig:
 
         Returns:
             floor: (N,) float32; keep iff t >= floor (and t < max range).
-            rest: (rays, t_in, t_out) of the rays with t_in > min_range (a sensor outside the
-                box), which keep the two-sided test; None when there are none.
+            rest: (t_in, t_out), (N,) float32 each, for the rays with t_in > min_range (a
+                sensor outside the box), which keep the two-sided test (a return is dropped
+                iff t_in <= t <= t_out; +inf and -inf for every other ray); None when there
+                are none.
         """
         cache = self.__dict__.setdefault("_floor_cache", {})
         dims = None if self.ego_dimensions is None else tuple(self.ego_dimensions)
@@ -329,7 +326,10 @@ class LidarRig:
                 floor[rays[simple]] = np.maximum(above, min_range)
                 if not simple.all():
                     other = ~simple
-                    rest = (rays[other], t_in[other], t_out[other])
+                    box_in = np.full(sensor.n_rays, np.inf, np.float32)
+                    box_out = np.full(sensor.n_rays, -np.inf, np.float32)
+                    box_in[rays[other]], box_out[rays[other]] = t_in[other], t_out[other]
+                    rest = (box_in, box_out)
             cache[key] = (floor, rest)
         return cache[key]
 
@@ -421,7 +421,7 @@ class RayHits:
         label: (N,) int32 actor row hit, ``BACKGROUND`` (-1), or the ego body (-3).
         prim_bg: (N,) int32 background face hit by the ray (-1: none), whatever is nearer.
         cos_actor: (N,) float32 |cos incidence| where the nearest hit is an actor (0
-            elsewhere), or None when no actor was hit.
+            elsewhere), or None when no actor was cast.
     """
 
     t: np.ndarray
@@ -464,11 +464,8 @@ class _Cast:
             if reach_dz < 0:
                 m = int(np.searchsorted(sensor._dz_suffix_min, reach_dz, "right"))
         # Ray directions in the map frame (float32, elementwise: identical for any subset).
-        dx, dy = sensor.dx[:m], sensor.dy[:m]
         dirs = np.empty((m, 3), np.float32)
-        np.subtract(np.float32(c) * dx, np.float32(s) * dy, out=dirs[:, 0])
-        np.add(np.float32(s) * dx, np.float32(c) * dy, out=dirs[:, 1])
-        dirs[:, 2] = sensor.dz[:m]
+        kernels.turn_rays(sensor.dx, sensor.dy, sensor.dz, np.float32(c), np.float32(s), dirs)
         t = np.full(n, self.model.max_range, np.float32)
         t0 = self.timer()
         prim, _ = bg.intersect(origin_bg, dirs, t[:m])  # a view: Embree writes into t
@@ -525,50 +522,49 @@ class _Cast:
         phi = self.ego[2] - poses[:, 2]
         return origins, np.cos(phi).astype(np.float32), np.sin(phi).astype(np.float32)
 
-    def to_actor(self, rays, cp, sp) -> np.ndarray:
-        """(M, 3) float32 directions of ``rays`` (None: all) turned by (cp, sp): float32 scalars,
-        or (M,) float32 arrays (one rotation per ray). Elementwise, so any subset or batch gives
-        the same per-ray values."""
-        sensor = self.sensor
+    def actor(self, bvh, pose, rays, limits: np.ndarray) -> "_ActorCast":
+        """Cast ``rays`` (flat indices, None: all) against one actor's mesh, each with its
+        limit from ``limits`` ((N,) float32, e.g. the current nearest distances); nothing is
+        written into the hits yet (:func:`_take_hits` does)."""
         if rays is None:
-            dx, dy, dz = sensor.dx, sensor.dy, sensor.dz
-        else:
-            dx, dy, dz = sensor.dx.take(rays), sensor.dy.take(rays), sensor.dz.take(rays)
-        local = np.empty((len(dx), 3), np.float32)
-        np.subtract(cp * dx, sp * dy, out=local[:, 0])
-        np.add(sp * dx, cp * dy, out=local[:, 1])
-        local[:, 2] = dz
-        return local
-
-    def actor(self, bvh, pose, rays, tfar: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
-        """Cast ``rays`` (None: all) against one actor's mesh with the limits ``tfar`` (their
-        current nearest distances, updated in place where the actor is closer).
-
-        Returns:
-            hit: indices into ``rays`` (or ray indices for None) of the rays the actor took.
-            cos: (len(hit),) float32 |cos incidence| of those hits, None when there are none.
-        """
+            rays = np.arange(self.sensor.n_rays)
         origins, cp, sp = self.frames(np.asarray(pose, dtype=np.float64).reshape(1, 3))
-        local = self.to_actor(rays, cp[0], sp[0])
+        cast = self.turn(rays.astype(np.int64, copy=False), limits, _NO_CUT, cp[0], sp[0], _buffers(len(rays)),
+                         bvh.face_normals)
+        cast.prim = self.intersect(bvh, origins, cast)
+        return cast
+
+    def turn(self, rays: np.ndarray, limits: np.ndarray, cut: np.float32, cp: np.float32, sp: np.float32,
+             buffers: "_ActorCast", normals: np.ndarray) -> "_ActorCast":
+        """The rays of ``rays`` ((M,) int64) whose limit in ``limits`` is at least ``cut``,
+        with their limits and their directions turned by (cp, sp) into an actor's frame (the
+        actor's mesh has face ``normals``), written into ``buffers`` (of at least M rows; the
+        cast returned holds views of them). Elementwise, so any subset or batch gives the same
+        per-ray values."""
+        s, b = self.sensor, buffers
+        k = kernels.actor_rays(rays, limits, cut, s.dx, s.dy, s.dz, cp, sp, b.rays, b.tfar, b.dirs)
+        return _ActorCast(b.rays[:k], b.tfar[:k], None, b.dirs[:k], normals)
+
+    def intersect(self, bvh, origins: np.ndarray, cast: "_ActorCast") -> np.ndarray:
+        """Embree call of an actor cast (``origins``: (1, 3) float32 sensor in the actor's
+        frame); ``cast.tfar`` becomes the new distances. Returns (K,) int32 faces (-1: none)."""
         t0 = self.timer()
-        prim, _ = bvh.intersect(origins, local, tfar)  # closer hits overwrite tfar
+        prim, _ = bvh.intersect(origins, cast.dirs, cast.tfar)  # closer hits overwrite tfar
         self.embree_s += self.timer() - t0
-        self.actor_rays += len(local)
-        hit = np.flatnonzero(prim >= 0)
-        if hit.size == 0:
-            return hit, None
-        return hit, _cos_incidence(bvh.face_normals[prim[hit]], local[hit])
+        self.actor_rays += len(cast.rays)
+        return prim
 
     def actors(self, world, hits: RayHits, rows, poses: np.ndarray, cull: bool = True, before_cast=None) -> None:
         """Cast the actors ``rows`` (ascending) one after the other into ``hits`` (fresh from
         :meth:`background`), each with the current nearest distances as limits: the hits of
-        :meth:`actor` called in a loop.
+        :meth:`actor` and :func:`_take_hits` called in a loop.
 
-        Batched: the windows of every actor are found first (Python), then one index array and
-        one array of actor-frame directions hold the rays of all of them, and each actor's
-        Embree call gets its slice, less the rays whose current hit is nearer than the actor's
-        footprint (they cannot change: every point of the mesh is at least that far). The
-        |cos incidence| of the rays whose nearest hit is an actor is computed once at the end.
+        Batched: the windows of every actor are found first (Python), then one index array
+        holds the rays of all of them, and each actor's Embree call gets its slice turned into
+        its frame (:func:`kernels.actor_rays`, into buffers shared by all actors), less the rays
+        whose current hit is nearer than the actor's footprint (they cannot change: every point
+        of the mesh is at least that far); its hits are written back, |cos incidence|
+        included, by one compiled loop (:func:`kernels.take_hits`).
 
         Args:
             before_cast: called as ``before_cast(i, rays)`` just before actor ``i`` is cast
@@ -594,60 +590,31 @@ class _Cast:
             ends.append(seg[1])
             # Embree's float32 distances are within 1e-5 relative of the true ones, far below
             # the 1 mm the footprint is padded by.
-            cuts.append(seg[2] * (1.0 - 1e-5))
+            cuts.append(np.float32(seg[2] * (1.0 - 1e-5)))
         if not cast_rows:
             return
         counts = [int((e - s).sum()) for s, e in zip(starts, ends)]
-        rays = _segments_to_indices(np.concatenate(starts), np.concatenate(ends))
+        rays = _segments_to_indices(np.concatenate(starts), np.concatenate(ends)).astype(np.int64, copy=False)
         if rays.size == 0:
             return
         origins, cp, sp = self.frames(poses[cast_rows])
-        local = self.to_actor(rays, np.repeat(cp, counts), np.repeat(sp, counts))
-        t, label = hits.t, hits.label
-        src = face = None  # per ray taken: its row in local, its face in the joint normal table
-        tables, offset = {}, 0  # id(bvh) -> (row offset in the joint table, normals)
+        buffers = _buffers(max(counts))
+        hits.cos_actor = np.zeros(n, np.float32)
         a = 0
         for j, i in enumerate(cast_rows):
             b = a + counts[j]
             if b == a:
                 continue
             mine = rays[a:b]
+            a = b
             if before_cast is not None:
                 before_cast(i, mine)
-            tfar = t.take(mine)
-            loc, at = local[a:b], a
-            reach = tfar >= cuts[j]
-            if not reach.all():
-                sel = np.flatnonzero(reach)
-                if sel.size == 0:
-                    a = b
-                    continue
-                mine, tfar, loc, at = mine.take(sel), tfar.take(sel), local.take(sel + a, axis=0), sel + a
-            t0 = self.timer()
-            prim, _ = bvhs[j].intersect(origins[j:j + 1], loc, tfar)  # closer hits overwrite tfar
-            self.embree_s += self.timer() - t0
-            self.actor_rays += len(mine)
-            hit = np.flatnonzero(prim >= 0)
-            if hit.size:
-                taken = mine.take(hit)
-                t[taken] = tfar.take(hit)
-                label[taken] = i
-                key = id(bvhs[j])
-                if key not in tables:
-                    tables[key] = (offset, bvhs[j].face_normals)
-                    offset += len(bvhs[j].face_normals)
-                if src is None:
-                    src, face = np.empty(n, np.intp), np.empty(n, np.intp)
-                src[taken] = hit + at if isinstance(at, int) else at.take(hit)
-                face[taken] = prim.take(hit) + tables[key][0]
-            a = b
-        if src is None:
-            return
-        on = np.flatnonzero(label >= 0)  # every actor label was written above
-        normals = [nrm for _, nrm in tables.values()]
-        normals = (normals[0] if len(normals) == 1 else np.concatenate(normals)).take(face.take(on), axis=0)
-        hits.cos_actor = np.zeros(n, np.float32)
-        hits.cos_actor[on] = _cos_incidence(normals, local.take(src.take(on), axis=0))
+            cast = self.turn(mine, hits.t, cuts[j], cp[j], sp[j], buffers, bvhs[j].face_normals)
+            if len(cast.rays) == 0:
+                continue
+            cast.prim = self.intersect(bvhs[j], origins[j:j + 1], cast)
+            kernels.take_hits(cast.rays, cast.tfar, cast.prim, cast.dirs, cast.normals, i, hits.t, hits.label,
+                              hits.cos_actor)
 
     def record(self, stats: dict | None) -> None:
         if stats is not None:
@@ -656,24 +623,40 @@ class _Cast:
             stats["actor_rays"] = stats.get("actor_rays", 0) + self.actor_rays
 
 
-def _cos_incidence(normals: np.ndarray, local: np.ndarray) -> np.ndarray:
-    """|cos incidence| from (H, 3) unit face normals and (H, 3) ray directions, float32."""
-    return np.abs(np.einsum("ij,ij->i", normals, local))
+#: "Keep every ray" for :func:`kernels.actor_rays`.
+_NO_CUT = np.float32(-np.inf)
 
 
-def _take_hits(hits: RayHits, i: int, rays, tfar: np.ndarray, hit: np.ndarray, cos: np.ndarray | None) -> np.ndarray:
-    """Write an actor's hits (from :meth:`_Cast.actor`) into ``hits``; returns the ray
-    indices it took."""
-    if hit.size == 0:
-        return hit
-    rows = hit if rays is None else rays[hit]
-    if tfar is not hits.t:
-        hits.t[rows] = tfar[hit]
-    hits.label[rows] = i
+@dataclass
+class _ActorCast:
+    """The rays of one actor cast: (K,) int64 flat indices, (K,) float32 limits (the new
+    distances after the cast), (K,) int32 faces hit (-1: none; None before the cast),
+    (K, 3) float32 directions in the actor's frame, and the mesh's (F + 1, 3) face normals."""
+
+    rays: np.ndarray
+    tfar: np.ndarray
+    prim: np.ndarray | None
+    dirs: np.ndarray
+    normals: np.ndarray | None
+
+
+def _buffers(size: int) -> _ActorCast:
+    """Empty arrays for :meth:`_Cast.turn` to fill, ``size`` rows."""
+    return _ActorCast(np.empty(size, np.int64), np.empty(size, np.float32), None, np.empty((size, 3), np.float32),
+                      None)
+
+
+def _take_hits(hits: RayHits, i: int, cast: _ActorCast) -> np.ndarray:
+    """Write the hits of actor ``i``'s cast (:meth:`_Cast.actor`) into ``hits``; returns the
+    ray indices it took."""
+    hit = cast.prim >= 0
+    if not hit.any():
+        return cast.rays[:0]
     if hits.cos_actor is None:
         hits.cos_actor = np.zeros(len(hits.t), np.float32)
-    hits.cos_actor[rows] = cos
-    return rows
+    kernels.take_hits(cast.rays, cast.tfar, cast.prim, cast.dirs, cast.normals, i, hits.t, hits.label,
+                      hits.cos_actor)
+    return cast.rays[hit]
 
 
 def cast_rays(world, sensor: MountedLidar, ego: np.ndarray, poses: np.ndarray, present: np.ndarray,
@@ -749,85 +732,43 @@ def simulate_frame(world, rig: LidarRig, ego_pose, actor_poses=None, rng: np.ran
 def _effects(world, rig: LidarRig, k: int, ego: np.ndarray, hits: RayHits, actor_refl: np.ndarray,
              rng: np.random.Generator | None, noise: bool, drop: bool) -> LidarFrame:
     """Sensor effects on one sensor's nearest hits: range limits and ego masking, range noise
-    and ray drop, intensity; the points in the ego frame."""
+    and ray drop, intensity; the points in the ego frame.
+
+    Two compiled passes (:mod:`.kernels`: one over the rays, one over the returns, instead of a
+    few dozen numpy passes) around the random draws and the attenuation's exp, which stay in
+    numpy so that the frames are the same bytes as numpy's."""
     sensor = rig.sensors[k]
     model = sensor.model
     t, label = hits.t, hits.label
 
     # Valid returns: min range and the ego box folded into one per-ray floor (LidarRig.range_floor).
     floor, rest = rig.range_floor(k)
-    valid = t >= floor
-    valid &= t < np.float32(model.max_range)
-    if world.ego is not None:
-        valid &= label != _EGO
-    if rest is not None:
-        rays_e, t_in, t_out = rest
-        te = t.take(rays_e)
-        valid[rays_e[(te >= t_in) & (te <= t_out)]] = False
-    idx = np.flatnonzero(valid)
+    box_in, box_out = (_NONE_F32, _NONE_F32) if rest is None else rest
+    idx, fade = kernels.valid_returns(t, label, floor, np.float32(model.max_range), box_in, box_out,
+                                      np.float32(-rig.attenuation))
     if idx.size == 0:
         return LidarFrame.empty()
-    dist = t.take(idx)
+    np.exp(fade, out=fade)  # exp(-attenuation x true range), numpy's own exp (see kernels)
 
     # Effects drawn from the caller's generator in a fixed order (noise, then drop), one draw
     # per return, so the same returns and seed give the same frame.
+    gauss = uniform = _NONE_F32
     if rng is not None and noise and model.range_noise > 0:
-        dist += rng.standard_normal(dist.size, dtype=np.float32) * np.float32(model.range_noise)
-        np.maximum(dist, 0.0, out=dist)
+        gauss = rng.standard_normal(idx.size, dtype=np.float32)
     if rng is not None and drop and model.ray_drop > 0:
-        keep = np.flatnonzero(rng.random(dist.size, dtype=np.float32) >= np.float32(model.ray_drop))
-        idx, dist = idx.take(keep), dist.take(keep)  # one mask scan, then two gathers
+        uniform = rng.random(idx.size, dtype=np.float32)
 
-    # One gather per return for its ray (dx, dy, dz, ring bits) and one for its background
-    # face (normal, reflectivity); the (m, 4) float32 ray rows become the points in place.
-    m = idx.size
-    points = sensor.ray_rows.take(idx).view(np.float32).reshape(m, 4)
-    ring = points[:, 3].view(np.int32).astype(np.int16)
-    dxe, dye, dze = points[:, 0], points[:, 1], points[:, 2]
-
-    # Intensity = reflectivity x |cos incidence| x exp(-attenuation x true range).
-    lab = label.take(idx)
-    prim_b = hits.prim_bg.take(idx)
-    # The background's face table (normal, reflectivity; small) with its normals turned into
-    # the ego frame, n_map . d_map = n_ego . d_ego, then one 16-byte gather per return (a miss,
-    # face -1, gets the trailing zero row).
+    # One pass over the returns (the dropped ones skipped): measured range, the point, and
+    # intensity = reflectivity x |cos incidence| x fade, the background's map-frame normals
+    # turned into the ego frame (n_map . d_map = n_ego . d_ego).
     c, s = np.float32(np.cos(ego[2])), np.float32(np.sin(ego[2]))
-    table = world.background_table.view(np.float32).reshape(-1, 4)
-    fnx, fny = table[:, 0], table[:, 1]
-    turned = np.empty_like(table)
-    np.add(c * fnx, s * fny, out=turned[:, 0])
-    np.subtract(c * fny, s * fnx, out=turned[:, 1])
-    turned[:, 2:] = table[:, 2:]
-    face = turned.view(np.complex128).reshape(-1).take(prim_b).view(np.float32).reshape(m, 4)
-    nxe, nye, nze, refl = face[:, 0], face[:, 1], face[:, 2], face[:, 3]
-    # The returns on actors (a sixth or so): their values are gathered for them alone.
-    on_actor = None
-    if hits.cos_actor is not None:
-        on_actor = np.flatnonzero(lab >= 0)
-        if on_actor.size == 0:
-            on_actor = None
-    if on_actor is not None:
-        refl[on_actor] = actor_refl.take(lab.take(on_actor))
-    # |cos incidence| from unit face normals: background by face index (a miss has the zero
-    # normal), actors from the cast: (c nx + s ny) dx + (c ny - s nx) dy + nz dz, in this order.
-    cos_inc = nxe * dxe
-    tmp = nye * dye
-    cos_inc += tmp
-    np.multiply(nze, dze, out=tmp)
-    cos_inc += tmp
-    np.abs(cos_inc, out=cos_inc)
-    if on_actor is not None:
-        cos_inc[on_actor] = hits.cos_actor.take(idx.take(on_actor))
-    np.minimum(cos_inc, 1.0, out=cos_inc)
-    cos_inc *= refl
-    np.multiply(t.take(idx), np.float32(-rig.attenuation), out=tmp)
-    cos_inc *= np.exp(tmp, out=tmp)
+    cos_actor = hits.cos_actor if hits.cos_actor is not None else np.zeros(len(t), np.float32)
+    points, ring, lab, dist = kernels.make_returns(
+        idx, fade, t, label, hits.prim_bg, cos_actor, sensor.dirs, sensor.ring, world.background_table, c, s,
+        actor_refl, gauss, np.float32(model.range_noise), uniform, np.float32(model.ray_drop),
+        sensor.position.astype(np.float32))
+    return LidarFrame(points, ring, lab, np.full(len(points), k, np.int8), dist)
 
-    # Points: direction x range + sensor position, in place over the gathered ray rows.
-    # (Column by column: a 2-D in-place op would loop along rows of three, ten times slower.)
-    for j, p in enumerate(sensor.position.astype(np.float32)):
-        col = points[:, j]
-        col *= dist
-        col += p
-    points[:, 3] = cos_inc
-    return LidarFrame(points, ring, lab, np.full(m, k, np.int8), dist)
+
+#: "No draws" / "no ego-box rays" for the kernels (an empty array keeps their signature).
+_NONE_F32 = np.zeros(0, np.float32)

@@ -64,11 +64,11 @@ class LidarWorld:
         # One extra slot at the end so a miss (face -1) indexes safely.
         self.background_reflectivity = np.append(refl, np.float32(0.0))
         # Per face: unit normal and reflectivity in one 16-byte row (a trailing zero row for a
-        # miss), gathered per return as one complex128 element (one gather instead of four).
+        # miss): (F + 1, 4) float32, read per return by the effects kernel (one cache line).
         table = np.zeros((len(faces) + 1, 4), np.float32)
         table[:, :3] = self.background.face_normals
         table[:, 3] = self.background_reflectivity
-        self.background_table = table.view(np.complex128).reshape(-1)
+        self.background_table = table
         self._bvh: dict[str, MeshBVH] = {}
         self._actors: list[ActorSlot] = []
         self._index: dict[str, int] = {}

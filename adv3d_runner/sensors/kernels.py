@@ -1,0 +1,210 @@
+"""Compiled per-ray loops of the LiDAR pipeline (:mod:`adv3d_runner.sensors.lidar`).
+
+Why compiled (issue 16, point 2): each of these is one pass over the rays or returns that numpy
+can only write as a dozen passes (gathers, temporaries, masks), and their sum cost more than
+half of what the pipeline spends outside Embree. Every kernel computes each value with the
+same float32 operations in the same order as the numpy code it replaced (no FMA: numba's
+default contracts nothing), so the frames are the same bytes (``tests/test_lidar_pinned.py``).
+Transcendentals stay in numpy (numpy's float32 ``exp`` is a SIMD version that need not round
+like the C library's); the random draws stay with the caller's ``numpy.random.Generator``.
+
+Conventions: float32 arrays and scalars (``np.float32``; a Python float would make numba
+compute in float64), flat ray indices int64, C-contiguous arrays, so each kernel sees one
+signature and compiles once (cached in ``__pycache__``).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ..jit import kernel
+
+__all__ = ["turn_rays", "actor_rays", "take_hits", "valid_returns", "make_returns"]
+
+#: Label of the rays blocked by the ego's own body (no return).
+EGO = -3
+
+
+@kernel
+def turn_rays(dx, dy, dz, c, s, out):
+    """The first ``len(out)`` rays turned about z: out[k] = (c dx - s dy, s dx + c dy, dz).
+
+    Args:
+        dx, dy, dz: (N,) float32 unit direction components (ego frame).
+        c, s: float32 cos and sin of the turn (the ego yaw: ego -> map frame).
+        out: (M, 3) float32, M <= N, written.
+    """
+    for k in range(out.shape[0]):
+        out[k, 0] = c * dx[k] - s * dy[k]
+        out[k, 1] = s * dx[k] + c * dy[k]
+        out[k, 2] = dz[k]
+
+
+@kernel
+def actor_rays(rays, limits, cut, dx, dy, dz, c, s, out_rays, out_tfar, out_dirs):
+    """The rays of an actor's window that can still reach it, turned into its frame.
+
+    Args:
+        rays: (M,) int64 flat ray indices (the window).
+        limits: (N,) float32 current nearest distance per ray (metres).
+        cut: float32; a ray whose limit is below it is left out (nothing of the actor is
+            nearer than its footprint; -inf keeps every ray).
+        dx, dy, dz: (N,) float32 ego-frame ray directions.
+        c, s: float32 cos and sin of the ego-to-actor turn about z.
+        out_rays: (>= M,) int64; out_tfar: (>= M,) float32; out_dirs: (>= M, 3) float32:
+            written for the K rays kept, in window order: index, limit, direction in the
+            actor's frame (c dx - s dy, s dx + c dy, dz).
+
+    Returns:
+        K, the number of rays kept.
+    """
+    k = 0
+    for j in range(rays.shape[0]):
+        r = rays[j]
+        lim = limits[r]
+        if lim >= cut:
+            out_rays[k] = r
+            out_tfar[k] = lim
+            out_dirs[k, 0] = c * dx[r] - s * dy[r]
+            out_dirs[k, 1] = s * dx[r] + c * dy[r]
+            out_dirs[k, 2] = dz[r]
+            k += 1
+    return k
+
+
+@kernel
+def take_hits(rays, tfar, prim, dirs, normals, value, t, label, cos):
+    """Write an actor cast's hits into a sensor's per-ray arrays.
+
+    Args:
+        rays: (K,) int64 flat indices of the rays cast; tfar: (K,) float32 their distances
+            after the cast (metres); prim: (K,) int32 face hit (-1: no closer hit);
+            dirs: (K, 3) float32 their directions in the actor's frame.
+        normals: (F + 1, 3) float32 unit face normals of the actor's mesh.
+        value: the label written (the actor's row).
+        t: (N,) float32, label: (N,) int32, cos: (N,) float32 |cos incidence|: written where
+            a ray hit, ((nx dx + ny dy) + nz dz, as numpy's einsum sums it).
+
+    Returns:
+        the number of hits.
+    """
+    n = 0
+    for h in range(prim.shape[0]):
+        f = prim[h]
+        if f >= 0:
+            r = rays[h]
+            t[r] = tfar[h]
+            label[r] = value
+            cos[r] = abs(normals[f, 0] * dirs[h, 0] + normals[f, 1] * dirs[h, 1] + normals[f, 2] * dirs[h, 2])
+            n += 1
+    return n
+
+
+@kernel
+def valid_returns(t, label, floor, max_range, box_in, box_out, neg_att):
+    """The rays with a valid return: floor <= t < max_range, not blocked by the ego body, and
+    (where ``box_in`` is not empty) not inside the ego box.
+
+    Args:
+        t: (N,) float32 nearest distance (metres); label: (N,) int32.
+        floor: (N,) float32 smallest valid range per ray (``LidarRig.range_floor``).
+        max_range: float32.
+        box_in, box_out: (N,) float32 distances [in, out] a ray spends in the ego box (a
+            return there is dropped; +inf / -inf for rays that do not cross it), or (0,) each.
+        neg_att: float32 minus the attenuation rate (1/m).
+
+    Returns:
+        idx: (n,) int64 their flat indices, ascending; fade: (n,) float32 neg_att x t (the
+        caller takes its exp).
+    """
+    n = t.shape[0]
+    box = box_in.shape[0] > 0
+    idx = np.empty(n, np.int64)
+    fade = np.empty(n, np.float32)
+    m = 0
+    for r in range(n):
+        tr = t[r]
+        if tr >= floor[r] and tr < max_range and label[r] != EGO:
+            if box and tr >= box_in[r] and tr <= box_out[r]:
+                continue
+            idx[m] = r
+            fade[m] = tr * neg_att
+            m += 1
+    return idx[:m], fade[:m]
+
+
+@kernel
+def make_returns(idx, fade, t, label, prim_bg, cos_actor, dirs, ring, faces, c, s, actor_refl,
+                 gauss, sigma, uniform, p_drop, position):
+    """The returns of one sensor: range noise and ray drop, the points and their intensity.
+
+    Args:
+        idx: (n,) int64 rays with a valid return and fade: (n,) float32 their attenuation
+            factor, exp(-attenuation x true range) (:func:`valid_returns`, then numpy's exp).
+        t: (N,) float32 true range (metres); label: (N,) int32; prim_bg: (N,) int32 background
+            face (-1: none); cos_actor: (N,) float32 |cos incidence| where an actor was hit.
+        dirs: (N, 3) float32 ego-frame directions; ring: (N,) int16.
+        faces: (F + 1, 4) float32 background face table: map-frame unit normal, reflectivity
+            (last row zero, for a miss).
+        c, s: float32 cos and sin of the ego yaw (normals map -> ego: (c nx + s ny, c ny - s nx)).
+        actor_refl: (A,) float32 reflectivity per actor row.
+        gauss: (n,) float32 standard normal draws (range noise) or (0,): none.
+        sigma: float32 range noise, metres.
+        uniform: (n,) float32 uniform draws (ray drop: dropped when < p_drop) or (0,): none.
+        p_drop: float32.
+        position: (3,) float32 sensor position in the ego frame (metres).
+
+    Returns:
+        points: (m, 4) float32 x, y, z in the ego frame and intensity
+        (min(|cos|, 1) x reflectivity) x fade; ring: (m,) int16; label: (m,) int32;
+        dist: (m,) float32 measured range (with noise).
+    """
+    n = idx.shape[0]
+    noisy = gauss.shape[0] > 0
+    dropping = uniform.shape[0] > 0
+    m = n
+    if dropping:
+        m = 0
+        for j in range(n):
+            if uniform[j] >= p_drop:
+                m += 1
+    points = np.empty((m, 4), np.float32)
+    out_ring = np.empty(m, np.int16)
+    out_label = np.empty(m, np.int32)
+    dist = np.empty(m, np.float32)
+    zero, one = np.float32(0.0), np.float32(1.0)
+    miss = faces.shape[0] - 1
+    k = 0
+    for j in range(n):
+        if dropping and uniform[j] < p_drop:
+            continue
+        r = idx[j]
+        d = t[r]
+        if noisy:
+            d = d + gauss[j] * sigma
+            if d < zero:
+                d = zero
+        dx, dy, dz = dirs[r, 0], dirs[r, 1], dirs[r, 2]
+        lab = label[r]
+        if lab >= 0:
+            refl = actor_refl[lab]
+            cos = cos_actor[r]
+        else:
+            f = prim_bg[r]
+            if f < 0:
+                f = miss
+            fx, fy = faces[f, 0], faces[f, 1]
+            nx = c * fx + s * fy
+            ny = c * fy - s * fx
+            refl = faces[f, 3]
+            cos = abs(nx * dx + ny * dy + faces[f, 2] * dz)
+        if cos > one:
+            cos = one
+        points[k, 0] = dx * d + position[0]
+        points[k, 1] = dy * d + position[1]
+        points[k, 2] = dz * d + position[2]
+        points[k, 3] = cos * refl * fade[j]
+        out_ring[k] = ring[r]
+        out_label[k] = lab
+        dist[k] = d
+        k += 1
+    return points, out_ring, out_label, dist
