@@ -17,7 +17,7 @@ point), ``d`` lateral offset, left positive (m).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Sequence
 
 import numpy as np
@@ -45,29 +45,16 @@ class LaneGeometry:
     lo: np.ndarray
     hi: np.ndarray
     length: float
+    _heading: np.ndarray | None = field(default=None, repr=False, compare=False)
 
-    def project(self, xy: np.ndarray, chunk: int = 2048) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def project(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Points (N, 2) -> s, d, heading (N,), as ``scene.lanes.project`` (ends extrapolated)."""
         q = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
-        S = len(self.unit)
-        p0 = self.points[:S]
-        lo = np.zeros(S)
-        hi = self.seg_len.copy()
-        lo[0], hi[-1] = -np.inf, np.inf
-        out = np.empty((3, len(q)))
-        for a in range(0, len(q), chunk):
-            qq = q[a:a + chunk]
-            rx = qq[:, None, 0] - p0[None, :, 0]
-            ry = qq[:, None, 1] - p0[None, :, 1]
-            t = np.clip(rx * self.unit[:, 0] + ry * self.unit[:, 1], lo, hi)
-            ex, ey = rx - t * self.unit[:, 0], ry - t * self.unit[:, 1]
-            best = np.argmin(ex * ex + ey * ey, axis=1)
-            rows = np.arange(len(qq))
-            u = self.unit[best]
-            out[0, a:a + chunk] = self.cum[best] + t[rows, best]
-            out[1, a:a + chunk] = u[:, 0] * ry[rows, best] - u[:, 1] * rx[rows, best]
-            out[2, a:a + chunk] = np.arctan2(u[:, 1], u[:, 0])
-        return out[0], out[1], out[2]
+        if self._heading is None:  # the segments' headings, once (arctan2 stays numpy's)
+            self._heading = np.arctan2(self.unit[:, 1], self.unit[:, 0])
+        s, d, best = _project_polyline(np.ascontiguousarray(q[:, 0]), np.ascontiguousarray(q[:, 1]), self.points,
+                                       self.unit, self.seg_len, self.cum)
+        return s, d, self._heading[best]
 
     def width_at(self, s: np.ndarray) -> np.ndarray:
         return np.interp(np.clip(s, 0.0, self.length), self.cum, self.width)
@@ -403,3 +390,36 @@ def _project_local_many(c, qx, qy, s_guess, window, px, py, ux, uy, P, spacing, 
         s[k], d[k] = project_on_segments(qx[k], qy[k], i0, window, px, py, ux, uy, ci * P, ci * (P - 1),
                                          spacing[ci], last_i)
     return s, d
+
+
+@kernel
+def _project_polyline(qx, qy, points, unit, seg_len, cum):
+    """Global projection of points onto one polyline (:meth:`LaneGeometry.project`): the
+    nearest segment (the first of equally near ones; the first / last segment extend to
+    infinity), compiled because numpy needed (N, S) temporaries for a few points per call.
+
+    Args:
+        qx, qy: (N,) m; points (S + 1, 2), unit (S, 2), seg_len (S,), cum (S + 1,) of the polyline.
+    Returns:
+        s, d (N,) m and the nearest segment's index (N,).
+    """
+    n, S = len(qx), len(seg_len)
+    s = np.empty(n)
+    d = np.empty(n)
+    best_i = np.zeros(n, np.int64)
+    for k in range(n):
+        best = np.inf
+        for i in range(S):
+            rx, ry = qx[k] - points[i, 0], qy[k] - points[i, 1]
+            t = rx * unit[i, 0] + ry * unit[i, 1]
+            lo = -np.inf if i == 0 else 0.0
+            hi = np.inf if i == S - 1 else seg_len[i]
+            tc = min(max(t, lo), hi)
+            ex, ey = rx - tc * unit[i, 0], ry - tc * unit[i, 1]
+            e2 = ex * ex + ey * ey
+            if e2 < best or i == 0:
+                best = e2
+                best_i[k] = i
+                s[k] = cum[i] + tc
+                d[k] = unit[i, 0] * ry - unit[i, 1] * rx
+    return s, d, best_i
