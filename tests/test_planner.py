@@ -637,3 +637,26 @@ def test_acceleration_deadband_holds_through_small_changes_of_the_demand():
     tracks, preds = actor_inputs(np.array([[20.0, 0.0, 4.6, 1.9, 0.0]]), np.stack([x, 0 * t], -1)[None])
     plan = planner_on(straight_lanes(1)).plan(ego, preds, tracks)
     assert plan.acceleration[0] < -0.1
+
+
+def test_a_car_alongside_leads_only_once_it_is_ahead():
+    """A car merging in beside the ego (centre 1 m ahead, 1.6 m to the left: inside the lane
+    strip, bumper gap < 0) at the ego's speed. As a leader right away the IDM brakes at
+    max_decel for it (real traffic, NGSIM US-101 train recording 5: -3.1 m/s^2 and 21 % of the
+    logged progress lost); by default it leads only once its bumper gap is positive, and the
+    collision and buffer terms still see it."""
+    from dataclasses import replace
+
+    from adv3d_runner.autonomy.planner import PlannerConfig
+
+    lanes = straight_lanes(2)
+    ego = EgoState([0.0, 0.0, 0.0], 10.0)
+    car = lambda t: np.array([[1.0 + 10.0 * t, 1.6, 4.6, 1.9, 0.0]])  # noqa: E731
+    fut = np.stack([car((h + 1) * DT)[:, :2] for h in range(60)], axis=1)
+    tracks, preds = actor_inputs(car(0.0), fut)
+    default = planner_on(lanes).plan_with_scores(ego, preds, tracks)[1]
+    old_cfg = PlannerConfig(proposals=replace(PlannerConfig().proposals, alongside_leads=True))
+    old = planner_on(lanes, SamplingPlanner(old_cfg)).plan_with_scores(ego, preds, tracks)[1]
+    in_lane = np.array(["lane0/" in lab and "emergency" not in lab for lab in old.spec.labels])
+    assert np.all(old.leader_gap[in_lane, 0] <= 0.0) and np.all(old.accel[in_lane, :5].min(axis=1) < -1.0)
+    assert np.all(np.isinf(default.leader_gap[in_lane, 0])) and np.all(default.accel[in_lane, 0] > -0.5)

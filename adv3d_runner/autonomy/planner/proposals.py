@@ -76,6 +76,11 @@ class ProposalConfig:
             mode a leader of its own, so the IDM follows the nearest, i.e. slowest, mode, and at
             step 0 (a tie) the first one (the planner before issue 17's third round).
         leader_quantile: see ``leader_modes``.
+        alongside_leads: an actor alongside the ego when the plan starts (in the lane strip,
+            its centre ahead of the ego's but the bumper gap <= 0: a car merging in beside the
+            ego) makes the IDM brake at ``max_decel`` (True, the planner before issue 17's
+            fourth round); False: it leads only once it is ahead (gap > 0), and until then the
+            candidates follow the next actor ahead (the collision and buffer terms still see it).
     """
 
     horizon: float = 5.0
@@ -105,6 +110,7 @@ class ProposalConfig:
     accel_deadband: float = 0.2
     leader_modes: str = "expected"
     leader_quantile: float = 0.0
+    alongside_leads: bool = False
 
     def __post_init__(self):
         if self.leader_modes not in ("expected", "quantile", "nearest"):
@@ -297,6 +303,7 @@ def rollout_candidates(ego_pose: np.ndarray, ego_speed: float, ego_accel: float,
         1.0 if (config.firm_release and config.max_brake_jerk * dt > up_release) else 0.0,
         # the proposal's own limits are within the vehicle's: the step's clamps would be no-ops
         0.0 if (-params.max_decel <= -config.max_decel and config.idm_accel <= params.max_accel) else 1.0,
+        1.0 if config.alongside_leads else 0.0,
     ], dtype=np.float64)
     states, acc, kap, s_hist, d_hist, gap_hist = _rollout_kernel(
         pose, v0, float(ego_accel), np.ascontiguousarray(s0, dtype=np.float64), 1.0 / trans_len, hermite,
@@ -309,7 +316,7 @@ def rollout_candidates(ego_pose: np.ndarray, ego_speed: float, ego_accel: float,
 # indices into the ``limits`` vector of :func:`_rollout_kernel`
 (_IDM_ACCEL, _IDM_DECEL, _IDM_GAP, _IDM_HEADWAY, _MAX_DECEL, _JERK_DN, _BRAKE_DN, _UP_RELEASE, _DEADBAND,
  _COOLNESS, _LA_TIME, _LA_MIN, _LAT_LIM, _KAPPA_MAX, _VEH_ACC, _VEH_DEC, _VEH_SPEED, _LR, _DT, _FIRM_RELEASE,
- _CLAMP_VEHICLE) = range(21)
+ _CLAMP_VEHICLE, _ALONGSIDE_LEADS) = range(22)
 
 
 @kernel
@@ -351,6 +358,7 @@ def _rollout_kernel(pose, v0, a0, s0, inv_trans, hermite, v_des, emergency, px, 
     s_hist = np.empty((B, T + 1))
     d_hist = np.full((B, T + 1), np.nan)
     gap_hist = np.full((B, T + 1), np.inf)
+    alongside = np.zeros(M, np.bool_)
     for b in range(B):
         x, y, yaw, v = pose[0], pose[1], pose[2], v0
         states[b, 0, 0], states[b, 0, 1], states[b, 0, 2], states[b, 0, 3] = x, y, yaw, v
@@ -373,8 +381,16 @@ def _rollout_kernel(pose, v0, a0, s0, inv_trans, hermite, v_des, emergency, px, 
             for m in range(M):
                 if lead_s_ok[k, b, m] > s_cur:
                     g = lead_back[k, b, m] - s_cur
+                    if k == 0:
+                        alongside[m] = g <= 0.0 and limits[_ALONGSIDE_LEADS] == 0.0
+                    if alongside[m]:
+                        if g <= 0.0:
+                            continue
+                        alongside[m] = False  # ahead now: it leads from here on
                     if g < gap:
                         gap, j = g, m
+                elif k == 0:
+                    alongside[m] = False
             if M > 0:
                 gap_hist[b, k] = gap
             if k == T:
