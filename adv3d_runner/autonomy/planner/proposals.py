@@ -96,7 +96,7 @@ class ProposalConfig:
     max_lat_accel: float = 3.0
     idm_accel: float = 1.5
     idm_decel: float = 2.0
-    idm_gap: float = 2.0
+    idm_gap: float = 3.0
     idm_headway: float = 1.5
     max_decel: float = 7.0
     max_jerk: float = 1.5
@@ -107,7 +107,7 @@ class ProposalConfig:
     leader_speed_window: float = 1.5
     idm_coolness: float = 0.9
     firm_release: bool = True
-    accel_deadband: float = 0.3
+    accel_deadband: float = 0.2
     leader_modes: str = "expected"
     leader_quantile: float = 0.0
     alongside_leads: bool = False
