@@ -204,7 +204,7 @@ def detector_table(scenes_worlds, episodes, quick: bool) -> list[dict]:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="one scene")
-    ap.add_argument("--autonomy", choices=("A", "B", "oracle", "A-lanefollow"), default=None,
+    ap.add_argument("--autonomy", choices=("A", "B", "oracle", "A-lanefollow", "A-fast"), default=None,
                     help="default: A when its weights exist, else A-lanefollow (learned detector), else oracle; "
                          "B: Autonomy-B with Autonomy-A's stages measured alongside")
     args = ap.parse_args()

@@ -280,7 +280,7 @@ def main() -> int:
     ap.add_argument("--sets", default="generated,real", help="comma-separated: generated, real")
     ap.add_argument("--real-part", choices=("benchmark", "train"), default="benchmark",
                     help="part of scenes/real/ (split.json); tune only on train")
-    ap.add_argument("--autonomy", choices=("A", "B", "oracle", "A-lanefollow"), default="A")
+    ap.add_argument("--autonomy", choices=("A", "B", "oracle", "A-lanefollow", "A-fast"), default="A")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--seconds", type=float, default=5.0)
     ap.add_argument("--planner-limits", choices=("shipped", "before-issue17"), default="shipped",

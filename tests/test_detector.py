@@ -219,10 +219,14 @@ def test_data_generation_deterministic(tmp_path):
         assert str(z["format"]) == "adv3d-detector-frames"
 
 
-@pytest.mark.skipif(not SHIPPED.is_file(), reason="no shipped detector")
-def test_shipped_detector_finds_car_20m_ahead():
-    """Ego on a straight road, one library car 20 m ahead in the ego's lane: the shipped
-    detector finds it with BEV IoU > 0.5 (ideal LiDAR: no noise)."""
+@pytest.mark.parametrize("folder", ["detector", "detector-fast"])
+def test_shipped_detector_finds_car_20m_ahead(folder):
+    """Ego on a straight road, one library car 20 m ahead in the ego's lane: each shipped
+    detector (Autonomy-A's 0.25 m one and A-fast's 0.4 m one) finds it with BEV IoU > 0.5
+    (ideal LiDAR: no noise)."""
+    model = SHIPPED.parent.parent / folder
+    if not (model / "detector.pt").is_file():
+        pytest.skip(f"no shipped {folder}")
     from adv3d_runner.scene.generate import generate_scene
     from adv3d_runner.sensors.lidar import simulate_frame
     from adv3d_runner.sensors.world import LidarWorld, rig_from_scene
@@ -241,7 +245,8 @@ def test_shipped_detector_finds_car_20m_ahead():
     c, s = np.cos(ego[2]), np.sin(ego[2])
     car = np.array([ego[0] + 20 * c, ego[1] + 20 * s, ego[2] + 0.03])
     frame = simulate_frame(world, rig_from_scene(scene), ego, car[None], rng=None)
-    det = load_detector()
+    det = load_detector(model)
+    assert det.cfg.resolution == {"detector": 0.25, "detector-fast": 0.4}[folder]
     dets = det.detect(frame.points)
     truth = np.array([[20.0, 0.0, dims[0], dims[1], 0.03]])
     assert len(dets) >= 1
@@ -273,3 +278,19 @@ def test_train_cli_writes_model_and_report(tmp_path):
     assert all("-lib-" in p.name for p in (tmp_path / "cache").rglob("*.npz"))
     det = load_detector(out)
     assert det.cfg.resolution == 0.4
+
+
+def test_a_fast_is_autonomy_a_with_the_fast_detector_and_its_own_fingerprint():
+    """--autonomy A-fast: the same tracker, predictor and planner as A, the 0.4 m detector, and
+    the fingerprint of that detector in a run's versions (its results are another stack's)."""
+    from adv3d_runner.attack.config import QuerySettings
+    from adv3d_runner.attack.evaluator import EpisodeEvaluator
+    from adv3d_runner.autonomy.stacks import make_stack
+
+    a, fast = make_stack("A"), make_stack("A-fast")
+    assert (a.detector.cfg.resolution, fast.detector.cfg.resolution) == (0.25, 0.4)
+    assert type(a.predictor) is type(fast.predictor) and a.planner.config == fast.planner.config
+    va = EpisodeEvaluator(QuerySettings(autonomy="A")).versions()
+    vf = EpisodeEvaluator(QuerySettings(autonomy="A-fast")).versions()
+    assert set(va["models"]) == {"detector", "predictor"} and set(vf["models"]) == {"detector-fast", "predictor"}
+    assert va["models"]["predictor"] == vf["models"]["predictor"] and va["planner"] == vf["planner"]

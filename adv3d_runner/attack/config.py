@@ -46,7 +46,7 @@ SHAPE_MODELS = ("latent", "vd")
 _OPTIONAL_KEYS = {"shape_model": "latent", "max_mahalanobis": None, "class_scales": False, "realism_weight": 0.0,
                   "pred_reduction": LEGACY_PRED_REDUCTION, "scene_seeds": False, "target_rank": 0}
 _VD_KEYS = ("vd_bound", "vd_lattice")
-AUTONOMY = ("A", "oracle", "B")
+AUTONOMY = ("A", "oracle", "B", "A-fast")
 #: Bounds of the options (the CLI's argument types use the same ones).
 MAX_ACTORS = 64
 MAX_SECONDS = 3600.0

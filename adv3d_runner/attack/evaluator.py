@@ -322,12 +322,14 @@ class EpisodeEvaluator:
         return result
 
     def versions(self) -> dict[str, Any]:
+        from ..autonomy.stacks import DETECTOR_MODELS
+
         v: dict[str, Any] = {"shape_space": self.settings.load_shape_space().content_hash}
-        if self.settings.autonomy == "A":
-            v["models"] = model_fingerprints()
+        if self.settings.autonomy in DETECTOR_MODELS:
+            v["models"] = model_fingerprints((DETECTOR_MODELS[self.settings.autonomy], "predictor"))
         elif self.settings.autonomy == "B":
             v["models"] = model_fingerprints(("occupancy",))
-        if self.settings.autonomy in ("A", "B"):
+        if self.settings.autonomy != "oracle":
             v["planner"] = planner_fingerprint()
         return v
 

@@ -14,6 +14,7 @@ from pathlib import Path
 
 def register(subparsers) -> None:
     from .. import argtypes as at
+    from ..autonomy.stacks import AUTONOMY_CHOICES
 
     p = subparsers.add_parser("simulate", help="run one closed- or open-loop episode on a scene",
                               description=__doc__.splitlines()[0])
@@ -21,10 +22,10 @@ def register(subparsers) -> None:
     p.add_argument("--open-loop", action="store_true", help="the ego replays its log instead of following its plans")
     p.add_argument("--seconds", type=at.number(0.0, 3600.0, lo_open=True), default=5.0, help="episode length in s (default 5)")
     p.add_argument("--reactive", action="store_true", help="actors react to the ego (IDM/MOBIL) instead of replaying")
-    p.add_argument("--autonomy", choices=("A", "B", "oracle", "A-lanefollow"), default="A",
+    p.add_argument("--autonomy", choices=AUTONOMY_CHOICES, default="A",
                    help="A: learned detector + predictor (needs the shipped weights); B: instance-free, the learned "
                         "implicit occupancy-and-flow model + the same planner; oracle: ground-truth "
-                        "boxes of the actors the LiDAR hits + lane-following prediction; A-lanefollow: learned detector + lane-following prediction (default A)")
+                        "boxes of the actors the LiDAR hits + lane-following prediction; A-lanefollow: learned detector + lane-following prediction; A-fast: A with the 0.4 m detector (default A)")
     p.add_argument("--points", action="store_true", help="store the LiDAR points in the replay (large)")
     p.add_argument("--seed", type=at.seed, default=0, help="seed of the LiDAR noise (default 0)")
     p.add_argument("--start-frame", type=at.count, default=0, help="first scene frame (default 0)")

@@ -49,7 +49,8 @@ def add_train_detector(train_sub) -> None:
     p.add_argument("--epochs", type=at.positive_int, default=10)
     p.add_argument("--batch", type=at.positive_int, default=8)
     p.add_argument("--lr", type=at.positive, default=2e-3)
-    p.add_argument("--resolution", type=at.number(0.01, 10.0), default=0.25, help="BEV cell size, m")
+    p.add_argument("--resolution", type=at.number(0.01, 10.0), default=0.25,
+                   help="BEV cell size, m (0.25: assets/models/detector; 0.4: assets/models/detector-fast, --autonomy A-fast)")
     p.add_argument("--min-points", type=at.positive_int, default=5, help="LiDAR returns for a vehicle to count as ground truth")
     p.add_argument("--seed", type=at.seed, default=0)
     p.add_argument("--threads", type=at.positive_int, default=1, help="torch threads for training")
