@@ -78,16 +78,16 @@ def child(name: str, inputs: Path, repeats: int, scene_name: str) -> dict:
     elif option in ("channels_last", "jit_trace", "compile"):
         example = torch.zeros((1, det.cfg.in_channels) + det.cfg.grid_shape)
         if option == "channels_last":
-            net = det.net.to(memory_format=torch.channels_last)
+            net = det.inference_net.to(memory_format=torch.channels_last)
             forward = net.forward
-            det.net.forward = lambda x: forward(x.contiguous(memory_format=torch.channels_last))
+            det.inference_net.forward = lambda x: forward(x.contiguous(memory_format=torch.channels_last))
         elif option == "jit_trace":
             with torch.inference_mode():
-                det.net = torch.jit.trace(det.net, example)
+                det.inference_net = torch.jit.trace(det.inference_net, example)
         else:
-            det.net = torch.compile(det.net)
+            det.inference_net = torch.compile(det.inference_net)
             with torch.inference_mode():
-                det.net(example)  # compile outside the timing
+                det.inference_net(example)  # compile outside the timing
     scene = load_scene(ROOT / "scenes" / "highway" / f"{scene_name}.json.gz")
     context = SceneContext.from_scene(scene)
     data = np.load(inputs)

@@ -174,8 +174,32 @@ def test_save_load_roundtrip_weights_only(tmp_path):
     for k, v in det.net.state_dict().items():
         assert torch.equal(v, back.net.state_dict()[k])
     pts = np.random.default_rng(0).uniform([0, -10, 0.5], [40, 10, 2], (500, 3)).astype(np.float32)
+    back.inference_net = back.net  # the weights as saved (load_detector runs a BN-folded copy)
     a, b = det.detect(pts), back.detect(pts)
     assert np.allclose(a.boxes, b.boxes) and np.allclose(a.scores, b.scores)
+
+
+def test_folded_batchnorm_is_the_same_network_up_to_rounding():
+    """load_detector runs the net with its BatchNorms folded into the convolutions: the same
+    outputs up to float32 rounding, and no BatchNorm left in the inference copy."""
+    from adv3d_runner.autonomy.detector import PixorNet, fold_batchnorm
+
+    torch.manual_seed(0)
+    net = PixorNet(DetectorConfig(resolution=0.4)).eval()
+    with torch.no_grad():  # non-trivial statistics, as after training
+        for m in net.modules():
+            if isinstance(m, torch.nn.BatchNorm2d):
+                m.running_mean.uniform_(-0.5, 0.5)
+                m.running_var.uniform_(0.5, 2.0)
+                m.weight.uniform_(0.5, 1.5)
+    folded = fold_batchnorm(net)
+    assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in folded.modules())
+    assert any(isinstance(m, torch.nn.BatchNorm2d) for m in net.modules())  # the original is untouched
+    x = torch.rand((1, net.stage1[0][0].in_channels) + DetectorConfig(resolution=0.4).grid_shape)
+    with torch.inference_mode():
+        (s0, b0), (s1, b1) = net(x), folded(x)
+    assert torch.allclose(s0, s1, atol=1e-4) and torch.allclose(b0, b1, atol=1e-4)
+    assert not torch.equal(s0, s1)  # folded, not the same module
 
 
 class _Evil:

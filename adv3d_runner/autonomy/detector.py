@@ -567,6 +567,9 @@ class BevDetector:
         net: a :class:`PixorNet` for ``cfg`` (random weights when None).
         threads: torch intra-op threads used by :meth:`detect` (None: leave torch's setting).
 
+    ``inference_net`` is the module :meth:`detect` runs: ``net`` itself, or (models loaded by
+    :func:`load_detector`) its copy with the BatchNorms folded in (:func:`fold_batchnorm`).
+
     ``timings`` holds seconds per step of the last :meth:`detect` call (``voxelize``,
     ``network``, ``decode``), measured with ``clock`` (default ``time.perf_counter``; benchmarks
     on a shared machine set ``time.thread_time``).
@@ -577,6 +580,7 @@ class BevDetector:
     def __init__(self, cfg: DetectorConfig | None = None, net: PixorNet | None = None, threads: int | None = 1):
         self.cfg = cfg or DetectorConfig()
         self.net = (net or PixorNet(self.cfg)).eval()
+        self.inference_net: nn.Module = self.net
         self.threads = threads
         self.timings: dict[str, float] = {}
 
@@ -584,7 +588,7 @@ class BevDetector:
         if self.threads is not None and torch.get_num_threads() != self.threads:
             torch.set_num_threads(self.threads)
         with torch.inference_mode():
-            logits, box = self.net(torch.from_numpy(np.ascontiguousarray(grids)))
+            logits, box = self.inference_net(torch.from_numpy(np.ascontiguousarray(grids)))
             return torch.sigmoid(logits[:, 0]).numpy(), box.numpy()
 
     def detect(self, points: np.ndarray, score_threshold: float | None = None) -> Detections:
@@ -655,7 +659,24 @@ def load_detector(path: str | Path = DEFAULT_MODEL_DIR, threads: int | None = 1,
     cfg = DetectorConfig.from_dict(params)
     net = PixorNet(cfg)
     load_state_into(net, doc, cfg_path, WEIGHTS_NAME, "detector weights (state_dict .pt)")
-    return BevDetector(cfg, net, threads=threads)
+    det = BevDetector(cfg, net, threads=threads)
+    det.inference_net = fold_batchnorm(net)
+    return det
+
+
+def fold_batchnorm(net: nn.Module) -> nn.Module:
+    """An inference copy of ``net`` with every BatchNorm folded into the convolution before it
+    (``torch.fx``'s conv-bn fusion): the same function up to float32 rounding (scores differ by
+    ~1e-6), one pass over each feature map less; 6.8 -> 5.3 ms per 0.25 m frame on one core
+    (issue 16). Only for a model that is no longer trained: the fused copy has no BatchNorm
+    statistics to update and its state_dict is not a :class:`PixorNet`'s."""
+    import warnings
+
+    with warnings.catch_warnings():  # the module's imports use torch.jit.script_method, deprecated
+        warnings.simplefilter("ignore", DeprecationWarning)
+        from torch.fx.experimental.optimization import fuse
+
+    return fuse(net.eval(), inplace=False)
 
 
 def model_info(path: str | Path = DEFAULT_MODEL_DIR) -> dict:
