@@ -274,28 +274,15 @@ class CorridorSet:
                                    self.n_points.astype(np.int64))
         return s.reshape(shape), d.reshape(shape)
 
-    def project(self, c: int, xy: np.ndarray, chunk: int = 2048) -> tuple[np.ndarray, np.ndarray]:
+    def project(self, c: int, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Global projection onto corridor ``c`` of points (..., 2) -> s, d (...)."""
         xy = np.asarray(xy, dtype=np.float64)
         q = xy.reshape(-1, 2)
         k = int(self.n_points[c])
-        p0, u = self.points[c, :k - 1], self.unit[c, :k - 1]
-        seg = np.full(k - 1, self.spacing[c])
-        lo = np.zeros(k - 1)
-        hi = seg.copy()
-        lo[0], hi[-1] = -np.inf, np.inf
-        s_out, d_out = np.empty(len(q)), np.empty(len(q))
-        for a in range(0, len(q), chunk):
-            qq = q[a:a + chunk]
-            rx = qq[:, None, 0] - p0[None, :, 0]
-            ry = qq[:, None, 1] - p0[None, :, 1]
-            t = np.clip(rx * u[:, 0] + ry * u[:, 1], lo, hi)
-            ex, ey = rx - t * u[:, 0], ry - t * u[:, 1]
-            best = np.argmin(ex * ex + ey * ey, axis=1)
-            rows = np.arange(len(qq))
-            s_out[a:a + chunk] = best * self.spacing[c] + t[rows, best]
-            d_out[a:a + chunk] = u[best, 0] * ry[rows, best] - u[best, 1] * rx[rows, best]
-        return s_out.reshape(xy.shape[:-1]), d_out.reshape(xy.shape[:-1])
+        sp = float(self.spacing[c])
+        s, d, _ = _project_polyline(np.ascontiguousarray(q[:, 0]), np.ascontiguousarray(q[:, 1]), self.points[c, :k],
+                                    self.unit[c, :k - 1], np.full(k - 1, sp), np.arange(k - 1) * sp)
+        return s.reshape(xy.shape[:-1]), d.reshape(xy.shape[:-1])
 
     def project_near(self, c: int, xy: np.ndarray, stride: int = 4) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`project` through the nearest of every ``stride``-th corridor point and a local

@@ -14,6 +14,7 @@ import numpy as np
 
 from ...geometry.angles import wrap_angle
 from ...geometry.boxes import box_separation
+from ...jit import kernel
 from ...scene.corridor import CorridorSet
 
 
@@ -80,13 +81,9 @@ def near_actors(ego_poses: np.ndarray, ego_speeds: np.ndarray, ego_dims: tuple[f
     N = actor_poses.shape[0]
     if N == 0 or ego_poses.shape[0] == 0:
         return np.zeros(N, bool), np.zeros(N, bool)
-    T = ego_poses.shape[1]
-    ap = actor_poses[:, :, :T]
-    if ap.shape[2] < T:
-        ap = np.concatenate([ap, np.repeat(ap[:, :, -1:], T - ap.shape[2], axis=2)], axis=2)
-    dx = ego_poses[:, None, None, :, 0] - ap[None, ..., 0]
-    dy = ego_poses[:, None, None, :, 1] - ap[None, ..., 1]
-    cd = np.sqrt((dx * dx + dy * dy).min(axis=(0, 2, 3)))  # (N,) closest approach
+    cd = np.sqrt(_closest_approach2(np.ascontiguousarray(ego_poses[..., 0]), np.ascontiguousarray(ego_poses[..., 1]),
+                                    np.ascontiguousarray(actor_poses[..., 0]),
+                                    np.ascontiguousarray(actor_poses[..., 1])))  # (N,) closest approach
     r_e = 0.5 * np.hypot(*ego_dims)
     r_a = 0.5 * np.hypot(actor_dims[:, 0], actor_dims[:, 1])
     clear = cd <= r_e + r_a + max_distance + 1e-6
@@ -202,21 +199,13 @@ def headway_cost(ego_poses: np.ndarray, ego_speeds: np.ndarray, ego_dims: tuple[
     B, T = ego_poses.shape[:2]
     if actor_poses.shape[0] == 0:
         return np.zeros(B)
-    ap = actor_poses[:, :, :T]
-    if ap.shape[2] < T:
-        ap = np.concatenate([ap, np.repeat(ap[:, :, -1:], T - ap.shape[2], axis=2)], axis=2)
-    dx = ap[None, ..., 0] - ego_poses[:, None, None, :, 0]  # (B, N, K, T)
-    dy = ap[None, ..., 1] - ego_poses[:, None, None, :, 1]
-    c = np.cos(ego_poses[:, None, None, :, 2])
-    s = np.sin(ego_poses[:, None, None, :, 2])
-    lon = c * dx + s * dy
-    lat = -s * dx + c * dy
-    half_w = 0.5 * (ego_dims[1] + actor_dims[:, 1])[None, :, None, None]
-    half_l = 0.5 * (ego_dims[0] + actor_dims[:, 0])[None, :, None, None]
-    in_path = (lon > 0) & (np.abs(lat) < half_w + lateral_margin)
-    gap = lon - half_l
-    desired = min_gap + time_headway * np.maximum(ego_speeds, 0.0)[:, None, None, :]
-    short = np.where(in_path, np.clip((desired - gap) / desired, 0.0, 1.0), 0.0)
+    yaw = ego_poses[..., 2]
+    desired = min_gap + time_headway * np.maximum(ego_speeds, 0.0)  # (B, T)
+    short = _headway_shortfall(np.ascontiguousarray(ego_poses[..., 0]), np.ascontiguousarray(ego_poses[..., 1]),
+                               np.cos(yaw), np.sin(yaw), np.ascontiguousarray(desired),
+                               np.ascontiguousarray(actor_poses[..., 0]), np.ascontiguousarray(actor_poses[..., 1]),
+                               0.5 * (ego_dims[1] + actor_dims[:, 1]) + lateral_margin,
+                               0.5 * (ego_dims[0] + actor_dims[:, 0]))
     per_actor = np.einsum("bnkt,nk->bnt", short, probs)
     return (per_actor.max(axis=1) * _horizon_weights(T)).mean(axis=-1)
 
@@ -321,3 +310,58 @@ def occupancy_buffer_cost(hit: np.ndarray) -> np.ndarray:
     if hit.shape[1] == 0 or hit.shape[2] == 0:
         return np.zeros(hit.shape[0])
     return (hit.max(axis=2) * _horizon_weights(hit.shape[1])[None]).mean(axis=1)
+
+
+@kernel
+def _closest_approach2(ego_x: np.ndarray, ego_y: np.ndarray, act_x: np.ndarray, act_y: np.ndarray) -> np.ndarray:
+    """Squared closest centre distance (m^2) of each actor to any candidate at the same time:
+    ego_x, ego_y (B, T), act_x, act_y (N, K, T') (held at their last pose beyond T') -> (N,).
+    Compiled: as numpy it built four (B, N, K, T) temporaries every plan for one minimum."""
+    B, T = ego_x.shape
+    N, K, Ta = act_x.shape
+    out = np.full(N, np.inf)
+    for n in range(N):
+        best = np.inf
+        for k in range(K):
+            for t in range(T):
+                ta = min(t, Ta - 1)
+                ax, ay = act_x[n, k, ta], act_y[n, k, ta]
+                for b in range(B):
+                    dx = ego_x[b, t] - ax
+                    dy = ego_y[b, t] - ay
+                    d2 = dx * dx + dy * dy
+                    if d2 < best:
+                        best = d2
+        out[n] = best
+    return out
+
+
+@kernel
+def _headway_shortfall(ego_x, ego_y, cos_yaw, sin_yaw, desired, act_x, act_y, lat_band, half_len):
+    """:func:`headway_cost`'s shortfall (B, N, K, T), a fraction in [0, 1]: for an actor-mode
+    ahead of the candidate (in its frame: lon > 0, |lat| < ``lat_band``), how far the bumper gap
+    ``lon - half_len`` falls short of ``desired``, as a fraction of it; 0 elsewhere.
+
+    Args:
+        ego_x, ego_y, cos_yaw, sin_yaw, desired: (B, T) candidate positions (m), heading and
+            desired gap (m). act_x, act_y: (N, K, T') actor-modes (held beyond T'), m.
+        lat_band, half_len: (N,) half summed widths + margin, half summed lengths, m.
+    Compiled: as numpy it made a dozen (B, N, K, T) temporaries every plan.
+    """
+    B, T = ego_x.shape
+    N, K, Ta = act_x.shape
+    out = np.zeros((B, N, K, T))
+    for b in range(B):
+        for n in range(N):
+            for k in range(K):
+                for t in range(T):
+                    ta = min(t, Ta - 1)
+                    dx = act_x[n, k, ta] - ego_x[b, t]
+                    dy = act_y[n, k, ta] - ego_y[b, t]
+                    c, s = cos_yaw[b, t], sin_yaw[b, t]
+                    lon = c * dx + s * dy
+                    lat = -s * dx + c * dy
+                    if lon > 0 and abs(lat) < lat_band[n]:
+                        want = desired[b, t]
+                        out[b, n, k, t] = min(max((want - (lon - half_len[n])) / want, 0.0), 1.0)
+    return out
