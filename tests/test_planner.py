@@ -660,3 +660,22 @@ def test_a_car_alongside_leads_only_once_it_is_ahead():
     in_lane = np.array(["lane0/" in lab and "emergency" not in lab for lab in old.spec.labels])
     assert np.all(old.leader_gap[in_lane, 0] <= 0.0) and np.all(old.accel[in_lane, :5].min(axis=1) < -1.0)
     assert np.all(np.isinf(default.leader_gap[in_lane, 0])) and np.all(default.accel[in_lane, 0] > -0.5)
+
+
+def test_fixed_acceleration_candidates_reach_their_target_at_the_jerk_limit_and_hold_it():
+    """ProposalConfig.accel_targets adds current-lane candidates that move their acceleration to
+    a target at the comfortable jerk limit and hold it (off by default)."""
+    from dataclasses import replace
+
+    from adv3d_runner.autonomy.planner import PlannerConfig
+
+    cfg = PlannerConfig(proposals=replace(PlannerConfig().proposals, accel_targets=(-1.0, 0.5), accel_deadband=0.0))
+    _, cands, _ = planner_on(straight_lanes(1), SamplingPlanner(cfg)).plan_with_scores(EgoState([0.0, 0.0, 0.0], 15.0))
+    labels = cands.spec.labels
+    assert "lane0/d+0.0/a-1.0" in labels and "lane0/d+0.0/a+0.5" in labels
+    brake, accel = cands.accel[labels.index("lane0/d+0.0/a-1.0")], cands.accel[labels.index("lane0/d+0.0/a+0.5")]
+    step = cfg.proposals.max_jerk * cfg.proposals.dt
+    assert np.allclose(brake[:6], -step * np.arange(1, 7)) and np.allclose(brake[6:], -1.0)
+    assert np.allclose(accel[:3], [step, 2 * step, 3 * step]) and np.allclose(accel[3:], 0.5)
+    default = planner_on(straight_lanes(1)).plan_with_scores(EgoState([0.0, 0.0, 0.0], 15.0))[1]
+    assert not any("/a" in lab.split("/")[-1][:2] for lab in default.spec.labels)

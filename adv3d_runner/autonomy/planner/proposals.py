@@ -81,6 +81,10 @@ class ProposalConfig:
             ego) makes the IDM brake at ``max_decel`` (True, the planner before issue 17's
             fourth round); False: it leads only once it is ahead (gap > 0), and until then the
             candidates follow the next actor ahead (the collision and buffer terms still see it).
+        accel_targets: m/s^2; extra candidates on the current lane (offset 0) that move their
+            acceleration to each of these at the jerk limits and hold it (speed >= 0) instead of
+            following the IDM: smooth speed profiles for the scorer to choose when they are safe
+            (empty: none, the default; an experiment of issue 17's fourth round).
     """
 
     horizon: float = 5.0
@@ -111,6 +115,7 @@ class ProposalConfig:
     leader_modes: str = "expected"
     leader_quantile: float = 0.0
     alongside_leads: bool = False
+    accel_targets: tuple[float, ...] = ()
 
     def __post_init__(self):
         if self.leader_modes not in ("expected", "quantile", "nearest"):
@@ -130,6 +135,7 @@ class CandidateSpec:
     target_speed: np.ndarray  # m/s (0 = stop)
     emergency: np.ndarray  # bool
     labels: list[str] = field(default_factory=list)
+    accel_target: np.ndarray | None = None  # m/s^2 held instead of the IDM; NaN: the IDM
 
     def __len__(self) -> int:
         return len(self.corridor)
@@ -202,8 +208,9 @@ class ActorForecast:
 
 def make_specs(corridors: CorridorSet, lane_names: list[str], speed_limit: float, config: ProposalConfig,
                current_index: int = 0) -> CandidateSpec:
-    """Cartesian product of corridors x offsets x target speeds (+ the emergency stop)."""
-    cor, off, tgt, emg, labels = [], [], [], [], []
+    """Cartesian product of corridors x offsets x target speeds (+ the fixed-acceleration
+    candidates of ``accel_targets`` and the emergency stop)."""
+    cor, off, tgt, emg, labels, acc = [], [], [], [], [], []
     for ci in range(len(corridors)):
         offsets = config.lateral_offsets if ci == current_index else config.neighbour_offsets
         for o in offsets:
@@ -212,14 +219,24 @@ def make_specs(corridors: CorridorSet, lane_names: list[str], speed_limit: float
                 off.append(o)
                 tgt.append(f * speed_limit)
                 emg.append(False)
+                acc.append(np.nan)
                 labels.append(f"{lane_names[ci]}/d{o:+.1f}/v{f * speed_limit:.1f}")
+    for a in config.accel_targets:
+        cor.append(current_index)
+        off.append(0.0)
+        tgt.append(speed_limit)
+        emg.append(False)
+        acc.append(float(a))
+        labels.append(f"{lane_names[current_index]}/d+0.0/a{a:+.1f}")
     if config.emergency_stop:
         cor.append(current_index)
         off.append(np.nan)  # keep the present lateral position
         tgt.append(0.0)
         emg.append(True)
+        acc.append(np.nan)
         labels.append(f"{lane_names[current_index]}/emergency-stop")
-    return CandidateSpec(np.array(cor, np.int64), np.array(off, float), np.array(tgt, float), np.array(emg, bool), labels)
+    return CandidateSpec(np.array(cor, np.int64), np.array(off, float), np.array(tgt, float), np.array(emg, bool), labels,
+                         np.array(acc, float))
 
 
 def _hermite(u: np.ndarray, d0: np.ndarray, slope0: np.ndarray, d1: np.ndarray) -> np.ndarray:
@@ -307,7 +324,9 @@ def rollout_candidates(ego_pose: np.ndarray, ego_speed: float, ego_accel: float,
     ], dtype=np.float64)
     states, acc, kap, s_hist, d_hist, gap_hist = _rollout_kernel(
         pose, v0, float(ego_accel), np.ascontiguousarray(s0, dtype=np.float64), 1.0 / trans_len, hermite,
-        v_des, np.ascontiguousarray(spec.emergency, dtype=np.bool_), *geometry,
+        v_des, np.ascontiguousarray(spec.emergency, dtype=np.bool_),
+        np.full(B, np.nan) if spec.accel_target is None else np.ascontiguousarray(spec.accel_target, dtype=np.float64),
+        *geometry,
         lead_s_ok, np.ascontiguousarray(lead_back), np.ascontiguousarray(lead_v), np.ascontiguousarray(lead_a),
         limits, T)
     return Candidates(spec, states, acc, kap, s_hist, d_hist, gap_hist, dt)
@@ -320,7 +339,7 @@ def rollout_candidates(ego_pose: np.ndarray, ego_speed: float, ego_accel: float,
 
 
 @kernel
-def _rollout_kernel(pose, v0, a0, s0, inv_trans, hermite, v_des, emergency, px, py, ux, uy, base_p, base_u,
+def _rollout_kernel(pose, v0, a0, s0, inv_trans, hermite, v_des, emergency, accel_target, px, py, ux, uy, base_p, base_u,
                     spacing, last_i, lead_s_ok, lead_back, lead_v, lead_a, limits, T):
     """The closed-loop rollout of every candidate (module docstring), one candidate at a time.
 
@@ -331,7 +350,8 @@ def _rollout_kernel(pose, v0, a0, s0, inv_trans, hermite, v_des, emergency, px, 
         pose: (3,) ego x, y, yaw (m, rad); v0: speed >= 0, m/s; a0: present acceleration, m/s^2.
         s0, inv_trans: (B,) start arc length on the candidate's corridor (m) and 1 / its lateral
             transition length (1/m); hermite: (4, B) the lateral offset's cubic in u, low order
-            first; v_des: (B,) target speed (m/s, <= 0.1: stop); emergency: (B,) bool.
+            first; v_des: (B,) target speed (m/s, <= 0.1: stop); emergency: (B,) bool;
+            accel_target: (B,) m/s^2 held instead of the IDM's (NaN: the IDM).
         px, py, ux, uy: the CorridorSet's flattened points and segment unit vectors;
         base_p, base_u, spacing, last_i: (B,) the candidate's corridor: its first point and
             segment index, point spacing (m) and last segment index.
@@ -416,6 +436,8 @@ def _rollout_kernel(pose, v0, a0, s0, inv_trans, hermite, v_des, emergency, px, 
                     if coolness > 0.0:
                         a = _acc_blend_one(a, v, v_lead, a_lead, max(gap, 0.1), idm_accel, idm_decel, coolness)
             a = min(max(a, -max_decel), idm_accel)
+            if not np.isnan(accel_target[b]):
+                a = accel_target[b]
             if deadband > 0.0 and abs(a - a_prev) < deadband:
                 # hold the acceleration while the demand stays within the band: the leader's gap
                 # and speed jitter by centimetres and tenths of m/s from frame to frame, and every
