@@ -26,7 +26,7 @@ The same with CPU time (local runs: this process and its worker processes): core
 protocol = 100 x (2 x 100 + 3) x C / E for C CPU seconds of the run; on W otherwise idle cores
 the wall time is about core-hours / W (the driver's own work is small).
 
-Writes ``bench/results/campaign.json``. The machine is shared: wall times include other jobs'
+Writes ``bench/results/campaign.json`` (``--out``). The machine is shared: wall times include other jobs'
 load (the load average is recorded), which the CPU-time extrapolation does not.
 """
 from __future__ import annotations
@@ -115,6 +115,8 @@ def main() -> None:
     ap.add_argument("--ray-address", default=None, help="an existing Ray cluster (ray start --head ...)")
     ap.add_argument("--ray-workers", default="1,2", help="Ray worker counts (default 1,2)")
     ap.add_argument("--keep", default=None, help="keep the run folders here (default: a temporary folder)")
+    ap.add_argument("--out", default=str(ROOT / "bench" / "results" / "campaign.json"),
+                    help="result file (default bench/results/campaign.json)")
     args = ap.parse_args()
     scenes = [str(p) for p in sorted((ROOT / "scenes" / "highway").glob("highway-benchmark-*.json.gz"))[:args.scenes]]
     keep = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="adv3d-campaign-"))
@@ -152,7 +154,7 @@ def main() -> None:
            "scenes": [Path(s).name for s in scenes], "protocol": "adv3d attack SCENES --algo bo --mode both",
            "formula": "T(100) = T0 + 100 * (2 * 100 + 3) * (T - T0) / (N * (2 * B + 3))",
            "journals_identical": same, "runs": rows}
-    out = ROOT / "bench" / "results" / "campaign.json"
+    out = Path(args.out)
     out.write_text(json.dumps(doc, indent=1) + "\n")
     print(f"\nwrote {out}")
 
