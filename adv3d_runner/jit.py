@@ -13,8 +13,9 @@ Conventions for every kernel:
   deterministic and, where a kernel replaces numpy code, bit for bit the same unless its
   docstring says otherwise), and no thread pool spinning against the process's other threads
   (:mod:`adv3d_runner.machine`, ``bench/threads.py``);
-* ``cache=True``: compiled once per machine (the first call of a fresh checkout compiles, a few
-  seconds per kernel), then loaded from ``__pycache__`` by every process, workers included;
+* ``cache=True``: compiled once per checkout (the first ``adv3d simulate`` of a fresh clone
+  spends about 6.5 s compiling the kernels an episode uses: 8.9 s against 2.4 s for a 0.5 s
+  episode here), then loaded from ``__pycache__`` by every process, workers included;
 * a kernel takes and returns arrays (the caller checks shapes and dtypes, so a kernel sees one
   signature and compiles once).
 """
