@@ -12,7 +12,7 @@ from adv3d_runner.autonomy.planner import SamplingPlanner, forecast_from
 from adv3d_runner.autonomy.planner import costs
 from adv3d_runner.autonomy.planner.scorer import CostWeights, score
 from adv3d_runner.metrics.comfort import collisions
-from adv3d_runner.scene.corridor import CorridorSet, build_corridor
+from adv3d_runner.scene.corridor import ChainCache, CorridorSet, build_corridor
 from adv3d_runner.scene.lanemap import LaneMap
 from adv3d_runner.scene.schema import Lane
 
@@ -242,6 +242,58 @@ def test_road_geometry_on_a_straight_lane():
     dev, exc = costs.road_geometry(poses, np.array([[0.0, 10.0]]), cs, s_start, (4.0, 2.0))
     assert dev[0].tolist() == pytest.approx([0.0, 1.5])
     assert exc[0].tolist() == pytest.approx([0.0, 1.5 + 1.0 - LANE_W / 2])
+
+
+def _road_geometry_numpy(poses, travelled, corridors, s_start, ego_dims):
+    """The numpy definition of ``costs.road_geometry`` (before it was compiled)."""
+    L, W = ego_dims
+    lx = np.array([L / 2, L / 2, -L / 2, -L / 2])
+    ly = np.array([-W / 2, W / 2, W / 2, -W / 2])
+    dev = np.full((len(corridors),) + poses.shape[:2], np.inf)
+    exc = np.full((len(corridors),) + poses.shape[:2] + (4,), np.inf)
+    for ci in range(len(corridors)):
+        sc, dc = corridors.project_local(np.full(poses.shape[:2], ci), poses[..., :2], s_start[ci] + travelled)
+        dev[ci] = np.abs(dc)
+        rel = poses[..., 2] - corridors.heading_on(ci, sc)
+        cr, sr = np.cos(rel)[..., None], np.sin(rel)[..., None]
+        exc[ci] = corridors.road_excess_on(ci, sc[..., None] + lx * cr - ly * sr, dc[..., None] + lx * sr + ly * cr)
+    return dev.min(axis=0), exc.min(axis=0).max(axis=-1)
+
+
+def test_road_geometry_kernel_is_the_numpy_definition_bit_for_bit(rng):
+    a = Lane(0, np.array([[0.0, 0.0], [50.0, 0.0]]), 3.5, successors=[1], left=2, speed_limit=20.0)
+    th = np.linspace(0, 1.0, 40)
+    b = Lane(1, np.c_[50 + 100 * np.sin(th), 100 * (1 - np.cos(th))], 4.0, speed_limit=15.0)  # a dead end
+    c = Lane(2, np.array([[0.0, 3.5], [50.0, 3.5], [200.0, 3.0]]), 3.0, right=0)
+    cs = CorridorSet([build_corridor([a, b, c], lid, np.array([10.0, 0.0]), behind=5.0, ahead=150.0)
+                      for lid in (0, 2)])
+    poses = np.concatenate([rng.uniform([-20, -8, -3], [160, 110, 3], (6, 40, 3))], axis=0)
+    poses[0, 5] = np.nan  # NaN propagates like numpy's minimum / maximum
+    poses[1, :, 0] += 400.0  # far past the dead end
+    travelled = rng.uniform(0, 80, (6, 40))
+    s_start = np.array([5.0, 4.0])
+    new = costs.road_geometry(poses, travelled, cs, s_start, (4.6, 1.9))
+    with np.errstate(invalid="ignore"):
+        ref = _road_geometry_numpy(poses, travelled, cs, s_start, (4.6, 1.9))
+    for x, y in zip(new, ref):
+        assert x.shape == y.shape and x.tobytes() == y.tobytes()
+    assert np.isnan(new[0][0, 5]) and np.all(new[1][1] > 0.0)
+
+
+def test_corridor_cache_gives_the_same_corridors(rng):
+    a = Lane(0, np.array([[0.0, 0.0], [50.0, 0.0], [50.0, 0.0]]), 3.5, successors=[1], speed_limit=20.0)
+    th = np.linspace(0, 1.0, 40)
+    b = Lane(1, np.c_[50 + 100 * np.sin(th), 100 * (1 - np.cos(th))], [4.0] * 40, speed_limit=None)
+    lanes = {0: a, 1: b}
+    cache = ChainCache()
+    for xy, ahead in [((10.0, 0.0), 30.0), ((10.0, 0.5), 200.0), ((-5.0, 1.0), 120.0), ((10.0, 0.0), 30.0)]:
+        fresh = build_corridor(lanes, 0, np.array(xy), 20.0, ahead)
+        cached = build_corridor(lanes, 0, np.array(xy), 20.0, ahead, cache=cache)
+        assert fresh.lane_ids == cached.lane_ids and fresh.ends == cached.ends
+        for f in ("points", "width", "speed_limit", "lane_of_point"):
+            assert getattr(fresh, f).tobytes() == getattr(cached, f).tobytes()
+        assert (fresh.spacing, fresh.s_offset) == (cached.spacing, cached.s_offset)
+    assert len(cache._chains) == 2  # (0,) and (0, 1)
 
 
 def test_scorer_weights_and_breakdown():

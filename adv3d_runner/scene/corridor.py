@@ -121,34 +121,32 @@ def _lane_width(lane: Any) -> np.ndarray:
     return np.full(n, float(w[0])) if w.size == 1 else w
 
 
-def _chain(by_id: dict[int, Any], start: int, need: float) -> tuple[list[int], bool]:
+def _chain(by_id: dict[int, Any], start: int, need: float, cache: "ChainCache | None" = None) -> tuple[list[int], bool]:
     """Lane ids from ``start`` following the first successor until ``need`` m are covered."""
+    lane_length = cache.lane_length if cache is not None else _lane_length
     ids = [start]
-    total = lanegeo.length(np.asarray(by_id[start].centerline, dtype=np.float64))
+    total = lane_length(by_id, start)
     while total < need:
         succ = [int(s) for s in getattr(by_id[ids[-1]], "successors", []) or [] if int(s) in by_id]
         succ = [s for s in succ if s not in ids]  # no loops
         if not succ:
             return ids, True
         ids.append(succ[0])
-        total += lanegeo.length(np.asarray(by_id[succ[0]].centerline, dtype=np.float64))
+        total += lane_length(by_id, succ[0])
     return ids, False
 
 
-def build_corridor(lanes: Sequence[Any] | dict[int, Any], lane_id: int, xy: np.ndarray, behind: float = 20.0,
-                   ahead: float = 200.0, spacing: float = 2.0,
-                   default_speed_limit: float = DEFAULT_SPEED_LIMIT) -> Corridor:
-    """The corridor along ``lane_id`` and its successors around the point ``xy``: from ``behind``
-    m behind its projection to ``ahead`` m in front (or the chain's end).
+def _lane_length(by_id: dict[int, Any], lane_id: int) -> float:
+    return lanegeo.length(np.asarray(by_id[lane_id].centerline, dtype=np.float64))
 
-    Before the first lane's start the centre line is extrapolated (the ego may sit on a lane's
-    first metres); beyond the chain's end nothing is added (``ends`` says whether it is a real
-    dead end).
-    """
-    by_id = lanes if isinstance(lanes, dict) else lanes_by_id(lanes)
-    first = np.asarray(by_id[lane_id].centerline, dtype=np.float64).reshape(-1, 2)
-    s_first, _, _ = lanegeo.project(first, np.asarray(xy, dtype=np.float64).reshape(2))
-    ids, dead_end = _chain(by_id, lane_id, s_first + ahead)
+
+def _lane_segments(by_id: dict[int, Any], lane_id: int) -> tuple:
+    return lanegeo.polyline_segments(np.asarray(by_id[lane_id].centerline, dtype=np.float64).reshape(-1, 2))
+
+
+def _chain_arrays(by_id: dict[int, Any], ids: tuple[int, ...], default_speed_limit: float) -> tuple:
+    """A lane chain's centre line with its repeated points dropped, their widths, speed limits
+    and owner lanes, and the line's ``polyline_segments``."""
     pts, widths, limits, owner = [], [], [], []
     for lid in ids:
         lane = by_id[lid]
@@ -162,10 +160,61 @@ def build_corridor(lanes: Sequence[Any] | dict[int, Any], lane_id: int, xy: np.n
     # drop repeated points (lane joins repeat the shared end point) with their attributes
     keep = np.concatenate([[True], np.linalg.norm(np.diff(raw, axis=0), axis=1) > lanegeo.EPS])
     raw = raw[keep]
-    w_raw = np.concatenate(widths)[keep]
-    lim_raw = np.concatenate(limits)[keep]
-    own_raw = np.concatenate(owner)[keep]
-    cum = lanegeo.arc_length(raw)
+    return (raw, np.concatenate(widths)[keep], np.concatenate(limits)[keep], np.concatenate(owner)[keep],
+            lanegeo.arc_length(raw), lanegeo.polyline_segments(raw))
+
+
+class ChainCache:
+    """What :func:`build_corridor` derives from a lane map's geometry alone (lane lengths, the
+    first lane's segments, a chain's joined centre line), kept per lane id and per chain: the
+    planner builds its corridors on every frame from a handful of chains.
+
+    One cache serves one lane map, whose lanes do not change (the planner makes a new one on
+    :meth:`~adv3d_runner.autonomy.planner.planner.SamplingPlanner.reset`). The corridors are
+    the same numbers as without it.
+    """
+
+    def __init__(self):
+        self._length: dict[int, float] = {}
+        self._segments: dict[int, tuple] = {}
+        self._chains: dict[tuple, tuple] = {}
+
+    def lane_length(self, by_id: dict[int, Any], lane_id: int) -> float:
+        if lane_id not in self._length:
+            self._length[lane_id] = _lane_length(by_id, lane_id)
+        return self._length[lane_id]
+
+    def lane_segments(self, by_id: dict[int, Any], lane_id: int) -> tuple:
+        if lane_id not in self._segments:
+            self._segments[lane_id] = _lane_segments(by_id, lane_id)
+        return self._segments[lane_id]
+
+    def chain(self, by_id: dict[int, Any], ids: tuple[int, ...], default_speed_limit: float) -> tuple:
+        key = (ids, float(default_speed_limit))
+        if key not in self._chains:
+            self._chains[key] = _chain_arrays(by_id, ids, default_speed_limit)
+        return self._chains[key]
+
+
+def build_corridor(lanes: Sequence[Any] | dict[int, Any], lane_id: int, xy: np.ndarray, behind: float = 20.0,
+                   ahead: float = 200.0, spacing: float = 2.0,
+                   default_speed_limit: float = DEFAULT_SPEED_LIMIT, cache: ChainCache | None = None) -> Corridor:
+    """The corridor along ``lane_id`` and its successors around the point ``xy``: from ``behind``
+    m behind its projection to ``ahead`` m in front (or the chain's end).
+
+    Before the first lane's start the centre line is extrapolated (the ego may sit on a lane's
+    first metres); beyond the chain's end nothing is added (``ends`` says whether it is a real
+    dead end). ``cache``: a :class:`ChainCache` of this lane map (the same corridor, cheaper).
+    """
+    by_id = lanes if isinstance(lanes, dict) else lanes_by_id(lanes)
+    xy = np.asarray(xy, dtype=np.float64).reshape(2)
+    first = cache.lane_segments(by_id, lane_id) if cache is not None else _lane_segments(by_id, lane_id)
+    s_first, _, _ = lanegeo.project_on_segments(first, xy)
+    ids, dead_end = _chain(by_id, lane_id, s_first + ahead, cache)
+    ids = tuple(ids)
+    chain = (cache.chain(by_id, ids, default_speed_limit) if cache is not None
+             else _chain_arrays(by_id, ids, default_speed_limit))
+    raw, w_raw, lim_raw, own_raw, cum, segments = chain
     total = float(cum[-1])
     # s along the chain equals s along its first lane near the ego
     lo = s_first - behind
@@ -175,13 +224,13 @@ def build_corridor(lanes: Sequence[Any] | dict[int, Any], lane_id: int, xy: np.n
     n = max(1, int(np.ceil((hi - lo) / spacing - 1e-9)))
     step = (hi - lo) / n  # exactly uniform, so a segment index is floor(s / step)
     s = lo + step * np.arange(n + 1)
-    points = lanegeo.point_at(raw, s)
+    points = lanegeo.point_on_segments(segments, s)
     sc = np.clip(s, 0.0, total)
     width = np.interp(sc, cum, w_raw)
     limit = np.interp(sc, cum, lim_raw)
     owner_pts = own_raw[np.clip(np.searchsorted(cum, sc, side="right") - 1, 0, len(cum) - 1)]
     ends = bool(dead_end and hi >= total - 1e-6)
-    return Corridor(tuple(ids), points, width, limit, owner_pts, float(step), float(lo), ends)
+    return Corridor(ids, points, width, limit, owner_pts, float(step), float(lo), ends)
 
 
 class CorridorSet:
@@ -224,6 +273,7 @@ class CorridorSet:
         self._px, self._py = self.points[..., 0].ravel(), self.points[..., 1].ravel()
         self._ux, self._uy = self.unit[..., 0].ravel(), self.unit[..., 1].ravel()
         self._hd = self.heading.ravel()
+        self._sampled: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
 
     def __len__(self) -> int:
         return len(self.corridors)
@@ -293,13 +343,22 @@ class CorridorSet:
         xy = np.asarray(xy, dtype=np.float64)
         q = xy.reshape(-1, 2)
         k = int(self.n_points[c])
-        idx = np.unique(np.r_[np.arange(0, k, stride), k - 1])
-        sub = self.points[c, idx]
+        idx, sub = self._sampled_points(c, stride)
         dx = q[:, None, 0] - sub[None, :, 0]
         dy = q[:, None, 1] - sub[None, :, 1]
         i = idx[np.argmin(dx * dx + dy * dy, axis=1)]
         s, d = self.project_local(np.full(len(q), c), q, i * self.spacing[c] + 1e-9, window=stride + 1)
         return s.reshape(xy.shape[:-1]), d.reshape(xy.shape[:-1])
+
+    def _sampled_points(self, c: int, stride: int) -> tuple[np.ndarray, np.ndarray]:
+        """Every ``stride``-th point index of corridor ``c`` and its last, with the points
+        (kept: :meth:`project_near` runs several times a plan)."""
+        key = (int(c), int(stride))
+        if key not in self._sampled:
+            k = int(self.n_points[c])
+            idx = np.unique(np.r_[np.arange(0, k, stride), k - 1])
+            self._sampled[key] = (idx, self.points[c, idx])
+        return self._sampled[key]
 
     def heading_on(self, c: int, s: np.ndarray) -> np.ndarray:
         """:meth:`pose_at` heading on the single corridor ``c`` (an int): (...) -> (...)."""

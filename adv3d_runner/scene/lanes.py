@@ -74,6 +74,13 @@ def _segments(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, n
     return pts, arc_length(pts), delta / seg_len[:, None], seg_len
 
 
+def polyline_segments(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The cleaned polyline (P', 2), cumulative s (P',), unit directions (S, 2) and lengths (S,)
+    of its segments: what :func:`project` and :func:`point_at` compute first, for callers that
+    query one polyline many times (:func:`project_on_segments`, :func:`point_on_segments`)."""
+    return _segments(points)
+
+
 def segment_headings(points: np.ndarray) -> np.ndarray:
     """Heading of each segment of the cleaned polyline: (S,) rad."""
     _, _, unit, _ = _segments(points)
@@ -82,7 +89,12 @@ def segment_headings(points: np.ndarray) -> np.ndarray:
 
 def point_at(points: np.ndarray, s: np.ndarray | float) -> np.ndarray:
     """Point at arc length ``s`` (any shape (...)) -> (..., 2) m; extrapolates beyond the ends."""
-    pts, cum, unit, _ = _segments(points)
+    return point_on_segments(_segments(points), s)
+
+
+def point_on_segments(segments: tuple, s: np.ndarray | float) -> np.ndarray:
+    """:func:`point_at` on a polyline's ``_segments`` computed before (the same numbers)."""
+    pts, cum, unit, _ = segments
     s = np.asarray(s, dtype=np.float64)
     idx = np.clip(np.searchsorted(cum, s, side="right") - 1, 0, len(unit) - 1)
     return pts[idx] + (s - cum[idx])[..., None] * unit[idx]
@@ -117,7 +129,13 @@ def project(points: np.ndarray, xy: np.ndarray, chunk: int = 4096) -> tuple[np.n
         before the start / past the end), d (N,) signed lateral offset (left +), heading (N,)
         of the closest segment. Scalars for a (2,) query.
     """
-    pts, cum, unit, seg_len = _segments(points)
+    return project_on_segments(_segments(points), xy, chunk)
+
+
+def project_on_segments(segments: tuple, xy: np.ndarray, chunk: int = 4096
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`project` on a polyline's ``_segments`` computed before (the same numbers)."""
+    pts, cum, unit, seg_len = segments
     q = np.asarray(xy, dtype=np.float64)
     single = q.ndim == 1
     q = q.reshape(-1, 2)

@@ -25,7 +25,7 @@ import numpy as np
 from ...dynamics.bicycle import BicycleParams, rollout
 from ...errors import ConfigError
 from ...geometry.angles import wrap_angle
-from ...scene.corridor import DEFAULT_SPEED_LIMIT, CorridorSet
+from ...scene.corridor import DEFAULT_SPEED_LIMIT, ChainCache, CorridorSet, build_corridor
 from ...scene.lanemap import LaneMap
 from ..interface import EgoState, Plan, Predictions, Tracks
 from . import costs
@@ -234,6 +234,12 @@ class SamplingPlanner:
         self.lane_map = lane_map
         self._forget()
 
+    def _chain_cache(self, lanes: LaneMap) -> ChainCache:
+        """The corridor geometry cache of ``lanes`` (a new one when the map changed)."""
+        if getattr(self, "_chains_of", None) is not lanes:
+            self._chains, self._chains_of = ChainCache(), lanes
+        return self._chains
+
     def _forget(self) -> None:
         self._prev_target_ids: frozenset[int] = frozenset()  # lane ids of the previous target corridor
         self._prev_offset: float | None = None
@@ -277,7 +283,8 @@ class SamplingPlanner:
             if nid is not None and int(nid) in by_id:
                 chain_ids.append(int(nid))
                 names.append(f"{side}{int(nid)}")
-        cors = [lanes.corridor(lid, ego.pose[:2], cfg.corridor_behind, ahead, default_speed_limit=cfg.default_speed_limit)
+        cors = [build_corridor(by_id, lid, ego.pose[:2], cfg.corridor_behind, ahead,
+                               default_speed_limit=cfg.default_speed_limit, cache=self._chain_cache(lanes))
                 for lid in chain_ids]
         if cfg.open_map_border:
             border = lanes.border_ends()

@@ -528,10 +528,7 @@ def _actor_frenet(actors: ActorForecast, corridors: CorridorSet, spec: Candidate
     d_all = np.full((len(corridors), M, T + 1), np.inf)
     xy = xy.reshape(M, T + 1, 2)[relevant]
     # global projection every 5th step, local projection of every step around the interpolation
-    coarse = np.unique(np.r_[np.arange(0, T + 1, 5), T])
-    right = np.clip(np.searchsorted(coarse, np.arange(T + 1)), 1, len(coarse) - 1)
-    left = right - 1
-    w = (np.arange(T + 1) - coarse[left]) / np.maximum(coarse[right] - coarse[left], 1)
+    coarse, left, right, w = _coarse_steps(T)
     half_w = np.repeat(0.5 * actors.dims[:, 1], K)
     rel_idx = np.flatnonzero(relevant)
     # A mode whose every step stays clearly outside all of a corridor's lane bands can never lead
@@ -564,9 +561,7 @@ def _actor_frenet(actors: ActorForecast, corridors: CorridorSet, spec: Candidate
     prob_ok = (actors.probs.reshape(M) >= config.min_mode_prob)
     # candidates sharing a corridor and a target offset share their leaders: decide once per
     # (corridor, offset) group, keep only the actor-modes that are ever in some group's lane
-    key = np.stack([spec.corridor.astype(np.float64), target_d], axis=1)
-    groups, inv = np.unique(key, axis=0, return_inverse=True)
-    inv = inv.reshape(-1)
+    groups, inv = _groups(spec.corridor, target_d)
     gc = groups[:, 0].astype(np.int64)
     # an actor is in the candidate's lane when its footprint overlaps the ego's lateral band
     lat = np.abs(d_all[gc] - groups[:, 1][:, None, None])  # (G, M, T+1)
@@ -579,6 +574,33 @@ def _actor_frenet(actors: ActorForecast, corridors: CorridorSet, spec: Candidate
     used = ok.any(axis=(0, 2))
     s = s_all[:, used][gc[inv]]  # (B, M_used, T+1)
     return s, ok[:, used][inv], half_l[used]
+
+
+_COARSE: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
+
+
+def _coarse_steps(T: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The steps of a T-step horizon projected globally (every 5th and the last), and per step
+    (T + 1) the coarse steps left and right of it and its weight between them; made once per T."""
+    if T not in _COARSE:
+        coarse = np.unique(np.r_[np.arange(0, T + 1, 5), T])
+        right = np.clip(np.searchsorted(coarse, np.arange(T + 1)), 1, len(coarse) - 1)
+        left = right - 1
+        w = (np.arange(T + 1) - coarse[left]) / np.maximum(coarse[right] - coarse[left], 1)
+        for a in (coarse, left, right, w):
+            a.flags.writeable = False
+        _COARSE[T] = (coarse, left, right, w)
+    return _COARSE[T]
+
+
+def _groups(corridor: np.ndarray, target_d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``np.unique`` of the rows (corridor, target offset), (G, 2) sorted, and each candidate's
+    row index (B,), for the ~25 candidates of a plan without ``unique(axis=0)``'s structured
+    sort."""
+    keys = list(zip(corridor.astype(np.float64).tolist(), np.asarray(target_d, np.float64).tolist()))
+    rows = sorted(set(keys))
+    where = {k: i for i, k in enumerate(rows)}
+    return np.array(rows, np.float64).reshape(-1, 2), np.array([where[k] for k in keys], np.int64)
 
 
 @kernel

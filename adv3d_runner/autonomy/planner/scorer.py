@@ -31,9 +31,11 @@ not worth its cost.
 """
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field, fields
 
 import numpy as np
+
+from ...jit import kernel
 
 TERMS = ("collision", "drivable_area", "buffer", "headway", "speed_limit", "progress", "lane_center",
          "lane_change", "offset_change", "jerk", "lat_accel", "occupancy_collision", "occupancy_buffer")
@@ -60,7 +62,8 @@ class CostWeights:
     occupancy_buffer: float = 30.0
 
     def as_dict(self) -> dict[str, float]:
-        return asdict(self)
+        # dataclasses.asdict deep-copies through its recursion: ~100 us a plan for 13 floats
+        return {f.name: getattr(self, f.name) for f in fields(self)}
 
 
 @dataclass
@@ -106,9 +109,30 @@ def score(raw_terms: dict[str, np.ndarray], weights: CostWeights = CostWeights()
     unknown = set(raw_terms) - set(w)
     if unknown:
         raise KeyError(f"unknown cost terms {sorted(unknown)}")
-    raw = {k: np.nan_to_num(np.asarray(v, dtype=np.float64), nan=1e6, posinf=1e6) for k, v in raw_terms.items()}
+    raw = {k: _finite_terms(np.asarray(v, dtype=np.float64)) for k, v in raw_terms.items()}
     weighted = {k: w[k] * v for k, v in raw.items()}
     total = np.sum(np.stack(list(weighted.values())), axis=0)
     table = ScoreTable(raw, weighted, total, 0, w, None if eligible is None else np.asarray(eligible, bool))
     table.best = table.argmin(total)
     return table
+
+
+def _finite_terms(v: np.ndarray) -> np.ndarray:
+    """``np.nan_to_num(v, nan=1e6, posinf=1e6)`` (a new float64 array, -inf to the most negative
+    float) without its ~20 us of numpy calls, paid for each of ~12 terms in every plan."""
+    return _finite_kernel(np.ascontiguousarray(v).reshape(-1)).reshape(v.shape)
+
+
+@kernel
+def _finite_kernel(v: np.ndarray) -> np.ndarray:
+    out = np.empty_like(v)
+    lowest = -np.finfo(np.float64).max
+    for i in range(v.size):
+        x = v[i]
+        if np.isnan(x) or x == np.inf:
+            out[i] = 1e6
+        elif x == -np.inf:
+            out[i] = lowest
+        else:
+            out[i] = x
+    return out
