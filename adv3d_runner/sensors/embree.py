@@ -1,0 +1,302 @@
+"""Direct binding to the Embree 4 library that ``embreex`` bundles: scenes and packet casts.
+
+Why: ``embreex``'s ``EmbreeScene.run`` casts one ray per ``rtcIntersect1`` call from a Cython
+loop and allocates five output arrays (u, v, Ng, primID, geomID) per call. Here the same
+library is called from a compiled loop (:mod:`adv3d_runner.jit`) that fills Embree's SOA ray
+packets of :data:`PACKET` rays and calls ``rtcIntersect8``; only the hit distance (``tfar``, in
+place) and the face index come back. The HDL-64E background cast (about 133k rays on the
+7970-triangle highway background) takes about 9.6 ms of CPU instead of 13.9 ms on this
+project's machine (one core, AVX-512 Xeon); 4-wide packets took 10.0 ms, 16-wide 12.0 ms and
+single rays 13.3 ms, so 8 it is (docs/lidar.md, "Direct Embree binding").
+
+Same bits: a scene is built as ``embreex`` builds its own (one triangle geometry, default
+build quality, ``RTC_SCENE_FLAG_ROBUST``: without that flag about a fifth of the distances
+differ by one ulp) and each ray is set up as ``embreex`` sets it (tnear 0, time 0, mask all
+ones, ids invalid), so the distances and faces are those of ``EmbreeScene.run(..., output=1)``
+bit for bit (``tests/test_raycast.py`` checks it on the background and on actor meshes, with
+misses, edge- and vertex-grazing rays and partial packets).
+
+The library is the one ``embreex`` loaded (the file next to the installed package, found in
+the process's mapped files where the platform lists them): scenes made here and
+:class:`~adv3d_runner.sensors.raycast.MeshBVH`'s fallback share the library, its version and
+its TBB pool. The compiled loop calls ``rtcIntersect8`` by name (``numba.types.ExternalFunction``
+after ``llvmlite.binding.load_library_permanently``), so it is cached on disk like every other
+kernel. Where the library is not found (another wheel layout, another Embree major version),
+:func:`available` is False, :func:`unavailable_reason` says why and ``MeshBVH`` falls back to
+``embreex``'s ``run``.
+"""
+from __future__ import annotations
+
+import ctypes
+import importlib.util
+import sys
+from pathlib import Path
+
+import numpy as np
+from numba import types
+
+from ..jit import kernel
+
+__all__ = ["PACKET", "TriangleScene", "available", "library_path", "unavailable_reason"]
+
+#: Rays per ``rtcIntersectN`` call (the fastest on this project's machine, see the docstring).
+PACKET = 8
+
+# Embree 4 API constants (include/embree4/rtcore_*.h).
+_RTC_SCENE_FLAG_ROBUST = 1 << 2
+_RTC_GEOMETRY_TYPE_TRIANGLE = 0
+_RTC_BUFFER_TYPE_INDEX = 0
+_RTC_BUFFER_TYPE_VERTEX = 1
+_RTC_FORMAT_UINT3 = 0x5003
+_RTC_FORMAT_FLOAT3 = 0x9003
+_RTC_DEVICE_PROPERTY_VERSION_MAJOR = 1
+
+# RTCRayHit8 (SOA, 32-byte aligned): the ray's 12 fields of PACKET lanes (org_x, org_y, org_z,
+# tnear, dir_x, dir_y, dir_z, time, tfar, mask, id, flags), then the hit's (Ng_x, Ng_y, Ng_z, u,
+# v, primID, geomID, instID[1], instPrimID[1] where the library has instance arrays). Offsets in
+# 4-byte words; the valid mask (PACKET int32) lies after the largest hit layout.
+_TFAR = 8 * PACKET
+_MASK = 9 * PACKET
+_ID = 10 * PACKET
+_FLAGS = 11 * PACKET
+_PRIM = 17 * PACKET
+_GEOM = 18 * PACKET
+_INST = 19 * PACKET
+_VALID = 24 * PACKET
+_WORDS = _VALID + PACKET
+_ALIGN = 64  # bytes: enough for any packet width
+
+#: ``void rtcIntersect8(const int* valid, RTCScene scene, RTCRayHit8* rayhit,
+#: RTCIntersectArguments* args)``, pointers passed as integers.
+_rtc_intersect8 = types.ExternalFunction("rtcIntersect8", types.void(types.intp, types.intp, types.intp, types.intp))
+
+
+@kernel
+def _cast(scene, origins, dirs, tfar, prim):
+    """Cast rays ``dirs`` ((N, 3) float32) from ``origins`` ((1, 3): one for all, or (N, 3))
+    against ``scene`` (an RTCScene pointer) in packets of PACKET; ``tfar`` ((N,) float32) is the
+    limit per ray and takes the hit distance in place; ``prim`` ((N,) int32) receives the face
+    hit (-1: none)."""
+    n = dirs.shape[0]
+    raw = np.zeros(_WORDS + _ALIGN // 4, np.int32)
+    start = ((_ALIGN - raw.ctypes.data % _ALIGN) % _ALIGN) // 4
+    ib = raw[start:start + _WORDS]
+    fb = ib.view(np.float32)
+    addr = ib.ctypes.data
+    valid = addr + 4 * _VALID
+    one = origins.shape[0] == 1
+    for s in range(0, n, PACKET):
+        m = min(PACKET, n - s)
+        for j in range(PACKET):
+            if j < m:
+                i = s + j
+                r = 0 if one else i
+                fb[j] = origins[r, 0]
+                fb[PACKET + j] = origins[r, 1]
+                fb[2 * PACKET + j] = origins[r, 2]
+                fb[3 * PACKET + j] = 0.0  # tnear
+                fb[4 * PACKET + j] = dirs[i, 0]
+                fb[5 * PACKET + j] = dirs[i, 1]
+                fb[6 * PACKET + j] = dirs[i, 2]
+                fb[7 * PACKET + j] = 0.0  # time
+                fb[_TFAR + j] = tfar[i]
+                ib[_MASK + j] = -1
+                ib[_ID + j] = 0
+                ib[_FLAGS + j] = 0
+                ib[_PRIM + j] = -1  # RTC_INVALID_GEOMETRY_ID
+                ib[_GEOM + j] = -1
+                ib[_INST + j] = -1
+                ib[_VALID + j] = -1
+            else:
+                ib[_VALID + j] = 0  # an inactive lane: Embree neither reads nor writes it
+        _rtc_intersect8(valid, scene, addr, 0)
+        for j in range(m):
+            tfar[s + j] = fb[_TFAR + j]  # unchanged on a miss
+            prim[s + j] = ib[_PRIM + j]
+
+
+class _Embree:
+    """The loaded library: ctypes functions for scene building, and the process's device."""
+
+    def __init__(self, path: Path):
+        import llvmlite.binding as llvm
+
+        self.path = path
+        lib = ctypes.CDLL(str(path))
+        vp, u, sz = ctypes.c_void_p, ctypes.c_uint, ctypes.c_size_t
+
+        def fn(name, args, res):
+            f = getattr(lib, name)
+            f.argtypes, f.restype = args, res
+            return f
+
+        self.new_device = fn("rtcNewDevice", [ctypes.c_char_p], vp)
+        self.device_property = fn("rtcGetDeviceProperty", [vp, ctypes.c_int], ctypes.c_ssize_t)
+        self.device_error = fn("rtcGetDeviceError", [vp], ctypes.c_int)
+        self.new_scene = fn("rtcNewScene", [vp], vp)
+        self.set_scene_flags = fn("rtcSetSceneFlags", [vp, ctypes.c_int], None)
+        self.new_geometry = fn("rtcNewGeometry", [vp, ctypes.c_int], vp)
+        self.set_shared_buffer = fn("rtcSetSharedGeometryBuffer", [vp, ctypes.c_int, u, ctypes.c_int, vp, sz, sz, sz],
+                                    None)
+        self.commit_geometry = fn("rtcCommitGeometry", [vp], None)
+        self.attach_geometry = fn("rtcAttachGeometry", [vp, vp], u)
+        self.release_geometry = fn("rtcReleaseGeometry", [vp], None)
+        self.commit_scene = fn("rtcCommitScene", [vp], None)
+        self.release_scene = fn("rtcReleaseScene", [vp], None)
+        getattr(lib, "rtcIntersect8")  # the symbol the kernel calls, present before it links
+        self.device = self.new_device(None)
+        if not self.device:
+            raise OSError(f"rtcNewDevice failed (error {self.device_error(None)})")
+        major = self.device_property(self.device, _RTC_DEVICE_PROPERTY_VERSION_MAJOR)
+        if major != 4:
+            raise OSError(f"Embree {major}, not 4 (the packet layout here is Embree 4's)")
+        # The kernel finds rtcIntersect8 by name among the permanently loaded libraries.
+        llvm.load_library_permanently(str(path))
+
+    def check(self, what: str) -> None:
+        code = self.device_error(self.device)
+        if code:
+            raise RuntimeError(f"Embree error {code} while {what}")
+
+
+_STATE: dict = {}
+
+
+def _library_candidates() -> list[Path]:
+    """Embree 4 libraries shipped with the installed embreex: the one its extension has loaded
+    first (Linux: ``/proc/self/maps``), then the wheel layouts' folders, sorted."""
+    spec = importlib.util.find_spec("embreex")
+    if spec is None or not spec.submodule_search_locations:
+        return []
+    pkg = Path(next(iter(spec.submodule_search_locations)))
+    found = []
+    for folder, pattern in ((pkg.parent / "embreex.libs", "libembree4*.so*"),  # auditwheel (Linux)
+                            (pkg / ".dylibs", "libembree4*.dylib"),  # delocate (macOS)
+                            (pkg.parent / "embreex.libs", "embree4*.dll"),  # delvewheel (Windows)
+                            (pkg, "*embree4*.so*"), (pkg, "*embree4*.dylib"), (pkg, "*embree4*.dll")):
+        found += sorted(p for p in folder.glob(pattern) if p.is_file())
+    maps = Path("/proc/self/maps")
+    if found and maps.exists():
+        import embreex.rtcore  # noqa: F401  (loads the library)
+
+        mapped = {line.split(None, 5)[-1].strip() for line in maps.read_text().splitlines()
+                  if "embree4" in line and "/" in line}
+        found.sort(key=lambda p: str(p.resolve()) not in mapped and str(p) not in mapped)
+    return found
+
+
+def _load() -> _Embree | None:
+    if "lib" not in _STATE:
+        _STATE["lib"], _STATE["reason"] = None, None
+        if sys.maxsize <= 2 ** 32:
+            _STATE["reason"] = "a 32-bit Python (pointers are passed as 64-bit integers)"
+            return None
+        try:
+            candidates = _library_candidates()
+        except Exception as exc:  # noqa: BLE001 - any failure means: use embreex
+            candidates, _STATE["reason"] = [], f"looking for embreex's Embree library failed: {exc!r}"
+        if not candidates:
+            _STATE["reason"] = _STATE["reason"] or "no Embree 4 library found next to the installed embreex"
+        else:
+            try:
+                _STATE["lib"] = _Embree(candidates[0])
+            except Exception as exc:  # noqa: BLE001
+                _STATE["reason"] = f"{candidates[0]}: {exc!r}"
+    return _STATE["lib"]
+
+
+def available() -> bool:
+    """Whether the direct binding can be used (the library is loaded on the first call)."""
+    return _load() is not None
+
+
+def unavailable_reason() -> str | None:
+    """Why :func:`available` is False (None when it is True)."""
+    _load()
+    return _STATE["reason"]
+
+
+def library_path() -> Path | None:
+    """The Embree library file in use (None when unavailable)."""
+    lib = _load()
+    return None if lib is None else lib.path
+
+
+class TriangleScene:
+    """A committed, robust Embree scene over one triangle mesh.
+
+    Args:
+        vertices: (V, 3) float32 C-contiguous vertex positions.
+        faces: (F, 3) int32 C-contiguous vertex indices (0 <= index < V; checked by the caller),
+            F >= 1.
+        robust: ``RTC_SCENE_FLAG_ROBUST`` (as ``embreex``'s scenes; False only to show, in the
+            tests, that the flag changes distances).
+
+    Embree reads both arrays where they lie (shared buffers): padded copies are kept on the
+    object for its lifetime. The scene is released when the object is collected.
+
+    Raises:
+        RuntimeError: the binding is unavailable (:func:`available`) or Embree reports an error.
+    """
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray, robust: bool = True):
+        lib = _load()
+        if lib is None:
+            raise RuntimeError(f"direct Embree binding unavailable: {_STATE['reason']}")
+        if vertices.dtype != np.float32 or faces.dtype != np.int32 or vertices.ndim != 2 or faces.ndim != 2:
+            raise ValueError("vertices (V, 3) float32 and faces (F, 3) int32 expected")
+        nv, nf = len(vertices), len(faces)
+        # One spare row each: Embree may read the last item with a 16-byte load.
+        self._vertices = np.zeros((nv + 1, 3), np.float32)
+        self._vertices[:nv] = vertices
+        self._faces = np.zeros((nf + 1, 3), np.int32)
+        self._faces[:nf] = faces
+        self._lib = lib
+        self._scene = None
+        scene = lib.new_scene(lib.device)
+        if not scene:
+            lib.check("creating a scene")
+            raise RuntimeError("rtcNewScene failed")
+        self._scene = scene
+        lib.set_scene_flags(scene, _RTC_SCENE_FLAG_ROBUST if robust else 0)
+        geom = lib.new_geometry(lib.device, _RTC_GEOMETRY_TYPE_TRIANGLE)
+        if not geom:
+            lib.check("creating a triangle geometry")
+            raise RuntimeError("rtcNewGeometry failed")
+        try:
+            lib.set_shared_buffer(geom, _RTC_BUFFER_TYPE_VERTEX, 0, _RTC_FORMAT_FLOAT3, self._vertices.ctypes.data, 0,
+                                  12, nv)
+            lib.set_shared_buffer(geom, _RTC_BUFFER_TYPE_INDEX, 0, _RTC_FORMAT_UINT3, self._faces.ctypes.data, 0,
+                                  12, nf)
+            lib.commit_geometry(geom)
+            lib.attach_geometry(scene, geom)
+        finally:
+            lib.release_geometry(geom)  # the scene holds its own reference
+        lib.commit_scene(scene)  # builds the BVH now (TBB)
+        lib.check("building a scene")
+
+    def intersect(self, origins: np.ndarray, directions: np.ndarray, tfar: np.ndarray) -> np.ndarray:
+        """Cast rays; ``tfar`` takes the hit distance IN PLACE where a hit is closer.
+
+        Args:
+            origins: (1, 3) (one for all rays) or (N, 3) float32 C-contiguous.
+            directions: (N, 3) float32 C-contiguous.
+            tfar: (N,) float32 C-contiguous limits.
+
+        Returns:
+            (N,) int32 face hit, -1 where none is closer than ``tfar``.
+        """
+        prim = np.empty(len(directions), np.int32)
+        _cast(self._scene, origins, directions, tfar, prim)
+        return prim
+
+    def __reduce__(self):
+        raise TypeError("an Embree scene cannot be pickled (it is a pointer into this process)")
+
+    def __del__(self):
+        scene, self._scene = getattr(self, "_scene", None), None
+        if scene:
+            try:
+                self._lib.release_scene(scene)
+            except Exception:  # noqa: BLE001 - interpreter shutdown
+                pass
