@@ -1,6 +1,8 @@
 """Embree mesh BVHs and the beam tables: analytic ranges at float32 precision."""
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import trimesh
@@ -151,3 +153,200 @@ def test_bad_models_raise():
         generic_model(0)
     with pytest.raises(ConfigError):
         get_model("generic-8", max_range=-1)
+
+
+# -- the direct Embree binding (sensors/embree.py) against embreex's own cast -------------------
+
+def _embreex_cast(scene, origins, dirs, tfar):
+    """embreex's ``EmbreeScene.run(..., output=1)``: (N,) int32 faces, ``tfar`` in place."""
+    o = np.broadcast_to(origins, dirs.shape) if len(origins) == 1 else origins
+    return scene.run(o, dirs, dists=tfar, output=1)["primID"]
+
+
+def _same_bits(a, b):
+    return a.dtype == b.dtype and a.shape == b.shape and np.array_equal(a.view(np.uint32), b.view(np.uint32))
+
+
+@pytest.fixture(scope="module")
+def meshes():
+    """name -> (vertices float32, faces int32, embreex scene, direct MeshBVH): the first highway
+    scene's background (centred as LidarWorld does) and three library vehicles."""
+    from embreex import rtcore_scene as rtcs
+    from embreex.mesh_construction import TriangleMesh
+
+    from adv3d_runner.scene.actors import actor_mesh, choose_asset
+    from adv3d_runner.scene.background import background_mesh
+    from adv3d_runner.scene.schema import load_scene
+    from adv3d_runner.shapes.library import load_library
+
+    repo_root = Path(__file__).resolve().parent.parent
+    path = repo_root / "scenes/highway/highway-benchmark-000000.json.gz"
+    scene = load_scene(path)
+    v, f, _ = background_mesh(scene, scene_dir=path.parent)
+    centre = np.zeros(3)
+    centre[:2] = 0.5 * (v[:, :2].min(axis=0) + v[:, :2].max(axis=0))
+    out = {"background": (v - centre, f)}
+    library = load_library(repo_root / "assets/vehicles/library.json")
+    for cls, dims in (("sedan", (4.6, 1.85, 1.5)), ("suv", (4.9, 1.95, 1.8)), ("truck", (9.0, 2.5, 3.4))):
+        mesh = actor_mesh(library, choose_asset(library, cls, np.array(dims), rule="nearest-size"), np.array(dims))
+        out[cls] = (np.asarray(mesh.vertices), np.asarray(mesh.faces))
+    built = {}
+    for name, (v, f) in out.items():
+        v32, f32 = np.ascontiguousarray(v, np.float32), np.ascontiguousarray(f, np.int32)
+        ref = rtcs.EmbreeScene()
+        TriangleMesh(ref, v32, f32)
+        bvh = MeshBVH(v32, f32)
+        assert bvh.direct  # the binding is what the LiDAR uses here (see test_direct_binding_found)
+        built[name] = (v32, f32, ref, bvh)
+    return built
+
+
+def _ray_sets(v, f, rng):
+    """name -> (origins (1 or N, 3), directions (N, 3), tfar (N,)), all float32."""
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    span = np.maximum(hi - lo, 1.0)
+    sets = {}
+    # Random origins around the mesh, random directions (upward ones miss), N not a multiple of 8.
+    n = 10007
+    o = (lo - 0.2 * span + rng.random((n, 3)) * 1.4 * span).astype(np.float32)
+    d = rng.standard_normal((n, 3)).astype(np.float32)
+    sets["random"] = (o, d, np.full(n, 1e4, np.float32))
+    # One origin for all (broadcast (1, 3)): a sensor above the mesh's middle, aimed at its
+    # vertices exactly (unnormalised directions) and at points of its edges.
+    eye = (0.5 * (lo + hi) + [0.3 * span[0], 0.1 * span[1], 0.5 * span[2] + 1.7]).astype(np.float32)[None]
+    pick = rng.choice(len(v), min(len(v), 4001), replace=False)
+    sets["vertices"] = (eye, v[pick] - eye, np.full(len(pick), 1e4, np.float32))
+    fk = f[rng.choice(len(f), min(len(f), 3001), replace=False)]
+    a, b = v[fk[:, 0]], v[fk[:, 1]]
+    s = rng.choice(np.array([0.5, 0.25, 1 / 3, 0.0, 1.0], np.float32), (len(fk), 1))
+    target = (a + s * (b - a)).astype(np.float32)
+    sets["edges"] = (eye, target - eye, np.full(len(fk), 1e4, np.float32))
+    # Grazing: rays along an edge's own line, from behind its first vertex (per-ray origins).
+    o = (a - 0.5 * (b - a)).astype(np.float32)
+    sets["along edges"] = (o, (b - a).astype(np.float32), np.full(len(fk), 1e4, np.float32))
+    # Grazing: rays in the plane of a face, towards its centroid, from outside the face.
+    c = v[fk].mean(axis=1, dtype=np.float64).astype(np.float32)
+    o = (c + 1.5 * (a - c)).astype(np.float32)
+    sets["in plane"] = (o, c - o, np.full(len(fk), 1e4, np.float32))
+    return sets
+
+
+def _cast_both(ref, bvh, origins, dirs, tfar):
+    t_ref, t_dir = tfar.copy(), tfar.copy()
+    p_ref = _embreex_cast(ref, origins, dirs, t_ref)
+    p_dir, normals = bvh.intersect(origins, dirs, t_dir)
+    assert normals is None
+    return (t_ref, p_ref), (t_dir, p_dir)
+
+
+@pytest.mark.parametrize("name", ["background", "sedan", "suv", "truck"])
+def test_direct_cast_equals_embreex_bit_for_bit(meshes, name):
+    v, f, ref, bvh = meshes[name]
+    rng = np.random.default_rng(7)
+    hits = misses = 0
+    for what, (o, d, tfar) in _ray_sets(v, f, rng).items():
+        (t_ref, p_ref), (t_dir, p_dir) = _cast_both(ref, bvh, o, d, tfar)
+        assert _same_bits(t_dir, t_ref), (name, what, int((t_dir != t_ref).sum()))
+        assert np.array_equal(p_dir, p_ref) and p_dir.dtype == np.int32, (name, what)
+        hits, misses = hits + int((p_ref >= 0).sum()), misses + int((p_ref < 0).sum())
+        # Limits that cut hits: at the hit distance itself, one ulp either side, half of it, random.
+        hit = p_ref >= 0
+        if hit.sum() < 10:
+            continue
+        t_hit = t_ref[hit]
+        oh = o if len(o) == 1 else o[hit]
+        for limit in (t_hit, np.nextafter(t_hit, np.float32(0)), np.nextafter(t_hit, np.float32(np.inf)),
+                      np.float32(0.5) * t_hit, (rng.random(len(t_hit)) * 2 * t_hit).astype(np.float32)):
+            (t_ref2, p_ref2), (t_dir2, p_dir2) = _cast_both(ref, bvh, oh, d[hit], limit.astype(np.float32))
+            assert _same_bits(t_dir2, t_ref2) and np.array_equal(p_dir2, p_ref2), (name, what)
+    assert hits > 1000 and misses > 1000
+
+
+def test_direct_cast_equals_embreex_on_a_lidar_frame(meshes):
+    """The HDL-64E rays of the scene's first ego pose on the background, one (1, 3) origin; and
+    every partial packet size on a prefix of them."""
+    from adv3d_runner.sensors.lidar import MountedLidar
+
+    v, f, ref, bvh = meshes["background"]
+    sensor = MountedLidar("hdl64", (0, 0, 1.73, 0, 0, 0))
+    d = np.ascontiguousarray(sensor.dirs, np.float32)
+    o = np.array([[3.0, -1.5, 1.73]], np.float32)
+    (t_ref, p_ref), (t_dir, p_dir) = _cast_both(ref, bvh, o, d, np.full(len(d), 120.0, np.float32))
+    assert (p_ref >= 0).sum() > 50_000 and (p_ref < 0).sum() > 10_000
+    assert _same_bits(t_dir, t_ref) and np.array_equal(p_dir, p_ref)
+    # Every packet size (N mod 8 and 16 from 0 to 15), from a row that hits the road.
+    start = int(np.flatnonzero(p_ref >= 0)[0])
+    for n in list(range(1, 34)) + [1000, 1001]:
+        dn = d[start:start + n]
+        (t1, p1), (t2, p2) = _cast_both(ref, bvh, o, dn, np.full(n, 120.0, np.float32))
+        assert _same_bits(t2, t1) and np.array_equal(p2, p1) and np.array_equal(p2, p_ref[start:start + n]), n
+    # (N, 3) origins repeating the one origin: the same as the broadcast.
+    t_rows = np.full(len(d), 120.0, np.float32)
+    p_rows, _ = bvh.intersect(np.repeat(o, len(d), axis=0), d, t_rows)
+    assert _same_bits(t_rows, t_dir) and np.array_equal(p_rows, p_dir)
+
+
+def test_the_identity_check_sees_one_ulp(meshes):
+    """The comparison above can fail: a scene without RTC_SCENE_FLAG_ROBUST gives distances that
+    differ from embreex's (robust) ones by an ulp on part of the same rays."""
+    from adv3d_runner.sensors import embree
+
+    v, f, ref, bvh = meshes["background"]
+    loose = embree.TriangleScene(v, f, robust=False)
+    o, d, tfar = _ray_sets(v, f, np.random.default_rng(7))["random"]
+    t_ref = tfar.copy()
+    _embreex_cast(ref, o, d, t_ref)
+    t_loose = tfar.copy()
+    loose.intersect(o, d, t_loose)
+    assert not _same_bits(t_loose, t_ref)
+    assert np.allclose(t_loose, t_ref, rtol=4 * EPS32)
+
+
+def test_strided_tfar_is_written_in_place():
+    box = trimesh.creation.box((1, 1, 1))
+    bvh = MeshBVH(box.vertices + [10, 0, 0], box.faces)
+    d = np.array([[1, 0, 0], [0, 1, 0], [1, 0.01, 0]], np.float32)
+    t = np.full(6, 100, np.float32)
+    prim, _ = bvh.intersect(np.zeros((1, 3), np.float32), d, t[::2])
+    assert (prim[[0, 2]] >= 0).all() and prim[1] == -1
+    assert abs(t[0] - 9.5) < 1e-5 and t[2] == 100 and t[4] < 10 and (t[1::2] == 100).all()
+    with pytest.raises(ValueError):
+        bvh.intersect(np.zeros((1, 3), np.float32), d, np.full(3, 100, np.float64))
+
+
+def test_direct_binding_found():
+    """On Linux x86-64 (embreex's manylinux wheel) the binding must load: a silent fallback
+    would keep the results but lose the speed."""
+    import platform
+    import sys
+
+    from adv3d_runner.sensors import embree
+
+    if not (sys.platform == "linux" and platform.machine() == "x86_64"):
+        pytest.skip("embreex wheel layout checked on Linux x86-64 only")
+    assert embree.available(), embree.unavailable_reason()
+    assert embree.unavailable_reason() is None
+    assert embree.library_path().name.startswith("libembree4") and embree.library_path().parent.name == "embreex.libs"
+
+
+def test_fallback_to_embreex_when_unavailable(meshes, monkeypatch):
+    """Without the library MeshBVH casts with embreex's run: same bits, and the same API."""
+    from adv3d_runner.sensors import embree
+
+    v, f, ref, direct = meshes["sedan"]
+    monkeypatch.setattr(embree, "_STATE", {"lib": None, "reason": "test: no library"})
+    assert not embree.available() and embree.unavailable_reason() == "test: no library"
+    assert embree.library_path() is None
+    with pytest.raises(RuntimeError, match="test: no library"):
+        embree.TriangleScene(v, f)
+    bvh = MeshBVH(v, f)
+    assert not bvh.direct and direct.direct
+    for what, (o, d, tfar) in _ray_sets(v, f, np.random.default_rng(11)).items():
+        t1, t2 = tfar.copy(), tfar.copy()
+        p1, n1 = bvh.intersect(o, d, t1)
+        p2, _ = direct.intersect(o, d, t2)
+        assert n1 is None and p1.dtype == np.int32
+        assert _same_bits(t1, t2) and np.array_equal(p1, p2), what
+    # the explicit choice, the empty mesh
+    assert not MeshBVH(v, f, direct=False).direct
+    assert not MeshBVH(np.zeros((0, 3)), np.zeros((0, 3), int)).direct
