@@ -318,3 +318,19 @@ def test_a_fast_is_autonomy_a_with_the_fast_detector_and_its_own_fingerprint():
     vf = EpisodeEvaluator(QuerySettings(autonomy="A-fast")).versions()
     assert set(va["models"]) == {"detector", "predictor"} and set(vf["models"]) == {"detector-fast", "predictor"}
     assert va["models"]["predictor"] == vf["models"]["predictor"] and va["planner"] == vf["planner"]
+
+
+def test_upsample_concat_is_interpolate_then_cat():
+    import torch
+
+    from adv3d_runner.autonomy.detector import upsample_concat
+
+    g = torch.Generator().manual_seed(0)
+    for coarse_hw, fine_hw in [((36, 24), (72, 48)), ((5, 3), (10, 6)), ((5, 3), (11, 7))]:
+        coarse = torch.randn((2, 4) + coarse_hw, generator=g)
+        skip = torch.randn((2, 3) + fine_hw, generator=g)
+        ref = torch.cat([torch.nn.functional.interpolate(coarse, size=fine_hw, mode="nearest"), skip], dim=1)
+        with torch.inference_mode():
+            out = upsample_concat(coarse, skip)
+        assert out.shape == ref.shape and torch.equal(out, ref)
+        assert torch.equal(upsample_concat(coarse, skip), ref)  # the training (grad) path
