@@ -305,3 +305,14 @@ def test_iou_symmetries_far_from_the_origin(rng):
     thin = A.copy()
     thin[:, 3] = 1e-12
     assert np.all(np.isfinite(bx.iou_pairwise(A[:40], thin[:40])))
+
+
+def test_detection_frame_terms_are_the_two_terms_from_one_matching(rng):
+    from adv3d_runner.metrics.detection import detection_frame_terms, false_positive_term, true_positive_term
+
+    gt = np.c_[rng.uniform(0, 30, (6, 2)), np.full((6, 1), 4.5), np.full((6, 1), 1.9), rng.uniform(-1, 1, 6)]
+    det = gt[[0, 1, 1, 3]] + np.c_[rng.normal(0, 0.4, (4, 2)), np.zeros((4, 3))]
+    scores = np.array([0.9, 0.8, 0.5, np.nan])  # a duplicate (false positive); NaN scores count 0
+    tp, fp = detection_frame_terms(gt, det, scores)
+    assert (tp, fp) == (true_positive_term(gt, det, scores), false_positive_term(gt, det, scores))
+    assert tp > 0 and fp > 0

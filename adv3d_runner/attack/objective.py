@@ -41,7 +41,7 @@ import numpy as np
 
 from ..errors import ConfigError
 from ..metrics.comfort import plan_comfort_cost
-from ..metrics.detection import IOU_THRESHOLD, false_positive_term, true_positive_term
+from ..metrics.detection import IOU_THRESHOLD, detection_frame_terms
 from ..metrics.occupancy import frame_terms
 from ..metrics.prediction import prediction_loss
 
@@ -148,9 +148,8 @@ def detection_terms(frames: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]],
     Returns:
         tp (T,), fp (T,), both >= 0.
     """
-    tp = np.array([true_positive_term(g, d, s, iou_threshold) for g, d, s in frames], dtype=np.float64)
-    fp = np.array([false_positive_term(g, d, s, iou_threshold) for g, d, s in frames], dtype=np.float64)
-    return tp.reshape(-1), fp.reshape(-1)
+    terms = np.array([detection_frame_terms(g, d, s, iou_threshold) for g, d, s in frames], dtype=np.float64).reshape(-1, 2)
+    return np.ascontiguousarray(terms[:, 0]), np.ascontiguousarray(terms[:, 1])
 
 
 def prediction_terms(pairs: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]],

@@ -285,6 +285,16 @@ def false_positive_term(gt_boxes: np.ndarray, det_boxes: np.ndarray, det_scores:
     return float(np.sum((1.0 - m.iou[fp]) * s[fp]))
 
 
+def detection_frame_terms(gt_boxes: np.ndarray, det_boxes: np.ndarray, det_scores: np.ndarray,
+                iou_threshold: float = IOU_THRESHOLD) -> tuple[float, float]:
+    """(:func:`true_positive_term`, :func:`false_positive_term`) of one frame from one matching
+    (the attack objective needs both for every frame of every query)."""
+    m = match_frame(gt_boxes, det_boxes, det_scores, iou_threshold)
+    s = _scores(det_scores, len(m.tp))
+    fp = ~m.tp
+    return float(np.sum(m.iou[m.tp] * s[m.tp])), float(np.sum((1.0 - m.iou[fp]) * s[fp]))
+
+
 def detection_loss(gt_boxes: np.ndarray, det_boxes: np.ndarray, det_scores: np.ndarray, alpha: float = 1.0,
                    beta: float = 1.0, iou_threshold: float = IOU_THRESHOLD) -> float:
     """Paper Eq. 4 for one frame: ``-alpha * TP + beta * FP`` (higher = worse detection)."""
