@@ -4,14 +4,15 @@ Why: ``embreex``'s ``EmbreeScene.run`` casts one ray per ``rtcIntersect1`` call 
 loop and allocates five output arrays (u, v, Ng, primID, geomID) per call. Here the same
 library is called from a compiled loop (:mod:`adv3d_runner.jit`) that fills Embree's SOA ray
 packets of :data:`PACKET` rays and calls ``rtcIntersect8``; only the hit distance (``tfar``, in
-place) and the face index come back. The HDL-64E background cast (about 133k rays on the
-7970-triangle highway background) takes about 9.6 ms of CPU instead of 13.9 ms on this
-project's machine (one core, AVX-512 Xeon); 4-wide packets took 10.0 ms, 16-wide 12.0 ms and
-single rays 13.3 ms, so 8 it is (docs/lidar.md, "Direct Embree binding").
+place) and the face index come back. A frame's HDL-64E background cast (about 117k rays on the
+7970-triangle highway background, ``bench/lidar.py --ratio``) takes 8.8 ms of CPU instead of
+13.1 on this project's machine (one core, AVX-512 Xeon). On all 133k rays alone, packets of 8
+took 9.6 ms, of 4 10.0, of 16 12.0, single rays from the same loop 13.3 and embreex 13.9, so 8
+it is (docs/lidar.md, "Direct Embree binding").
 
 Same bits: a scene is built as ``embreex`` builds its own (one triangle geometry, default
-build quality, ``RTC_SCENE_FLAG_ROBUST``: without that flag about a fifth of the distances
-differ by one ulp) and each ray is set up as ``embreex`` sets it (tnear 0, time 0, mask all
+build quality, ``RTC_SCENE_FLAG_ROBUST``: without that flag 23 % of an HDL-64E frame's hit
+distances on the background differ, by an ulp) and each ray is set up as ``embreex`` sets it (tnear 0, time 0, mask all
 ones, ids invalid), so the distances and faces are those of ``EmbreeScene.run(..., output=1)``
 bit for bit (``tests/test_raycast.py`` checks it on the background and on actor meshes, with
 misses, edge- and vertex-grazing rays and partial packets).
@@ -21,7 +22,7 @@ the process's mapped files where the platform lists them): scenes made here and
 :class:`~adv3d_runner.sensors.raycast.MeshBVH`'s fallback share the library, its version and
 its TBB pool. The compiled loop calls ``rtcIntersect8`` by name (``numba.types.ExternalFunction``
 after ``llvmlite.binding.load_library_permanently``), so it is cached on disk like every other
-kernel. Where the library is not found (another wheel layout, another Embree major version),
+kernel (0.8 s to compile once; then about 0.2 s to load with numba's start-up). Where the library is not found (another wheel layout, another Embree major version),
 :func:`available` is False, :func:`unavailable_reason` says why and ``MeshBVH`` falls back to
 ``embreex``'s ``run``.
 """
