@@ -269,6 +269,14 @@ class LaneIndex:
             self.chain[r, len(pts):] = pts[-1]
             self.chain_len[r] = self.chain_step * (len(pts) - 1)
             self.dead_end[r] = dead
+        # per-frame queries read these instead of recomputing them for every point: each
+        # segment's heading (arctan2 stays numpy's), and each chain's last real point and the unit
+        # direction of its last segment, along which ``sample`` extrapolates past the chain's end
+        self.seg_head = np.arctan2(self.seg_u[..., 1], self.seg_u[..., 0])
+        last = np.maximum(np.round(self.chain_len / self.chain_step).astype(np.int64), 1)
+        ext = self.chain[np.arange(L), last] - self.chain[np.arange(L), last - 1]
+        self.ext_from = self.chain[np.arange(L), last]
+        self.ext_dir = ext / np.maximum(np.linalg.norm(ext, axis=-1, keepdims=True), 1e-9)
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -324,7 +332,7 @@ class LaneIndex:
         r = np.stack([take(rx), take(ry)], axis=-1)                           # (N, L, 2)
         s = self.seg_s[rows[None, :], best] + tb
         d = u[..., 0] * r[..., 1] - u[..., 1] * r[..., 0]
-        head = np.arctan2(u[..., 1], u[..., 0])
+        head = self.seg_head[rows[None, :], best]
         seg_len = self.seg_len[rows[None, :], best]
         frac = np.clip(tb / np.maximum(seg_len, 1e-9), 0.0, 1.0)
         width = self.seg_w0[rows[None, :], best] * (1 - frac) + self.seg_w1[rows[None, :], best] * frac
@@ -375,14 +383,9 @@ class LaneIndex:
         # past the chain's last real point: extrapolate along its last segment (chains that were
         # cut at chain_ahead are never queried that far; dead ends are flagged invalid)
         clen = self.chain_len[r][:, None]
-        last = np.maximum(np.round(clen / self.chain_step).astype(np.int64), 1)
         past = s > clen
         if np.any(past):
-            pa = self.chain[r[:, None], last - 1]
-            pb = self.chain[r[:, None], last]
-            seg = pb - pa
-            seg_n = seg / np.maximum(np.linalg.norm(seg, axis=-1, keepdims=True), 1e-9)
-            ext = pb + (s - clen)[..., None] * seg_n
+            ext = self.ext_from[r][:, None] + (s - clen)[..., None] * self.ext_dir[r][:, None]
             pts = np.where(past[..., None], np.broadcast_to(ext, pts.shape), pts)
         valid = ok_row[:, None] & ~(past & self.dead_end[r][:, None])
         return pts, valid
