@@ -27,8 +27,10 @@ network because highway lane graphs are tiny):
 
 Inference batches every track in one forward pass; lane geometry is indexed once per lane map
 (:class:`~adv3d_runner.scene.lanemap.LaneIndex`, kept by the scene's
-:class:`~adv3d_runner.scene.lanemap.LaneMap`), so a frame with 20 tracks costs
-about 2-3 ms on one core (features ~1.3 ms, network ~0.3 ms). Tracks with short or invalid history, non-finite states,
+:class:`~adv3d_runner.scene.lanemap.LaneMap`), and the features and the prior are compiled
+loops (:mod:`adv3d_runner.jit`; bit for bit the numpy formulation they replaced, which
+``tests/test_predictor.py`` keeps as the reference), so a frame costs about 0.4 ms on one core
+with 5 tracks and 0.7 ms with 18 (features 0.04 / 0.11 ms). Tracks with short or invalid history, non-finite states,
 and frames with no lanes are handled (their features are zero with validity flags 0).
 
 Weights are a plain ``state_dict`` (``torch.load(weights_only=True)``) next to a
@@ -36,6 +38,7 @@ Weights are a plain ``state_dict`` (``torch.load(weights_only=True)``) next to a
 """
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -43,6 +46,7 @@ import numpy as np
 
 from ..errors import FileFormatError
 from ..fileio import REPO_ROOT
+from ..jit import kernel
 from ..scene.lanemap import LaneIndex, LaneMap
 from ..validate import Node, check_header
 from .interface import DT, PREDICTION_STEPS, Predictions, Tracks
@@ -71,21 +75,14 @@ NUM_FEATURES = _HIST_F + _AGENT_F + 3 * _LANE_F + _NEIGH_F
 
 
 # --------------------------------------------------------------------------- features
-def _rot(xy: np.ndarray, c: np.ndarray, s: np.ndarray) -> np.ndarray:
-    """Rotate (N, ..., 2) vectors by -yaw given c = cos(yaw), s = sin(yaw) of shape (N,)."""
-    shape = (-1,) + (1,) * (xy.ndim - 2)
-    c = c.reshape(shape)
-    s = s.reshape(shape)
-    return np.stack([c * xy[..., 0] + s * xy[..., 1], -s * xy[..., 0] + c * xy[..., 1]], axis=-1)
-
-
 def sanitize_tracks(tracks: Tracks) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Finite copies of the track state a predictor needs.
 
     Returns boxes (N, 5), velocities (N, 2), history (N, H, 3) and history validity (N, H)
     aligned to ``HISTORY`` entries (the newest last; shorter histories are padded in front
     as invalid), and ``ok`` (N,): the current box is finite. Non-finite history entries are
-    marked invalid; a non-finite velocity is zero.
+    marked invalid; a non-finite velocity is zero. (:func:`encode` does the same in its compiled
+    ``_sanitize_kernel``.)
     """
     n = len(tracks)
     boxes = np.asarray(tracks.boxes, np.float64).reshape(n, 5).copy()
@@ -135,90 +132,367 @@ def encode(tracks: Tracks, lane_map: LaneMap, steps: int = PREDICTION_STEPS,
     The prior is what :class:`~.baselines.LaneFollowingPredictor`'s first mode does: keep the
     speed along the heading (>= 0) and the lateral offset in the lane, following the lane chain;
     a track more than ``OFF_LANE`` m outside its lane strip (or with no lane) goes straight.
+
+    Two compiled passes (:mod:`adv3d_runner.jit`) around the few numpy calls kept for their
+    exact results (cos, sin, hypot): about ten calls per frame instead of some two hundred small
+    numpy calls on (N, ...) arrays, with the same bits (``tests/test_predictor.py`` checks them
+    against the numpy formulation, kept there).
     """
     n = len(tracks)
     if n == 0:
         return np.zeros((0, NUM_FEATURES), np.float32), np.zeros((0, steps, 2), np.float32)
-    boxes, vel, hist, hv, ok = sanitize_tracks(tracks)
-    x0, y0, yaw = boxes[:, 0], boxes[:, 1], boxes[:, 4]
+    boxes, vel, hist, hv, misses = _track_arrays(tracks, n)
+    boxes, vel, hist, hv, ok, dyaw, rel = _sanitize_kernel(boxes, vel, hist, hv)
+    yaw = boxes[:, 4]
     c, s = np.cos(yaw), np.sin(yaw)
-    origin = boxes[:, None, :2]
-    speed_h = np.maximum(vel[:, 0] * c + vel[:, 1] * s, 0.0)
-    t = np.arange(1, steps + 1) * dt
-    prior = np.zeros((n, steps, 2))
-    prior[..., 0] = speed_h[:, None] * t[None]
-
-    # history (N, H, 5): x, y, cos, sin of relative yaw, valid
-    hxy = _rot(hist[..., :2] - origin, c, s)
-    dyaw = hist[..., 2] - yaw[:, None]
-    hist_f = np.concatenate([hxy / 10.0, np.cos(dyaw)[..., None], np.sin(dyaw)[..., None], hv[..., None]], axis=-1)
-    hist_f = np.where(hv[..., None], hist_f, 0.0).reshape(n, -1)
-
-    v_loc = _rot(vel[:, None, :], c, s)[:, 0]
+    cd, sd = np.cos(dyaw), np.sin(dyaw)
     speed = np.hypot(vel[:, 0], vel[:, 1])
+    dist = np.hypot(rel[..., 0], rel[..., 1])
+    lanes = _lane_arrays(lane_index(lane_map)) if len(lane_map) else _NO_LANES
+    return _features_kernel(boxes, vel, hist, hv, ok, c, s, cd, sd, speed, dist, rel, misses,
+                            _times(steps, dt), LANE_OFFSETS, *lanes, _CAST)
+
+
+def _track_arrays(tracks: Tracks, n: int):
+    """The track arrays as the kernels take them: boxes (n, 5), velocities (n, 2), history
+    (n, H, 3) float64 and its validity (n, H) bool, C-contiguous, and misses (n,) float64."""
+    boxes = np.ascontiguousarray(np.asarray(tracks.boxes, np.float64).reshape(n, 5))
+    vel = np.ascontiguousarray(np.asarray(tracks.velocities, np.float64).reshape(n, 2))
+    hist = np.asarray(tracks.history, np.float64)
+    hv = np.asarray(tracks.history_valid, bool)
+    if hist.ndim != 3 or hist.shape[0] != n:
+        hist = np.zeros((n, 0, 3))
+        hv = np.zeros((n, 0), bool)
+    H = hist.shape[1]
+    if hist.shape[2] != 3 or hv.shape != (n, H):  # what Tracks never holds; broadcast as sanitize_tracks does
+        hist = np.broadcast_to(hist, (n, H, 3))
+        hv = np.broadcast_to(hv, (n, H))
+    hist = np.ascontiguousarray(hist)
+    hv = np.ascontiguousarray(hv)
     misses = np.asarray(tracks.misses, np.float64).reshape(n)
-    agent_f = np.stack([v_loc[:, 0] / 10.0, v_loc[:, 1] / 10.0, speed / 10.0, boxes[:, 2] / 10.0,
-                        boxes[:, 3] / 2.0, np.clip(misses, 0, 10) / 3.0, hv.sum(1) / HISTORY,
-                        ok.astype(np.float64)], axis=1)
+    return boxes, vel, hist, hv, misses
 
-    lane_f = np.zeros((n, 3, _LANE_F))
-    if len(lane_map):
-        index = lane_index(lane_map)
-        poses = np.stack([x0, y0, yaw], axis=1)
-        row, (ps, pd, _, pw, _) = index.locate(poses)
-        row = np.where(ok, row, -1)
-        ii = np.arange(n)
-        rows = np.stack([row, np.where(row >= 0, index.left[np.maximum(row, 0)], -1),
-                         np.where(row >= 0, index.right[np.maximum(row, 0)], -1)], axis=1)  # (N, 3)
-        for j in range(3):
-            rj = rows[:, j]
-            has = rj >= 0
-            rs = np.maximum(rj, 0)
-            s_on = ps[ii, rs]
-            pts, valid = index.sample(rj, s_on[:, None] + LANE_OFFSETS[None])
-            loc = _rot(pts - origin, c, s)
-            loc = np.where(valid[..., None], loc, 0.0)
-            blk = np.concatenate([loc[..., 0:1] / 50.0, loc[..., 1:2] / 10.0, valid[..., None]], axis=-1)
-            lane_f[:, j, 0] = has
-            lane_f[:, j, 1:1 + 3 * len(LANE_OFFSETS)] = blk.reshape(n, -1)
-            lane_f[:, j, -3] = np.where(has, pw[ii, rs] / 4.0, 0.0)
-            lane_f[:, j, -2] = np.where(has, np.clip(pd[ii, rs], -20, 20) / 4.0, 0.0)
-            lane_f[:, j, -1] = np.where(has, index.limit[rs] / 30.0, 0.0)
-        # lane-following prior for tracks on (or within OFF_LANE m of) their lane strip
-        rs = np.maximum(row, 0)
-        d0 = pd[ii, rs]
-        bound = (row >= 0) & (np.abs(d0) - 0.5 * pw[ii, rs] <= OFF_LANE)
-        if np.any(bound):
-            b = np.flatnonzero(bound)
-            st = ps[b, rs[b]][:, None] + speed_h[b, None] * t[None]
-            p0, _ = index.sample(row[b], st)
-            p1, _ = index.sample(row[b], st + 1.0)
-            tan = p1 - p0
-            tan /= np.maximum(np.linalg.norm(tan, axis=-1, keepdims=True), 1e-9)
-            path = p0 + d0[b, None, None] * np.stack([-tan[..., 1], tan[..., 0]], axis=-1)
-            prior[b] = _rot(path - origin[b], c[b], s[b])
-    lane_f = lane_f.reshape(n, -1)
 
-    # nearest other tracks (relative position / velocity in the agent frame)
-    neigh_f = np.zeros((n, NEIGHBOURS, 5))
-    if n > 1:
-        rel = boxes[None, :, :2] - boxes[:, None, :2]                       # (N, N, 2) j relative to i
-        dist = np.hypot(rel[..., 0], rel[..., 1])
-        bad = ~(ok[:, None] & ok[None, :]) | np.eye(n, dtype=bool) | (dist > NEIGHBOUR_RANGE)
-        dist = np.where(bad, np.inf, dist)
-        k = min(NEIGHBOURS, n - 1)
-        order = np.argsort(dist, axis=1, kind="stable")[:, :k]
-        dsel = np.take_along_axis(dist, order, axis=1)
-        valid = np.isfinite(dsel)
-        rp = _rot(np.take_along_axis(rel, order[..., None], axis=1), c, s)
-        rv = _rot(vel[order] - vel[:, None, :], c, s)
-        blk = np.concatenate([rp[..., 0:1] / 50.0, rp[..., 1:2] / 10.0, rv / 10.0, valid[..., None]], axis=-1)
-        neigh_f[:, :k] = np.where(valid[..., None], blk, 0.0)
-    neigh_f = neigh_f.reshape(n, -1)
-    out = np.concatenate([hist_f, agent_f, lane_f, neigh_f], axis=1)
-    prior = np.where(ok[:, None, None], prior, 0.0)
-    return (np.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0).astype(np.float32),
-            np.nan_to_num(prior).astype(np.float32))
+_TIMES: dict[tuple[int, float], np.ndarray] = {}
+
+
+def _times(steps: int, dt: float) -> np.ndarray:
+    """(steps,) prediction times ``dt .. steps * dt`` (computed once per (steps, dt))."""
+    key = (int(steps), float(dt))
+    t = _TIMES.get(key)
+    if t is None:
+        t = np.arange(1, steps + 1) * dt
+        t.flags.writeable = False
+        _TIMES[key] = t
+    return t
+
+
+def _lane_arrays(index: LaneIndex) -> tuple:
+    """The :class:`LaneIndex` arrays :func:`_features_kernel` reads."""
+    return (True, index.seg_a, index.seg_u, index.seg_head, index.seg_len, index.seg_s, index.seg_w0, index.seg_w1,
+            index.n_seg, index._lo, index._hi, index.length, index.left, index.right, index.limit, index.chain,
+            index.chain_len, index.dead_end, index.ext_from, index.ext_dir, index.chain_step)
+
+
+_NO_LANES = (False, np.zeros((0, 1, 2)), np.zeros((0, 1, 2)), np.zeros((0, 1)), np.zeros((0, 1)), np.zeros((0, 1)),
+             np.zeros((0, 1)), np.zeros((0, 1)), np.zeros(0, np.int64), np.zeros((0, 1)), np.zeros((0, 1)),
+             np.zeros(0), np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 2, 2)),
+             np.zeros(0), np.zeros(0, bool), np.zeros((0, 2)), np.zeros((0, 2)), CHAIN_STEP)
+
+
+# numpy's semantics, written out for the kernels (see tests/test_predictor.py): what numpy's
+# float -> int64 cast gives for NaN, for values >= 2**63 and for values < -2**63 on this machine
+# (x86: the int64 minimum for all three; arm64 saturates)
+with np.errstate(invalid="ignore"):
+    _CAST = np.array([np.nan, np.inf, -np.inf]).astype(np.int64)
+_TWO63 = 9.223372036854775808e18
+
+
+@kernel
+def _np_max(a: float, b: float) -> float:
+    """``np.maximum(a, b)``: a NaN ``a`` wins, else the larger, else (ties, NaN ``b``) ``b``."""
+    return a if (a > b or a != a) else b
+
+
+@kernel
+def _np_clip(x: float, lo: float, hi: float) -> float:
+    """``np.clip(x, lo, hi)`` (numpy's ``_NPY_CLIP``: a NaN ``x`` stays NaN)."""
+    if x != x:
+        return x
+    m = x if x > lo else lo
+    return m if m < hi else hi
+
+
+@kernel
+def _np_wrap(a: float) -> float:
+    """``geometry.angles.wrap_angle``: ``(a + pi) % (2 pi) - pi`` with numpy's float remainder."""
+    x = a + np.pi
+    b = 2 * np.pi
+    mod = np.fmod(x, b)
+    if mod != 0.0:
+        if (b < 0) != (mod < 0):
+            mod += b
+    else:
+        mod = math.copysign(0.0, b)
+    return mod - np.pi
+
+
+@kernel
+def _floor_index(u: float, hi: int, cast: np.ndarray) -> int:
+    """``np.clip(np.floor(u).astype(np.int64), 0, hi)``, a NaN or out-of-range float cast as
+    numpy casts it (``cast``: ``_CAST``)."""
+    fl = np.floor(u)
+    if fl != fl:
+        i = cast[0]
+    elif fl >= _TWO63:
+        i = cast[1]
+    elif fl < -_TWO63:
+        i = cast[2]
+    else:
+        i = np.int64(fl)
+    return min(max(i, 0), hi)
+
+
+@kernel
+def _f32(x: float) -> np.float32:
+    """``np.nan_to_num(x, nan=0, posinf=0, neginf=0).astype(np.float32)``."""
+    return np.float32(x) if np.isfinite(x) else np.float32(0.0)
+
+
+@kernel
+def _sanitize_kernel(boxes_in, vel_in, hist_in, hv_in):
+    """:func:`sanitize_tracks` on the arrays of :func:`_track_arrays`, plus the history's yaw
+    relative to the box (n, HISTORY) and the pairwise offsets ``rel[i, j] = xy_j - xy_i``."""
+    n = boxes_in.shape[0]
+    H = hist_in.shape[1]
+    k = min(H, HISTORY)
+    boxes = np.empty((n, 5))
+    vel = np.empty((n, 2))
+    hist = np.zeros((n, HISTORY, 3))
+    hv = np.zeros((n, HISTORY), np.bool_)
+    ok = np.empty(n, np.bool_)
+    dyaw = np.empty((n, HISTORY))
+    rel = np.empty((n, n, 2))
+    for i in range(n):
+        good = True
+        for j in range(5):
+            if not np.isfinite(boxes_in[i, j]):
+                good = False
+        ok[i] = good
+        for j in range(5):
+            boxes[i, j] = boxes_in[i, j] if good else 0.0
+        for j in range(2):
+            v = vel_in[i, j]
+            vel[i, j] = v if np.isfinite(v) else 0.0
+        for h in range(k):
+            src = H - k + h
+            dst = HISTORY - k + h
+            if hv_in[i, src] and np.isfinite(hist_in[i, src, 0]) and np.isfinite(hist_in[i, src, 1]) \
+                    and np.isfinite(hist_in[i, src, 2]):
+                hv[i, dst] = True
+                for j in range(3):
+                    hist[i, dst, j] = hist_in[i, src, j]
+        for h in range(HISTORY):
+            dyaw[i, h] = hist[i, h, 2] - boxes[i, 4]
+    for i in range(n):
+        for j in range(n):
+            rel[i, j, 0] = boxes[j, 0] - boxes[i, 0]
+            rel[i, j, 1] = boxes[j, 1] - boxes[i, 1]
+    return boxes, vel, hist, hv, ok, dyaw, rel
+
+
+@kernel
+def _chain_point(chain, chain_len, dead_end, ext_from, ext_dir, step, cast, r, sv):
+    """``LaneIndex.sample`` of one point: chain ``r`` at arc length ``sv`` -> x, y, and whether
+    it lies past a dead end."""
+    u = sv / step
+    i = _floor_index(u, chain.shape[1] - 2, cast)
+    f = u - i
+    ax = chain[r, i, 0]
+    ay = chain[r, i, 1]
+    px = ax + f * (chain[r, i + 1, 0] - ax)
+    py = ay + f * (chain[r, i + 1, 1] - ay)
+    clen = chain_len[r]
+    past = sv > clen
+    if past:
+        px = ext_from[r, 0] + (sv - clen) * ext_dir[r, 0]
+        py = ext_from[r, 1] + (sv - clen) * ext_dir[r, 1]
+    return px, py, past and dead_end[r]
+
+
+@kernel
+def _locate_one(x, y, yaw, seg_a, seg_u, seg_head, seg_len, seg_s, seg_w0, seg_w1, n_seg, seg_lo, seg_hi,
+                length, ls, ld, lw):
+    """``LaneIndex.locate`` of one pose: fills s, d, width on every lane (ls, ld, lw (L,)) and
+    returns the lane row (-1: none)."""
+    row = 0
+    best_key = 0.0
+    for l in range(len(n_seg)):
+        # the nearest segment (np.argmin: the first NaN, else the first minimum; the padding
+        # past a lane's n_seg segments, at infinity there, never is)
+        kb = 0
+        d2b = 0.0
+        for k in range(n_seg[l]):
+            rx = x - seg_a[l, k, 0]
+            ry = y - seg_a[l, k, 1]
+            t = rx * seg_u[l, k, 0] + ry * seg_u[l, k, 1]
+            tc = _np_clip(t, seg_lo[l, k], seg_hi[l, k])
+            d2 = rx * rx + ry * ry + tc * (tc - 2.0 * t)
+            if k == 0 or (d2b == d2b and (d2 < d2b or d2 != d2)):
+                kb = k
+                d2b = d2
+        rx = x - seg_a[l, kb, 0]
+        ry = y - seg_a[l, kb, 1]
+        t = rx * seg_u[l, kb, 0] + ry * seg_u[l, kb, 1]
+        tb = _np_clip(t, seg_lo[l, kb], seg_hi[l, kb])
+        s = seg_s[l, kb] + tb
+        d = seg_u[l, kb, 0] * ry - seg_u[l, kb, 1] * rx
+        frac = _np_clip(tb / _np_max(seg_len[l, kb], 1e-9), 0.0, 1.0)
+        w = seg_w0[l, kb] * (1 - frac) + seg_w1[l, kb] * frac
+        beyond = _np_max(_np_max(-s, s - length[l]), 0.0)
+        herr = abs(_np_wrap(yaw - seg_head[l, kb]))
+        inside = (abs(d) <= 0.5 * w) and (beyond == 0.0)
+        key = (0.0 if inside else 1e6) + abs(d) + beyond
+        if not herr <= np.pi / 2:
+            key = np.inf
+        ls[l] = s
+        ld[l] = d
+        lw[l] = w
+        if l == 0 or (best_key == best_key and (key < best_key or key != key)):
+            row = l
+            best_key = key
+    return row if np.isfinite(best_key) else -1
+
+
+@kernel
+def _features_kernel(boxes, vel, hist, hv, ok, c, s, cd, sd, speed, dist, rel, misses, times, offsets,
+                     has_lanes, seg_a, seg_u, seg_head, seg_len, seg_s, seg_w0, seg_w1, n_seg, seg_lo, seg_hi,
+                     length, left, right, limit, chain, chain_len, dead_end, ext_from, ext_dir, step, cast):
+    """Everything of :func:`encode` after the numpy calls: features (n, NUM_FEATURES) and prior
+    (n, T, 2), float32."""
+    n = boxes.shape[0]
+    T = times.shape[0]
+    M = offsets.shape[0]
+    L = n_seg.shape[0]
+    feats = np.zeros((n, NUM_FEATURES), np.float32)
+    prior = np.zeros((n, T, 2), np.float32)
+    ls = np.zeros(max(L, 1))
+    ld = np.zeros(max(L, 1))
+    lw = np.zeros(max(L, 1))
+    used = np.zeros(n, np.bool_)
+    rows = np.zeros(3, np.int64)
+    for i in range(n):
+        f = feats[i]
+        x0 = boxes[i, 0]
+        y0 = boxes[i, 1]
+        ci = c[i]
+        si = s[i]
+        # history (HISTORY x: x, y, cos, sin of the relative yaw, valid)
+        nh = 0
+        for h in range(HISTORY):
+            if hv[i, h]:
+                nh += 1
+                dx = hist[i, h, 0] - x0
+                dy = hist[i, h, 1] - y0
+                f[5 * h] = _f32((ci * dx + si * dy) / 10.0)
+                f[5 * h + 1] = _f32((-si * dx + ci * dy) / 10.0)
+                f[5 * h + 2] = _f32(cd[i, h])
+                f[5 * h + 3] = _f32(sd[i, h])
+                f[5 * h + 4] = 1.0
+        # agent
+        o = _HIST_F
+        vx = vel[i, 0]
+        vy = vel[i, 1]
+        f[o] = _f32((ci * vx + si * vy) / 10.0)
+        f[o + 1] = _f32((-si * vx + ci * vy) / 10.0)
+        f[o + 2] = _f32(speed[i] / 10.0)
+        f[o + 3] = _f32(boxes[i, 2] / 10.0)
+        f[o + 4] = _f32(boxes[i, 3] / 2.0)
+        f[o + 5] = _f32(_np_clip(misses[i], 0.0, 10.0) / 3.0)
+        f[o + 6] = _f32(nh / HISTORY)
+        f[o + 7] = 1.0 if ok[i] else 0.0
+        speed_h = _np_max(vx * ci + vy * si, 0.0)
+        # lanes: the agent's, its left and right neighbours
+        row = -1
+        if has_lanes:
+            row = _locate_one(x0, y0, boxes[i, 4], seg_a, seg_u, seg_head, seg_len, seg_s, seg_w0, seg_w1, n_seg,
+                              seg_lo, seg_hi, length, ls, ld, lw)
+            if not ok[i]:
+                row = -1
+            rows[0] = row
+            rows[1] = left[row] if row >= 0 else -1
+            rows[2] = right[row] if row >= 0 else -1
+            for j in range(3):
+                o = _HIST_F + _AGENT_F + j * _LANE_F
+                rj = rows[j]
+                has = rj >= 0
+                r = max(rj, 0)
+                f[o] = 1.0 if has else 0.0
+                for m in range(M):
+                    px, py, dead = _chain_point(chain, chain_len, dead_end, ext_from, ext_dir, step, cast, r,
+                                                ls[r] + offsets[m])
+                    if has and not dead:
+                        dx = px - x0
+                        dy = py - y0
+                        f[o + 1 + 3 * m] = _f32((ci * dx + si * dy) / 50.0)
+                        f[o + 2 + 3 * m] = _f32((-si * dx + ci * dy) / 10.0)
+                        f[o + 3 + 3 * m] = 1.0
+                if has:
+                    f[o + _LANE_F - 3] = _f32(lw[r] / 4.0)
+                    f[o + _LANE_F - 2] = _f32(_np_clip(ld[r], -20.0, 20.0) / 4.0)
+                    f[o + _LANE_F - 1] = _f32(limit[r] / 30.0)
+        # prior: along the lane chain when on (or near) the lane strip, else straight ahead
+        if ok[i]:
+            r = max(row, 0)
+            d0 = ld[r]
+            if row >= 0 and abs(d0) - 0.5 * lw[r] <= OFF_LANE:
+                for k in range(T):
+                    st = ls[r] + speed_h * times[k]
+                    p0x, p0y, _ = _chain_point(chain, chain_len, dead_end, ext_from, ext_dir, step, cast, row, st)
+                    p1x, p1y, _ = _chain_point(chain, chain_len, dead_end, ext_from, ext_dir, step, cast, row, st + 1.0)
+                    tx = p1x - p0x
+                    ty = p1y - p0y
+                    nrm = _np_max(math.sqrt(tx * tx + ty * ty), 1e-9)
+                    tx /= nrm
+                    ty /= nrm
+                    dx = (p0x + d0 * -ty) - x0
+                    dy = (p0y + d0 * tx) - y0
+                    px = ci * dx + si * dy
+                    py = -si * dx + ci * dy
+                    prior[i, k, 0] = 0.0 if px != px else np.float32(px)
+                    prior[i, k, 1] = 0.0 if py != py else np.float32(py)
+            else:
+                for k in range(T):
+                    px = speed_h * times[k]
+                    prior[i, k, 0] = 0.0 if px != px else np.float32(px)
+        # the nearest other tracks (np.argsort(kind="stable"): by distance, NaN last, then index)
+        if n > 1:
+            used[:] = False
+            for q in range(min(NEIGHBOURS, n - 1)):
+                jb = -1
+                db = 0.0
+                for j in range(n):
+                    if used[j]:
+                        continue
+                    dj = dist[i, j]
+                    if not (ok[i] and ok[j]) or i == j or dj > NEIGHBOUR_RANGE:
+                        dj = np.inf
+                    if jb < 0 or dj < db or (db != db and dj == dj):
+                        jb = j
+                        db = dj
+                used[jb] = True
+                if np.isfinite(db):
+                    o = _HIST_F + _AGENT_F + 3 * _LANE_F + 5 * q
+                    rx = rel[i, jb, 0]
+                    ry = rel[i, jb, 1]
+                    f[o] = _f32((ci * rx + si * ry) / 50.0)
+                    f[o + 1] = _f32((-si * rx + ci * ry) / 10.0)
+                    dvx = vel[jb, 0] - vel[i, 0]
+                    dvy = vel[jb, 1] - vel[i, 1]
+                    f[o + 2] = _f32((ci * dvx + si * dvy) / 10.0)
+                    f[o + 3] = _f32((-si * dvx + ci * dvy) / 10.0)
+                    f[o + 4] = 1.0
+    return feats, prior
 
 
 def no_reversing(local: np.ndarray) -> np.ndarray:
