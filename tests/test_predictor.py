@@ -562,6 +562,17 @@ def test_encode_and_predict_are_bit_identical_to_the_numpy_formulation(model):
                         assert _same(out.track_ids, t.ids)
                 checked += 1
     assert checked > 150
+    # predict runs the network as functional calls; the module's own forward gives the same bits
+    assert model._functional() is not None and not any(model._functional()[0])
+    model._plan_net, model._plan = model.net, None
+    try:
+        for t, lm in list(_tracker_frames(scenes[0], 8, 9))[2:]:
+            model.reset(lm)
+            ref_traj, ref_probs = _ref_predict(model, t, lm)
+            out = model.predict(t)
+            assert _same(out.trajectories, ref_traj) and _same(out.probabilities, ref_probs)
+    finally:
+        model._plan_net = None
 
 
 def test_kernel_helpers_are_numpys_operations():
@@ -615,3 +626,30 @@ def test_kernel_helpers_are_numpys_operations():
                                         idx.chain_step, _CAST, max(rows[i], 0), sv[i, m])
             assert _same(np.array([px, py]), pts[i, m]) and (rows[i] >= 0 and not dead) == valid[i, m]
 
+
+
+def test_functional_forward_is_the_modules_forward():
+    from adv3d_runner.autonomy.predictor import LearnedPredictor
+
+    torch.manual_seed(0)
+    cfg = PredictorConfig(num_modes=3, hidden=32, layers=2)
+    net = build_net(cfg).eval()
+    pred = LearnedPredictor(net, cfg)
+    rng = np.random.default_rng(2)
+    feats = rng.normal(size=(7, NUM_FEATURES)).astype(np.float32)
+    prior = rng.normal(size=(7, cfg.steps, 2)).astype(np.float32)
+    assert pred._functional() is not None
+    traj, probs = pred._forward(feats, prior)
+    with torch.inference_mode():
+        t_ref, logits = net(torch.from_numpy(feats), torch.from_numpy(prior))
+        p_ref = torch.softmax(logits, dim=-1)
+    assert _same(traj, t_ref.numpy()) and _same(probs, p_ref.numpy())
+    # with a hook registered (on any of its modules, or globally) the net is called as a module
+    for register in (net.body[0].register_forward_hook, torch.nn.modules.module.register_module_forward_hook):
+        handle = register(lambda m, i, o: o * 2.0 if isinstance(o, torch.Tensor) else None)
+        traj, _ = pred._forward(feats, prior)
+        with torch.inference_mode():
+            hooked = net(torch.from_numpy(feats), torch.from_numpy(prior))[0].numpy()
+        assert _same(traj, hooked) and not _same(traj, t_ref.numpy())
+        handle.remove()
+    assert _same(pred._forward(feats, prior)[0], t_ref.numpy())

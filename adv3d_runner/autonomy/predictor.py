@@ -27,10 +27,11 @@ network because highway lane graphs are tiny):
 
 Inference batches every track in one forward pass; lane geometry is indexed once per lane map
 (:class:`~adv3d_runner.scene.lanemap.LaneIndex`, kept by the scene's
-:class:`~adv3d_runner.scene.lanemap.LaneMap`), and the features and the prior are compiled
-loops (:mod:`adv3d_runner.jit`; bit for bit the numpy formulation they replaced, which
-``tests/test_predictor.py`` keeps as the reference), so a frame costs about 0.4 ms on one core
-with 5 tracks and 0.7 ms with 18 (features 0.04 / 0.11 ms). Tracks with short or invalid history, non-finite states,
+:class:`~adv3d_runner.scene.lanemap.LaneMap`), and the features, the prior and the map-frame
+output are compiled loops (:mod:`adv3d_runner.jit`; bit for bit the numpy formulation they
+replaced, which ``tests/test_predictor.py`` keeps as the reference), so a frame costs about
+0.2 ms on one core with 5 tracks and 0.45 ms with 18 (features 0.04 / 0.11 ms, network
+0.11 / 0.23 ms). Tracks with short or invalid history, non-finite states,
 and frames with no lanes are handled (their features are zero with validity flags 0).
 
 Weights are a plain ``state_dict`` (``torch.load(weights_only=True)``) next to a
@@ -141,6 +142,13 @@ def encode(tracks: Tracks, lane_map: LaneMap, steps: int = PREDICTION_STEPS,
     n = len(tracks)
     if n == 0:
         return np.zeros((0, NUM_FEATURES), np.float32), np.zeros((0, steps, 2), np.float32)
+    return _encode(tracks, lane_map, steps, dt)[:2]
+
+
+def _encode(tracks: Tracks, lane_map: LaneMap, steps: int, dt: float):
+    """:func:`encode` of n > 0 tracks -> features, prior, and for :meth:`LearnedPredictor.predict`
+    the sanitized boxes (n, 5), ``ok`` (n,) (the box is finite) and cos, sin of their yaw (n,)."""
+    n = len(tracks)
     boxes, vel, hist, hv, misses = _track_arrays(tracks, n)
     boxes, vel, hist, hv, ok, dyaw, rel = _sanitize_kernel(boxes, vel, hist, hv)
     yaw = boxes[:, 4]
@@ -149,8 +157,9 @@ def encode(tracks: Tracks, lane_map: LaneMap, steps: int = PREDICTION_STEPS,
     speed = np.hypot(vel[:, 0], vel[:, 1])
     dist = np.hypot(rel[..., 0], rel[..., 1])
     lanes = _lane_arrays(lane_index(lane_map)) if len(lane_map) else _NO_LANES
-    return _features_kernel(boxes, vel, hist, hv, ok, c, s, cd, sd, speed, dist, rel, misses,
-                            _times(steps, dt), LANE_OFFSETS, *lanes, _CAST)
+    feats, prior = _features_kernel(boxes, vel, hist, hv, ok, c, s, cd, sd, speed, dist, rel, misses,
+                                    _times(steps, dt), LANE_OFFSETS, *lanes, _CAST)
+    return feats, prior, boxes, ok, c, s
 
 
 def _track_arrays(tracks: Tracks, n: int):
@@ -515,6 +524,32 @@ def to_map_frame(local: np.ndarray, boxes: np.ndarray) -> np.ndarray:
     return np.stack([x, y], axis=-1)
 
 
+@kernel
+def _map_frame_kernel(local, boxes, ok, c, s):
+    """``to_map_frame(no_reversing(local), boxes)`` of the network's float32 (N, K, T, 2)
+    output, rows of boxes that are not finite (``ok`` False) NaN: what :meth:`LearnedPredictor.predict`
+    returns, in one pass. ``c``, ``s``: cos, sin of the boxes' yaw."""
+    N, K, T, _ = local.shape
+    out = np.empty((N, K, T, 2))
+    for i in range(N):
+        if not ok[i]:
+            out[i] = np.nan
+            continue
+        x0 = boxes[i, 0]
+        y0 = boxes[i, 1]
+        ci = c[i]
+        si = s[i]
+        for k in range(K):
+            acc = 0.0
+            for t in range(T):
+                x = _np_max(np.float64(local[i, k, t, 0]), 0.0)
+                acc = x if t == 0 else _np_max(acc, x)
+                y = np.float64(local[i, k, t, 1])
+                out[i, k, t, 0] = ci * acc - si * y + x0
+                out[i, k, t, 1] = si * acc + ci * y + y0
+    return out
+
+
 # --------------------------------------------------------------------------- model
 @dataclass(frozen=True)
 class PredictorConfig:
@@ -575,6 +610,8 @@ class LearnedPredictor:
         self.threads = threads
         self.lane_map: LaneMap | None = None
         self._torch = torch
+        self._plan_net = None
+        self._plan = None
 
     @property
     def num_modes(self) -> int:
@@ -596,6 +633,66 @@ class LearnedPredictor:
             probs = torch.softmax(logits, dim=-1)
         return traj.numpy().astype(np.float64), probs.numpy().astype(np.float64)
 
+    def _functional(self):
+        """``self.net``'s forward as functional torch calls: the very ops its modules call (so the
+        same bits) without the module-call overhead (~30 us per frame). None when the net is not
+        a plain :func:`build_net` network; built once per net object. The plan also holds the
+        hook tables that ``Module.__call__`` consults (the modules' own and torch's global ones),
+        and :meth:`_forward` calls the module whenever any hook is registered."""
+        net = self.net
+        if self._plan_net is net:
+            return self._plan
+        from torch import nn
+        from torch.nn.modules import module as torch_module
+
+        plan = None
+        body = list(getattr(net, "body", ()))
+        mods = list(net.modules())
+        if (type(net).__qualname__ == "build_net.<locals>.PredictorNet" and type(net).__module__ == __name__
+                and len(body) % 3 == 0
+                and all(type(a) is nn.Linear and type(b) is nn.LayerNorm and type(r) is nn.ReLU
+                        for a, b, r in zip(body[0::3], body[1::3], body[2::3]))
+                and type(net.traj) is nn.Linear and type(net.logits) is nn.Linear
+                and all(type(m) in (nn.Linear, nn.LayerNorm, nn.ReLU) or m is net or m is net.body for m in mods)):
+            try:
+                hooks = [getattr(torch_module, name) for name in (
+                    "_global_backward_pre_hooks", "_global_backward_hooks", "_global_forward_pre_hooks",
+                    "_global_forward_hooks")]
+                hooks += [getattr(m, name) for m in mods for name in (
+                    "_backward_hooks", "_backward_pre_hooks", "_forward_hooks", "_forward_pre_hooks")]
+            except AttributeError:  # another torch: call the module
+                hooks = None
+            if hooks is not None:
+                layers = [(a.weight, a.bias, tuple(b.normalized_shape), b.weight, b.bias, b.eps)
+                          for a, b in zip(body[0::3], body[1::3])]
+                plan = (hooks, layers, net.traj.weight, net.traj.bias, net.logits.weight, net.logits.bias,
+                        net.cfg.num_modes, net.cfg.steps, net.cfg.residual_scale)
+        self._plan_net, self._plan = net, plan
+        return plan
+
+    def _forward(self, feats: np.ndarray, prior: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The network on float32 features and prior -> agent-frame trajectories (N, K, T, 2)
+        and probabilities (N, K), float32 (:meth:`predict_local` before its float64 copies)."""
+        torch = self._torch
+        if self.threads:
+            torch.set_num_threads(self.threads)
+        plan = self._functional()
+        with torch.inference_mode():
+            x = torch.from_numpy(feats)
+            p = torch.from_numpy(prior)
+            if plan is None or any(plan[0]):
+                traj, logits = self.net(x, p)
+            else:
+                F = torch.nn.functional
+                _, layers, tw, tb, lw, lb, K, T, scale = plan
+                h = x
+                for w, b, shape, nw, nb, eps in layers:
+                    h = torch.relu(F.layer_norm(F.linear(h, w, b), shape, nw, nb, eps))
+                traj = p[:, None] + F.linear(h, tw, tb).view(x.shape[0], K, T, 2) * scale
+                logits = F.linear(h, lw, lb)
+            probs = torch.softmax(logits, dim=-1)
+        return traj.numpy(), probs.numpy()
+
     def predict(self, tracks: Tracks) -> Predictions:
         """(N,) tracks -> Predictions (N, K, 60, 2) in the map frame, rows of probabilities
         summing to 1. All tracks go through the network in one batch."""
@@ -605,14 +702,12 @@ class LearnedPredictor:
         K, T = self.config.num_modes, self.config.steps
         if n == 0:
             return Predictions(np.zeros(0, np.int64), np.zeros((0, K, T, 2)), np.zeros((0, K)), self.config.dt)
-        feats, prior = encode(tracks, self.lane_map, T, self.config.dt)
-        local, probs = self.predict_local(feats, prior)
-        local = no_reversing(local)
-        boxes = np.asarray(tracks.boxes, np.float64).reshape(n, 5)
-        traj = to_map_frame(local, np.nan_to_num(boxes))
-        bad = ~np.all(np.isfinite(boxes), axis=1)
-        if np.any(bad):  # no pose: nothing sensible to predict; keep the rows but make them NaN
-            traj[bad] = np.nan
+        feats, prior, boxes, ok, c, s = _encode(tracks, self.lane_map, T, self.config.dt)
+        local, probs = self._forward(feats, prior)
+        # no_reversing, then to_map_frame; a track without a (finite) pose has nothing sensible
+        # to predict: its rows are kept but NaN
+        traj = _map_frame_kernel(local, boxes, ok, c, s)
+        probs = probs.astype(np.float64)
         probs = probs / probs.sum(axis=1, keepdims=True)
         return Predictions(np.asarray(tracks.ids, np.int64).copy(), traj, probs, self.config.dt)
 
