@@ -31,6 +31,7 @@ from __future__ import annotations
 import ctypes
 import importlib.util
 import sys
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -161,6 +162,7 @@ class _Embree:
 
 
 _STATE: dict = {}
+_LOCK = threading.Lock()
 
 
 def _library_candidates() -> list[Path]:
@@ -188,22 +190,26 @@ def _library_candidates() -> list[Path]:
 
 def _load() -> _Embree | None:
     if "lib" not in _STATE:
-        _STATE["lib"], _STATE["reason"] = None, None
-        if sys.maxsize <= 2 ** 32:
-            _STATE["reason"] = "a 32-bit Python (pointers are passed as 64-bit integers)"
-            return None
-        try:
-            candidates = _library_candidates()
-        except Exception as exc:  # noqa: BLE001 - any failure means: use embreex
-            candidates, _STATE["reason"] = [], f"looking for embreex's Embree library failed: {exc!r}"
-        if not candidates:
-            _STATE["reason"] = _STATE["reason"] or "no Embree 4 library found next to the installed embreex"
-        else:
-            try:
-                _STATE["lib"] = _Embree(candidates[0])
-            except Exception as exc:  # noqa: BLE001
-                _STATE["reason"] = f"{candidates[0]}: {exc!r}"
+        with _LOCK:
+            if "lib" not in _STATE:
+                _STATE.update(_open())
     return _STATE["lib"]
+
+
+def _open() -> dict:
+    """{"lib": the loaded library or None, "reason": why it is None}."""
+    if sys.maxsize <= 2 ** 32:
+        return {"lib": None, "reason": "a 32-bit Python (pointers are passed as 64-bit integers)"}
+    try:
+        candidates = _library_candidates()
+    except Exception as exc:  # noqa: BLE001 - any failure means: use embreex
+        return {"lib": None, "reason": f"looking for embreex's Embree library failed: {exc!r}"}
+    if not candidates:
+        return {"lib": None, "reason": "no Embree 4 library found next to the installed embreex"}
+    try:
+        return {"lib": _Embree(candidates[0]), "reason": None}
+    except Exception as exc:  # noqa: BLE001
+        return {"lib": None, "reason": f"{candidates[0]}: {exc!r}"}
 
 
 def available() -> bool:
