@@ -110,7 +110,7 @@ def _cast(scene, origins, dirs, tfar, prim):
                 ib[_INST + j] = -1
                 ib[_VALID + j] = -1
             else:
-                ib[_VALID + j] = 0  # an inactive lane: Embree neither reads nor writes it
+                ib[_VALID + j] = 0  # an inactive lane: its results are neither written nor read
         _rtc_intersect8(valid, scene, addr, 0)
         for j in range(m):
             tfar[s + j] = fb[_TFAR + j]  # unchanged on a miss
