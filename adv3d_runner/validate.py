@@ -531,7 +531,8 @@ def read_npz_steps(path: str | Path, what: str, hint: str = "",
                         yield (done + pos) / total,
                     done += zf.getinfo(name).file_size
                 members[name[:-4]] = out.reshape(shape[::-1]).transpose() if fortran else out.reshape(shape)
-    except (zipfile.BadZipFile, OSError, ValueError, EOFError) as exc:
+    except (zipfile.BadZipFile, zipfile.LargeZipFile, OSError, ValueError, EOFError, NotImplementedError,
+            zlib.error) as exc:  # the same as read_npz: a corrupt deflate stream raises zlib.error
         raise FileFormatError(path, "$", expected, f"{type(exc).__name__}: {exc}") from None
     return Arrays(members, path)
 

@@ -215,3 +215,27 @@ def test_old_helper_families_are_gone():
     for pattern in (r"class _V\b", r"class _Check\b", r"def _require\(", r"def _fail\(", r"def check_header\("):
         hits = [str(p.relative_to(root)) for p, t in text.items() if re.search(pattern, t)]
         assert hits == (["validate.py"] if "check_header" in pattern else []), (pattern, hits)
+
+
+def test_read_npz_steps_names_the_file_for_a_corrupt_deflate_stream(tmp_path):
+    """A flipped byte inside a compressed member (zlib: "invalid distance too far back"), found
+    by the slow fuzz run on a replay's points file: a FileFormatError, not a zlib.error."""
+    from adv3d_runner.errors import FileFormatError
+    from adv3d_runner.progress import run_steps
+    from adv3d_runner.validate import read_npz_steps
+
+    path = tmp_path / "replay.points.npz"
+    np.savez_compressed(path, xyz_cm=np.tile(np.arange(3000, dtype=np.int16), 20))
+    blob = bytearray(path.read_bytes())
+    start = blob.index(b"xyz_cm.npy") + len("xyz_cm.npy") + 200  # inside the deflate data
+    hits = 0
+    for k in range(start, start + 40):
+        bad = blob.copy()
+        bad[k] ^= 0xFF
+        path.write_bytes(bytes(bad))
+        try:
+            run_steps(read_npz_steps(path, "points file"))
+        except FileFormatError as exc:
+            assert "replay.points.npz" in str(exc)
+            hits += 1
+    assert hits > 0
