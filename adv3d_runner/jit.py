@@ -14,8 +14,10 @@ Conventions for every kernel:
   docstring says otherwise), and no thread pool spinning against the process's other threads
   (:mod:`adv3d_runner.machine`, ``bench/threads.py``);
 * ``cache=True``: compiled once per checkout (the first ``adv3d simulate`` of a fresh clone
-  spends about 6.5 s compiling the kernels an episode uses: 8.9 s against 2.4 s for a 0.5 s
-  episode here), then loaded from ``__pycache__`` by every process, workers included;
+  spends about 12 s compiling the kernels an episode uses: 15.2 s against 3.0 s for a 0.5 s
+  episode of ``highway-benchmark-000000`` here, 2026-11-27, after the predictor's and the
+  Embree binding's kernels; 6.5 s before them), then loaded from ``__pycache__`` by every
+  process, workers included;
 * a kernel takes and returns arrays (the caller checks shapes and dtypes, so a kernel sees one
   signature and compiles once).
 """
