@@ -3,8 +3,9 @@
     .venv/bin/python bench/lidar.py [--quick] [--ab COMMIT]
 
 The process is pinned to ONE core (``sched_setaffinity``): Embree's TBB pool (BVH builds) and
-numpy then share that core; embreex's ``run`` casts rays one by one (``rtcIntersect1``) on the
-calling thread anyway.
+numpy then share that core; rays are cast on the calling thread anyway (``sensors/embree.py``:
+packets of 8, ``rtcIntersect8``; embreex's ``run``, one ray at a time, where that binding is
+unavailable).
 
 World: the first bundled highway scene's background (road, shoulders, markings, barriers,
 ground) with N actors placed along its lanes around the ego (library meshes scaled to typical
@@ -73,7 +74,7 @@ def raw_rays(sensor, world, ego: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def machine_info() -> dict:
     return _machine_info(
         "numpy", "embreex",
-        threads="embreex run(): rtcIntersect1 per ray on the calling thread; BVH builds: TBB, pinned to 1 core")
+        threads="sensors/embree.py: rtcIntersect8 packets on the calling thread; BVH builds: TBB, pinned to 1 core")
 
 
 def build_scene_world(n_actors: int, seed: int = 0):
