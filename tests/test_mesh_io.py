@@ -355,3 +355,118 @@ def test_up_minus_y_works_as_the_docs_write_it(tmp_path, capsys):
     out = load_asset_mesh(library, asset.id)
     _check_convention(out, (4.5 + 0.2, 1.8 + 0.2, 1.5), tol=1e-5)
     assert _mirror_on_left(out)
+
+
+# ----------------------------------------------------------------------------- CPU-independent rounding
+
+def test_fma_is_one_correctly_rounded_operation():
+    from fractions import Fraction
+
+    from adv3d_runner.shapes import fma
+
+    rng = np.random.default_rng(7)
+    n = 1500
+    a = rng.standard_normal(n) * np.exp2(rng.integers(-30, 30, n))
+    b = rng.standard_normal(n) * np.exp2(rng.integers(-30, 30, n))
+    # near-cancellation (the hard cases), unrelated addends, exact halves and zeros
+    for c in (-(a * b) * (1 + rng.integers(-3, 4, n) * 2.0 ** -52), rng.standard_normal(n), 0.5 * a * b,
+              np.zeros(n)):
+        got = fma.fma(a, b, c)
+        want = np.array([float(Fraction(x) * Fraction(y) + Fraction(z)) for x, y, z in zip(a, b, c)])
+        assert np.array_equal(got, want)
+    # a product whose exact value is lost by rounding it first: 1 + 2^-30 squared, minus 1
+    x = 1.0 + 2.0 ** -30
+    assert fma.fma(x, x, -1.0) == 2.0 ** -29 + 2.0 ** -60
+    assert (x * x) - 1.0 == 2.0 ** -29
+
+
+def _cpu_has_avx2_and_fma() -> bool:
+    try:
+        with open("/proc/cpuinfo") as f:
+            flags = set(f.read().split())
+    except OSError:
+        return False
+    return {"avx2", "fma"} <= flags
+
+
+_AVX2_FMA = _cpu_has_avx2_and_fma()
+
+
+@pytest.mark.skipif(not _AVX2_FMA, reason="needs a Linux x86-64 CPU with AVX2 and FMA (OpenBLAS's FMA kernels)")
+def test_fma_products_equal_openblas_fma_kernels_on_every_kernel_choice():
+    """shapes/fma.py computes what OpenBLAS's FMA kernels compute, bit for bit, whichever kernel
+    this process's OpenBLAS runs (the SSE Prescott kernel, which numpy 1.26's OpenBLAS picks on
+    CPUs it does not know, rounds differently): the library rebuild no longer depends on it."""
+    script = textwrap.dedent("""
+        import sys
+        import numpy as np
+        import trimesh
+        from adv3d_runner.shapes import fma
+        rng = np.random.default_rng(3)
+        same = blas_same = True
+        for n in (2, 3, 4, 5):
+            ms = [rng.standard_normal((4, 4)) for _ in range(n)]
+            same &= np.array_equal(fma.chain(ms).view(np.int64), np.linalg.multi_dot(ms).view(np.int64))
+        m = rng.standard_normal((4, 4))
+        p = rng.standard_normal((2000, 3))
+        same &= np.array_equal(fma.transform_points(p, m).view(np.int64),
+                               trimesh.transformations.transform_points(p, m).view(np.int64))
+        print(int(same), fma.transform_points(p, m).tobytes().hex()[:64] + fma.chain(ms).tobytes().hex())
+    """)
+    out = {}
+    for kernel in ("Prescott", "Haswell", "SkylakeX", "Zen"):
+        env = {**__import__("os").environ, "OPENBLAS_CORETYPE": kernel}
+        res = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=120)
+        assert res.returncode == 0, res.stderr
+        out[kernel] = res.stdout.split()
+    assert [out[k][0] for k in ("Haswell", "SkylakeX", "Zen")] == ["1", "1", "1"]  # equal to the FMA kernels
+    assert out["Prescott"][0] == "0"  # the SSE kernel rounds differently (why fma.py exists)
+    assert len({v[1] for v in out.values()}) == 1  # and fma.py's own results never change
+
+
+def test_gltf_node_transforms_round_like_the_fma_kernels(tmp_path):
+    """Nested rotated and scaled glTF nodes: the flattened vertices are the fma.py products of
+    the nodes' matrices (the 2026-11-27 coupe.glb mismatch came from these)."""
+    from adv3d_runner.shapes import fma
+
+    rng = np.random.default_rng(11)
+    scene = trimesh.Scene()
+    box = trimesh.creation.box(extents=(1.3, 0.7, 0.4))
+    box.vertices = box.vertices + rng.standard_normal(box.vertices.shape) * 0.01
+
+    def trs(t, q, s):
+        m = trimesh.transformations.quaternion_matrix(q / np.linalg.norm(q))
+        m[:3, :3] *= s
+        m[:3, 3] = t
+        return m
+
+    mats = [trs(rng.standard_normal(3), rng.standard_normal(4), rng.uniform(0.5, 2, 3)) for _ in range(3)]
+    scene.graph.update(frame_from=scene.graph.base_frame, frame_to="a", matrix=mats[0])
+    scene.graph.update(frame_from="a", frame_to="b", matrix=mats[1])
+    scene.add_geometry(box, geom_name="part", node_name="c", parent_node_name="b", transform=mats[2])
+    path = tmp_path / "nested.glb"
+    scene.export(path)
+
+    loaded = trimesh.load(str(path), force="scene", process=False)
+    ed = loaded.graph.transforms.edge_data
+    chain = loaded.graph.transforms.shortest_path(loaded.graph.base_frame, "c")
+    edges = [np.asarray(ed[(u, v)]["matrix"]) for u, v in zip(chain[:-1], chain[1:])]
+    edges = [m for m in edges if np.abs(m - np.eye(4)).max() > 1e-8]
+    assert len(edges) == 3
+    geom = np.asarray(loaded.geometry["part"].vertices, dtype=np.float64)
+    want = fma.transform_points(geom, fma.chain(edges))
+    flat = mesh_io.flatten_scene(loaded)
+    assert np.array_equal(flat.vertices, want)
+
+
+def test_openmaterial_coupe_imports_to_the_shipped_bytes(repo_root):
+    """The coupe is the library mesh that came out differently on a CPU whose OpenBLAS kernel
+    does not fuse multiply-adds; importing it as build_library.sh does gives the shipped glb."""
+    from adv3d_runner.shapes.library import DEFAULT_LIBRARY
+
+    src = repo_root.parent / "shared" / "vehicle-packs" / "openmaterial-examples" / "vehicle_example.gltf"
+    if not src.is_file():
+        pytest.skip(f"source pack not found at {src}")
+    mesh, _, _ = mesh_io.import_vehicle(src, up="+y", forward="-x")
+    shipped = DEFAULT_LIBRARY.parent / "openmaterial-examples" / "coupe.glb"
+    assert mesh_io.export_library_glb(mesh) == shipped.read_bytes()

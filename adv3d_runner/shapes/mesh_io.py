@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import ConfigError, MeshImportError
+from . import fma
 
 TRIMESH_FORMATS = (".glb", ".gltf", ".obj", ".ply", ".stl")
 BLENDER_FORMATS = (".fbx", ".blend")
@@ -193,19 +194,52 @@ def flatten_scene(scene) -> Any:
 
     parts = []
     for node in scene.graph.nodes_geometry:  # graph order is the file's order: deterministic
-        transform, geom_name = scene.graph[node]
+        geom_name = scene.graph[node][1]
         geom = scene.geometry.get(geom_name)
         if not isinstance(geom, trimesh.Trimesh) or len(geom.faces) == 0:
             continue
         colours = _face_colours(geom)
-        part = trimesh.Trimesh(np.asarray(geom.vertices, dtype=np.float64).copy(),
-                               np.asarray(geom.faces, dtype=np.int64).copy(), process=False)
-        part.apply_transform(np.asarray(transform, dtype=np.float64))  # flips winding if mirrored
+        vertices = np.asarray(geom.vertices, dtype=np.float64).copy()
+        transform = _world_transform(scene.graph, node)
+        part = trimesh.Trimesh(vertices.copy(), np.asarray(geom.faces, dtype=np.int64).copy(), process=False)
+        part.apply_transform(transform)  # flips winding if mirrored
+        # the positions again, rounded the same on every CPU (shapes/fma.py: BLAS kernels differ)
+        part.vertices = fma.transform_points(vertices, transform)
         part.visual = trimesh.visual.ColorVisuals(part, face_colors=colours)
         parts.append(part)
     if not parts:
         return None
     return concatenate(parts)
+
+
+def _world_transform(graph, node) -> np.ndarray:
+    """``graph[node]``'s matrix (base frame to ``node``) as trimesh's ``SceneGraph.get`` builds
+    it (the path's edge matrices, those within 1e-8 of the identity left out, multiplied as
+    ``np.linalg.multi_dot`` does, then ``fix_rigid`` when the graph repairs rigid transforms),
+    but multiplied by :func:`fma.chain`, so the result does not depend on the CPU's BLAS kernel.
+    A path with an edge walked backwards (not in glTF files) keeps trimesh's own matrix."""
+    from trimesh import transformations
+
+    data = graph.transforms.edge_data
+    start = graph.base_frame
+    if node == start:
+        matrix = np.eye(4)
+    elif (start, node) in data:
+        matrix = np.asarray(data[(start, node)]["matrix"], dtype=np.float64)
+    else:
+        path = graph.transforms.shortest_path(start, node)
+        matrices = []
+        for u, v in zip(path[:-1], path[1:]):
+            forward = data.get((u, v))
+            if forward is None:
+                return np.array(graph[node][0], dtype=np.float64)
+            if "matrix" in forward:
+                matrices.append(np.asarray(forward["matrix"], dtype=np.float64))
+        matrices = [m for m in matrices if np.abs(m - np.eye(4)).max() > 1e-8]
+        matrix = fma.chain(matrices) if matrices else np.eye(4)
+    if getattr(graph, "repair_rigid", None) is not None:
+        matrix = transformations.fix_rigid(matrix, max_deviance=graph.repair_rigid)
+    return np.array(matrix, dtype=np.float64)
 
 
 def concatenate(parts: list) -> Any:
