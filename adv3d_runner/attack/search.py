@@ -464,9 +464,16 @@ class SkoptSearcher(Searcher):
 
 @contextlib.contextmanager
 def _quiet_skopt():
-    """Silence skopt's "evaluated at point ... before" and scikit-learn's convergence warnings
-    while skopt works (they would break the progress bars; the journal shows duplicates)."""
-    with warnings.catch_warnings():
+    """While skopt works: silence skopt's "evaluated at point ... before" and scikit-learn's
+    convergence warnings (they would break the progress bars; the journal shows duplicates),
+    and hold BLAS to one thread. Why the thread limit: the same seed must give the same points,
+    and once (a CI run on a loaded 2-core machine, OpenBLAS with 2 threads) the two same-seed
+    runs of ``tests/test_attack_search.py`` asked different points; one thread fixes the order
+    of every floating-point sum in the GP fit and the acquisition optimisation. The GP holds at
+    most a few hundred points, so the second thread bought nothing."""
+    from threadpoolctl import threadpool_limits  # scikit-learn's own dependency, present with skopt
+
+    with warnings.catch_warnings(), threadpool_limits(limits=1):
         warnings.simplefilter("ignore", UserWarning)  # ConvergenceWarning is a UserWarning
         yield
 
