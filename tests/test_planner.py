@@ -731,3 +731,46 @@ def test_fixed_acceleration_candidates_reach_their_target_at_the_jerk_limit_and_
     assert np.allclose(accel[:3], [step, 2 * step, 3 * step]) and np.allclose(accel[3:], 0.5)
     default = planner_on(straight_lanes(1)).plan_with_scores(EgoState([0.0, 0.0, 0.0], 15.0))[1]
     assert not any("/a" in lab.split("/")[-1][:2] for lab in default.spec.labels)
+
+
+def test_avoidable_later_only_at_speeds_a_later_brake_can_handle():
+    dt = 0.1
+    t = np.arange(51) * dt
+    crawl = np.full((1, 51), 1.8)  # 1.8 m/s: stops in 0.81 m at 2 m/s^2, covers 1.8 m in 1 s
+    fast = np.full((1, 51), 15.0)  # 15 m/s: needs 56 m, covers 15 m in 1 s
+    speeds = np.concatenate([crawl, fast])
+    travelled = speeds * t[None]
+    later = costs.avoidable_later(speeds, travelled, dt, reaction=1.0, decel=2.0)
+    assert later.shape == (2, 51)
+    assert not later[:, :10].any()  # within the reaction time: never
+    assert later[0, 10:].all() and not later[1].any()
+    assert not costs.avoidable_later(speeds, travelled, dt, reaction=10.0, decel=2.0).any()  # beyond the horizon
+
+
+def test_contingency_leaves_a_late_collision_with_a_crawling_mode_to_later_plans():
+    """At 1.8 m/s, a 15 % mode in which the leader 4 m ahead stops dead makes every candidate
+    that keeps following "collide" seconds ahead; with contingency_time the collision term
+    leaves that to the later plans (the buffer term still sees it)."""
+    from adv3d_runner.autonomy.planner import PlannerConfig
+
+    lanes = straight_lanes(1)
+    T = 60
+    steps = np.arange(1, T + 1) * DT
+    ego_len = 4.5
+    lead_x0 = ego_len + 4.0  # 4 m bumper gap
+    crawl = np.c_[lead_x0 + 1.8 * steps, np.zeros(T)]
+    stop = np.c_[np.full(T, lead_x0), np.zeros(T)]
+    traj = np.stack([crawl, stop])[None]  # (1, 2, T, 2)
+    preds = Predictions(np.array([1]), traj, np.array([[0.85, 0.15]]))
+    tracks = Tracks(np.array([1]), np.array([[lead_x0, 0.0, 4.5, 1.9, 0.0]]), np.array([[1.8, 0.0]]), np.ones(1),
+                    np.zeros(1, np.int64), np.zeros((1, 1, 3)), np.ones((1, 1), bool))
+    ego = EgoState([0.0, 0.0, 0.0], 1.8, length=ego_len, width=1.9)
+    tables = {}
+    for name, cfg in (("plain", PlannerConfig()), ("later", PlannerConfig(contingency_time=1.0))):
+        plan, cands, table = planner_on(lanes, SamplingPlanner(cfg)).plan_with_scores(ego, preds, tracks)
+        follow = [i for i, label in enumerate(cands.spec.labels) if label == "lane0/d+0.0/v25.0"]
+        tables[name] = (plan, table.raw["collision"][follow[0]], table.raw["buffer"][follow[0]])
+    plan, collision, buffer = tables["plain"]
+    assert 0.05 < collision <= 0.15 and plan.label.endswith("/v0.0")  # only the stop target is clean
+    _, collision, buffer_later = tables["later"]
+    assert collision == 0.0 and buffer_later == buffer > 0.0

@@ -220,6 +220,26 @@ def collision_cost(dist: np.ndarray, probs: np.ndarray, exempt: np.ndarray | Non
     return np.einsum("bnk,nk->b", w, probs)
 
 
+def avoidable_later(speeds: np.ndarray, travelled: np.ndarray, dt: float, reaction: float, decel: float) -> np.ndarray:
+    """Where a collision could still be avoided by a later plan: (B, T) bool, True at step t
+    when the candidate, braking at ``decel`` (m/s^2) from step t - ``reaction`` (s) on, would
+    stop before the point it reaches at t: v(t - r)^2 / (2 decel) < s(t) - s(t - r). False for
+    t < ``reaction``. speeds, travelled: (B, T) m/s and m driven since now.
+
+    Why (issue 17, crawls): the collision term counts every predicted mode with its probability,
+    and at 1-2 m/s the predictor gives a leader that in fact keeps crawling a 10-20 % mode that
+    stops; every candidate that follows the leader then "collides" with that mode seconds ahead,
+    and only the stop targets win. Re-planning every 0.1 s sees such a mode coming; a collision
+    that is still avoidable ``reaction`` s before it (only below 2 decel reaction m/s) is the
+    next plans' business."""
+    k = int(round(reaction / dt))
+    out = np.zeros(speeds.shape, bool)
+    if 0 < k < speeds.shape[1]:
+        v = speeds[:, :-k]
+        out[:, k:] = v * v / (2.0 * decel) < travelled[:, k:] - travelled[:, :-k]
+    return out
+
+
 def _horizon_weights(T: int, last: float = 0.5) -> np.ndarray:
     """Per-time weights from 1 (now) to ``last`` (horizon end), normalised to mean 1: the far
     future is predicted less well, so violations there count less."""

@@ -77,6 +77,11 @@ class PlannerConfig:
             decided it: a track that appeared beside the ego filled every candidate's buffer
             term, or a 5 % mode touched every candidate, and the emergency stop's -7 m/s^2 scored
             lowest (NGSIM US-101 train recordings, issue 17).
+        contingency_time, contingency_decel: None: off. A number (s): a collision with an
+            actor-mode that the candidate could still avoid by braking at ``contingency_decel``
+            from ``contingency_time`` s before it (:func:`.costs.avoidable_later`: only at
+            speeds below 2 x decel x time) is left to the later plans and does not count in the
+            collision term (the buffer term still sees it).
     """
 
     proposals: ProposalConfig = field(default_factory=ProposalConfig)
@@ -95,6 +100,8 @@ class PlannerConfig:
     exempt_overlap_now: bool = True
     progress_floor: float | None = None
     emergency_min_collision: float | None = 0.5
+    contingency_time: float | None = None
+    contingency_decel: float = 2.0
 
     @classmethod
     def from_overrides(cls, overrides: dict, source: str = "planner overrides") -> "PlannerConfig":
@@ -354,7 +361,12 @@ class SamplingPlanner:
             if cfg.exempt_overlap_now and len(fc):
                 now = np.broadcast_to((dist[0, :, :, 0] <= 1e-9)[None, :, :, None], dist.shape)
                 exempt = now if exempt is None else exempt | now
-            k_col, collision = "collision", costs.collision_cost(dist, fc.probs, exempt)
+            exempt_col = exempt
+            if cfg.contingency_time is not None and len(fc):
+                later = costs.avoidable_later(speeds, travelled, cands.dt, cfg.contingency_time, cfg.contingency_decel)
+                later = np.broadcast_to(later[:, None, None, :], dist.shape)
+                exempt_col = later if exempt is None else exempt | later
+            k_col, collision = "collision", costs.collision_cost(dist, fc.probs, exempt_col)
             k_buf, buffer = "buffer", costs.buffer_cost(dist, fc.probs, cfg.buffer, exempt)
         reference = limit_now * horizon
         if cfg.progress_floor is not None:  # relative to the best safe candidate (PDM)
