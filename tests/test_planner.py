@@ -368,11 +368,14 @@ def test_driving_west_across_the_yaw_wrap():
 
 
 def test_plan_with_scores_reports_every_term():
-    from adv3d_runner.autonomy.planner.scorer import OCCUPANCY_TERMS, TERMS
+    from adv3d_runner.autonomy.planner import PlannerConfig
+    from adv3d_runner.autonomy.planner.scorer import OCCUPANCY_TERMS, OPTIONAL_TERMS, TERMS
 
     planner = planner_on(straight_lanes(3))
     plan, cands, table = planner.plan_with_scores(EgoState([0.0, LANE_W, 0.0], 10.0))  # middle lane
-    assert set(plan.cost_terms) == set(TERMS) - set(OCCUPANCY_TERMS) == set(table.raw)
+    assert set(plan.cost_terms) == set(TERMS) - set(OCCUPANCY_TERMS) - set(OPTIONAL_TERMS) == set(table.raw)
+    with_own = planner_on(straight_lanes(3), SamplingPlanner(PlannerConfig(own_lane_floor=5.0)))
+    assert set(with_own.plan(EgoState([0.0, LANE_W, 0.0], 10.0)).cost_terms) == set(TERMS) - set(OCCUPANCY_TERMS)
     assert len(cands) == len(table.total) == 3 * 5 + 2 * 5 + 1  # offsets x speeds per lane + emergency stop
     assert plan.cost == pytest.approx(sum(plan.cost_terms.values()))
     assert plan.trajectory.shape == (51, 3) and plan.acceleration.shape == (50,)
@@ -774,3 +777,21 @@ def test_contingency_leaves_a_late_collision_with_a_crawling_mode_to_later_plans
     assert 0.05 < collision <= 0.15 and plan.label.endswith("/v0.0")  # only the stop target is clean
     _, collision, buffer_later = tables["later"]
     assert collision == 0.0 and buffer_later == buffer > 0.0
+
+
+def test_own_lane_floor_makes_stopping_cost_at_a_crawl_without_paying_for_lane_changes():
+    """A free lane at 1 m/s: against the speed limit a stop loses ~0.1 of the progress term;
+    against the best collision-free candidate of the own lane (own_lane_floor) it loses it
+    all, while a neighbour lane's candidate that drives as far as the own lane's best gains
+    nothing over it."""
+    from adv3d_runner.autonomy.planner import PlannerConfig
+
+    ego = EgoState([0.0, 0.0, 0.0], 1.0)
+    planner = planner_on(straight_lanes(2), SamplingPlanner(PlannerConfig(own_lane_floor=5.0)))
+    _, cands, table = planner.plan_with_scores(ego)
+    labels = cands.spec.labels
+    stop, go = labels.index("lane0/d+0.0/v0.0"), labels.index("lane0/d+0.0/v25.0")
+    left = labels.index("left1/d+0.0/v25.0")
+    own = table.raw["own_progress"]
+    assert own[stop] > 0.8 and own[go] == 0.0 and own[left] == 0.0
+    assert table.raw["progress"][stop] - table.raw["progress"][go] < own[stop] - own[go]

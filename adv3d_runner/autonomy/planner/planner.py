@@ -82,6 +82,10 @@ class PlannerConfig:
             from ``contingency_time`` s before it (:func:`.costs.avoidable_later`: only at
             speeds below 2 x decel x time) is left to the later plans and does not count in the
             collision term (the buffer term still sees it).
+        own_lane_floor: None: off. A number (m): the ``own_progress`` term, progress against
+            the longest collision-free candidate on the current lane (at least this many m,
+            :func:`.costs.progress_reference`): stopping costs as much at a crawl as at speed,
+            and unlike ``progress_floor`` a lane change earns nothing from it.
     """
 
     proposals: ProposalConfig = field(default_factory=ProposalConfig)
@@ -102,6 +106,7 @@ class PlannerConfig:
     emergency_min_collision: float | None = 0.5
     contingency_time: float | None = None
     contingency_decel: float = 2.0
+    own_lane_floor: float | None = None
 
     @classmethod
     def from_overrides(cls, overrides: dict, source: str = "planner overrides") -> "PlannerConfig":
@@ -387,6 +392,11 @@ class SamplingPlanner:
             "jerk": costs.jerk_cost(cands.accel, ego.acceleration, cands.dt),
             "lat_accel": costs.lateral_accel_cost(speeds[:, :-1], cands.curvature),
         }
+        if cfg.own_lane_floor is not None:  # stopping costs where the own lane lets the ego move
+            own = (cands.spec.corridor == 0) & ~cands.spec.emergency
+            ref_own = costs.progress_reference(travelled[own, -1], (collision[own] <= 0.0), reference,
+                                               cfg.own_lane_floor)
+            raw["own_progress"] = costs.progress_cost(travelled[:, -1], ref_own)
         eligible = None
         if cfg.emergency_min_collision is not None and cands.spec.emergency.any():
             others = ~cands.spec.emergency

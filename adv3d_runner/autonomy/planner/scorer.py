@@ -18,6 +18,8 @@ jerk            0.3     1 m/s^3 mean |jerk|
 lat_accel       1.0     1 m/s^2 mean |lateral acceleration|
 occupancy_collision 1000 a footprint surely occupied now (Autonomy-B; discounted later)
 occupancy_buffer     30 the buffer ring surely occupied over the whole horizon (Autonomy-B)
+own_progress     20     no progress against the best collision-free candidate of the own lane
+                        (only with ``PlannerConfig.own_lane_floor``; off by default)
 ============== ======== ==========================================================
 
 Autonomy-A plans with ``collision`` and ``buffer`` (from predicted actors); Autonomy-B, which
@@ -38,9 +40,12 @@ import numpy as np
 from ...jit import kernel
 
 TERMS = ("collision", "drivable_area", "buffer", "headway", "speed_limit", "progress", "lane_center",
-         "lane_change", "offset_change", "jerk", "lat_accel", "occupancy_collision", "occupancy_buffer")
+         "lane_change", "offset_change", "jerk", "lat_accel", "occupancy_collision", "occupancy_buffer",
+         "own_progress")
 #: The terms only an instance-based plan has (from predicted actors) and only an
 #: occupancy-based plan has (from the occupancy field); a plan has one pair, not both.
+#: Terms present only when their planner option is on (``PlannerConfig.own_lane_floor``).
+OPTIONAL_TERMS = ("own_progress",)
 ACTOR_TERMS = ("collision", "buffer")
 OCCUPANCY_TERMS = ("occupancy_collision", "occupancy_buffer")
 
@@ -60,6 +65,7 @@ class CostWeights:
     lat_accel: float = 1.0
     occupancy_collision: float = 1000.0
     occupancy_buffer: float = 30.0
+    own_progress: float = 20.0
 
     def as_dict(self) -> dict[str, float]:
         # dataclasses.asdict deep-copies through its recursion: ~100 us a plan for 13 floats
