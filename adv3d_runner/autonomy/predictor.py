@@ -90,11 +90,7 @@ def sanitize_tracks(tracks: Tracks) -> tuple[np.ndarray, np.ndarray, np.ndarray,
     ok = np.all(np.isfinite(boxes), axis=1)
     boxes[~ok] = 0.0
     vel = np.nan_to_num(np.asarray(tracks.velocities, np.float64).reshape(n, 2), nan=0.0, posinf=0.0, neginf=0.0)
-    hist_in = np.asarray(tracks.history, np.float64)
-    hv_in = np.asarray(tracks.history_valid, bool)
-    if hist_in.ndim != 3 or hist_in.shape[0] != n:
-        hist_in = np.zeros((n, 0, 3))
-        hv_in = np.zeros((n, 0), bool)
+    hist_in, hv_in = _history(tracks, n)
     H = hist_in.shape[1]
     hist = np.zeros((n, HISTORY, 3))
     hv = np.zeros((n, HISTORY), bool)
@@ -162,16 +158,22 @@ def _encode(tracks: Tracks, lane_map: LaneMap, steps: int, dt: float):
     return feats, prior, boxes, ok, c, s
 
 
+def _history(tracks: Tracks, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The tracks' history (n, H, 3) float64 and its validity (n, H) bool as given, or empty
+    ((n, 0, 3), (n, 0)) when the history does not have one row per track."""
+    hist = np.asarray(tracks.history, np.float64)
+    hv = np.asarray(tracks.history_valid, bool)
+    if hist.ndim != 3 or hist.shape[0] != n:
+        return np.zeros((n, 0, 3)), np.zeros((n, 0), bool)
+    return hist, hv
+
+
 def _track_arrays(tracks: Tracks, n: int):
     """The track arrays as the kernels take them: boxes (n, 5), velocities (n, 2), history
     (n, H, 3) float64 and its validity (n, H) bool, C-contiguous, and misses (n,) float64."""
     boxes = np.ascontiguousarray(np.asarray(tracks.boxes, np.float64).reshape(n, 5))
     vel = np.ascontiguousarray(np.asarray(tracks.velocities, np.float64).reshape(n, 2))
-    hist = np.asarray(tracks.history, np.float64)
-    hv = np.asarray(tracks.history_valid, bool)
-    if hist.ndim != 3 or hist.shape[0] != n:
-        hist = np.zeros((n, 0, 3))
-        hv = np.zeros((n, 0), bool)
+    hist, hv = _history(tracks, n)
     H = hist.shape[1]
     if hist.shape[2] != 3 or hv.shape != (n, H):  # what Tracks never holds; broadcast as sanitize_tracks does
         hist = np.broadcast_to(hist, (n, H, 3))
