@@ -16,7 +16,7 @@
     detector + tracker + predictor measured on the same scenes in the same process (the
     acceptance bar of issue 15: B's model is no slower than A's three stages together).
 
-    .venv/bin/python bench/episode.py [--quick] [--autonomy A|B|oracle]
+    .venv/bin/python bench/episode.py [--quick] [--autonomy A|B|oracle|A-fast] [--out FILE]
 
 Writes ``bench/results/episode[.quick].json`` (``episode.B[.quick].json`` for B).
 """
@@ -207,6 +207,9 @@ def main() -> int:
     ap.add_argument("--autonomy", choices=("A", "B", "oracle", "A-lanefollow", "A-fast"), default=None,
                     help="default: A when its weights exist, else A-lanefollow (learned detector), else oracle; "
                          "B: Autonomy-B with Autonomy-A's stages measured alongside")
+    ap.add_argument("--out", default=None,
+                    help="result file of (a)+(b) (default bench/results/episode[.quick].json), so that a "
+                         "rerun keeps the kept one")
     args = ap.parse_args()
     import torch
 
@@ -272,7 +275,7 @@ def main() -> int:
         for d in h7_rows:
             print(f"| {d.get('model')} | {d.get('resolution')} | {d.get('ap', float('nan')):.3f} | "
                   f"{d.get('recall', float('nan')):.3f} | {d.get('ms_median', float('nan')):.1f} |")
-    out = ROOT / "bench" / "results" / f"episode{'.quick' if args.quick else ''}.json"
+    out = Path(args.out).resolve() if args.out else ROOT / "bench" / "results" / f"episode{'.quick' if args.quick else ''}.json"
     write_json(out, {"format": "adv3d-bench", "version": 1, "topic": "episode",
                      "command": " ".join(["bench/episode.py"] + sys.argv[1:]),
                      "machine": _machine(torch),
@@ -280,7 +283,7 @@ def main() -> int:
                      "autonomy": autonomy, "stages_ms_cpu_mean": mean, "total_ms_cpu_mean": total,
                      "fps_cpu_mean": 1000 / total, "rows": rows, "detector_resolution": det_rows,
                      "detector_resolution_from_bench_detector": h7_rows})
-    print(f"wrote {out.relative_to(ROOT)}")
+    print(f"wrote {out}")
     return 0
 
 
