@@ -237,6 +237,7 @@ class SamplingPlanner:
         self.config = config
         self.params = params
         self.lane_map: LaneMap | None = None
+        self._chains, self._chains_of = ChainCache(), None  # corridor geometry of the map _chains_of
         self._forget()
 
     def reset(self, lane_map: LaneMap) -> None:
@@ -248,7 +249,7 @@ class SamplingPlanner:
 
     def _chain_cache(self, lanes: LaneMap) -> ChainCache:
         """The corridor geometry cache of ``lanes`` (a new one when the map changed)."""
-        if getattr(self, "_chains_of", None) is not lanes:
+        if self._chains_of is not lanes:
             self._chains, self._chains_of = ChainCache(), lanes
         return self._chains
 
