@@ -14,7 +14,7 @@ from adv3d_runner.autonomy.interface import EgoState, SceneContext, Tracks
 from adv3d_runner.autonomy.planner import SamplingPlanner
 from adv3d_runner.scene import lanes as lanegeo
 from adv3d_runner.scene.lanemap import LaneMap
-from adv3d_runner.scene.schema import Lane
+from adv3d_runner.scene.schema import Lane, load_scene
 
 LANE_W = 3.7
 
@@ -45,6 +45,32 @@ def test_lane_map_holds_every_lane_and_its_geometry():
     assert ids.tolist() == [0, 2]
     empty = LaneMap([])
     assert len(empty) == 0 and empty.locate(np.zeros(3))[0] is None
+
+
+def test_compiled_locate_is_the_numpy_definition_bit_for_bit():
+    """``locate_many``'s compiled pass against ``locate_many_numpy`` (the definition): ids, s
+    and d the same bytes for poses on, between, beyond and across real and generated lanes,
+    one pose at a time as the planner asks, a degenerate one-point lane included."""
+    rng = np.random.default_rng(3)
+    scenes = [Path("scenes/highway/highway-benchmark-000010.json.gz"), Path("scenes/real/USA_US101-3_1_T-1.json.gz")]
+    maps = [LaneMap.from_scene(load_scene(p)) for p in scenes if p.exists()]
+    maps.append(LaneMap(straight(0.0, 3) + [Lane(9, np.array([[40.0, 30.0]]), LANE_W)]))
+    for m in maps:
+        pts = np.concatenate([np.asarray(lane.centerline, float).reshape(-1, 2) for lane in m.lanes])
+        n = 2000
+        P = np.c_[pts[rng.integers(len(pts), size=n)] + rng.normal(0.0, 4.0, (n, 2)), rng.uniform(-4.0, 4.0, n)]
+        P[:20, :2] = pts.min(axis=0) - rng.uniform(0.0, 80.0, (20, 2))  # off the map
+        for got, want in zip(m.locate_many(P), m.locate_many_numpy(P)):
+            assert got.dtype == want.dtype and got.tobytes() == want.tobytes()
+        for k in range(0, n, 97):
+            for got, want in zip(m.locate_many(P[k:k + 1]), m.locate_many_numpy(P[k:k + 1])):
+                assert got.tobytes() == want.tobytes()
+    # non-finite poses keep numpy's rules
+    m = maps[-1]
+    bad = np.array([[np.nan, 0.0, 0.0], [1.0, 1.0, np.inf]])
+    with np.errstate(invalid="ignore"):
+        for got, want in zip(m.locate_many(bad), m.locate_many_numpy(bad)):
+            assert got.tobytes() == want.tobytes()
 
 
 def test_derived_structures_are_built_once_per_map():

@@ -31,6 +31,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from ..geometry.angles import wrap_angle
+from ..jit import kernel
 from . import lanes as lanegeo
 from .corridor import DEFAULT_SPEED_LIMIT, Corridor, CorridorSet, LaneGeometry, build_corridor, lane_geometry
 
@@ -52,6 +53,7 @@ class LaneMap:
         self._lane_corridors: dict[tuple[int, float], CorridorSet] = {}
         self._indexes: dict[tuple[float, float, float], LaneIndex] = {}
         self._border: dict[tuple[float, float], frozenset[int]] = {}
+        self._flat: tuple[np.ndarray, ...] | None = None  # every lane's geometry in flat arrays, on first use
 
     @classmethod
     def from_scene(cls, scene: Any) -> "LaneMap":
@@ -77,13 +79,29 @@ class LaneMap:
 
     def locate_many(self, poses: np.ndarray, max_heading_error: float = np.pi / 2,
                     max_gap: float = 50.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """:meth:`locate` for many poses (N, 3) at once (one projection call per lane).
+        """:meth:`locate` for many poses (N, 3) at once.
 
         Lanes whose bounding box is more than ``max_gap`` m further from a pose than the nearest
         lane's box are not considered for it (they cannot be the lane it is on).
         Returns:
             lane ids (N,) int64 (-1: none), s (N,), d (N,).
+
+        One compiled pass over the poses and lanes (:func:`_locate_kernel`): the planner
+        locates the ego every frame, and the numpy version (:meth:`locate_many_numpy`, the
+        tests' reference) paid ~10 array calls per lane of the map for one pose. Poses with a
+        NaN or an infinity take the numpy version (its NaN rules are numpy's).
         """
+        P = np.ascontiguousarray(np.asarray(poses, dtype=np.float64).reshape(-1, 3))
+        if len(P) == 0 or not len(self.lanes) or not np.isfinite(P).all():
+            return self.locate_many_numpy(P, max_heading_error, max_gap)
+        if self._flat is None:
+            self._flat = _flatten(self.geometry)
+        return _locate_kernel(P, float(max_heading_error), float(max_gap), self.ids, *self._flat)
+
+    def locate_many_numpy(self, poses: np.ndarray, max_heading_error: float = np.pi / 2,
+                          max_gap: float = 50.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`locate_many` in numpy, one projection call per lane (the definition the
+        compiled version is tested against)."""
         P = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
         n = len(P)
         best_key = np.full((n, 2), np.inf)
@@ -403,3 +421,101 @@ def _lane_widths(lane: Any) -> np.ndarray:
     if w.size == 1:
         return np.full(len(keep), float(w[0]))
     return w[keep]
+
+
+# ----------------------------------------------------------------------------- compiled locate
+
+
+def _flatten(geometry: Sequence[LaneGeometry]) -> tuple[np.ndarray, ...]:
+    """Every lane's :class:`LaneGeometry` in flat arrays for :func:`_locate_kernel`: lo, hi
+    (L, 2) m, length (L,) m, point and segment offsets (L + 1,) int64, points (P, 2), cum (P,),
+    width (P,) m, unit (S, 2), seg_len (S,) m, heading (S,) rad (numpy's arctan2, as
+    :meth:`LaneGeometry.project` takes it)."""
+    def cat(arrays, cols=0):
+        if not arrays:
+            return np.zeros((0, cols) if cols else 0)
+        return np.ascontiguousarray(np.concatenate(arrays), dtype=np.float64)
+
+    g = list(geometry)
+    lo = np.array([x.lo for x in g], np.float64).reshape(-1, 2)
+    hi = np.array([x.hi for x in g], np.float64).reshape(-1, 2)
+    length = np.array([x.length for x in g], np.float64)
+    p_off = np.r_[0, np.cumsum([len(x.points) for x in g])].astype(np.int64)
+    s_off = np.r_[0, np.cumsum([len(x.seg_len) for x in g])].astype(np.int64)
+    unit = cat([x.unit for x in g], 2)
+    heading = np.arctan2(unit[:, 1], unit[:, 0])
+    return (lo, hi, length, p_off, s_off, cat([x.points for x in g], 2), cat([x.cum for x in g]),
+            cat([x.width for x in g]), unit, cat([x.seg_len for x in g]), heading)
+
+
+@kernel
+def _interp_one(x, xp, fp, a, b):
+    """``np.interp(x, xp[a:b], fp[a:b])`` for one x in [xp[a], xp[b - 1]] (b - a >= 2), with
+    numpy's rules: the exact value at a knot and at the right end, else slope x (x - x_j) + f_j."""
+    if x >= xp[b - 1]:
+        return fp[b - 1]
+    lo, hi = a, b - 1  # the last j with xp[j] <= x: xp[lo] <= x < xp[hi]
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        if xp[mid] <= x:
+            lo = mid
+        else:
+            hi = mid
+    if xp[lo] == x:
+        return fp[lo]
+    slope = (fp[lo + 1] - fp[lo]) / (xp[lo + 1] - xp[lo])
+    return slope * (x - xp[lo]) + fp[lo]
+
+
+@kernel
+def _locate_kernel(P, max_herr, max_gap, ids, lo, hi, length, p_off, s_off, points, cum, width, unit, seg_len,
+                   heading):
+    """:meth:`LaneMap.locate_many_numpy` for finite poses, one pose and one lane at a time, the
+    same float64 operations in the same order (the projection is ``corridor._project_polyline``'s
+    loop). P: (N, 3) poses; the lanes: :func:`_flatten`. Returns ids (N,) int64, s, d (N,) m."""
+    n, L = P.shape[0], ids.shape[0]
+    out_id = np.full(n, -1, np.int64)
+    out_s = np.zeros(n)
+    out_d = np.zeros(n)
+    gaps = np.empty(L)
+    two_pi = 2 * np.pi
+    for k in range(n):
+        x, y, yaw = P[k, 0], P[k, 1], P[k, 2]
+        nearest = np.inf
+        for l in range(L):
+            gx = max(max(lo[l, 0] - x, x - hi[l, 0]), 0.0)
+            gy = max(max(lo[l, 1] - y, y - hi[l, 1]), 0.0)
+            gaps[l] = np.hypot(gx, gy)
+            nearest = min(nearest, gaps[l])
+        best0, best1 = np.inf, np.inf
+        for l in range(L):
+            if not gaps[l] <= nearest + max_gap:
+                continue
+            # global projection on the lane's polyline (first / last segment extended)
+            a, S = s_off[l], s_off[l + 1] - s_off[l]
+            pa = p_off[l]
+            best, bi, s, d = np.inf, 0, 0.0, 0.0
+            for i in range(S):
+                ux, uy = unit[a + i, 0], unit[a + i, 1]
+                rx, ry = x - points[pa + i, 0], y - points[pa + i, 1]
+                t = rx * ux + ry * uy
+                tlo = -np.inf if i == 0 else 0.0
+                thi = np.inf if i == S - 1 else seg_len[a + i]
+                tc = min(max(t, tlo), thi)
+                ex, ey = rx - tc * ux, ry - tc * uy
+                e2 = ex * ex + ey * ey
+                if e2 < best or i == 0:
+                    best, bi = e2, i
+                    s = cum[pa + i] + tc
+                    d = ux * ry - uy * rx
+            herr = abs((yaw - heading[a + bi] + np.pi) % two_pi - np.pi)
+            half = 0.5 * _interp_one(min(max(s, 0.0), length[l]), cum, width, pa, p_off[l + 1])
+            beyond = max(max(-s, s - length[l]), 0.0)
+            k0 = 0.0 if (abs(d) <= half and beyond == 0.0) else 1.0
+            k1 = abs(d) + beyond
+            if herr > max_herr:
+                k0, k1 = np.inf, np.inf
+            if k0 < best0 or (k0 == best0 and k1 < best1):
+                best0, best1 = k0, k1
+                out_id[k], out_s[k], out_d[k] = ids[l], s, d
+    return out_id, out_s, out_d
