@@ -211,6 +211,15 @@ def _kdtree(points: np.ndarray):
     return cKDTree(points)
 
 
+def _nearest_module():
+    """:mod:`.nearest` (the compiled Chamfer sweep), or None without numba (Blender)."""
+    try:
+        from . import nearest
+    except ImportError:
+        return None
+    return nearest
+
+
 def _nn_distances(a: np.ndarray, b: np.ndarray, tree_b=None) -> np.ndarray:
     """(len(a),) distance from each point of ``a`` to its nearest point of ``b``, metres.
 
@@ -544,9 +553,29 @@ class RealismReference:
     meta: dict = field(default_factory=dict)
     source: Path | None = None
     _trees: list | None = field(default=None, init=False, repr=False, compare=False)
+    _sorted: list | None = field(default=None, init=False, repr=False, compare=False)
 
     def chamfer_distances(self, points: np.ndarray) -> np.ndarray:
-        """(M,) symmetric Chamfer distance (m) of a (n, 3) sample to every CAD model's points."""
+        """(M,) symmetric Chamfer distance (m) of a (n, 3) sample to every CAD model's points.
+
+        With numba, the compiled sweep of :mod:`.nearest` (the same bits as the trees of
+        :meth:`chamfer_distances_tree`, ~2.5x faster); without it, or for non-finite points,
+        the trees."""
+        sweep = _nearest_module()
+        q = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+        if sweep is None or len(q) == 0 or not np.isfinite(q).all() or not np.isfinite(self.points).all():
+            return self.chamfer_distances_tree(q)
+        ref = np.ascontiguousarray(self.points, dtype=np.float64)
+        if self._sorted is None:
+            self._sorted = [sweep.sort_by_x(p) for p in ref]
+        qs = sweep.sort_by_x(q)
+        nn = sweep.nn_distances_sorted
+        return np.array([float(0.5 * (nn(q, self._sorted[j]).mean() + nn(ref[j], qs).mean()))
+                         for j in range(len(ref))])
+
+    def chamfer_distances_tree(self, points: np.ndarray) -> np.ndarray:
+        """:meth:`chamfer_distances` with a ``cKDTree`` per cloud (the definition the sweep is
+        tested against; the path without numba)."""
         ref = self.points.astype(np.float64)
         if self._trees is None:
             self._trees = [_kdtree(p) for p in ref]
