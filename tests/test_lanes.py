@@ -87,3 +87,25 @@ def test_resample_spacing():
         lg.resample(line, 0.0)
     with pytest.raises(ValueError):
         lg.clean_polyline(np.array([[0, np.nan]]))
+
+
+def test_compiled_projection_is_the_numpy_definition_bit_for_bit():
+    """``project_on_segments`` (compiled nearest segment) against ``project_on_segments_numpy``
+    (the definition): s, d and heading the same bytes for random polylines (integer vertices:
+    ties between segments), points near and far, one point and many, and NaN points."""
+    rng = np.random.default_rng(0)
+    for it in range(300):
+        pts = np.cumsum(rng.normal(0.0, 5.0, (int(rng.integers(1, 30)), 2)), axis=0)
+        if it % 5 == 0:
+            pts = np.round(pts)
+        seg = lg.polyline_segments(pts)
+        q = rng.normal(pts.mean(axis=0), 20.0, (int(rng.integers(1, 50)), 2))
+        if it % 7 == 0:
+            q = pts[rng.integers(len(pts), size=len(q))] + 0.0  # on the vertices
+        if it % 11 == 0:
+            q[0, 1] = np.nan
+        for xy in (q, q[-1]):
+            with np.errstate(invalid="ignore"):
+                got, want = lg.project_on_segments(seg, xy), lg.project_on_segments_numpy(seg, xy)
+            for a, b in zip(got, want):
+                assert np.asarray(a).tobytes() == np.asarray(b).tobytes()

@@ -342,7 +342,19 @@ class CorridorSet:
         cost for many points. c: corridor index; xy (..., 2) -> s, d (...)."""
         xy = np.asarray(xy, dtype=np.float64)
         q = xy.reshape(-1, 2)
-        k = int(self.n_points[c])
+        idx, sub = self._sampled_points(c, stride)
+        # one compiled pass (nearest sampled point, then the local search): the numpy version
+        # (project_near_numpy, the tests' reference) built (n, n_sampled) temporaries per call
+        s, d = _project_near_many(np.ascontiguousarray(q[:, 0]), np.ascontiguousarray(q[:, 1]), idx,
+                                  np.ascontiguousarray(sub[:, 0]), np.ascontiguousarray(sub[:, 1]), int(c),
+                                  stride + 1, self._px, self._py, self._ux, self._uy, int(self._P),
+                                  float(self.spacing[c]), int(self.n_points[c]))
+        return s.reshape(xy.shape[:-1]), d.reshape(xy.shape[:-1])
+
+    def project_near_numpy(self, c: int, xy: np.ndarray, stride: int = 4) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`project_near` in numpy (the definition the compiled pass is tested against)."""
+        xy = np.asarray(xy, dtype=np.float64)
+        q = xy.reshape(-1, 2)
         idx, sub = self._sampled_points(c, stride)
         dx = q[:, None, 0] - sub[None, :, 0]
         dy = q[:, None, 1] - sub[None, :, 1]
@@ -469,3 +481,56 @@ def _project_polyline(qx, qy, points, unit, seg_len, cum):
                 s[k] = cum[i] + tc
                 d[k] = unit[i, 0] * ry - unit[i, 1] * rx
     return s, d, best_i
+
+
+@kernel
+def _project_near_many(qx, qy, idx, sub_x, sub_y, c, window, px, py, ux, uy, P, spacing, n_points):
+    """:meth:`CorridorSet.project_near_numpy` of n points (qx, qy (n,) m) on corridor ``c``:
+    the first nearest of the sampled points (indices ``idx``, coordinates sub_x, sub_y (K,)),
+    then :func:`project_on_segments` within ``window`` segments of it, with the guess
+    ``idx * spacing + 1e-9`` as numpy computed it. Returns s, d (n,) m."""
+    n, K = qx.shape[0], sub_x.shape[0]
+    s = np.empty(n)
+    d = np.empty(n)
+    last_i = n_points - 2
+    for k in range(n):
+        best, j = np.inf, 0
+        for m in range(K):
+            dx, dy = qx[k] - sub_x[m], qy[k] - sub_y[m]
+            e2 = dx * dx + dy * dy
+            if e2 < best:  # the first minimum, as np.argmin (a NaN point stays at 0, as there)
+                best, j = e2, m
+        guess = idx[j] * spacing + 1e-9
+        i0 = min(max(np.int64(np.floor(guess / spacing)), 0), last_i)
+        s[k], d[k] = project_on_segments(qx[k], qy[k], i0, window, px, py, ux, uy, c * P, c * (P - 1), spacing,
+                                         last_i)
+    return s, d
+
+
+@kernel
+def nearest_segment(qx, qy, pts, cum, unit, seg_len):
+    """``lanes.project_on_segments_numpy`` of finite points qx, qy (n,) m, one point at a time
+    with the same float64 operations (foot point = vertex + clamped t x unit, the squared
+    distance to it; the first of equally near segments). Returns s, d (n,) m and the nearest
+    segment (n,) int64."""
+    n, S = qx.shape[0], unit.shape[0]
+    out_s = np.empty(n)
+    out_d = np.empty(n)
+    out_i = np.zeros(n, np.int64)
+    for k in range(n):
+        best = np.inf
+        for i in range(S):
+            rx, ry = qx[k] - pts[i, 0], qy[k] - pts[i, 1]
+            t = rx * unit[i, 0] + ry * unit[i, 1]
+            lo = -np.inf if i == 0 else 0.0
+            hi = np.inf if i == S - 1 else seg_len[i]
+            tc = min(max(t, lo), hi)
+            ex = qx[k] - (pts[i, 0] + tc * unit[i, 0])
+            ey = qy[k] - (pts[i, 1] + tc * unit[i, 1])
+            e2 = ex * ex + ey * ey
+            if e2 < best or i == 0:
+                best = e2
+                out_i[k] = i
+                out_s[k] = cum[i] + tc
+                out_d[k] = unit[i, 0] * ry - unit[i, 1] * rx
+    return out_s, out_d, out_i

@@ -132,9 +132,54 @@ def project(points: np.ndarray, xy: np.ndarray, chunk: int = 4096) -> tuple[np.n
     return project_on_segments(_segments(points), xy, chunk)
 
 
+_NEAREST_SEGMENT: list = []  # [corridor.nearest_segment or None], found on first use
+
+
+def _compiled():
+    """``corridor.nearest_segment`` (compiled), or None where numba is missing. Imported late:
+    this module is below ``corridor`` and must import without numba."""
+    if not _NEAREST_SEGMENT:
+        try:
+            from .corridor import nearest_segment
+        except ImportError:
+            nearest_segment = None
+        _NEAREST_SEGMENT.append(nearest_segment)
+    return _NEAREST_SEGMENT[0]
+
+
 def project_on_segments(segments: tuple, xy: np.ndarray, chunk: int = 4096
                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`project` on a polyline's ``_segments`` computed before (the same numbers)."""
+    """:func:`project` on a polyline's ``_segments`` computed before (the same numbers).
+
+    The nearest segment of each point in one compiled pass (``corridor.nearest_segment``), the
+    headings by numpy's arctan2 as before: the corridor builder projects one point per lane
+    chain every plan, and the numpy version (:func:`project_on_segments_numpy`) spent ~20
+    array calls on it. Without numba (the Blender add-on ships none) the numpy version."""
+    pts, cum, unit, seg_len = segments
+    q = np.asarray(xy, dtype=np.float64)
+    single = q.ndim == 1
+    q = q.reshape(-1, 2)
+    nearest_segment = _compiled()
+    if nearest_segment is None or not np.isfinite(q).all():  # numpy's NaN rules (argmin: the first NaN)
+        return project_on_segments_numpy(segments, xy, chunk)
+    out_s, out_d, best = nearest_segment(np.ascontiguousarray(q[:, 0]), np.ascontiguousarray(q[:, 1]),
+                                          np.ascontiguousarray(pts, dtype=np.float64),
+                                          np.ascontiguousarray(cum, dtype=np.float64),
+                                          np.ascontiguousarray(unit, dtype=np.float64),
+                                          np.ascontiguousarray(seg_len, dtype=np.float64))
+    out_h = np.empty(len(q))
+    for lo in range(0, len(q), chunk):  # arctan2 over the same chunks as the numpy version
+        u = unit[best[lo:lo + chunk]]
+        out_h[lo:lo + chunk] = np.arctan2(u[:, 1], u[:, 0])
+    if single:
+        return out_s[0], out_d[0], out_h[0]
+    return out_s, out_d, out_h
+
+
+def project_on_segments_numpy(segments: tuple, xy: np.ndarray, chunk: int = 4096
+                              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`project_on_segments` in numpy, chunks of (n, S) temporaries (the definition the
+    compiled pass is tested against; non-finite points take it)."""
     pts, cum, unit, seg_len = segments
     q = np.asarray(xy, dtype=np.float64)
     single = q.ndim == 1
