@@ -812,3 +812,43 @@ def test_own_lane_floor_makes_stopping_cost_at_a_crawl_without_paying_for_lane_c
     own = table.raw["own_progress"]
     assert own[stop] > 0.8 and own[go] == 0.0 and own[left] == 0.0
     assert table.raw["progress"][stop] - table.raw["progress"][go] < own[stop] - own[go]
+
+
+@pytest.mark.parametrize("leader_modes", ["expected", "nearest", "quantile"])
+def test_actor_frenet_kernels_are_the_numpy_definition_bit_for_bit(rng, leader_modes):
+    import dataclasses
+
+    from adv3d_runner.autonomy.planner.proposals import (ActorForecast, ProposalConfig, _actor_frenet,
+                                                         _actor_frenet_numpy)
+
+    a = Lane(0, np.array([[0.0, 0.0], [50.0, 0.0]]), 3.5, successors=[1], left=2, speed_limit=20.0)
+    th = np.linspace(0, 1.0, 40)
+    b = Lane(1, np.c_[50 + 100 * np.sin(th), 100 * (1 - np.cos(th))], 4.0, speed_limit=15.0)
+    c = Lane(2, np.array([[0.0, 3.5], [50.0, 3.5], [200.0, 3.0]]), 3.0, right=0)
+    cs = CorridorSet([build_corridor([a, b, c], lid, np.array([10.0, 0.0]), behind=5.0, ahead=150.0)
+                      for lid in (0, 2)])
+    config = dataclasses.replace(ProposalConfig(), leader_modes=leader_modes)
+
+    class Spec:
+        def __init__(self, corridor):
+            self.corridor = corridor
+
+        def __len__(self):
+            return len(self.corridor)
+
+    T, N, K = 50, 7, 4
+    for _ in range(5):
+        start = rng.uniform([0, -6], [120, 8], (N, 1, 1, 2))
+        vel = rng.uniform([5, -1.5], [25, 1.5], (N, K, 1, 2))
+        xy = start + vel * (0.1 * np.arange(T + 1))[None, None, :, None]
+        poses = np.concatenate([xy, np.zeros((N, K, T + 1, 1))], axis=-1)
+        probs = rng.dirichlet(np.ones(K) * 0.5, N)
+        dims = np.c_[rng.uniform(3.5, 6.0, N), rng.uniform(1.6, 2.6, N)]
+        actors = ActorForecast(poses, dims, probs, np.arange(N))
+        corridor = rng.integers(0, 2, 21)
+        target_d = rng.choice([-1.0, 0.0, 0.5, 1.0], 21)
+        got = _actor_frenet(actors, cs, Spec(corridor), target_d, 1.9, config, T)
+        want = _actor_frenet_numpy(actors, cs, Spec(corridor), target_d, 1.9, config, T)
+        for x, y in zip(got, want):
+            assert x.shape == y.shape and x.dtype == y.dtype and x.tobytes() == y.tobytes()
+    assert got[0].shape[1] > 0  # some actor-modes lead somewhere

@@ -535,6 +535,82 @@ def _actor_frenet(actors: ActorForecast, corridors: CorridorSet, spec: Candidate
     # there, so its per-step projection on that corridor is skipped. From below, |d| at a step
     # is |d| interpolated between the coarse steps, less the step's distance from the straight
     # chord between them, less a margin for the corridor bending under the chord.
+    # (compiled passes with the numpy version's float64 operations in its order:
+    # _actor_frenet_numpy is the tests' reference)
+    off_chord, chord2 = _chord_gaps(np.ascontiguousarray(xy, dtype=np.float64), coarse[left], coarse[right], w)
+    band = 0.5 * ego_width + half_w[relevant] + config.lane_margin  # (M_rel,)
+    for ci in range(len(corridors)):
+        on_c = spec.corridor == ci
+        if not on_c.any():
+            continue
+        s_c, d_c = corridors.project_near(ci, xy[:, coarse])
+        reach = float(np.max(np.abs(target_d[on_c])))
+        k_max = _max_abs_step(corridors.heading[ci], int(corridors.n_points[ci]) - 1) / corridors.spacing[ci]
+        near, guess = _near_modes(np.ascontiguousarray(d_c), np.ascontiguousarray(s_c), left, right, w, off_chord,
+                                  chord2, float(k_max), band + reach)
+        if len(near) == 0:
+            continue
+        s_ci, d_ci = corridors.project_local(np.full(guess.shape, ci), xy[near], guess, window=2)
+        s_all[ci, rel_idx[near]] = s_ci
+        d_all[ci, rel_idx[near]] = d_ci
+    half_l = np.repeat(0.5 * actors.dims[:, 0], K)
+    prob_ok = (actors.probs.reshape(M) >= config.min_mode_prob)
+    # candidates sharing a corridor and a target offset share their leaders: decide once per
+    # (corridor, offset) group, keep only the actor-modes that are ever in some group's lane
+    groups, inv = _groups(spec.corridor, target_d)
+    gc = groups[:, 0].astype(np.int64)
+    # an actor is in the candidate's lane when its footprint overlaps the ego's lateral band
+    band_m = 0.5 * ego_width + half_w + config.lane_margin  # (M,)
+    if config.leader_modes == "expected" and K > 1:
+        # the lane test and _expected_leaders (quantile None) in one compiled pass
+        s_g, ok_g = _lane_expected_leaders(d_all, s_all, gc, np.ascontiguousarray(groups[:, 1]), band_m, prob_ok,
+                                           np.ascontiguousarray(actors.probs, dtype=np.float64),
+                                           float(config.min_mode_prob))
+        used = ok_g.any(axis=(0, 2))
+        return s_g[:, used][inv], ok_g[:, used][inv], (0.5 * actors.dims[:, 0])[used]
+    lat = np.abs(d_all[gc] - groups[:, 1][:, None, None])  # (G, M, T+1)
+    ok = (lat < band_m[None, :, None]) & prob_ok[None, :, None]
+    if config.leader_modes != "nearest" and K > 1:
+        q = None if config.leader_modes == "expected" else config.leader_quantile
+        s_g, ok_g = _expected_leaders(s_all[gc], ok, actors.probs, config.min_mode_prob, q)
+        used = ok_g.any(axis=(0, 2))
+        return s_g[:, used][inv], ok_g[:, used][inv], (0.5 * actors.dims[:, 0])[used]
+    used = ok.any(axis=(0, 2))
+    s = s_all[:, used][gc[inv]]  # (B, M_used, T+1)
+    return s, ok[:, used][inv], half_l[used]
+
+
+def _actor_frenet_numpy(actors: ActorForecast, corridors: CorridorSet, spec: CandidateSpec, target_d: np.ndarray,
+                  ego_width: float, config: ProposalConfig, T: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_actor_frenet` in numpy (the definition its compiled passes are tested against).
+
+    Per candidate, the actor-mode arc lengths on its corridor over time and whether the
+    actor-mode is inside the candidate's lane strip (around its target offset), for the M of the
+    N * K actor-modes that are ever inside some candidate's strip.
+
+    Returns:
+        s (B, M, T + 1), ok (B, M, T + 1) bool, half_length (M,).
+    """
+    B = len(spec)
+    N = len(actors)
+    if N == 0:
+        return np.zeros((B, 0, T + 1)), np.zeros((B, 0, T + 1), bool), np.zeros(0)
+    K = actors.poses.shape[1]
+    xy = actors.poses[:, :, :T + 1, :2]
+    M = N * K
+    # modes too unlikely to lead are not projected at all
+    relevant = (actors.probs >= config.min_mode_prob).reshape(M)
+    s_all = np.zeros((len(corridors), M, T + 1))
+    d_all = np.full((len(corridors), M, T + 1), np.inf)
+    xy = xy.reshape(M, T + 1, 2)[relevant]
+    # global projection every 5th step, local projection of every step around the interpolation
+    coarse, left, right, w = _coarse_steps(T)
+    half_w = np.repeat(0.5 * actors.dims[:, 1], K)
+    rel_idx = np.flatnonzero(relevant)
+    # A mode whose every step stays clearly outside all of a corridor's lane bands can never lead
+    # there, so its per-step projection on that corridor is skipped. From below, |d| at a step
+    # is |d| interpolated between the coarse steps, less the step's distance from the straight
+    # chord between them, less a margin for the corridor bending under the chord.
     wl = w[None, :, None]
     p_l, p_r = xy[:, coarse[left]], xy[:, coarse[right]]
     off_chord = np.linalg.norm(xy - (p_l * (1 - wl) + p_r * wl), axis=-1)  # (M_rel, T+1)
@@ -574,6 +650,109 @@ def _actor_frenet(actors: ActorForecast, corridors: CorridorSet, spec: Candidate
     used = ok.any(axis=(0, 2))
     s = s_all[:, used][gc[inv]]  # (B, M_used, T+1)
     return s, ok[:, used][inv], half_l[used]
+
+
+@kernel
+def _chord_gaps(xy: np.ndarray, cl: np.ndarray, cr: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_actor_frenet`'s chord geometry: xy (R, T + 1, 2), each step's coarse steps left
+    and right ``cl``, ``cr`` (T + 1,) and weight ``w`` -> the step's distance from the chord
+    between them (R, T + 1) and the chord's squared length (R, T + 1)."""
+    R, T1 = xy.shape[0], xy.shape[1]
+    off = np.empty((R, T1))
+    ch2 = np.empty((R, T1))
+    for r in range(R):
+        for t in range(T1):
+            a, b, wt = cl[t], cr[t], w[t]
+            om = 1 - wt
+            lx, ly, rx, ry = xy[r, a, 0], xy[r, a, 1], xy[r, b, 0], xy[r, b, 1]
+            ex = xy[r, t, 0] - (lx * om + rx * wt)
+            ey = xy[r, t, 1] - (ly * om + ry * wt)
+            off[r, t] = np.sqrt(ex * ex + ey * ey)
+            dx, dy = rx - lx, ry - ly
+            ch2[r, t] = dx * dx + dy * dy
+    return off, ch2
+
+
+@kernel
+def _max_abs_step(h: np.ndarray, n: int) -> float:
+    """``np.max(np.abs(np.diff(h[:n])), initial=0.0)`` (NaN propagates as numpy's does)."""
+    m = 0.0
+    for i in range(n - 1):
+        v = abs(h[i + 1] - h[i])
+        if v > m or v != v:
+            m = v
+            if v != v:
+                break
+    return m
+
+
+@kernel
+def _near_modes(d_c: np.ndarray, s_c: np.ndarray, left: np.ndarray, right: np.ndarray, w: np.ndarray,
+                off_chord: np.ndarray, chord2: np.ndarray, k_max: float, lim: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_actor_frenet`'s test of which modes can come within ``lim`` (R,) of a corridor
+    (their rows, int64) and, for those, the arc lengths interpolated between the coarse
+    projections (n_near, T + 1)."""
+    R, T1 = d_c.shape[0], len(w)
+    rows = np.empty(R, np.int64)
+    n = 0
+    for r in range(R):
+        for t in range(T1):
+            a, b, wt = left[t], right[t], w[t]
+            d_lerp = abs(d_c[r, a] * (1 - wt) + d_c[r, b] * wt)
+            low = d_lerp - off_chord[r, t] - (0.2 + 0.5 * chord2[r, t] * k_max + 0.02 * d_lerp)
+            if low < lim[r]:
+                rows[n] = r
+                n += 1
+                break
+    guess = np.empty((n, T1))
+    for i in range(n):
+        r = rows[i]
+        for t in range(T1):
+            wt = w[t]
+            guess[i, t] = s_c[r, left[t]] * (1 - wt) + s_c[r, right[t]] * wt
+    return rows[:n], guess
+
+
+@kernel
+def _lane_expected_leaders(d_all: np.ndarray, s_all: np.ndarray, gc: np.ndarray, gd: np.ndarray, band: np.ndarray,
+                           prob_ok: np.ndarray, probs: np.ndarray, min_prob: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_actor_frenet`'s lane test (actor-mode m in group g's lane at step t: ``|d - gd[g]| <
+    band[m]`` on the group's corridor ``gc[g]``, and ``prob_ok[m]``) followed by
+    :func:`_expected_leaders` without a quantile: (G, N, T + 1) s and lead. The sums over a
+    actor's modes run in mode order, as numpy's reduction over that axis does."""
+    G = len(gc)
+    N, K = probs.shape
+    T1 = d_all.shape[2]
+    s_out = np.empty((G, N, T1))
+    lead = np.empty((G, N, T1), np.bool_)
+    thr = min_prob - 1e-12
+    for g in range(G):
+        c, off = gc[g], gd[g]
+        for a in range(N):
+            for t in range(T1):
+                mass = 0.0
+                acc = 0.0
+                for k in range(K):
+                    m = a * K + k
+                    wk = probs[a, k] if (abs(d_all[c, m, t] - off) < band[m]) and prob_ok[m] else 0.0
+                    p = wk * s_all[c, m, t]
+                    if k == 0:
+                        mass = wk
+                        acc = p
+                    else:
+                        mass = mass + wk
+                        acc = acc + p
+                ld = mass >= thr
+                lead[g, a, t] = ld
+                if ld:
+                    den = mass if (mass >= 1e-12 or mass != mass) else 1e-12
+                    s_out[g, a, t] = acc / den
+                else:
+                    s_out[g, a, t] = 0.0
+    return s_out, lead
+
+
 
 
 _COARSE: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
