@@ -522,6 +522,9 @@ def test_config_overrides_replace_only_the_named_fields():
     ({"planner": {"exempt_rear_end": 1}}, "planner.exempt_rear_end"),
     ({"planner": {"proposals": {}}}, "planner.proposals"),
     ([1, 2], "expected an object"),
+    ({"proposals": {"min_headway": 2.0}}, "min_headway"),
+    ({"proposals": {"firm_braking": -1.0}}, "firm_braking"),
+    ({"proposals": {"leader_modes": "slowest"}}, "leader_modes"),
 ])
 def test_config_overrides_refuse_unknown_or_mistyped_fields_by_name(bad, names):
     from adv3d_runner.autonomy.planner import PlannerConfig
@@ -852,3 +855,72 @@ def test_actor_frenet_kernels_are_the_numpy_definition_bit_for_bit(rng, leader_m
         for x, y in zip(got, want):
             assert x.shape == y.shape and x.dtype == y.dtype and x.tobytes() == y.tobytes()
     assert got[0].shape[1] > 0  # some actor-modes lead somewhere
+
+
+def _relaxing_planner(tau=20.0, min_headway=0.8):
+    from dataclasses import replace
+
+    from adv3d_runner.autonomy.planner import PlannerConfig
+
+    cfg = PlannerConfig(proposals=replace(PlannerConfig().proposals, headway_relaxation=tau, min_headway=min_headway))
+    return SamplingPlanner(cfg)
+
+
+def _leader_at(gap, speed, ego_speed=14.0):
+    """A car ``gap`` m (bumper to bumper) ahead of an ego at x = 0 in lane 0, driving at ``speed``."""
+    car = lambda t: np.array([[gap + 0.5 * (4.6 + 4.6) + speed * t, 0.0, 4.6, 1.9, 0.0]])  # noqa: E731
+    fut = np.stack([car((h + 1) * DT)[:, :2] for h in range(60)], axis=1)
+    return actor_inputs(car(0.0), fut), EgoState([0.0, 0.0, 0.0], ego_speed, length=4.6, width=1.9)
+
+
+def test_headway_relaxation_accepts_a_short_gap_that_is_not_closing_and_relaxes_it():
+    """Dense real traffic (NGSIM US-101 train recording 8): the ego starts behind a car at
+    its own speed of 14 m/s (about 16 m: 1.1 s). With the fixed 1.5 s headway the IDM brakes to open the gap to
+    3 m + 21 m; with ``headway_relaxation`` the planner takes the headway it finds, (16 - 3) /
+    14 s, and relaxes it back to 1.5 s over ``headway_relaxation`` seconds (one plan per 0.1 s)."""
+    lanes = straight_lanes(2)
+    (tracks, preds), ego = _leader_at(16.0, 14.0)
+    fixed = planner_on(lanes).plan_with_scores(ego, preds, tracks)[1]
+    planner = planner_on(lanes, _relaxing_planner(20.0))
+    first = planner.plan_with_scores(ego, preds, tracks)[1]
+    assert np.array_equal(first.accel, fixed.accel)  # the first plan has seen nothing yet
+    found = planner._headway
+    assert found == pytest.approx((16.0 - 3.0) / 14.0, abs=0.02)
+    second = planner.plan_with_scores(ego, preds, tracks)[1]
+    keep = fixed.spec.labels.index("lane0/d+0.0/v25.0")
+    assert fixed.accel[keep, :10].min() < -1.0 and second.accel[keep, :10].min() > -0.5
+    assert planner._headway == pytest.approx(found)  # the same gap again: found again
+    # relaxes by dt x (1.5 - 0.8) / 20 per plan while the headway found is no shorter
+    (tracks2, preds2), ego2 = _leader_at(40.0, 14.0)
+    planner.plan_with_scores(ego2, preds2, tracks2)
+    assert planner._headway == pytest.approx(found + 0.1 * 0.7 / 20.0, abs=1e-9)
+    planner.reset(lanes)
+    assert planner._headway is None
+
+
+@pytest.mark.parametrize("gap, speed, why", [(13.0, 12.0, "closing in at 2 m/s"), (8.0, 14.0, "below min_headway")])
+def test_headway_relaxation_does_not_accept_a_gap_the_ego_is_closing_or_too_short(gap, speed, why):
+    lanes = straight_lanes(2)
+    (tracks, preds), ego = _leader_at(gap, speed)
+    planner = planner_on(lanes, _relaxing_planner(20.0))
+    planner.plan_with_scores(ego, preds, tracks)
+    assert planner._headway == pytest.approx(1.5), why
+
+
+def test_firm_braking_threshold_decides_which_demands_build_up_at_the_brake_jerk():
+    """``ProposalConfig.firm_braking``: only braking demanded harder than it builds up at
+    ``max_brake_jerk``; by default that is ``idm_decel`` (the shipped planner's rule)."""
+    from dataclasses import replace
+
+    from adv3d_runner.autonomy.planner import PlannerConfig
+
+    ego = EgoState(np.array([0.0, 0.0, 0.0]), 15.0, length=4.8, width=1.9)
+    tracks, preds = actor_inputs(np.array([[40.0, 0.0, 4.6, 1.9, 0.0]]), np.tile([[40.0, 0.0]], (60, 1))[None])
+    first = {}
+    for firm in (None, 2.0, 50.0):
+        cfg = PlannerConfig(proposals=replace(PlannerConfig().proposals, firm_braking=firm))
+        _, cands, _ = planner_on(straight_lanes(1), SamplingPlanner(cfg)).plan_with_scores(ego, preds, tracks)
+        first[firm] = cands.accel[cands.spec.labels.index("lane0/d+0.0/v25.0"), 0]
+    pc = PlannerConfig().proposals
+    assert first[None] == first[2.0] == pytest.approx(-pc.max_brake_jerk * DT)
+    assert first[50.0] == pytest.approx(-pc.max_jerk * DT)  # no demand is "firm": the comfortable rate

@@ -147,8 +147,11 @@ class PlannerConfig:
             kwargs[part] = {k: tuple(v) if isinstance(v, list) else
                             float(v) if v is not None and isinstance(getattr(klass(), k), float) else v
                             for k, v in given.items()}
-        return cls(proposals=ProposalConfig(**kwargs["proposals"]), weights=CostWeights(**kwargs["weights"]),
-                   **kwargs["planner"])
+        try:
+            return cls(proposals=ProposalConfig(**kwargs["proposals"]), weights=CostWeights(**kwargs["weights"]),
+                       **kwargs["planner"])
+        except (TypeError, ValueError) as e:  # a value of the right type out of its range
+            raise ConfigError(f"{source}: {e}") from None
 
 
 def forecast_from(predictions: Predictions | None, tracks: Tracks | None, steps: int, dt: float,
@@ -197,6 +200,31 @@ def forecast_from(predictions: Predictions | None, tracks: Tracks | None, steps:
     return ActorForecast(poses, np.maximum(dims, 0.0), probs, ids)
 
 
+def relaxed_headway(previous: float | None, cands: Candidates, ego_speed: float, pc: ProposalConfig) -> float:
+    """The IDM's time headway (s) for the next plan (``ProposalConfig.headway_relaxation``).
+
+    ``previous`` (None: ``idm_headway``) relaxes towards ``idm_headway`` by one plan step (one
+    plan per ``pc.dt``); then the current lane's leader in ``cands`` (the first current-lane
+    candidate at offset 0: its bumper gap and speed at step 0) lowers it to the headway it is
+    found at, ``(gap - idm_gap) / speed`` (the headway at which the IDM would neither brake nor
+    speed up for it), unless that is below ``min_headway`` (too close to accept: braked for as
+    before) or the leader is closing in (slower than the ego by more than ``closing_speed``: a
+    short gap that the ego drove into is braked for)."""
+    full = pc.idm_headway
+    h = full if previous is None else min(full, previous + pc.dt * (full - pc.min_headway) / pc.headway_relaxation)
+    spec = cands.spec
+    own = np.flatnonzero((spec.corridor == 0) & (spec.offset == 0.0) & ~spec.emergency)
+    if len(own) == 0 or cands.leader_speed is None or ego_speed < 1.0:
+        return h
+    b = int(own[0])
+    gap, v_lead = float(cands.leader_gap[b, 0]), float(cands.leader_speed[b])
+    if np.isfinite(gap) and np.isfinite(v_lead) and v_lead >= ego_speed - pc.closing_speed:
+        h_found = (gap - pc.idm_gap) / ego_speed
+        if h_found >= pc.min_headway:
+            h = min(h, h_found)
+    return h
+
+
 def _yaw_from_motion(xy: np.ndarray, yaw0: np.ndarray, chord: float = YAW_CHORD) -> np.ndarray:
     """Heading along (N, K, T, 2) positions: the direction of the last ``chord`` m of forward
     motion, i.e. from the latest earlier point at least ``chord`` m further back along the
@@ -242,8 +270,9 @@ class SamplingPlanner:
 
     def reset(self, lane_map: LaneMap) -> None:
         """Start an episode on ``lane_map`` (kept until the next reset) and forget the previous
-        plan's target (lane-change and offset hysteresis, offset confirmation) and, planning on
-        occupancy, the previous frame's lane leaders."""
+        plan's target (lane-change and offset hysteresis, offset confirmation), the effective IDM
+        headway (``headway_relaxation``) and, planning on occupancy, the previous frame's lane
+        leaders."""
         self.lane_map = lane_map
         self._forget()
 
@@ -258,6 +287,7 @@ class SamplingPlanner:
         self._prev_offset: float | None = None
         self._confirmed_offset: float | None = None  # offset the previous plan wanted before confirmation
         self._occ_leaders: np.ndarray | None = None  # Autonomy-B: the previous frame's lane leaders
+        self._headway: float | None = None  # the IDM's effective headway (headway_relaxation), s
 
     def plan(self, ego: EgoState, predictions: Predictions | None = None, tracks: Tracks | None = None,
              occupancy=None) -> Plan:
@@ -309,7 +339,7 @@ class SamplingPlanner:
             forecast, self._occ_leaders = occmodel.occupancy_leaders(occupancy, corridors, ego.pose[:2], ego.length,
                                                                      T, dt, cfg.occupancy, self._occ_leaders)
         cands = rollout_candidates(ego.pose, ego.speed, ego.acceleration, spec, corridors, forecast,
-                                   ego.length, ego.width, pc, params)
+                                   ego.length, ego.width, pc, params, headway=self._headway)
         table = self.score_candidates(cands, corridors, forecast, ego, limit_now, occupancy)
         i = table.best
         # what this plan would have chosen without the confirmation surcharge: a change to that
@@ -321,6 +351,8 @@ class SamplingPlanner:
         self._confirmed_offset = None if spec.emergency[w] else float(spec.offset[w])
         self._prev_target_ids = frozenset(corridors.corridors[int(spec.corridor[i])].lane_ids)
         self._prev_offset = None if spec.emergency[i] else float(spec.offset[i])
+        if pc.headway_relaxation > 0.0:
+            self._headway = relaxed_headway(self._headway, cands, ego.speed, pc)
         traj = cands.poses[i].copy()
         traj[:, 2] = wrap_angle(traj[:, 2])  # map-frame yaw in [-pi, pi)
         plan = Plan(trajectory=traj, speed=cands.speeds[i].copy(), acceleration=cands.accel[i].copy(),

@@ -85,6 +85,18 @@ class ProposalConfig:
             acceleration to each of these at the jerk limits and hold it (speed >= 0) instead of
             following the IDM: smooth speed profiles for the scorer to choose when they are safe
             (empty: none, the default; an experiment of issue 17's fourth round).
+        headway_relaxation: s; 0 (the default): the IDM always asks for ``idm_headway``.
+            Otherwise the planner keeps an effective headway (``SamplingPlanner``): a leader
+            found at a shorter headway that is not closing in (a car that cuts in, or the ego
+            starting in dense traffic) sets it to that headway (at least ``min_headway``), and
+            from there it relaxes back to ``idm_headway`` linearly, the whole way in this many
+            seconds (the relaxation of Schakel, Knoop & van Arem 2012's LMRS after lane
+            changes). Without it the IDM brakes at once to open a 1 s gap to 1.5 s.
+        firm_braking: m/s^2; braking demanded harder than this builds up at ``max_brake_jerk``
+            and is released as fast (``firm_release``); None: ``idm_decel``.
+        min_headway: s, the shortest headway ``headway_relaxation`` accepts.
+        closing_speed: m/s; a leader slower than the ego by more than this is closing in, and
+            its short headway is not accepted.
     """
 
     horizon: float = 5.0
@@ -116,10 +128,19 @@ class ProposalConfig:
     leader_quantile: float = 0.0
     alongside_leads: bool = False
     accel_targets: tuple[float, ...] = ()
+    headway_relaxation: float = 0.0
+    min_headway: float = 0.8
+    closing_speed: float = 0.5
+    firm_braking: float | None = None
 
     def __post_init__(self):
         if self.leader_modes not in ("expected", "quantile", "nearest"):
             raise ValueError(f"leader_modes must be 'expected', 'quantile' or 'nearest', got {self.leader_modes!r}")
+        if self.headway_relaxation < 0.0 or not 0.0 < self.min_headway <= self.idm_headway:
+            raise ValueError(f"headway_relaxation must be >= 0 s and min_headway in (0, idm_headway], got "
+                             f"{self.headway_relaxation!r} and {self.min_headway!r}")
+        if self.firm_braking is not None and self.firm_braking <= 0.0:
+            raise ValueError(f"firm_braking must be > 0 m/s^2 or None, got {self.firm_braking!r}")
 
     @property
     def steps(self) -> int:
@@ -153,6 +174,7 @@ class Candidates:
             integrated in between); d: (B, T + 1) offset (NaN where not projected).
         leader_gap: (B, T + 1) bumper gap to the IDM leader (m, +inf without leader).
         dt: s.
+        leader_speed: (B,) the IDM leader's speed at step 0 (m/s, NaN without leader).
     """
 
     spec: CandidateSpec
@@ -163,6 +185,7 @@ class Candidates:
     d: np.ndarray
     leader_gap: np.ndarray
     dt: float
+    leader_speed: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.states)
@@ -248,8 +271,9 @@ def _hermite(u: np.ndarray, d0: np.ndarray, slope0: np.ndarray, d1: np.ndarray) 
 def rollout_candidates(ego_pose: np.ndarray, ego_speed: float, ego_accel: float, spec: CandidateSpec,
                        corridors: CorridorSet, actors: ActorForecast, ego_length: float, ego_width: float,
                        config: ProposalConfig = ProposalConfig(),
-                       params: BicycleParams = BicycleParams()) -> Candidates:
-    """Simulate every candidate (see module docstring)."""
+                       params: BicycleParams = BicycleParams(), headway: float | None = None) -> Candidates:
+    """Simulate every candidate (see module docstring). ``headway``: the IDM's time headway
+    (s) for this plan instead of ``config.idm_headway`` (``headway_relaxation``)."""
     B, T, dt = len(spec), config.steps, config.dt
     c = spec.corridor
     pose = np.asarray(ego_pose, dtype=np.float64).reshape(3)
@@ -312,7 +336,8 @@ def rollout_candidates(ego_pose: np.ndarray, ego_speed: float, ego_accel: float,
     v_des = np.maximum(spec.target_speed, 0.0)
     up_release = config.max_release_jerk * dt
     limits = np.array([
-        config.idm_accel, config.idm_decel, config.idm_gap, config.idm_headway, config.max_decel,
+        config.idm_accel, config.idm_decel, config.idm_gap, config.idm_headway if headway is None else headway,
+        config.max_decel,
         config.max_jerk * dt, config.max_brake_jerk * dt, up_release,
         config.accel_deadband, config.idm_coolness, config.lookahead_time, config.min_lookahead,
         config.max_lat_accel, params.max_curvature, params.max_accel, params.max_decel, params.max_speed,
@@ -321,21 +346,22 @@ def rollout_candidates(ego_pose: np.ndarray, ego_speed: float, ego_accel: float,
         # the proposal's own limits are within the vehicle's: the step's clamps would be no-ops
         0.0 if (-params.max_decel <= -config.max_decel and config.idm_accel <= params.max_accel) else 1.0,
         1.0 if config.alongside_leads else 0.0,
+        config.idm_decel if config.firm_braking is None else config.firm_braking,
     ], dtype=np.float64)
-    states, acc, kap, s_hist, d_hist, gap_hist = _rollout_kernel(
+    states, acc, kap, s_hist, d_hist, gap_hist, lead_v0 = _rollout_kernel(
         pose, v0, float(ego_accel), np.ascontiguousarray(s0, dtype=np.float64), 1.0 / trans_len, hermite,
         v_des, np.ascontiguousarray(spec.emergency, dtype=np.bool_),
         np.full(B, np.nan) if spec.accel_target is None else np.ascontiguousarray(spec.accel_target, dtype=np.float64),
         *geometry,
         lead_s_ok, np.ascontiguousarray(lead_back), np.ascontiguousarray(lead_v), np.ascontiguousarray(lead_a),
         limits, T)
-    return Candidates(spec, states, acc, kap, s_hist, d_hist, gap_hist, dt)
+    return Candidates(spec, states, acc, kap, s_hist, d_hist, gap_hist, dt, lead_v0)
 
 
 # indices into the ``limits`` vector of :func:`_rollout_kernel`
 (_IDM_ACCEL, _IDM_DECEL, _IDM_GAP, _IDM_HEADWAY, _MAX_DECEL, _JERK_DN, _BRAKE_DN, _UP_RELEASE, _DEADBAND,
  _COOLNESS, _LA_TIME, _LA_MIN, _LAT_LIM, _KAPPA_MAX, _VEH_ACC, _VEH_DEC, _VEH_SPEED, _LR, _DT, _FIRM_RELEASE,
- _CLAMP_VEHICLE, _ALONGSIDE_LEADS) = range(22)
+ _CLAMP_VEHICLE, _ALONGSIDE_LEADS, _FIRM_AT) = range(23)
 
 
 @kernel
@@ -361,14 +387,14 @@ def _rollout_kernel(pose, v0, a0, s0, inv_trans, hermite, v_des, emergency, acce
         limits: see the ``_IDM_ACCEL`` ... indices; T: steps.
     Returns:
         states (B, T + 1, 4), accel (B, T), curvature (B, T), s (B, T + 1), d (B, T + 1),
-        leader_gap (B, T + 1).
+        leader_gap (B, T + 1), leader speed at step 0 (B,) (NaN: none).
     """
     B = s0.shape[0]
     M = lead_s_ok.shape[2]
     idm_accel, idm_decel, dt = limits[_IDM_ACCEL], limits[_IDM_DECEL], limits[_DT]
     max_decel, jerk_dn, brake_dn = limits[_MAX_DECEL], limits[_JERK_DN], limits[_BRAKE_DN]
     up_release, up_accel, deadband = limits[_UP_RELEASE], limits[_JERK_DN], limits[_DEADBAND]
-    coolness, lr = limits[_COOLNESS], limits[_LR]
+    coolness, lr, firm_at = limits[_COOLNESS], limits[_LR], limits[_FIRM_AT]
     sqrt_ab = 2.0 * np.sqrt(idm_accel * idm_decel)
     half_dt2 = 0.5 * dt * dt
     two_pi = 2 * np.pi
@@ -378,6 +404,7 @@ def _rollout_kernel(pose, v0, a0, s0, inv_trans, hermite, v_des, emergency, acce
     s_hist = np.empty((B, T + 1))
     d_hist = np.full((B, T + 1), np.nan)
     gap_hist = np.full((B, T + 1), np.inf)
+    lead_v0 = np.full(B, np.nan)
     alongside = np.zeros(M, np.bool_)
     for b in range(B):
         x, y, yaw, v = pose[0], pose[1], pose[2], v0
@@ -418,6 +445,8 @@ def _rollout_kernel(pose, v0, a0, s0, inv_trans, hermite, v_des, emergency, acce
             if gap < np.inf:
                 v_lead = lead_v[k, b, j]
                 a_lead = lead_a[k, b, j]
+                if k == 0:
+                    lead_v0[b] = v_lead
             # ---- longitudinal: IDM (ACC model) towards the target speed
             if stop_target:  # stop target: brake comfortably
                 free = -idm_decel * min(1.0, v)
@@ -445,9 +474,9 @@ def _rollout_kernel(pose, v0, a0, s0, inv_trans, hermite, v_des, emergency, acce
                 a = a_prev
             # jerk limit; releasing the brakes may be faster (max_release_jerk) so that a plan that
             # braked hard does not keep the ego decelerating for seconds after the reason is gone
-            down = brake_dn if (brake_dn != jerk_dn and a < -idm_decel) else jerk_dn
+            down = brake_dn if (brake_dn != jerk_dn and a < -firm_at) else jerk_dn
             up = up_release if a_prev < 0 else up_accel
-            if limits[_FIRM_RELEASE] > 0.0 and a_prev < -idm_decel:
+            if limits[_FIRM_RELEASE] > 0.0 and a_prev < -firm_at:
                 # firm braking is released as fast as it builds up: released at the comfortable
                 # rate, one emergency stop kept the ego braking for seconds after the reason was gone
                 up = brake_dn
@@ -493,7 +522,7 @@ def _rollout_kernel(pose, v0, a0, s0, inv_trans, hermite, v_des, emergency, acce
             a_prev = a_applied
             s_cur = s_cur + 0.5 * (v + v1) * dt  # arc length driven (next guess)
             v = v1
-    return states, acc, kap, s_hist, d_hist, gap_hist
+    return states, acc, kap, s_hist, d_hist, gap_hist, lead_v0
 
 
 @kernel
