@@ -924,3 +924,18 @@ def test_firm_braking_threshold_decides_which_demands_build_up_at_the_brake_jerk
     pc = PlannerConfig().proposals
     assert first[None] == first[2.0] == pytest.approx(-pc.max_brake_jerk * DT)
     assert first[50.0] == pytest.approx(-pc.max_jerk * DT)  # no demand is "firm": the comfortable rate
+
+
+def test_clearance_kernel_is_the_numpy_definition_bit_for_bit(rng):
+    for T_actor in (20, 15):  # the actors' horizon as long as the ego's, and shorter (last pose held)
+        ego = np.concatenate([rng.uniform([0, -4], [40, 4], (9, 20, 2)), rng.uniform(-4, 4, (9, 20, 1))], axis=-1)
+        act = np.concatenate([rng.uniform([0, -6], [50, 6], (5, 3, T_actor, 2)),
+                              rng.uniform(-4, 4, (5, 3, T_actor, 1))], axis=-1)
+        act[1, 0, 3] = np.nan
+        act[2, 1, :, :2] = ego[0, :T_actor, :2]  # centres on the ego's: overlapping boxes
+        dims = np.c_[rng.uniform(3.5, 6.0, 5), rng.uniform(1.6, 2.6, 5)]
+        for max_distance in (0.0, 3.0, 40.0):
+            got = costs.clearance(ego, (4.6, 1.9), act, dims, max_distance)
+            want = costs.clearance_numpy(ego, (4.6, 1.9), act, dims, max_distance)
+            assert got.shape == want.shape and got.tobytes() == want.tobytes()
+            assert np.isfinite(got).any() and (got == 0.0).any()
