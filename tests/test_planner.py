@@ -324,13 +324,18 @@ def test_corridor_chains_successors_and_local_projection_matches_global(rng):
     assert LaneMap([a, b]).locate(np.array([60.0, 2.0, 0.2]))[0] == 1
 
 
-def test_project_near_kernel_is_the_numpy_definition_bit_for_bit(rng):
+def _curving_corridors() -> CorridorSet:
+    """Two corridors: a straight lane into a curve, and its left neighbour that narrows."""
     a = Lane(0, np.array([[0.0, 0.0], [50.0, 0.0]]), 3.5, successors=[1], left=2, speed_limit=20.0)
     th = np.linspace(0, 1.0, 40)
     b = Lane(1, np.c_[50 + 100 * np.sin(th), 100 * (1 - np.cos(th))], 4.0, speed_limit=15.0)
     c = Lane(2, np.array([[0.0, 3.5], [50.0, 3.5], [200.0, 3.0]]), 3.0, right=0)
-    cs = CorridorSet([build_corridor([a, b, c], lid, np.array([10.0, 0.0]), behind=5.0, ahead=150.0)
-                      for lid in (0, 2)])
+    return CorridorSet([build_corridor([a, b, c], lid, np.array([10.0, 0.0]), behind=5.0, ahead=150.0)
+                        for lid in (0, 2)])
+
+
+def test_project_near_kernel_is_the_numpy_definition_bit_for_bit(rng):
+    cs = _curving_corridors()
     xy = rng.uniform([-30, -20], [180, 120], (7, 11, 2))
     xy[0, 3] = np.nan
     for ci in range(len(cs)):
@@ -824,12 +829,7 @@ def test_actor_frenet_kernels_are_the_numpy_definition_bit_for_bit(rng, leader_m
     from adv3d_runner.autonomy.planner.proposals import (ActorForecast, ProposalConfig, _actor_frenet,
                                                          _actor_frenet_numpy)
 
-    a = Lane(0, np.array([[0.0, 0.0], [50.0, 0.0]]), 3.5, successors=[1], left=2, speed_limit=20.0)
-    th = np.linspace(0, 1.0, 40)
-    b = Lane(1, np.c_[50 + 100 * np.sin(th), 100 * (1 - np.cos(th))], 4.0, speed_limit=15.0)
-    c = Lane(2, np.array([[0.0, 3.5], [50.0, 3.5], [200.0, 3.0]]), 3.0, right=0)
-    cs = CorridorSet([build_corridor([a, b, c], lid, np.array([10.0, 0.0]), behind=5.0, ahead=150.0)
-                      for lid in (0, 2)])
+    cs = _curving_corridors()
     config = dataclasses.replace(ProposalConfig(), leader_modes=leader_modes)
 
     class Spec:

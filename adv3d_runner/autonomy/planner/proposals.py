@@ -610,7 +610,7 @@ def _actor_frenet(actors: ActorForecast, corridors: CorridorSet, spec: Candidate
 
 
 def _actor_frenet_numpy(actors: ActorForecast, corridors: CorridorSet, spec: CandidateSpec, target_d: np.ndarray,
-                  ego_width: float, config: ProposalConfig, T: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                        ego_width: float, config: ProposalConfig, T: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`_actor_frenet` in numpy (the definition its compiled passes are tested against).
 
     Per candidate, the actor-mode arc lengths on its corridor over time and whether the
