@@ -36,7 +36,7 @@ from torch import nn
 
 from ..errors import ConfigError, FileFormatError
 from ..fileio import REPO_ROOT
-from ..geometry.boxes import iou_paired
+from ..geometry.boxes import _clip_candidates, _corners, _finite_areas, _ordered_area, iou_paired
 from ..jit import kernel
 from ..validate import Node, check_header
 from .interface import Detections
@@ -411,6 +411,195 @@ def rotated_nms(boxes: np.ndarray, scores: np.ndarray, iou_threshold: float, max
             boxes it suppressed): centre, log size and heading (as a unit vector).
     Returns:
         boxes (M, 5) and scores (M,) of the kept boxes, by decreasing score.
+
+    The same bits as :func:`rotated_nms_numpy` (its definition, and the test's reference), lazily:
+    only the pairs that the greedy pass consults (a keeper against the boxes still alive near
+    it, about a sixth of the near pairs of a detector frame) get their IoU, one compiled call
+    and one ``np.arctan2`` per keeper (:func:`_nms_advance`). The corners' cos and sin, the
+    candidates' arctan2 and the radii's hypot stay numpy's, applied elementwise to the same
+    values as there. The near test (centre distance below the sum of the radii) is decided
+    from squared distances where the margin is safe (relative 1e-9, far above rounding) and
+    falls back to :func:`rotated_nms_numpy` for any other case (non-finite or tiny boxes, a
+    distance within that margin). 0.59 -> 0.24 ms per call (50 captured calls of
+    ``highway-benchmark-000010``, issue 16).
+    """
+    boxes = np.asarray(boxes, np.float64).reshape(-1, 5)
+    scores = np.asarray(scores, np.float64).reshape(-1)
+    n = len(boxes)
+    if n == 0:
+        return np.zeros((0, 5)), np.zeros(0)
+    order = np.argsort(-scores, kind="stable")
+    sb, ss = boxes[order], scores[order]
+    geo = np.empty((n, 7))
+    geo[:, :5] = sb
+    geo[:, 5] = 0.5 * np.hypot(np.maximum(sb[:, 2], 0), np.maximum(sb[:, 3], 0))
+    geo[:, 6] = _finite_areas(sb)
+    corners = _corners(sb, np.cos(sb[:, 4]), np.sin(sb[:, 4]))
+    work = np.zeros((4, n), np.int64)
+    st = np.zeros(6, np.int64)
+    thr = float(iou_threshold)
+    mk = n if max_keep is None else int(max_keep)
+    rel, valid, count = _nms_advance(geo, corners, thr, mk, work, st, _NO_REL, _NO_VALID, _NO_COUNT, _NO_ANG)
+    while len(count):
+        ang = np.arctan2(rel[..., 1], rel[..., 0])
+        rel, valid, count = _nms_advance(geo, corners, thr, mk, work, st, rel, valid, count, ang)
+    if st[5]:  # a near test too close to call from squared distances (or non-finite boxes)
+        return rotated_nms_numpy(boxes, scores, iou_threshold, max_keep, vote)
+    nk = int(st[1])
+    keep = work[2, :nk]
+    out = sb[keep]
+    if vote:
+        # each cluster's members in index order (the keeper first, then the boxes it
+        # suppressed), from one stable sort of the cluster ids (nk: never reached)
+        cluster = np.where(work[0] != 0, work[1], nk)
+        members = np.argsort(cluster, kind="stable")
+        ends = np.cumsum(np.bincount(cluster, minlength=nk + 1)).tolist()
+        lo = 0
+        for m in range(nk):
+            hi = ends[m]
+            if hi - lo > 1:
+                mem = members[lo:hi]
+                out[m] = _vote(sb[mem], ss[mem])
+            lo = hi
+    return out, ss[keep]
+
+
+_NO_REL = np.zeros((0, 24, 2))
+_NO_VALID = np.zeros((0, 24), np.bool_)
+_NO_COUNT = np.zeros(0, np.int64)
+_NO_ANG = np.zeros((0, 24))
+
+
+@kernel
+def _nms_advance(geo: np.ndarray, corners: np.ndarray, thr: float, max_keep: int, work: np.ndarray,
+                 st: np.ndarray, rel: np.ndarray, valid: np.ndarray, count: np.ndarray, ang: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One step of :func:`rotated_nms`'s greedy pass over boxes sorted by decreasing score.
+
+    Args:
+        geo: (n, 7) boxes, radius (half diagonal, numpy's hypot), area (``_finite_areas``).
+        corners: (n, 4, 2) ``box_corners`` of the boxes.
+        thr: the IoU threshold; max_keep: stop after this many keepers.
+        work: (4, n) int64, zeros at the start: dead flags (1: kept or suppressed), the
+            cluster id of each box (its keeper's position; meaningful where dead), the keepers,
+            and the pending pairs' second boxes.
+        st: (6,) int64, zeros at the start: the keeper whose pairs are pending, the number of
+            keepers (the current keeper's id while its pairs are pending), the number of
+            pending pairs, the next box to scan, done, and "fall back" (a near test within the
+            margin, or non-finite values: the caller runs :func:`rotated_nms_numpy`).
+        rel, valid, count: the pending pairs' ``_clip_candidates`` (from the previous call) and
+            ang (m, 24) their ``np.arctan2(rel[..., 1], rel[..., 0])``; empty on the first call.
+    Returns:
+        the next keeper's pending pairs' rel, valid, count (keeper box as ``a``, as
+        ``iou_paired(boxes[ii], boxes[jj])`` has it); empty when done.
+
+    The pending pairs' IoU is ``iou_paired``'s arithmetic (minimum with both areas, union,
+    division by max(union, 1e-12), clip to [0, 1]) and a pair suppresses where it exceeds
+    ``thr``; a pair with a zero-area box has IoU 0.
+    """
+    n = geo.shape[0]
+    dead = work[0]
+    cluster = work[1]
+    keep = work[2]
+    js = work[3]
+    m = st[2]
+    if m > 0:  # the pending pairs of keeper st[0], id st[1]
+        i = st[0]
+        nk = st[1]
+        inter_all = _ordered_area(rel, valid, count, ang)
+        aa = geo[i, 6]
+        for q in range(m):
+            j = js[q]
+            ab = geo[j, 6]
+            mn = aa if aa <= ab else ab
+            x = inter_all[q]
+            inter = x if (x != x or x <= mn) else mn
+            union = aa + ab - inter
+            den = union if (union >= 1e-12 or union != union) else 1e-12
+            iou = inter / den
+            if iou != iou:
+                continue
+            if iou < 0.0:
+                iou = 0.0
+            if iou > 1.0:
+                iou = 1.0
+            if iou > thr:
+                dead[j] = 1
+                cluster[j] = nk
+        st[2] = 0
+        st[1] = nk + 1
+        if nk + 1 >= max_keep:
+            st[4] = 1
+            return rel[:0], valid[:0], count[:0]
+    nk = st[1]
+    for i in range(st[3], n):
+        if dead[i]:
+            continue
+        dead[i] = 1
+        cluster[i] = nk
+        keep[nk] = i
+        m = 0
+        for j in range(i + 1, n):
+            if dead[j]:
+                continue
+            dx = geo[j, 0] - geo[i, 0]
+            dy = geo[j, 1] - geo[i, 1]
+            r = geo[j, 5] + geo[i, 5]
+            d2 = dx * dx + dy * dy
+            r2 = r * r
+            if not (d2 <= 1.7e308 and r2 <= 1.7e308 and r2 > 1e-200):
+                st[5] = 1
+                st[4] = 1
+                return rel[:0], valid[:0], count[:0]
+            if d2 > r2 * (1.0 + 1e-9):
+                continue  # hypot(dx, dy) > r: not near
+            if not d2 < r2 * (1.0 - 1e-9):
+                st[5] = 1
+                st[4] = 1
+                return rel[:0], valid[:0], count[:0]
+            if geo[i, 6] > 0.0 and geo[j, 6] > 0.0:
+                js[m] = j
+                m += 1
+            elif 0.0 > thr:
+                dead[j] = 1
+                cluster[j] = nk
+        st[3] = i + 1
+        if m > 0:
+            st[0] = i
+            st[2] = m
+            ca = np.empty((m, 4, 2))
+            cb = np.empty((m, 4, 2))
+            origin = np.empty((m, 2))
+            for q in range(m):
+                j = js[q]
+                for k in range(4):
+                    for d in range(2):
+                        ca[q, k, d] = corners[i, k, d]
+                        cb[q, k, d] = corners[j, k, d]
+                origin[q, 0] = geo[i, 0]
+                origin[q, 1] = geo[i, 1]
+            return _clip_candidates(ca, cb, origin)
+        nk += 1
+        st[1] = nk
+        if nk >= max_keep:
+            break
+    st[4] = 1
+    return rel[:0], valid[:0], count[:0]
+
+
+def rotated_nms_numpy(boxes: np.ndarray, scores: np.ndarray, iou_threshold: float, max_keep: int | None = None,
+                      vote: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`rotated_nms` with the IoU of every near pair in one batch (the definition, the
+    test's reference, and the fallback). Greedy non-maximum suppression on rotated BEV boxes.
+
+    Args:
+        boxes: (K, 5). scores: (K,).
+        iou_threshold: a box whose IoU with a kept, higher-scored box exceeds this is dropped.
+        max_keep: keep at most this many.
+        vote: replace each kept box by the score-weighted mean of its cluster (itself and the
+            boxes it suppressed): centre, log size and heading (as a unit vector).
+    Returns:
+        boxes (M, 5) and scores (M,) of the kept boxes, by decreasing score.
     """
     boxes = np.asarray(boxes, np.float64).reshape(-1, 5)
     scores = np.asarray(scores, np.float64).reshape(-1)
@@ -420,8 +609,8 @@ def rotated_nms(boxes: np.ndarray, scores: np.ndarray, iou_threshold: float, max
     boxes, scores = boxes[order], scores[order]
     # The IoU of every pair (i < j) whose circles overlap, in one batch of paired boxes (the
     # same arithmetic per pair as ``iou_pairwise``: every pair here is one its circle test
-    # keeps), then the greedy pass over them compiled: a few dozen candidates give a few
-    # hundred such pairs, cheaper at once than one numpy round per keeper.
+    # keeps), then the greedy pass over them compiled. (rotated_nms computes only the pairs
+    # the greedy pass consults, with one compiled round per keeper.)
     radius = 0.5 * np.hypot(np.maximum(boxes[:, 2], 0), np.maximum(boxes[:, 3], 0))
     with np.errstate(invalid="ignore"):
         near = (np.hypot(boxes[None, :, 0] - boxes[:, None, 0], boxes[None, :, 1] - boxes[:, None, 1])
