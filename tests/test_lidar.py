@@ -386,3 +386,18 @@ def test_scene_with_unknown_lidar_model_names_the_field(repo_root):
     with pytest.raises(FileFormatError, match=r"\$\.ego\.sensors\[0\]\.model"):
         rig_from_scene(scene, path=scenes[0])
     assert rig_from_scene(scene, "vlp32c").sensors[0].model.name == "vlp32c"  # an override needs no lookup
+
+
+def test_count_labels_is_bincount_of_the_actor_labels():
+    """The episode's per-actor return count (one compiled pass) against ``np.bincount`` of
+    the non-negative labels, and its "fall back" answer for a label past the rows."""
+    from adv3d_runner.sensors.kernels import count_labels
+
+    rng = np.random.default_rng(2)
+    for n in (1, 5, 31):
+        for m in (0, 1, 1000):
+            label = np.where(rng.random(m) < 0.3, rng.integers(0, n, m), rng.choice([-1, -3], m)).astype(np.int32)
+            got = count_labels(label, n)
+            want = np.bincount(label[label >= 0], minlength=n)
+            assert got.dtype == want.dtype and got.tobytes() == want.tobytes()
+    assert count_labels(np.array([0, 7, -1], np.int32), 5).size == 0

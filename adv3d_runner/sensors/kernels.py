@@ -18,7 +18,7 @@ import numpy as np
 
 from ..jit import kernel
 
-__all__ = ["turn_rays", "actor_rays", "take_hits", "valid_returns", "make_returns"]
+__all__ = ["turn_rays", "actor_rays", "take_hits", "valid_returns", "make_returns", "count_labels"]
 
 #: Label of the rays blocked by the ego's own body (no return).
 EGO = -3
@@ -208,3 +208,23 @@ def make_returns(idx, fade, t, label, prim_bg, cos_actor, dirs, ring, faces, c, 
         dist[k] = d
         k += 1
     return points, out_ring, out_label, dist
+
+
+@kernel
+def count_labels(label, n):
+    """Returns per actor row the number of returns labelled with it: ``np.bincount(label[label
+    >= 0], minlength=n)`` in one pass (int64, (n,)), or (0,) when a label is n or more (the
+    caller then takes numpy's bincount, which grows its output).
+
+    Args:
+        label: (m,) int32 labels of a frame's returns (actor row, or negative: none).
+        n: the number of rows counted.
+    """
+    out = np.zeros(n, np.int64)
+    for k in range(label.shape[0]):
+        v = label[k]
+        if v >= 0:
+            if v >= n:
+                return np.zeros(0, np.int64)
+            out[v] += 1
+    return out

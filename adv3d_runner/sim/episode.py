@@ -310,6 +310,7 @@ class Episode:
 
     def step(self) -> EpisodeFrame:
         """Simulate frame k (LiDAR, stack, ego and actor motion) and hand it to the recorders."""
+        from ..sensors.kernels import count_labels
         from ..sensors.lidar import simulate_frame
 
         if self.done:
@@ -327,7 +328,9 @@ class Episode:
         frame = simulate_frame(self.world, self.rig, ego.pose, world_poses, self.rng if self.lidar_noise else None,
                                cache=self.lidar_cache)
         t1 = time.perf_counter()
-        counts_world = np.bincount(frame.label[frame.label >= 0], minlength=self.n_world + 1)
+        counts_world = count_labels(frame.label, self.n_world + 1)
+        if counts_world.size == 0:
+            counts_world = np.bincount(frame.label[frame.label >= 0], minlength=self.n_world + 1)
         counts = np.where(have, counts_world[np.maximum(to_world, 0)], 0)
         self.actor_points[k] = counts
         self.n_points[k] = len(frame.points)
