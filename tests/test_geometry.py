@@ -30,3 +30,29 @@ def test_frame_change_round_trip_and_heading():
     np.testing.assert_allclose(boxes_from_frame(local, pose), boxes, atol=1e-12)
     # a box at the pose, heading like the pose, sits at the origin with yaw 0
     np.testing.assert_allclose(boxes_to_frame(np.r_[pose[:2], 4.0, 2.0, pose[2]], pose), [0, 0, 4, 2, 0], atol=1e-12)
+
+
+def test_wrap_angle_equals_its_numpy_expression():
+    """The scalar fast path (Python float arithmetic) and the array path against the numpy
+    expression, bit for bit and type for type: both sides of every multiple of pi, zeros,
+    huge, tiny and non-finite angles, float32 and integer inputs."""
+    from adv3d_runner.geometry.angles import wrap_angle_numpy
+
+    rng = np.random.default_rng(4)
+    k = np.arange(-6, 7) * np.pi
+    vals = np.r_[k, np.nextafter(k, np.inf), np.nextafter(k, -np.inf), 0.0, -0.0, 1e-300, -1e-300, 1e300, -1e300,
+                 np.inf, -np.inf, np.nan, rng.normal(0, 10, 2000), rng.normal(0, 1e6, 200)]
+    with np.errstate(invalid="ignore", over="ignore"):  # inf and 1e300 (as float32) warn
+        _compare_wraps(vals, wrap_angle_numpy)
+
+
+def _compare_wraps(vals, wrap_angle_numpy):
+    for v in vals:
+        for x in (float(v), np.float64(v)):
+            got, want = wrap_angle(x), wrap_angle_numpy(x)
+            assert type(got) is type(want) and np.asarray(got).tobytes() == np.asarray(want).tobytes()
+    for arr in (vals, vals.astype(np.float32), np.arange(-20, 20), vals[:0]):
+        got, want = wrap_angle(arr), wrap_angle_numpy(arr)
+        assert got.dtype == want.dtype and got.tobytes() == want.tobytes()
+    for x in (np.float32(3.5), 7, np.int64(-9)):
+        assert np.asarray(wrap_angle(x)).tobytes() == np.asarray(wrap_angle_numpy(x)).tobytes()
