@@ -939,3 +939,40 @@ def test_clearance_kernel_is_the_numpy_definition_bit_for_bit(rng):
             want = costs.clearance_numpy(ego, (4.6, 1.9), act, dims, max_distance)
             assert got.shape == want.shape and got.tobytes() == want.tobytes()
             assert np.isfinite(got).any() and (got == 0.0).any()
+
+
+def test_yaw_from_motion_equals_its_numpy_version():
+    """The compiled chord search against the numpy version it replaced (kept as
+    ``_yaw_from_motion_numpy``), bit for bit: moving, standing, jittering and reversing actors,
+    several modes, large map coordinates, steps of exactly the chord, non-finite input (the
+    fallback) and empty shapes."""
+    from adv3d_runner.autonomy.planner.planner import _yaw_from_motion, _yaw_from_motion_numpy
+
+    rng = np.random.default_rng(8)
+    for trial in range(80):
+        N, K, T = int(rng.integers(1, 9)), int(rng.integers(1, 7)), int(rng.integers(1, 52))
+        yaw0 = rng.uniform(-np.pi, np.pi, N)
+        speed = rng.choice([0.0, 0.5, 3.0, 30.0], (N, K, 1))
+        heading = yaw0[:, None, None] + rng.normal(0, 0.3, (N, K, 1))
+        steps = np.stack([np.cos(heading), np.sin(heading)], -1) * speed[..., None] * 0.1
+        steps = np.broadcast_to(steps, (N, K, T, 2)) + rng.normal(0, 0.05, (N, K, T, 2)) * (trial % 3)
+        if trial % 4 == 0:
+            steps = np.round(steps * 4) / 4  # exact multiples: progress ties and steps of the chord
+        xy = rng.uniform(-5e3, 5e3, (N, 1, 1, 2)) * (trial % 2) + np.cumsum(steps, axis=2)
+        if trial % 9 == 0:
+            xy[rng.integers(0, N), 0, rng.integers(0, T), 0] = np.nan
+        for chord in (0.25, 1.0, 2.0):
+            want = _outcome(_yaw_from_motion_numpy, xy, yaw0, chord)  # NaN: numpy's search may raise
+            got = _outcome(_yaw_from_motion, xy, yaw0, chord)
+            assert got == want
+    for shape in ((0, 3, 5, 2), (2, 0, 5, 2), (2, 3, 0, 2)):
+        xy, yaw0 = np.zeros(shape), np.zeros(shape[0])
+        assert _yaw_from_motion(xy, yaw0).tobytes() == _yaw_from_motion_numpy(xy, yaw0).tobytes()
+
+
+def _outcome(f, *args):
+    try:
+        y = f(*args)
+    except IndexError:
+        return "IndexError"
+    return y.shape, y.tobytes()

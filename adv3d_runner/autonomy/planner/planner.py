@@ -25,6 +25,7 @@ import numpy as np
 from ...dynamics.bicycle import BicycleParams, rollout
 from ...errors import ConfigError
 from ...geometry.angles import wrap_angle
+from ...jit import kernel
 from ...scene.corridor import DEFAULT_SPEED_LIMIT, ChainCache, CorridorSet, build_corridor
 from ...scene.lanemap import LaneMap
 from ..interface import EgoState, Plan, Predictions, Tracks
@@ -227,6 +228,77 @@ def relaxed_headway(previous: float | None, cands: Candidates, ego_speed: float,
 
 def _yaw_from_motion(xy: np.ndarray, yaw0: np.ndarray, chord: float = YAW_CHORD) -> np.ndarray:
     """Heading along (N, K, T, 2) positions: the direction of the last ``chord`` m of forward
+    motion, i.e. from the latest earlier point at least ``chord`` m further back along the
+    actor's present heading ``yaw0`` (N,) to this one; ``yaw0`` until the actor has moved that
+    far forward (index 0 always). :func:`_yaw_from_motion_numpy` is the definition (and the
+    reasons); here the progress, its running maximum and the search for the chord's start are
+    one compiled pass (:func:`_chord_vectors`) around numpy's cos, sin and arctan2: the same
+    bits, 0.22 -> 0.08 ms per plan (issue 16)."""
+    N, K, T = xy.shape[:3]
+    if N * K == 0 or T == 0:
+        return _yaw_from_motion_numpy(xy, yaw0, chord)
+    fwd = np.stack([np.cos(yaw0), np.sin(yaw0)], axis=-1)  # (N, 2)
+    d, ok = _chord_vectors(np.ascontiguousarray(xy, dtype=np.float64), np.ascontiguousarray(fwd), float(chord))
+    if d.shape[0] == 0:  # a non-finite position or heading: numpy's NaN rules
+        return _yaw_from_motion_numpy(xy, yaw0, chord)
+    yaw = np.where(ok, np.arctan2(d[..., 1], d[..., 0]), np.repeat(yaw0, K)[:, None])
+    yaw[:, 0] = np.repeat(yaw0, K)
+    return yaw.reshape(N, K, T)
+
+
+@kernel
+def _chord_vectors(xy: np.ndarray, fwd: np.ndarray, chord: float) -> tuple[np.ndarray, np.ndarray]:
+    """The chord of :func:`_yaw_from_motion_numpy` at each point: d (N K, T, 2) from the chord's
+    start to the point, and ok (N K, T) where the actor has moved ``chord`` m forward; (0, T, 2)
+    and (0, T) when a value is not finite.
+
+    The numpy version's arithmetic: the progress (x - x0) fx + (y - y0) fy, its running
+    maximum, and the start as ``np.searchsorted`` finds it in the rows made one sorted array
+    (row r's progress plus r x span, the target progress minus ``chord`` plus r x span, the
+    same roundings): within row r the last index whose shifted progress is <= the target (the
+    earlier rows all are, the later ones none)."""
+    N, K, T = xy.shape[0], xy.shape[1], xy.shape[2]
+    rows = N * K
+    prog = np.empty((rows, T))
+    mx = 0.0
+    for n in range(N):
+        fx, fy = fwd[n, 0], fwd[n, 1]
+        if not (np.isfinite(fx) and np.isfinite(fy)):
+            return np.zeros((0, T, 2)), np.zeros((0, T), np.bool_)
+        for k in range(K):
+            r = n * K + k
+            x0, y0 = xy[n, k, 0, 0], xy[n, k, 0, 1]
+            run = 0.0
+            for t in range(T):
+                x, y = xy[n, k, t, 0], xy[n, k, t, 1]
+                if not (np.isfinite(x) and np.isfinite(y)):
+                    return np.zeros((0, T, 2)), np.zeros((0, T), np.bool_)
+                v = (x - x0) * fx + (y - y0) * fy
+                if t == 0 or v > run:
+                    run = v
+                prog[r, t] = run
+                if run > mx:
+                    mx = run
+    span = mx + chord + 1.0
+    d = np.empty((rows, T, 2))
+    ok = np.empty((rows, T), np.bool_)
+    for r in range(rows):
+        n, k = r // K, r % K
+        off = float(r) * span
+        i = -1  # the last s with prog[r, s] + off <= target (nondecreasing in s)
+        for t in range(T):
+            target = (prog[r, t] - chord) + off
+            while i + 1 < T and prog[r, i + 1] + off <= target:
+                i += 1
+            ok[r, t] = i >= 0
+            s = i if i > 0 else 0
+            d[r, t, 0] = xy[n, k, t, 0] - xy[n, k, s, 0]
+            d[r, t, 1] = xy[n, k, t, 1] - xy[n, k, s, 1]
+    return d, ok
+
+
+def _yaw_from_motion_numpy(xy: np.ndarray, yaw0: np.ndarray, chord: float = YAW_CHORD) -> np.ndarray:
+    """:func:`_yaw_from_motion` as numpy alone (the test's reference). Heading along (N, K, T, 2) positions: the direction of the last ``chord`` m of forward
     motion, i.e. from the latest earlier point at least ``chord`` m further back along the
     actor's present heading ``yaw0`` (N,) to this one; ``yaw0`` until the actor has moved that
     far forward (index 0 always).
