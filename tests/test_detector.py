@@ -364,3 +364,31 @@ def test_upsample_concat_is_interpolate_then_cat():
             out = upsample_concat(coarse, skip)
         assert out.shape == ref.shape and torch.equal(out, ref)
         assert torch.equal(upsample_concat(coarse, skip), ref)  # the training (grad) path
+
+
+def test_flat_forward_equals_the_folded_graph_module():
+    """``flat_forward`` (direct conv2d / relu calls) gives the folded network's outputs bit for
+    bit, follows in-place weight changes, and declines what it does not know."""
+    from adv3d_runner.autonomy.detector import flat_forward, fold_batchnorm
+
+    torch.manual_seed(3)
+    cfg = DetectorConfig(resolution=0.4)
+    net = PixorNet(cfg).eval()
+    gm = fold_batchnorm(net)
+    flat = flat_forward(gm)
+    assert flat is not None and flat_forward(net) is None
+    x = (torch.rand(2, cfg.in_channels, *cfg.grid_shape) < 0.1).float()
+    with torch.inference_mode():
+        for _ in range(2):
+            want, got = gm(x), flat(x)
+            assert all(a.numpy().tobytes() == b.numpy().tobytes() for a, b in zip(want, got))
+            gm.score.weight.mul_(1.5)  # in place: both see it
+    gm.forward = lambda t: (t, t)  # a patched forward is left alone
+    assert flat_forward(gm) is None
+    det = BevDetector(cfg, net)
+    det.inference_net = fold_batchnorm(net)
+    pts = np.c_[np.random.default_rng(0).uniform([0, -10, 0.5], [40, 10, 2.0], (3000, 3)), np.ones(3000)]
+    a = det.detect(pts, score_threshold=0.0)
+    det._flat = (det.inference_net, None)  # the module path
+    b = det.detect(pts, score_threshold=0.0)
+    assert a.boxes.tobytes() == b.boxes.tobytes() and a.scores.tobytes() == b.scores.tobytes()

@@ -807,12 +807,17 @@ class BevDetector:
         self.inference_net: nn.Module = self.net
         self.threads = threads
         self.timings: dict[str, float] = {}
+        self._flat: tuple[nn.Module, Any] | None = None  # (inference_net, its flat_forward)
 
     def _forward(self, grids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         if self.threads is not None and torch.get_num_threads() != self.threads:
             torch.set_num_threads(self.threads)
+        net = self.inference_net
+        if self._flat is None or self._flat[0] is not net:
+            self._flat = (net, flat_forward(net))
+        run = self._flat[1] or net
         with torch.inference_mode():
-            logits, box = self.inference_net(torch.from_numpy(np.ascontiguousarray(grids)))
+            logits, box = run(torch.from_numpy(np.ascontiguousarray(grids)))
             return torch.sigmoid(logits[:, 0]).numpy(), box.numpy()
 
     def detect(self, points: np.ndarray, score_threshold: float | None = None) -> Detections:
@@ -886,6 +891,71 @@ def load_detector(path: str | Path = DEFAULT_MODEL_DIR, threads: int | None = 1,
     det = BevDetector(cfg, net, threads=threads)
     det.inference_net = fold_batchnorm(net)
     return det
+
+
+def flat_forward(net: nn.Module):
+    """The forward of a :func:`fold_batchnorm` graph as a list of direct calls, or None.
+
+    For a ``torch.fx.GraphModule`` whose modules are all zero-padded ``Conv2d`` and ``ReLU``
+    (what :func:`fold_batchnorm` makes of a :class:`PixorNet`) and whose ``forward`` is its
+    own: a function of the input that calls ``torch.conv2d`` with each convolution's weight,
+    bias, stride, padding, dilation and groups and ``torch.relu_`` / ``torch.relu`` in the
+    graph's order, as the modules' forwards do (the same ATen calls, so the same bits),
+    without nn.Module's call machinery (23 module calls a frame, ~0.1 ms). The weights are
+    the modules' own tensors, so changing them in place is seen. None for anything else."""
+    if not isinstance(net, torch.fx.GraphModule) or "forward" in vars(net):
+        return None
+    steps, names, out = [], {}, None
+    for node in net.graph.nodes:
+        if node.op == "placeholder":
+            names[node.name] = len(names)
+            continue
+        if node.op == "output":
+            out = node.args[0]
+            break
+        if node.kwargs:
+            return None
+        if node.op == "call_module":
+            m = net.get_submodule(node.target)
+            if type(m) is nn.Conv2d and m.padding_mode == "zeros" and len(node.args) == 1:
+                fn = _conv_call(m)
+            elif type(m) is nn.ReLU and len(node.args) == 1:
+                fn = torch.relu_ if m.inplace else torch.relu
+            else:
+                return None
+        elif node.op == "call_function":
+            fn = node.target
+        else:
+            return None
+        if not all(isinstance(a, torch.fx.Node) for a in node.args):
+            return None
+        steps.append((fn, tuple(names[a.name] for a in node.args)))
+        names[node.name] = len(names)
+    if out is None or not isinstance(out, tuple) or not all(isinstance(a, torch.fx.Node) for a in out):
+        return None
+    outs = tuple(names[a.name] for a in out)
+    # each step also names the values it uses last, dropped at once (as fx's code does): the
+    # allocator then reuses their memory while it is still in cache
+    last = {i: k for k, (_, args) in enumerate(steps) for i in args}
+    plan = [(fn, args, tuple(i for i in set(args) if last[i] == k and i not in outs))
+            for k, (fn, args) in enumerate(steps)]
+
+    def forward(x: torch.Tensor):
+        env = [x] + [None] * len(plan)
+        for k, (fn, args, done) in enumerate(plan, 1):
+            env[k] = fn(*[env[i] for i in args])
+            for i in done:
+                env[i] = None
+        return tuple(env[i] for i in outs)
+
+    return forward
+
+
+def _conv_call(m: nn.Conv2d):
+    """``m(x)`` of a zero-padded Conv2d: ``F.conv2d(x, weight, bias, stride, padding, dilation,
+    groups)``, as ``Conv2d._conv_forward`` calls it."""
+    w, b, stride, padding, dilation, groups = m.weight, m.bias, m.stride, m.padding, m.dilation, m.groups
+    return lambda x: nn.functional.conv2d(x, w, b, stride, padding, dilation, groups)
 
 
 def fold_batchnorm(net: nn.Module) -> nn.Module:
