@@ -939,3 +939,47 @@ def test_clearance_kernel_is_the_numpy_definition_bit_for_bit(rng):
             want = costs.clearance_numpy(ego, (4.6, 1.9), act, dims, max_distance)
             assert got.shape == want.shape and got.tobytes() == want.tobytes()
             assert np.isfinite(got).any() and (got == 0.0).any()
+
+
+# ------------------------------------------------------- least-jerk following (issue 17, round 7)
+
+def test_smooth_profile_keeps_the_gap_without_a_hard_brake_and_holds_on_a_free_road():
+    from adv3d_runner.autonomy.planner.smooth import free_road_speeds, smooth_profile
+
+    k = np.arange(1, 51) * DT
+    # free road: a gentle approach towards the IDM's free-road speeds, never faster
+    free = smooth_profile(14.0, 0.0, 25.0, np.full(50, np.inf), 3.0, 1.5, DT, 1.5, 7.0)
+    idm = free_road_speeds(14.0, 25.0, 1.5, 2.0, DT, 50)
+    assert np.all(free >= -1e-9) and np.all(free <= 1.5 + 1e-6) and free.max() > 0.05
+    assert np.all(14.0 + np.cumsum(free) * DT <= idm + 1e-9)
+    # a car 16 m ahead at the ego's 14 m/s: the IDM's 3 m + 1.5 s gap is 8 m short; the profile
+    # opens it over the recovery time at a gentle deceleration instead of braking now
+    behind = smooth_profile(14.0, 0.0, 25.0, 16.0 + 14.0 * k, 3.0, 1.5, DT, 1.5, 7.0, recover=8.0)
+    assert behind.min() > -1.0 and abs(behind[0]) < 0.2
+    v = 14.0 + np.cumsum(behind) * DT
+    s = np.cumsum(np.r_[14.0, v[:-1]] * DT + 0.5 * behind * DT * DT)
+    assert np.all(16.0 + 14.0 * k - s > 3.0)  # never closer than the jam distance
+    # a leader braking at 2 m/s^2 to 8 m/s, 20 m ahead: the ego slows without stopping or touching it
+    lead = np.cumsum(np.maximum(14.0 - 2.0 * k, 8.0) * DT)
+    brake = smooth_profile(14.0, 0.0, 25.0, 20.0 + lead, 3.0, 1.5, DT, 1.5, 7.0)
+    v = 14.0 + np.cumsum(brake) * DT
+    s = np.cumsum(np.r_[14.0, v[:-1]] * DT + 0.5 * brake * DT * DT)
+    assert brake.min() > -3.0 and v.min() > 5.0 and np.all(20.0 + lead - s > 3.0)
+
+
+def test_smooth_follow_adds_one_current_lane_candidate_that_plans_its_own_speed():
+    from dataclasses import replace
+
+    from adv3d_runner.autonomy.planner import PlannerConfig
+
+    lanes = straight_lanes(2)
+    (tracks, preds), ego = _leader_at(16.0, 14.0)
+    cfg = PlannerConfig(proposals=replace(PlannerConfig().proposals, smooth_follow=True))
+    cands = planner_on(lanes, SamplingPlanner(cfg)).plan_with_scores(ego, preds, tracks)[1]
+    default = planner_on(lanes).plan_with_scores(ego, preds, tracks)[1]
+    labels = cands.spec.labels
+    assert labels.count("lane0/d+0.0/smooth") == 1 and len(labels) == len(default.spec.labels) + 1
+    i, keep = labels.index("lane0/d+0.0/smooth"), labels.index("lane0/d+0.0/v25.0")
+    others = [j for j in range(len(labels)) if j != i]
+    assert np.array_equal(cands.accel[others], default.accel)  # the other candidates are unchanged
+    assert cands.accel[keep, :10].min() < -1.0 and cands.accel[i, :10].min() > -0.6
