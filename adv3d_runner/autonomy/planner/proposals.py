@@ -95,8 +95,8 @@ class ProposalConfig:
             changes). Without it the IDM brakes at once to open a 1 s gap to 1.5 s.
         smooth_follow: add one current-lane candidate whose speed plan is the least-jerk
             profile behind the predicted leaders (:func:`.smooth.smooth_profile`, planned over
-            the whole horizon at once instead of the IDM's step-by-step reaction); False: none
-            (the default). ``smooth_weights``: its (jerk, acceleration, speed, gap) weights
+            the whole horizon at once instead of the IDM's step-by-step reaction; the default
+            since issue 17's seventh round); False: none (the planner before it). ``smooth_weights``: its (jerk, acceleration, speed, gap) weights
             (:class:`.smooth.SmoothWeights`); ``smooth_recover``: s over which a gap shorter
             than the IDM's ``idm_gap + idm_headway x v`` is to open.
         firm_braking: m/s^2; braking demanded harder than this builds up at ``max_brake_jerk``
@@ -139,7 +139,7 @@ class ProposalConfig:
     min_headway: float = 0.8
     closing_speed: float = 0.5
     firm_braking: float | None = None
-    smooth_follow: bool = False
+    smooth_follow: bool = True
     smooth_weights: tuple[float, ...] = (3.0, 3.0, 0.05, 20.0)
     smooth_recover: float = 8.0
 
