@@ -65,6 +65,16 @@ def closed_loop(lanes, ego, actor_fn, seconds, planner=None):
     return np.array(ego_boxes), np.array(act_boxes).reshape(len(ego_boxes), -1, 5), np.array(speeds), plans
 
 
+def idm_only():
+    """A planner without the least-jerk candidate (``smooth_follow``), for tests of the IDM
+    candidates' own mechanisms."""
+    from dataclasses import replace
+
+    from adv3d_runner.autonomy.planner import PlannerConfig
+
+    return SamplingPlanner(PlannerConfig(proposals=replace(PlannerConfig().proposals, smooth_follow=False)))
+
+
 def stopped_at(*xy):
     boxes = np.array([[x, y, 4.6, 1.9, 0.0] for x, y in xy]).reshape(-1, 5)
     return lambda t: boxes.copy()
@@ -398,7 +408,8 @@ def test_plan_with_scores_reports_every_term():
     assert set(plan.cost_terms) == set(TERMS) - set(OCCUPANCY_TERMS) - set(OPTIONAL_TERMS) == set(table.raw)
     with_own = planner_on(straight_lanes(3), SamplingPlanner(PlannerConfig(own_lane_floor=5.0)))
     assert set(with_own.plan(EgoState([0.0, LANE_W, 0.0], 10.0)).cost_terms) == set(TERMS) - set(OCCUPANCY_TERMS)
-    assert len(cands) == len(table.total) == 3 * 5 + 2 * 5 + 1  # offsets x speeds per lane + emergency stop
+    # offsets x speeds per lane + the least-jerk candidate + the emergency stop
+    assert len(cands) == len(table.total) == 3 * 5 + 2 * 5 + 1 + 1
     assert plan.cost == pytest.approx(sum(plan.cost_terms.values()))
     assert plan.trajectory.shape == (51, 3) and plan.acceleration.shape == (50,)
     assert np.allclose(plan.trajectory[0], [0.0, LANE_W, 0.0]) and plan.speed[0] == 10.0
@@ -419,7 +430,9 @@ def test_one_frame_obstacle_does_not_make_the_offset_dither():
         return actor_inputs(now, (now[0, :2] + np.c_[22.0 * DT * np.arange(1, 61), np.zeros(60)])[None])
 
     def offsets(frames_with_car, n=6):
-        planner, ego, out = planner_on(lanes), EgoState([0.0, 0.0, 0.0], 25.0), []
+        # the IDM candidates only: with the least-jerk candidate the ego follows that car
+        # smoothly at the centre instead of nudging, and there is no offset change to test
+        planner, ego, out = planner_on(lanes, idm_only()), EgoState([0.0, 0.0, 0.0], 25.0), []
         for k in range(n):
             tracks, preds = inputs(k in frames_with_car, k * DT)
             plan = planner.plan(ego, preds, tracks)
@@ -430,7 +443,7 @@ def test_one_frame_obstacle_does_not_make_the_offset_dither():
 
     # the car makes a right nudge the cheapest plan (it is then not a leader to follow) ...
     tracks, preds = inputs(True, 0.0)
-    assert planner_on(lanes).plan(EgoState([0.0, 0.0, 0.0], 25.0), preds, tracks).label.split("/")[1] == "d-0.5"
+    assert planner_on(lanes, idm_only()).plan(EgoState([0.0, 0.0, 0.0], 25.0), preds, tracks).label.split("/")[1] == "d-0.5"
     # ... but seen for one frame only while driving on the centre it changes nothing
     assert offsets({2}) == ["d+0.0"] * 6
     # seen for good, the nudge is taken one plan after it first appears, and kept
@@ -476,7 +489,7 @@ def test_leader_speed_is_averaged_so_prediction_jitter_does_not_shake_the_ego():
     spread = {}
     for window in (0.1, 1.5):
         pc = ProposalConfig(leader_speed_window=window, max_jerk=10.0, max_release_jerk=10.0, max_brake_jerk=10.0,
-                            accel_deadband=0.0)
+                            accel_deadband=0.0, smooth_follow=False)  # the IDM candidates' mechanism
         firsts = []
         for seed in range(6):
             planner = planner_on(straight_lanes(1), SamplingPlanner(PlannerConfig(proposals=pc)))
@@ -701,7 +714,7 @@ def test_acceleration_deadband_holds_through_small_changes_of_the_demand():
     ego = EgoState(np.array([0.0, 0.0, 0.0]), 15.0, acceleration=0.0, length=4.8, width=1.9)
     firsts = {}
     for band in (0.0, 0.2):
-        pc = ProposalConfig(accel_deadband=band)
+        pc = ProposalConfig(accel_deadband=band, smooth_follow=False)  # the IDM candidates' mechanism
         out = []
         for gap in (31.0, 32.0, 33.0):  # the leader's distance jittering by a metre
             now = np.array([[gap, 0.0, 4.6, 1.9, 0.0]])
@@ -715,7 +728,7 @@ def test_acceleration_deadband_holds_through_small_changes_of_the_demand():
     t = np.arange(1, 61) * DT
     x = 20.0 + np.maximum(15.0 * t - 2.5 * t ** 2, 0.0) * (t < 3) + 22.5 * (t >= 3)
     tracks, preds = actor_inputs(np.array([[20.0, 0.0, 4.6, 1.9, 0.0]]), np.stack([x, 0 * t], -1)[None])
-    plan = planner_on(straight_lanes(1)).plan(ego, preds, tracks)
+    plan = planner_on(straight_lanes(1), idm_only()).plan(ego, preds, tracks)
     assert plan.acceleration[0] < -0.1
 
 
@@ -737,7 +750,7 @@ def test_a_car_alongside_leads_only_once_it_is_ahead():
     default = planner_on(lanes).plan_with_scores(ego, preds, tracks)[1]
     old_cfg = PlannerConfig(proposals=replace(PlannerConfig().proposals, alongside_leads=True))
     old = planner_on(lanes, SamplingPlanner(old_cfg)).plan_with_scores(ego, preds, tracks)[1]
-    in_lane = np.array(["lane0/" in lab and "emergency" not in lab for lab in old.spec.labels])
+    in_lane = np.array(["lane0/" in lab and "emergency" not in lab and "smooth" not in lab for lab in old.spec.labels])
     assert np.all(old.leader_gap[in_lane, 0] <= 0.0) and np.all(old.accel[in_lane, :5].min(axis=1) < -1.0)
     assert np.all(np.isinf(default.leader_gap[in_lane, 0])) and np.all(default.accel[in_lane, 0] > -0.5)
 
@@ -976,3 +989,47 @@ def _outcome(f, *args):
     except IndexError:
         return "IndexError"
     return y.shape, y.tobytes()
+
+
+# ------------------------------------------------------- least-jerk following (issue 17, round 7)
+
+def test_smooth_profile_keeps_the_gap_without_a_hard_brake_and_holds_on_a_free_road():
+    from adv3d_runner.autonomy.planner.smooth import free_road_speeds, smooth_profile
+
+    k = np.arange(1, 51) * DT
+    # free road: a gentle approach towards the IDM's free-road speeds, never faster
+    free = smooth_profile(14.0, 0.0, 25.0, np.full(50, np.inf), 3.0, 1.5, DT, 1.5, 7.0)
+    idm = free_road_speeds(14.0, 25.0, 1.5, 2.0, DT, 50)
+    assert np.all(free >= -1e-9) and np.all(free <= 1.5 + 1e-6) and free.max() > 0.05
+    assert np.all(14.0 + np.cumsum(free) * DT <= idm + 1e-9)
+    # a car 16 m ahead at the ego's 14 m/s: the IDM's 3 m + 1.5 s gap is 8 m short; the profile
+    # opens it over the recovery time at a gentle deceleration instead of braking now
+    behind = smooth_profile(14.0, 0.0, 25.0, 16.0 + 14.0 * k, 3.0, 1.5, DT, 1.5, 7.0, recover=8.0)
+    assert behind.min() > -1.0 and abs(behind[0]) < 0.2
+    v = 14.0 + np.cumsum(behind) * DT
+    s = np.cumsum(np.r_[14.0, v[:-1]] * DT + 0.5 * behind * DT * DT)
+    assert np.all(16.0 + 14.0 * k - s > 3.0)  # never closer than the jam distance
+    # a leader braking at 2 m/s^2 to 8 m/s, 20 m ahead: the ego slows without stopping or touching it
+    lead = np.cumsum(np.maximum(14.0 - 2.0 * k, 8.0) * DT)
+    brake = smooth_profile(14.0, 0.0, 25.0, 20.0 + lead, 3.0, 1.5, DT, 1.5, 7.0)
+    v = 14.0 + np.cumsum(brake) * DT
+    s = np.cumsum(np.r_[14.0, v[:-1]] * DT + 0.5 * brake * DT * DT)
+    assert brake.min() > -3.0 and v.min() > 5.0 and np.all(20.0 + lead - s > 3.0)
+
+
+def test_smooth_follow_adds_one_current_lane_candidate_that_plans_its_own_speed():
+    from dataclasses import replace
+
+    from adv3d_runner.autonomy.planner import PlannerConfig
+
+    lanes = straight_lanes(2)
+    (tracks, preds), ego = _leader_at(16.0, 14.0)
+    cfg = PlannerConfig(proposals=replace(PlannerConfig().proposals, smooth_follow=True))
+    cands = planner_on(lanes, SamplingPlanner(cfg)).plan_with_scores(ego, preds, tracks)[1]
+    default = planner_on(lanes, idm_only()).plan_with_scores(ego, preds, tracks)[1]
+    labels = cands.spec.labels
+    assert labels.count("lane0/d+0.0/smooth") == 1 and len(labels) == len(default.spec.labels) + 1
+    i, keep = labels.index("lane0/d+0.0/smooth"), labels.index("lane0/d+0.0/v25.0")
+    others = [j for j in range(len(labels)) if j != i]
+    assert np.array_equal(cands.accel[others], default.accel)  # the other candidates are unchanged
+    assert cands.accel[keep, :10].min() < -1.0 and cands.accel[i, :10].min() > -0.6

@@ -36,6 +36,7 @@ from ...dynamics.bicycle import BicycleParams
 from ...geometry.angles import wrap_angle
 from ...jit import kernel
 from ...scene.corridor import CorridorSet, project_on_segments
+from .smooth import SmoothWeights, smooth_profile
 
 
 @dataclass(frozen=True)
@@ -92,6 +93,12 @@ class ProposalConfig:
             from there it relaxes back to ``idm_headway`` linearly, the whole way in this many
             seconds (the relaxation of Schakel, Knoop & van Arem 2012's LMRS after lane
             changes). Without it the IDM brakes at once to open a 1 s gap to 1.5 s.
+        smooth_follow: add one current-lane candidate whose speed plan is the least-jerk
+            profile behind the predicted leaders (:func:`.smooth.smooth_profile`, planned over
+            the whole horizon at once instead of the IDM's step-by-step reaction; the default
+            since issue 17's seventh round); False: none (the planner before it). ``smooth_weights``: its (jerk, acceleration, speed, gap) weights
+            (:class:`.smooth.SmoothWeights`); ``smooth_recover``: s over which a gap shorter
+            than the IDM's ``idm_gap + idm_headway x v`` is to open.
         firm_braking: m/s^2; braking demanded harder than this builds up at ``max_brake_jerk``
             and is released as fast (``firm_release``); None: ``idm_decel``.
         min_headway: s, the shortest headway ``headway_relaxation`` accepts.
@@ -132,6 +139,9 @@ class ProposalConfig:
     min_headway: float = 0.8
     closing_speed: float = 0.5
     firm_braking: float | None = None
+    smooth_follow: bool = True
+    smooth_weights: tuple[float, ...] = (3.0, 3.0, 0.05, 20.0)
+    smooth_recover: float = 8.0
 
     def __post_init__(self):
         if self.leader_modes not in ("expected", "quantile", "nearest"):
@@ -157,6 +167,7 @@ class CandidateSpec:
     emergency: np.ndarray  # bool
     labels: list[str] = field(default_factory=list)
     accel_target: np.ndarray | None = None  # m/s^2 held instead of the IDM; NaN: the IDM
+    smooth: np.ndarray | None = None  # bool: the least-jerk speed plan instead of the IDM (smooth_follow)
 
     def __len__(self) -> int:
         return len(self.corridor)
@@ -233,7 +244,7 @@ def make_specs(corridors: CorridorSet, lane_names: list[str], speed_limit: float
                current_index: int = 0) -> CandidateSpec:
     """Cartesian product of corridors x offsets x target speeds (+ the fixed-acceleration
     candidates of ``accel_targets`` and the emergency stop)."""
-    cor, off, tgt, emg, labels, acc = [], [], [], [], [], []
+    cor, off, tgt, emg, labels, acc, smooth = [], [], [], [], [], [], []
     for ci in range(len(corridors)):
         offsets = config.lateral_offsets if ci == current_index else config.neighbour_offsets
         for o in offsets:
@@ -251,6 +262,14 @@ def make_specs(corridors: CorridorSet, lane_names: list[str], speed_limit: float
         emg.append(False)
         acc.append(float(a))
         labels.append(f"{lane_names[current_index]}/d+0.0/a{a:+.1f}")
+    if config.smooth_follow:
+        cor.append(current_index)
+        off.append(0.0)
+        tgt.append(speed_limit)
+        emg.append(False)
+        acc.append(np.nan)
+        smooth.append(len(cor) - 1)
+        labels.append(f"{lane_names[current_index]}/d+0.0/smooth")
     if config.emergency_stop:
         cor.append(current_index)
         off.append(np.nan)  # keep the present lateral position
@@ -258,8 +277,12 @@ def make_specs(corridors: CorridorSet, lane_names: list[str], speed_limit: float
         emg.append(True)
         acc.append(np.nan)
         labels.append(f"{lane_names[current_index]}/emergency-stop")
+    flags = None
+    if smooth:
+        flags = np.zeros(len(cor), bool)
+        flags[smooth] = True
     return CandidateSpec(np.array(cor, np.int64), np.array(off, float), np.array(tgt, float), np.array(emg, bool), labels,
-                         np.array(acc, float))
+                         np.array(acc, float), flags)
 
 
 def _hermite(u: np.ndarray, d0: np.ndarray, slope0: np.ndarray, d1: np.ndarray) -> np.ndarray:
@@ -348,14 +371,38 @@ def rollout_candidates(ego_pose: np.ndarray, ego_speed: float, ego_accel: float,
         1.0 if config.alongside_leads else 0.0,
         config.idm_decel if config.firm_braking is None else config.firm_braking,
     ], dtype=np.float64)
+    plan = _smooth_plans(spec, s0, v0, float(ego_accel), lead_s_ok, lead_back, config, params, headway, T)
     states, acc, kap, s_hist, d_hist, gap_hist, lead_v0 = _rollout_kernel(
         pose, v0, float(ego_accel), np.ascontiguousarray(s0, dtype=np.float64), 1.0 / trans_len, hermite,
         v_des, np.ascontiguousarray(spec.emergency, dtype=np.bool_),
         np.full(B, np.nan) if spec.accel_target is None else np.ascontiguousarray(spec.accel_target, dtype=np.float64),
-        *geometry,
+        plan, *geometry,
         lead_s_ok, np.ascontiguousarray(lead_back), np.ascontiguousarray(lead_v), np.ascontiguousarray(lead_a),
         limits, T)
     return Candidates(spec, states, acc, kap, s_hist, d_hist, gap_hist, dt, lead_v0)
+
+
+def _smooth_plans(spec: CandidateSpec, s0: np.ndarray, v0: float, a0: float, lead_s_ok: np.ndarray,
+                  lead_back: np.ndarray, config: ProposalConfig, params: BicycleParams, headway: float | None,
+                  T: int) -> np.ndarray:
+    """(B, T) accelerations of the ``smooth_follow`` candidates (NaN rows for the others), or a
+    (0, T) array when there are none. Their leaders: the actor-modes in the lane strip and ahead
+    of the ego at step 0, the nearest one at each step (lead_s_ok, lead_back: (T + 1, B, M), see
+    :func:`_rollout_kernel`)."""
+    if spec.smooth is None or not spec.smooth.any():
+        return np.zeros((0, T))
+    plan = np.full((len(spec), T), np.nan)
+    weights = SmoothWeights(*config.smooth_weights)
+    max_accel = min(config.idm_accel, params.max_accel)
+    max_decel = min(config.max_decel, params.max_decel)
+    for b in np.flatnonzero(spec.smooth):
+        ahead = (lead_s_ok[0, b] > s0[b]) & (lead_back[0, b] > s0[b])  # (M,) leads from the start
+        back = np.where(np.isfinite(lead_s_ok[1:, b][:, ahead]), lead_back[1:, b][:, ahead], np.inf)
+        bound = (back.min(axis=1) if back.shape[1] else np.full(T, np.inf)) - s0[b]
+        plan[b] = smooth_profile(v0, a0, float(spec.target_speed[b]), bound, config.idm_gap,
+                                 config.idm_headway if headway is None else headway, config.dt,
+                                 max_accel, max_decel, config.smooth_recover, config.idm_decel, weights)
+    return plan
 
 
 # indices into the ``limits`` vector of :func:`_rollout_kernel`
@@ -365,7 +412,8 @@ def rollout_candidates(ego_pose: np.ndarray, ego_speed: float, ego_accel: float,
 
 
 @kernel
-def _rollout_kernel(pose, v0, a0, s0, inv_trans, hermite, v_des, emergency, accel_target, px, py, ux, uy, base_p, base_u,
+def _rollout_kernel(pose, v0, a0, s0, inv_trans, hermite, v_des, emergency, accel_target, accel_plan, px, py, ux, uy,
+                    base_p, base_u,
                     spacing, last_i, lead_s_ok, lead_back, lead_v, lead_a, limits, T):
     """The closed-loop rollout of every candidate (module docstring), one candidate at a time.
 
@@ -377,7 +425,9 @@ def _rollout_kernel(pose, v0, a0, s0, inv_trans, hermite, v_des, emergency, acce
         s0, inv_trans: (B,) start arc length on the candidate's corridor (m) and 1 / its lateral
             transition length (1/m); hermite: (4, B) the lateral offset's cubic in u, low order
             first; v_des: (B,) target speed (m/s, <= 0.1: stop); emergency: (B,) bool;
-            accel_target: (B,) m/s^2 held instead of the IDM's (NaN: the IDM).
+            accel_target: (B,) m/s^2 held instead of the IDM's (NaN: the IDM); accel_plan:
+            (B', T) m/s^2 of each step instead of the IDM's and the deadband's (B' = B, or 0
+            rows: none; NaN: the IDM).
         px, py, ux, uy: the CorridorSet's flattened points and segment unit vectors;
         base_p, base_u, spacing, last_i: (B,) the candidate's corridor: its first point and
             segment index, point spacing (m) and last segment index.
@@ -467,7 +517,10 @@ def _rollout_kernel(pose, v0, a0, s0, inv_trans, hermite, v_des, emergency, acce
             a = min(max(a, -max_decel), idm_accel)
             if not np.isnan(accel_target[b]):
                 a = accel_target[b]
-            if deadband > 0.0 and abs(a - a_prev) < deadband:
+            planned = accel_plan.shape[0] > 0 and not np.isnan(accel_plan[b, k])
+            if planned:
+                a = min(max(accel_plan[b, k], -max_decel), idm_accel)  # smooth already: no deadband
+            elif deadband > 0.0 and abs(a - a_prev) < deadband:
                 # hold the acceleration while the demand stays within the band: the leader's gap
                 # and speed jitter by centimetres and tenths of m/s from frame to frame, and every
                 # plan passed that on to the executed acceleration at up to max_jerk
