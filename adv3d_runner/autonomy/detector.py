@@ -293,10 +293,9 @@ def _bin_points(p: np.ndarray, grid: np.ndarray, edges: np.ndarray, density: np.
         fy = np.floor((p[k, 1] - y0) / res)
         if not (fx >= 0 and fx < nx and fy >= 0 and fy < ny):
             continue
-        iz = -1
-        for e in range(nz + 1):
-            if edges[e] <= z:
-                iz += 1
+        iz = 0  # the last e with edges[e] <= z (edges increase; edges[0] <= z < edges[nz])
+        while edges[iz + 1] <= z:
+            iz += 1
         ix, iy = int(fx), int(fy)
         out[iz, ix, iy] = 1.0
         count[ix, iy] += 1
