@@ -205,8 +205,9 @@ def test_autonomy_a_plans_are_unchanged_on_a_recorded_scene():
     planner without Autonomy-B's occupancy terms, main at 23dd95b, to show that they change
     nothing; made again, ``python tests/planner_regression.py tests/data/planner_a_plans.npz``,
     when issue 17's third round changed the planner on purpose: expected leaders, the ACC
-    model, the emergency-stop gate): Autonomy-A's plans on a recorded scene, bit for bit, so
-    that an unintended change to the planner shows."""
+    model, the emergency-stop gate; and again for its seventh round, the least-jerk following
+    candidate): Autonomy-A's plans on a recorded scene, bit for bit, so that an unintended
+    change to the planner shows."""
     sys.path.insert(0, str(Path(__file__).parent))
     from planner_regression import a_plans
 
