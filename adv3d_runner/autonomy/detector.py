@@ -389,7 +389,10 @@ def encode_targets(boxes: np.ndarray, cfg: DetectorConfig, ignore_boxes: np.ndar
 def decode_boxes(reg: np.ndarray, cfg: DetectorConfig, ii: np.ndarray, jj: np.ndarray) -> np.ndarray:
     """Boxes (K, 5) predicted by output cells (ii, jj) from the box map ``reg`` (6, ox, oy)."""
     cx, cy = cell_centres(cfg)
-    r = np.asarray(reg, np.float64)[:, ii, jj]
+    # contiguous rows: numpy 1.26's arctan2 on strided float64 rows gives results that depend on
+    # where the array lands in memory (one rounding step in a few elements: the same frame
+    # decoded twice could differ); on contiguous rows it does not
+    r = np.ascontiguousarray(np.asarray(reg, np.float64)[:, ii, jj])
     x = cx[ii] + _OFFSET_SCALE * r[0]
     y = cy[jj] + _OFFSET_SCALE * r[1]
     length = np.exp(np.clip(r[2] + _LOG_L0, -3.0, 4.0))
@@ -603,18 +606,8 @@ def _nms_advance(geo: np.ndarray, corners: np.ndarray, thr: float, max_keep: int
 
 def rotated_nms_numpy(boxes: np.ndarray, scores: np.ndarray, iou_threshold: float, max_keep: int | None = None,
                       vote: bool = True) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`rotated_nms` with the IoU of every near pair in one batch (the definition, the
-    test's reference, and the fallback). Greedy non-maximum suppression on rotated BEV boxes.
-
-    Args:
-        boxes: (K, 5). scores: (K,).
-        iou_threshold: a box whose IoU with a kept, higher-scored box exceeds this is dropped.
-        max_keep: keep at most this many.
-        vote: replace each kept box by the score-weighted mean of its cluster (itself and the
-            boxes it suppressed): centre, log size and heading (as a unit vector).
-    Returns:
-        boxes (M, 5) and scores (M,) of the kept boxes, by decreasing score.
-    """
+    """:func:`rotated_nms` (same arguments and returns) with the IoU of every near pair in one
+    batch: the definition, the test's reference, and the fallback."""
     boxes = np.asarray(boxes, np.float64).reshape(-1, 5)
     scores = np.asarray(scores, np.float64).reshape(-1)
     if len(boxes) == 0:

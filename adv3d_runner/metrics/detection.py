@@ -82,37 +82,34 @@ def match_frame(gt_boxes: np.ndarray, det_boxes: np.ndarray, det_scores: np.ndar
     Returns:
         :class:`FrameMatch` with per-detection arrays in the input order.
     """
+    gt, scores, iou, tp, matched, best_iou = _match_inputs(gt_boxes, det_boxes, det_scores)
+    if iou is not None and len(gt):
+        _greedy_match(iou, np.argsort(-scores, kind="stable"), float(iou_threshold), tp, matched, best_iou)
+    return FrameMatch(tp, matched, best_iou, len(gt))
+
+
+def _match_inputs(gt_boxes: np.ndarray, det_boxes: np.ndarray, det_scores: np.ndarray):
+    """What both matchers start from: gt (G, 5), scores (D,), the (D, G) IoU (None without
+    detections), and the per-detection outputs: tp (D,) False, matched (D,) -1, best IoU (D,)."""
     gt = as_boxes(gt_boxes).reshape(-1, 5)
     det = as_boxes(det_boxes).reshape(-1, 5)
     scores = _scores(det_scores, len(det))
     D = len(det)
-    tp = np.zeros(D, bool)
-    matched = np.full(D, -1, np.int64)
-    best_iou = np.zeros(D)
+    tp, matched, best_iou = np.zeros(D, bool), np.full(D, -1, np.int64), np.zeros(D)
     if D == 0:
-        return FrameMatch(tp, matched, best_iou, len(gt))
+        return gt, scores, None, tp, matched, best_iou
     iou = iou_pairwise(det, gt)  # (D, G)
     if len(gt):
         best_iou = iou.max(axis=1)
-        _greedy_match(iou, np.argsort(-scores, kind="stable"), float(iou_threshold), tp, matched, best_iou)
-    return FrameMatch(tp, matched, best_iou, len(gt))
+    return gt, scores, iou, tp, matched, best_iou
 
 
 def match_frame_numpy(gt_boxes: np.ndarray, det_boxes: np.ndarray, det_scores: np.ndarray,
                       iou_threshold: float = IOU_THRESHOLD) -> FrameMatch:
     """:func:`match_frame` with its greedy loop in numpy (the test's reference)."""
-    gt = as_boxes(gt_boxes).reshape(-1, 5)
-    det = as_boxes(det_boxes).reshape(-1, 5)
-    scores = _scores(det_scores, len(det))
-    D = len(det)
-    tp = np.zeros(D, bool)
-    matched = np.full(D, -1, np.int64)
-    best_iou = np.zeros(D)
-    if D == 0:
+    gt, scores, iou, tp, matched, best_iou = _match_inputs(gt_boxes, det_boxes, det_scores)
+    if iou is None:
         return FrameMatch(tp, matched, best_iou, len(gt))
-    iou = iou_pairwise(det, gt)  # (D, G)
-    if len(gt):
-        best_iou = iou.max(axis=1)
     taken = np.zeros(len(gt), bool)
     for i in np.argsort(-scores, kind="stable"):
         if len(gt) == 0:
