@@ -21,6 +21,8 @@ from functools import lru_cache
 
 import numpy as np
 
+from ...jit import kernel
+
 
 @dataclass(frozen=True)
 class SmoothWeights:
@@ -48,10 +50,10 @@ def _maps(steps: int, dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     comes from the initial speed and acceleration)."""
     lower = np.tril(np.ones((steps, steps)))
     accel = dt * lower  # a_k = a0 + dt * sum_{i <= k} j_i
-    speed = dt * lower @ accel  # v_{k+1} = v0 + dt * sum_{i <= k} a_i
+    speed = dt * _matmul(lower, accel)  # v_{k+1} = v0 + dt * sum_{i <= k} a_i
     # s_{k+1} = s_k + v_k dt + a_k dt^2 / 2, v_k the speed at the start of step k
     speed_start = np.vstack([np.zeros((1, steps)), speed[:-1]])
-    dist = dt * lower @ speed_start + 0.5 * dt * dt * lower @ accel
+    dist = dt * _matmul(lower, speed_start) + 0.5 * dt * dt * _matmul(lower, accel)
     for m in (accel, speed, dist):
         m.setflags(write=False)
     return accel, speed, dist
@@ -104,7 +106,7 @@ def smooth_profile(v0: float, a0: float, v_target: float, bound: np.ndarray, jam
     # weights; each pass adds the one-sided rows that are active (a few 50 x 50 products)
     G = _fixed_normal(T, dt, w)
     v_ref = free_road_speeds(v0, v_target, max_accel, comfortable_decel, dt, T)
-    g = -w.accel * (A.T @ a_free) + w.speed * (V.T @ (v_ref - v_free))
+    g = -w.accel * _matmul(A.T, a_free) + w.speed * _matmul(V.T, v_ref - v_free)
     has_bound = np.isfinite(bound)
     # one-sided rows: gap (s + headway v <= bound - jam + allowed), v >= 0, -max_decel <= a <= max_accel
     gap_now = bound[0] - v0 * dt if has_bound[0] else np.inf  # ~ the bumper gap now
@@ -115,9 +117,9 @@ def smooth_profile(v0: float, a0: float, v_target: float, bound: np.ndarray, jam
     one_sided = ((w.gap, gap_m, gap_r), (w.limits, V, -v_free), (w.limits, A, -max_decel - a_free),
                  (w.limits, A, max_accel - a_free))
     active = np.zeros((4, T), bool)
-    j = np.linalg.solve(G, g)
+    j = _solve_spd(G, g)
     for _ in range(passes):
-        a, v, s = a_free + A @ j, v_free + V @ j, s_free + S @ j
+        a, v, s = a_free + _matmul(A, j), v_free + _matmul(V, j), s_free + _matmul(S, j)
         violated = np.stack([has_bound & (s + headway * v > bound - jam + allowed + 1e-6), v < -1e-6,
                              a < -max_decel - 1e-6, a > max_accel + 1e-6])
         if not (violated & ~active).any():
@@ -127,16 +129,85 @@ def smooth_profile(v0: float, a0: float, v_target: float, bound: np.ndarray, jam
         for (weight, rows, rhs), on in zip(one_sided, active):
             if on.any():
                 m = rows[on]
-                Ga += weight * (m.T @ m)
-                ga += weight * (m.T @ rhs[on])
-        j = np.linalg.solve(Ga, ga)
-    return a_free + A @ j
+                Ga += weight * _matmul(m.T, m)
+                ga += weight * _matmul(m.T, rhs[on])
+        j = _solve_spd(Ga, ga)
+    return a_free + _matmul(A, j)
 
 
 @lru_cache(maxsize=8)
 def _fixed_normal(steps: int, dt: float, w: SmoothWeights) -> np.ndarray:
     """(T, T) normal matrix of the jerk, acceleration and speed rows."""
     A, V, _ = _maps(steps, dt)
-    G = w.jerk * np.eye(steps) + w.accel * (A.T @ A) + w.speed * (V.T @ V)
+    G = w.jerk * np.eye(steps) + w.accel * _matmul(A.T, A) + w.speed * _matmul(V.T, V)
     G.setflags(write=False)
     return G
+
+
+# The products and the solve are plain loops rather than BLAS / LAPACK: OpenBLAS sums in another
+# order with another number of threads, and the plans (hence the episodes) would then depend on
+# the machine's thread count (a test's recorded plans differed by 6e-14 m between 1 and 2 threads).
+
+def _matmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``a @ b`` for a (n, m) matrix and a (m,) vector or (m, p) matrix, summed in index order."""
+    a = np.ascontiguousarray(a, dtype=np.float64)
+    if b.ndim == 1:
+        return _matvec(a, np.ascontiguousarray(b, dtype=np.float64))
+    return _matmat(a, np.ascontiguousarray(b, dtype=np.float64))
+
+
+@kernel
+def _matvec(a, x):
+    n, m = a.shape
+    out = np.zeros(n)
+    for i in range(n):
+        acc = 0.0
+        for k in range(m):
+            acc += a[i, k] * x[k]
+        out[i] = acc
+    return out
+
+
+@kernel
+def _matmat(a, b):
+    n, m = a.shape
+    p = b.shape[1]
+    out = np.zeros((n, p))
+    for i in range(n):
+        for k in range(m):
+            aik = a[i, k]
+            if aik != 0.0:
+                for j in range(p):
+                    out[i, j] += aik * b[k, j]
+    return out
+
+
+@kernel
+def _solve_spd(G, g):
+    """x with G x = g for a symmetric positive definite (n, n) G: Cholesky, then the two
+    triangular solves."""
+    n = G.shape[0]
+    L = np.zeros((n, n))
+    for j in range(n):
+        d = G[j, j]
+        for k in range(j):
+            d -= L[j, k] * L[j, k]
+        L[j, j] = np.sqrt(d)
+        for i in range(j + 1, n):
+            t = G[i, j]
+            for k in range(j):
+                t -= L[i, k] * L[j, k]
+            L[i, j] = t / L[j, j]
+    y = np.empty(n)
+    for i in range(n):
+        t = g[i]
+        for k in range(i):
+            t -= L[i, k] * y[k]
+        y[i] = t / L[i, i]
+    x = np.empty(n)
+    for i in range(n - 1, -1, -1):
+        t = y[i]
+        for k in range(i + 1, n):
+            t -= L[k, i] * x[k]
+        x[i] = t / L[i, i]
+    return x
