@@ -427,3 +427,19 @@ def test_scene_seeds_give_each_scene_its_own_search(tmp_path):
     assert summary["run"]["scene_seeds"] is True and summary["run"]["pred_reduction"] == "sum"
     _run, _recs, read = read_run(tmp_path / "own")  # the seeds pass summary.json's validation
     assert read["scenes"][scenes[0]]["modes"]["closed"]["search_seed"] == scene_seed(5, scenes[0], "search")
+
+
+def test_resume_under_other_versions_says_so(tmp_path, capsys):
+    """A run resumed by other code (here: another planner fingerprint) keeps its journalled
+    queries, and says that it does."""
+    out = tmp_path / "run"
+    run_attack(cfg(budget=4), out, show_progress=False)
+    capsys.readouterr()
+    run_attack(cfg(budget=4), out, show_progress=False)
+    assert "other versions" not in capsys.readouterr().out
+    doc = json.loads((out / "run.json").read_text())
+    doc["versions"] = {**doc["versions"], "planner": "0000000000000000"}
+    (out / "run.json").write_text(json.dumps(doc))
+    run_attack(cfg(budget=4), out, show_progress=False)
+    said = capsys.readouterr().out
+    assert "other versions" in said and "planner: 0000000000000000 ->" in said

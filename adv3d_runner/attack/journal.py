@@ -214,6 +214,12 @@ class Journal:
             if diff:
                 raise ConfigError(f"{self.root} holds a run with a different configuration ({', '.join(diff)}); "
                                   f"use another --out or the same options to resume it")
+            changed = _changed_versions(old.get("versions"), doc.get("versions"))
+            if changed:  # allowed (a resume checks each reused query), but the user should know
+                from ..progress import status
+
+                status(f"note: {self.root} was started with other versions ({'; '.join(changed)}): its "
+                       f"journalled queries keep their results; use another --out to evaluate them anew")
             self.load(repair=True)
             return old
         write_json(run_path, doc, indent=1)
@@ -453,4 +459,20 @@ def strip_times(records: Iterable[dict]) -> list[dict]:
             m.pop(k, None)
         r["metrics"] = m
         out.append(r)
+    return out
+
+
+def _changed_versions(old: Any, new: Any) -> list[str]:
+    """``key: old -> new`` for each entry of two run.json ``versions`` that differs (nested one
+    level, e.g. ``models.detector``)."""
+    old, new = (old or {}), (new or {})
+    if not isinstance(old, dict) or not isinstance(new, dict):
+        return [] if old == new else [f"versions: {old!r} -> {new!r}"]
+    out = []
+    for k in sorted(set(old) | set(new)):
+        a, b = old.get(k), new.get(k)
+        if isinstance(a, dict) and isinstance(b, dict):
+            out += [f"{k}.{kk}: {a.get(kk)} -> {b.get(kk)}" for kk in sorted(set(a) | set(b)) if a.get(kk) != b.get(kk)]
+        elif a != b:
+            out.append(f"{k}: {a} -> {b}")
     return out
