@@ -111,22 +111,9 @@ def _minimum(x, y):
 
 
 def clearance_numpy(ego_poses: np.ndarray, ego_dims: tuple[float, float], actor_poses: np.ndarray,
-              actor_dims: np.ndarray, max_distance: float = 5.0) -> np.ndarray:
-    """:func:`clearance` in numpy (the definition its compiled pass is tested against).
-
-    Footprint clearance between each candidate and each actor mode at each time.
-
-    The clearance is the separating-axis gap (:func:`adv3d_runner.geometry.boxes.box_separation`):
-    exact for side-by-side and nose-to-tail boxes, a slight underestimate (conservative) when the
-    closest features are two corners; 0 exactly when the footprints overlap or touch.
-
-    Args:
-        ego_poses: (B, T, 3). ego_dims: (length, width). actor_poses: (N, K, T, 3).
-        actor_dims: (N, 2). max_distance: pairs whose bounding circles are further apart than
-            this are not computed exactly (reported as +inf).
-    Returns:
-        (B, N, K, T) m; 0 where the footprints overlap or touch.
-    """
+                    actor_dims: np.ndarray, max_distance: float = 5.0) -> np.ndarray:
+    """:func:`clearance` (same arguments and returns) in numpy: the definition its compiled
+    pass is tested against."""
     B, T = ego_poses.shape[:2]
     N, K = actor_poses.shape[:2]
     out = np.full((B, N, K, T), np.inf)

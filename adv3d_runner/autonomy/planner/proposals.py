@@ -664,15 +664,8 @@ def _actor_frenet(actors: ActorForecast, corridors: CorridorSet, spec: Candidate
 
 def _actor_frenet_numpy(actors: ActorForecast, corridors: CorridorSet, spec: CandidateSpec, target_d: np.ndarray,
                         ego_width: float, config: ProposalConfig, T: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`_actor_frenet` in numpy (the definition its compiled passes are tested against).
-
-    Per candidate, the actor-mode arc lengths on its corridor over time and whether the
-    actor-mode is inside the candidate's lane strip (around its target offset), for the M of the
-    N * K actor-modes that are ever inside some candidate's strip.
-
-    Returns:
-        s (B, M, T + 1), ok (B, M, T + 1) bool, half_length (M,).
-    """
+    """:func:`_actor_frenet` (same arguments and returns) in numpy: the definition its compiled
+    passes are tested against."""
     B = len(spec)
     N = len(actors)
     if N == 0:
