@@ -429,9 +429,12 @@ def test_scene_seeds_give_each_scene_its_own_search(tmp_path):
     assert read["scenes"][scenes[0]]["modes"]["closed"]["search_seed"] == scene_seed(5, scenes[0], "search")
 
 
-def test_resume_under_other_versions_says_so(tmp_path, capsys):
+def test_resume_under_other_versions_says_so(tmp_path, capsys, monkeypatch):
     """A run resumed by other code (here: another planner fingerprint) keeps its journalled
     queries, and says that it does."""
+    from adv3d_runner import progress
+
+    monkeypatch.setattr(progress, "_QUIET", False)  # status lines are printed (other tests may set quiet)
     out = tmp_path / "run"
     run_attack(cfg(budget=4), out, show_progress=False)
     capsys.readouterr()
