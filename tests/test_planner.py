@@ -1033,3 +1033,52 @@ def test_smooth_follow_adds_one_current_lane_candidate_that_plans_its_own_speed(
     others = [j for j in range(len(labels)) if j != i]
     assert np.array_equal(cands.accel[others], default.accel)  # the other candidates are unchanged
     assert cands.accel[keep, :10].min() < -1.0 and cands.accel[i, :10].min() > -0.6
+
+
+# ------------------------------------------ stop easing and command resolution (issue 17, round 8)
+
+def _with(**proposals):
+    from dataclasses import replace
+
+    from adv3d_runner.autonomy.planner import PlannerConfig
+
+    return SamplingPlanner(PlannerConfig(proposals=replace(PlannerConfig().proposals, **proposals)))
+
+
+def test_stop_jerk_eases_the_brake_off_into_standstill():
+    """At 14 m/s behind a car stopped 25 m ahead (one lane): without easing, the speed's clamp at
+    0 ends the stop at full deceleration within a step (a jerk spike of tens of m/s^3); with
+    ``stop_jerk`` the braking fades at about that jerk, and the ego still stops short of the car."""
+    ego = EgoState([0.0, 0.0, 0.0], 14.0, length=4.6, width=1.9)
+    peaks, gaps = {}, {}
+    for j in (0.0, 4.0):
+        boxes, act, speeds, plans = closed_loop(straight_lanes(1), ego, stopped_at((29.6, 0.0)), 9.0,
+                                                _with(stop_jerk=j))
+        acc = np.array([p.acceleration[0] for p in plans])
+        assert speeds[-1] < 0.05  # stopped either way
+        slow = np.flatnonzero(speeds < 3.0)
+        peaks[j] = np.abs(np.diff(acc[slow[0] - 1:])).max() / DT
+        gaps[j] = act[-1, 0, 0] - boxes[-1, 0] - 4.6
+    assert peaks[0.0] > 10.0 and peaks[4.0] <= 4.0 + 1e-6
+    assert gaps[4.0] > 1.0
+
+
+def test_smooth_resolution_makes_small_input_changes_exact_no_ops():
+    """The least-jerk candidate's executed acceleration moves from the present one in whole
+    steps of ``smooth_resolution``: a leader a millimetre further away gives the same bits
+    (without it, different ones), which is what lets an attack's static-hit cache serve the
+    next frame."""
+    lanes = straight_lanes(2)
+    first = {}
+    for res in (0.0, 0.05):
+        out = []
+        for gap in (20.0, 20.001):
+            (tracks, preds), ego = _leader_at(gap, 14.0)
+            ego = EgoState([0.0, 0.0, 0.0], 14.0, acceleration=-0.2, length=4.6, width=1.9)
+            cands = planner_on(lanes, _with(smooth_resolution=res)).plan_with_scores(ego, preds, tracks)[1]
+            out.append(cands.accel[cands.spec.labels.index("lane0/d+0.0/smooth"), 0])
+        first[res] = out
+    assert first[0.0][0] != first[0.0][1]
+    assert first[0.05][0] == first[0.05][1]
+    steps = (first[0.05][0] + 0.2) / 0.05
+    assert abs(steps - round(steps)) < 1e-9 and abs(first[0.05][0] - first[0.0][0]) <= 0.025 + 1e-12

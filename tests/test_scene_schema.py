@@ -11,7 +11,7 @@ import pytest
 
 from adv3d_runner.errors import FileFormatError
 from adv3d_runner.scene.schema import (Actor, Background, Barrier, Ego, Lane, Scene, Source, StaticMesh, Track,
-                                       default_sensors, load_scene, save_scene, scene_equal)
+                                       default_sensors, load_scene, local_slope, save_scene, scene_equal)
 
 T = 30
 
@@ -85,6 +85,31 @@ def test_accessors_shapes_and_masks():
     lanes = scene.lane_polylines()
     assert set(lanes) == {1, 2, 3} and lanes[1].shape == (4, 2)
     assert scene.actor_dimensions().shape == (2, 3)
+
+
+def test_local_slope_is_exact_on_lines_and_damps_noise():
+    t = np.arange(40) * 0.1
+    line = 3.0 - 1.5 * t
+    assert np.allclose(local_slope(line, 0.1, 1.0), -1.5, atol=1e-12)  # at the ends too (shifted windows)
+    assert np.allclose(local_slope(line[:4], 0.1, 1.0), -1.5)          # shorter than the window
+    assert np.array_equal(local_slope(line[:1], 0.1, 1.0), [0.0])
+    noisy = 10.0 + 0.3 * np.random.default_rng(0).standard_normal(40)   # a steady speed, tracked
+    assert np.abs(np.diff(noisy) / 0.1).max() > 4.0 and np.abs(local_slope(noisy, 0.1, 1.0)).max() < 1.0
+
+
+def test_ego_accelerations_difference_exact_tracks_and_fit_measured_ones():
+    """Generated (exact) tracks: the forward difference, bit for bit as the episode had it;
+    measured (CommonRoad/NGSIM) ones: the 1 s local fit, because a one-frame difference of
+    speeds differentiated from video tracks is mostly noise (issue 17, eighth round)."""
+    scene = make_scene()
+    v = 20.0 + 0.5 * np.sin(np.arange(T))  # jittery speeds
+    scene.ego.track.speed = v
+    a = scene.ego_accelerations()
+    assert a.shape == (T,) and np.array_equal(a[:-1], np.diff(v) / 0.1) and a[-1] == a[-2]
+    measured = Scene(scene.id, Source("commonroad", {}, "BSD-3-Clause", None), scene.dt, scene.frames, scene.lanes,
+                     scene.background, scene.ego, scene.actors)
+    assert np.array_equal(measured.ego_accelerations(), local_slope(v, 0.1, 1.0))
+    assert np.abs(measured.ego_accelerations()).max() < 0.5 * np.abs(a).max()
 
 
 def test_gzip_file_is_deterministic(tmp_path):

@@ -33,6 +33,14 @@ VERSION = 1
 SUPPORTED_VERSIONS = (1,)
 
 SOURCE_KINDS = ("generated", "commonroad", "blender")
+# Sources whose ego track is a measurement (NGSIM: positions tracked in video, speeds
+# differentiated from them) rather than a simulator's or an artist's exact states. A one-frame
+# difference of such speeds is mostly noise (up to +-4 m/s^2 within 0.3 s where the positions
+# show a steady speed), so their accelerations are estimated by a local fit instead.
+MEASURED_SOURCE_KINDS = ("commonroad",)
+# Width of that fit (s): the smoothing width Thiemann, Kesting & Treiber (2008, "Estimating
+# acceleration and lane-changing dynamics from NGSIM trajectory data") use for accelerations.
+MEASURED_ACCEL_WINDOW_S = 1.0
 # Actor classes: any lower-case identifier (``CLASS_PATTERN``); the known ones are the one list
 # ``adv3d_runner.vehicle_classes.VEHICLE_CLASSES`` (shared with the vehicle library and the add-on).
 BARRIER_KINDS = ("concrete", "guardrail")
@@ -309,6 +317,24 @@ class Scene:
         """(T,) float64 m/s."""
         return _track_array(self.ego.track, self.frames, ("speed",))[:, 0]
 
+    def ego_accelerations(self) -> np.ndarray:
+        """(T,) float64 m/s^2: the logged ego's longitudinal acceleration per frame.
+
+        Exact tracks (generated, authored): the forward difference of the speeds (the last
+        frame the backward one). Measured tracks (``MEASURED_SOURCE_KINDS``): the slope of a
+        least-squares line through the speeds of ``MEASURED_ACCEL_WINDOW_S`` around the frame
+        (shifted inside the track at its ends).
+        """
+        v = self.ego_speeds()
+        if self.source.kind in MEASURED_SOURCE_KINDS:
+            return local_slope(v, self.dt, MEASURED_ACCEL_WINDOW_S)
+        if len(v) < 2:
+            return np.zeros(len(v))
+        a = np.empty(len(v))
+        a[:-1] = np.diff(v) / self.dt
+        a[-1] = a[-2]
+        return a
+
     def actor_poses(self, actor_id: int) -> np.ndarray:
         """(T, 3) float64: x, y (m), yaw (rad) per frame; NaN rows where the actor is not valid."""
         return _track_array(self.actor(actor_id).track, self.frames, ("x", "y", "yaw"))
@@ -365,6 +391,21 @@ class Scene:
     def validate(self) -> None:
         """Check the in-memory scene against the contract (same checks as loading)."""
         _scene_from_dict(_scene_to_dict(self), f"<scene {self.id}>")
+
+
+def local_slope(values: np.ndarray, dt: float, window_s: float) -> np.ndarray:
+    """(T,) slope per second of a least-squares line through ``values`` ((T,), one per ``dt``
+    s) over the ``round(window_s / dt) + 1`` samples centred on each one, the window shifted
+    inside the series at its ends (all of it when it is shorter)."""
+    values = np.asarray(values, np.float64)
+    T = len(values)
+    n = min(T, int(round(window_s / dt)) + 1)
+    if n < 2:
+        return np.zeros(T)
+    starts = np.clip(np.arange(T) - (n - 1) // 2, 0, T - n)
+    t = (np.arange(n) - (n - 1) / 2.0) * dt               # centred times of a window
+    windows = values[starts[:, None] + np.arange(n)]       # (T, n)
+    return windows @ t / float(t @ t)
 
 
 def _track_array(track: Track, frames: int, names: tuple[str, ...]) -> np.ndarray:

@@ -265,6 +265,7 @@ class Episode:
         log_speeds = _log_window(speeds_all, start_frame, T + H)                   # (N, T+H)
         self.ego_log = scene.ego_poses()
         self.ego_log_speed = scene.ego_speeds()
+        self.ego_log_accel = scene.ego_accelerations()
         L, W = float(scene.ego.dimensions[0]), float(scene.ego.dimensions[1])
 
         self.ego = self._ego_from_log(0)
@@ -294,12 +295,11 @@ class Episode:
             raise
 
     def _ego_from_log(self, k: int) -> EgoState:
-        """The logged ego at episode frame k (acceleration from the logged speeds)."""
-        scene, dt, ego_log_speed = self.scene, self.dt, self.ego_log_speed
+        """The logged ego at episode frame k (acceleration: ``Scene.ego_accelerations``)."""
+        scene, dt = self.scene, self.dt
         f = self.start_frame + k
-        a = (ego_log_speed[f + 1] - ego_log_speed[f]) / dt if f + 1 < scene.frames else \
-            (ego_log_speed[f] - ego_log_speed[f - 1]) / dt if f > 0 else 0.0
-        return EgoState(self.ego_log[f], float(ego_log_speed[f]), acceleration=float(a), time=k * dt,
+        return EgoState(self.ego_log[f], float(self.ego_log_speed[f]), acceleration=float(self.ego_log_accel[f]),
+                        time=k * dt,
                         length=float(scene.ego.dimensions[0]), width=float(scene.ego.dimensions[1]),
                         wheelbase=float(scene.ego.wheelbase))
 

@@ -28,7 +28,7 @@ then simulated for ``horizon`` s at ``dt`` with all candidates in one vectorised
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -98,9 +98,22 @@ class ProposalConfig:
             the whole horizon at once instead of the IDM's step-by-step reaction; the default
             since issue 17's seventh round); False: none (the planner before it). ``smooth_weights``: its (jerk, acceleration, speed, gap) weights
             (:class:`.smooth.SmoothWeights`); ``smooth_recover``: s over which a gap shorter
-            than the IDM's ``idm_gap + idm_headway x v`` is to open.
+            than the IDM's ``idm_gap + idm_headway x v`` is to open. ``smooth_speed_weights``:
+            one more such candidate per value, with that speed weight instead of
+            ``smooth_weights``' (a profile that keeps closer to the free-road speeds, for the
+            scorer to weigh progress against comfort; empty: none). ``smooth_resolution``:
+            m/s^2; > 0: such a candidate's first acceleration (the one executed) moves from the
+            present acceleration only in whole multiples of it, and is held while its plan
+            asks for less than half of one. The profile is continuous in its inputs, so without
+            it every change of a detection changed the executed acceleration in its last bits
+            and the ego's path with it (the attack's static-hit cache then serves nothing
+            after that frame); with it a small change of the inputs mostly changes nothing.
+            0: off.
         firm_braking: m/s^2; braking demanded harder than this builds up at ``max_brake_jerk``
             and is released as fast (``firm_release``); None: ``idm_decel``.
+        stop_jerk: m/s^3; > 0: every candidate but the emergency stop brakes at most
+            sqrt(2 stop_jerk v) at speed v, so that a stop ends with the braking eased off at
+            that jerk instead of the speed's clamp at 0 ending it within one step; 0: off.
         min_headway: s, the shortest headway ``headway_relaxation`` accepts.
         closing_speed: m/s; a leader slower than the ego by more than this is closing in, and
             its short headway is not accepted.
@@ -142,6 +155,9 @@ class ProposalConfig:
     smooth_follow: bool = True
     smooth_weights: tuple[float, ...] = (3.0, 3.0, 0.05, 20.0)
     smooth_recover: float = 8.0
+    smooth_speed_weights: tuple[float, ...] = ()
+    smooth_resolution: float = 0.0
+    stop_jerk: float = 0.0
 
     def __post_init__(self):
         if self.leader_modes not in ("expected", "quantile", "nearest"):
@@ -263,13 +279,14 @@ def make_specs(corridors: CorridorSet, lane_names: list[str], speed_limit: float
         acc.append(float(a))
         labels.append(f"{lane_names[current_index]}/d+0.0/a{a:+.1f}")
     if config.smooth_follow:
-        cor.append(current_index)
-        off.append(0.0)
-        tgt.append(speed_limit)
-        emg.append(False)
-        acc.append(np.nan)
-        smooth.append(len(cor) - 1)
-        labels.append(f"{lane_names[current_index]}/d+0.0/smooth")
+        for suffix in ["smooth"] + [f"smooth-s{w:g}" for w in config.smooth_speed_weights]:
+            cor.append(current_index)
+            off.append(0.0)
+            tgt.append(speed_limit)
+            emg.append(False)
+            acc.append(np.nan)
+            smooth.append(len(cor) - 1)
+            labels.append(f"{lane_names[current_index]}/d+0.0/{suffix}")
     if config.emergency_stop:
         cor.append(current_index)
         off.append(np.nan)  # keep the present lateral position
@@ -370,6 +387,7 @@ def rollout_candidates(ego_pose: np.ndarray, ego_speed: float, ego_accel: float,
         0.0 if (-params.max_decel <= -config.max_decel and config.idm_accel <= params.max_accel) else 1.0,
         1.0 if config.alongside_leads else 0.0,
         config.idm_decel if config.firm_braking is None else config.firm_braking,
+        config.smooth_resolution, config.stop_jerk,
     ], dtype=np.float64)
     plan = _smooth_plans(spec, s0, v0, float(ego_accel), lead_s_ok, lead_back, config, params, headway, T)
     states, acc, kap, s_hist, d_hist, gap_hist, lead_v0 = _rollout_kernel(
@@ -392,10 +410,12 @@ def _smooth_plans(spec: CandidateSpec, s0: np.ndarray, v0: float, a0: float, lea
     if spec.smooth is None or not spec.smooth.any():
         return np.zeros((0, T))
     plan = np.full((len(spec), T), np.nan)
-    weights = SmoothWeights(*config.smooth_weights)
+    base = SmoothWeights(*config.smooth_weights)
+    # the smooth candidates in make_specs' order: the base weights, then one per extra speed weight
+    variants = [base] + [replace(base, speed=float(w)) for w in config.smooth_speed_weights]
     max_accel = min(config.idm_accel, params.max_accel)
     max_decel = min(config.max_decel, params.max_decel)
-    for b in np.flatnonzero(spec.smooth):
+    for b, weights in zip(np.flatnonzero(spec.smooth), variants):
         ahead = (lead_s_ok[0, b] > s0[b]) & (lead_back[0, b] > s0[b])  # (M,) leads from the start
         back = np.where(np.isfinite(lead_s_ok[1:, b][:, ahead]), lead_back[1:, b][:, ahead], np.inf)
         bound = (back.min(axis=1) if back.shape[1] else np.full(T, np.inf)) - s0[b]
@@ -408,7 +428,7 @@ def _smooth_plans(spec: CandidateSpec, s0: np.ndarray, v0: float, a0: float, lea
 # indices into the ``limits`` vector of :func:`_rollout_kernel`
 (_IDM_ACCEL, _IDM_DECEL, _IDM_GAP, _IDM_HEADWAY, _MAX_DECEL, _JERK_DN, _BRAKE_DN, _UP_RELEASE, _DEADBAND,
  _COOLNESS, _LA_TIME, _LA_MIN, _LAT_LIM, _KAPPA_MAX, _VEH_ACC, _VEH_DEC, _VEH_SPEED, _LR, _DT, _FIRM_RELEASE,
- _CLAMP_VEHICLE, _ALONGSIDE_LEADS, _FIRM_AT) = range(23)
+ _CLAMP_VEHICLE, _ALONGSIDE_LEADS, _FIRM_AT, _SMOOTH_RES, _STOP_JERK) = range(25)
 
 
 @kernel
@@ -520,6 +540,11 @@ def _rollout_kernel(pose, v0, a0, s0, inv_trans, hermite, v_des, emergency, acce
             planned = accel_plan.shape[0] > 0 and not np.isnan(accel_plan[b, k])
             if planned:
                 a = min(max(accel_plan[b, k], -max_decel), idm_accel)  # smooth already: no deadband
+                if k == 0 and limits[_SMOOTH_RES] > 0.0:
+                    # the command moves from the present acceleration in whole steps of the
+                    # resolution (held within half a step): see ProposalConfig.smooth_resolution
+                    res = limits[_SMOOTH_RES]
+                    a = a_prev + res * np.floor((a - a_prev) / res + 0.5)
             elif deadband > 0.0 and abs(a - a_prev) < deadband:
                 # hold the acceleration while the demand stays within the band: the leader's gap
                 # and speed jitter by centimetres and tenths of m/s from frame to frame, and every
@@ -534,6 +559,11 @@ def _rollout_kernel(pose, v0, a0, s0, inv_trans, hermite, v_des, emergency, acce
                 # rate, one emergency stop kept the ego braking for seconds after the reason was gone
                 up = brake_dn
             a = min(max(a, a_prev - down), a_prev + up)
+            if limits[_STOP_JERK] > 0.0 and a < 0.0:
+                # ease off the brake towards standstill: -sqrt(2 j v) is the deceleration of a
+                # stop whose braking falls to zero at jerk j as the speed does (without it the
+                # speed's clamp at 0 ended a -2.5 m/s^2 stop within one step: 20 m/s^3)
+                a = max(a, -np.sqrt(2.0 * limits[_STOP_JERK] * v))
             if emergency[b]:
                 a = -max_decel
             if v <= 1e-6 and a < 0:
