@@ -108,12 +108,13 @@ class ProposalConfig:
             it every change of a detection changed the executed acceleration in its last bits
             and the ego's path with it (the attack's static-hit cache then serves nothing
             after that frame); with it a small change of the inputs mostly changes nothing.
-            0: off.
+            0: off (the planner before issue 17's eighth round; 0.1 since).
         firm_braking: m/s^2; braking demanded harder than this builds up at ``max_brake_jerk``
             and is released as fast (``firm_release``); None: ``idm_decel``.
         stop_jerk: m/s^3; > 0: every candidate but the emergency stop brakes at most
             sqrt(2 stop_jerk v) at speed v, so that a stop ends with the braking eased off at
-            that jerk instead of the speed's clamp at 0 ending it within one step; 0: off.
+            that jerk instead of the speed's clamp at 0 ending it within one step; 0: off (the
+            planner before issue 17's eighth round; 4 since).
         min_headway: s, the shortest headway ``headway_relaxation`` accepts.
         closing_speed: m/s; a leader slower than the ego by more than this is closing in, and
             its short headway is not accepted.
@@ -156,8 +157,8 @@ class ProposalConfig:
     smooth_weights: tuple[float, ...] = (3.0, 3.0, 0.05, 20.0)
     smooth_recover: float = 8.0
     smooth_speed_weights: tuple[float, ...] = ()
-    smooth_resolution: float = 0.0
-    stop_jerk: float = 0.0
+    smooth_resolution: float = 0.1
+    stop_jerk: float = 4.0
 
     def __post_init__(self):
         if self.leader_modes not in ("expected", "quantile", "nearest"):
