@@ -79,6 +79,7 @@ LIMITS_BEFORE_ISSUE17 = {"max_jerk": 4.0, "max_release_jerk": 10.0, "max_brake_j
 def _run(job: tuple) -> dict:
     path, autonomy, seconds, real = job[:4]
     overrides = job[4] if len(job) > 4 else {}
+    seed = job[5] if len(job) > 5 else 0
     global _STACK, _LIB
     from adv3d_runner.scene import load_scene
     from adv3d_runner.sensors.world import world_from_scene
@@ -97,7 +98,7 @@ def _run(job: tuple) -> dict:
     scene = load_scene(path)
     world = world_from_scene(scene, _LIB)
     t1 = time.perf_counter()
-    result = run_episode(scene, _STACK, seconds=seconds, world=world)
+    result = run_episode(scene, _STACK, seconds=seconds, world=world, seed=seed)
     m = episode_metrics(result, scene.lanes)
     m["world_build_s"] = t1 - t0
     m["wall_s"] = time.perf_counter() - t0
@@ -257,8 +258,8 @@ def _planner_overrides(args) -> dict:
 
 
 def _run_set(paths: list[Path], autonomy: str, seconds: float, workers: int, real: bool,
-             overrides: dict | None = None) -> list[dict]:
-    jobs = [(str(p), autonomy, seconds, real, overrides or {}) for p in paths]
+             overrides: dict | None = None, seed: int = 0) -> list[dict]:
+    jobs = [(str(p), autonomy, seconds, real, overrides or {}, seed) for p in paths]
     rows = []
     if workers > 1:
         import multiprocessing as mp
@@ -283,6 +284,9 @@ def main() -> int:
     ap.add_argument("--autonomy", choices=("A", "B", "oracle", "A-lanefollow", "A-fast"), default="A")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--seconds", type=float, default=5.0)
+    ap.add_argument("--seed", type=int, default=0,
+                    help="episode seed (LiDAR noise and dropout); the kept results use 0, other seeds show the "
+                         "spread of a result over the sensor's noise (needs --name or --tag)")
     ap.add_argument("--planner-limits", choices=("shipped", "before-issue17"), default="shipped",
                     help="diagnosis: run the planner with the proposals' jerk limits of before issue 17")
     ap.add_argument("--planner-config", default=None, metavar="JSON",
@@ -316,6 +320,8 @@ def main() -> int:
         overrides = _planner_overrides(args)
     except ConfigError as exc:
         ap.error(str(exc))
+    if args.seed != 0 and not (args.name or args.tag):
+        ap.error("--seed other than 0 needs --name or --tag (the kept result would be overwritten)")
     if overrides and not (args.name or args.tag):
         ap.error("a planner other than the shipped one needs --name or --tag (the kept result would be overwritten)")
     make_stack(args.autonomy)  # fail early (e.g. no weights) before starting workers
@@ -331,13 +337,15 @@ def main() -> int:
         if args.quick:
             paths = paths[::10]
         print(f"generated {'scenes of ' + args.generated_dir if args.generated_dir else 'benchmark'}: {len(paths)} scenes")
-        rows = _run_set(paths, args.autonomy, args.seconds, args.workers, real=False, overrides=overrides)
+        rows = _run_set(paths, args.autonomy, args.seconds, args.workers, real=False, overrides=overrides,
+                        seed=args.seed)
         out["generated"] = (summarise(rows, real=False), rows)
     if "real" in sets:
         split = load_real_split()
         paths = split.paths(args.real_part)
         print(f"real {args.real_part} part: {len(paths)} scenes (recordings {list(split.recordings[args.real_part])})")
-        rows = _run_set(paths, args.autonomy, args.seconds, args.workers, real=True, overrides=overrides)
+        rows = _run_set(paths, args.autonomy, args.seconds, args.workers, real=True, overrides=overrides,
+                        seed=args.seed)
         summary = summarise(rows, real=True)
         summary["part"] = args.real_part
         summary["recordings"] = list(split.recordings[args.real_part])

@@ -25,6 +25,7 @@ def _sanity(*args: str) -> subprocess.CompletedProcess:
     (["--name", "/tmp/out"], "--name is a file stem"),
     (["--sets", "generated", "--generated-dir", "scenes/highway"], "--generated-dir needs --name"),
     (["--sets", "generated", "--generated-dir", "no-such-dir", "--name", "x"], "no scene files"),
+    (["--seed", "3"], "--seed other than 0 needs --name or --tag"),
 ])
 def test_bad_planner_options_stop_before_any_episode(args, message):
     before = sorted((ROOT / "bench" / "results").iterdir())
