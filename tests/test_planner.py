@@ -1082,3 +1082,18 @@ def test_smooth_resolution_makes_small_input_changes_exact_no_ops():
     assert first[0.05][0] == first[0.05][1]
     steps = (first[0.05][0] + 0.2) / 0.05
     assert abs(steps - round(steps)) < 1e-9 and abs(first[0.05][0] - first[0.0][0]) <= 0.025 + 1e-12
+
+
+def test_smooth_speed_weights_add_one_least_jerk_candidate_each():
+    """Each extra speed weight is one more least-jerk candidate; a larger weight keeps its
+    profile closer to the free-road speeds (here: it brakes less behind a close car)."""
+    lanes = straight_lanes(2)
+    (tracks, preds), ego = _leader_at(16.0, 14.0)
+    cands = planner_on(lanes, _with(smooth_speed_weights=(0.5, 2.0))).plan_with_scores(ego, preds, tracks)[1]
+    labels = cands.spec.labels
+    base, half, two = (labels.index(f"lane0/d+0.0/{s}") for s in ("smooth", "smooth-s0.5", "smooth-s2"))
+    v = {i: 14.0 + np.cumsum(cands.accel[i]) * DT for i in (base, half, two)}
+    assert v[base].mean() < v[half].mean() < v[two].mean()
+    default = planner_on(lanes).plan_with_scores(ego, preds, tracks)[1]
+    assert len(labels) == len(default.spec.labels) + 2
+    assert np.array_equal(cands.accel[base], default.accel[default.spec.labels.index("lane0/d+0.0/smooth")])
