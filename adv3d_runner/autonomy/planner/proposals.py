@@ -109,6 +109,10 @@ class ProposalConfig:
             and the ego's path with it (the attack's static-hit cache then serves nothing
             after that frame); with it a small change of the inputs mostly changes nothing.
             0: off (the planner before issue 17's eighth round; 0.1 since).
+            ``smooth_resolution_speed``: m/s; > 0: below this speed the resolution shrinks in
+            proportion to the speed (to a tenth of it at most): in crawls the profile asks for
+            a few hundredths of m/s^2 and a whole step made it lose to the IDM's candidates.
+            0: a fixed resolution.
         firm_braking: m/s^2; braking demanded harder than this builds up at ``max_brake_jerk``
             and is released as fast (``firm_release``); None: ``idm_decel``.
         stop_jerk: m/s^3; > 0: every candidate but the emergency stop brakes at most
@@ -159,6 +163,7 @@ class ProposalConfig:
     smooth_speed_weights: tuple[float, ...] = ()
     smooth_resolution: float = 0.1
     stop_jerk: float = 4.0
+    smooth_resolution_speed: float = 0.0
 
     def __post_init__(self):
         if self.leader_modes not in ("expected", "quantile", "nearest"):
@@ -388,7 +393,7 @@ def rollout_candidates(ego_pose: np.ndarray, ego_speed: float, ego_accel: float,
         0.0 if (-params.max_decel <= -config.max_decel and config.idm_accel <= params.max_accel) else 1.0,
         1.0 if config.alongside_leads else 0.0,
         config.idm_decel if config.firm_braking is None else config.firm_braking,
-        config.smooth_resolution, config.stop_jerk,
+        config.smooth_resolution, config.stop_jerk, config.smooth_resolution_speed,
     ], dtype=np.float64)
     plan = _smooth_plans(spec, s0, v0, float(ego_accel), lead_s_ok, lead_back, config, params, headway, T)
     states, acc, kap, s_hist, d_hist, gap_hist, lead_v0 = _rollout_kernel(
@@ -429,7 +434,7 @@ def _smooth_plans(spec: CandidateSpec, s0: np.ndarray, v0: float, a0: float, lea
 # indices into the ``limits`` vector of :func:`_rollout_kernel`
 (_IDM_ACCEL, _IDM_DECEL, _IDM_GAP, _IDM_HEADWAY, _MAX_DECEL, _JERK_DN, _BRAKE_DN, _UP_RELEASE, _DEADBAND,
  _COOLNESS, _LA_TIME, _LA_MIN, _LAT_LIM, _KAPPA_MAX, _VEH_ACC, _VEH_DEC, _VEH_SPEED, _LR, _DT, _FIRM_RELEASE,
- _CLAMP_VEHICLE, _ALONGSIDE_LEADS, _FIRM_AT, _SMOOTH_RES, _STOP_JERK) = range(25)
+ _CLAMP_VEHICLE, _ALONGSIDE_LEADS, _FIRM_AT, _SMOOTH_RES, _STOP_JERK, _SMOOTH_RES_SPEED) = range(26)
 
 
 @kernel
@@ -545,6 +550,8 @@ def _rollout_kernel(pose, v0, a0, s0, inv_trans, hermite, v_des, emergency, acce
                     # the command moves from the present acceleration in whole steps of the
                     # resolution (held within half a step): see ProposalConfig.smooth_resolution
                     res = limits[_SMOOTH_RES]
+                    if limits[_SMOOTH_RES_SPEED] > 0.0:
+                        res *= min(1.0, max(v, 0.1 * limits[_SMOOTH_RES_SPEED]) / limits[_SMOOTH_RES_SPEED])
                     a = a_prev + res * np.floor((a - a_prev) / res + 0.5)
             elif deadband > 0.0 and abs(a - a_prev) < deadband:
                 # hold the acceleration while the demand stays within the band: the leader's gap
