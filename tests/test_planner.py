@@ -1097,3 +1097,19 @@ def test_smooth_speed_weights_add_one_least_jerk_candidate_each():
     default = planner_on(lanes).plan_with_scores(ego, preds, tracks)[1]
     assert len(labels) == len(default.spec.labels) + 2
     assert np.array_equal(cands.accel[base], default.accel[default.spec.labels.index("lane0/d+0.0/smooth")])
+
+
+def test_smooth_resolution_shrinks_with_speed_below_the_reference():
+    """``smooth_resolution_speed``: at 1.5 m/s with a 10 m/s reference the step is 0.015 m/s^2
+    instead of 0.1, so a crawl's small demands are followed."""
+    lanes = straight_lanes(2)
+    (tracks, preds), _ = _leader_at(4.0, 1.5, ego_speed=1.5)
+    ego = EgoState([0.0, 0.0, 0.0], 1.5, acceleration=0.0, length=4.6, width=1.9)
+    first = {}
+    for ref in (0.0, 10.0):
+        cands = planner_on(lanes, _with(smooth_resolution_speed=ref)).plan_with_scores(ego, preds, tracks)[1]
+        first[ref] = cands.accel[cands.spec.labels.index("lane0/d+0.0/smooth"), 0]
+    for ref, step in ((0.0, 0.1), (10.0, 0.015)):
+        n = first[ref] / step
+        assert abs(n - round(n)) < 1e-9, (ref, first[ref])
+    assert first[0.0] != first[10.0]
