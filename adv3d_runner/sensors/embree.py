@@ -61,12 +61,19 @@ _TFAR = 8 * PACKET
 _MASK = 9 * PACKET
 _ID = 10 * PACKET
 _FLAGS = 11 * PACKET
+_U = 15 * PACKET
+_V = 16 * PACKET
 _PRIM = 17 * PACKET
 _GEOM = 18 * PACKET
 _INST = 19 * PACKET
 _VALID = 24 * PACKET
 _WORDS = _VALID + PACKET
 _ALIGN = 64  # bytes: enough for any packet width
+# RTCIntersectArguments (flags, feature mask, context, filter, intersect; 32 bytes), after the
+# packet: 16 words leave room for the optional min-width field of other builds.
+_ARGS_WORDS = 16
+#: ``RTC_RAY_QUERY_FLAG_COHERENT`` (include/embree4/rtcore_common.h).
+COHERENT = 1 << 16
 
 #: ``void rtcIntersect8(const int* valid, RTCScene scene, RTCRayHit8* rayhit,
 #: RTCIntersectArguments* args)``, pointers passed as integers.
@@ -74,18 +81,25 @@ _rtc_intersect8 = types.ExternalFunction("rtcIntersect8", types.void(types.intp,
 
 
 @kernel
-def _cast(scene, origins, dirs, tfar, prim):
+def _cast(scene, origins, dirs, tfar, prim, uv, flags):
     """Cast rays ``dirs`` ((N, 3) float32) from ``origins`` ((1, 3): one for all, or (N, 3))
     against ``scene`` (an RTCScene pointer) in packets of PACKET; ``tfar`` ((N,) float32) is the
     limit per ray and takes the hit distance in place; ``prim`` ((N,) int32) receives the face
-    hit (-1: none)."""
+    hit (-1: none); ``uv`` ((N, 2) float32, or (0, 2) for none) the hit's barycentric u, v.
+    ``flags``: ``RTCRayQueryFlags`` (0: Embree's default query, no arguments passed)."""
     n = dirs.shape[0]
-    raw = np.zeros(_WORDS + _ALIGN // 4, np.int32)
+    raw = np.zeros(_WORDS + _ARGS_WORDS + _ALIGN // 4, np.int32)
     start = ((_ALIGN - raw.ctypes.data % _ALIGN) % _ALIGN) // 4
-    ib = raw[start:start + _WORDS]
+    ib = raw[start:start + _WORDS + _ARGS_WORDS]
     fb = ib.view(np.float32)
     addr = ib.ctypes.data
     valid = addr + 4 * _VALID
+    args = 0
+    if flags != 0:  # RTCIntersectArguments: flags, feature mask (all), null context and callbacks
+        ib[_WORDS] = flags
+        ib[_WORDS + 1] = -1
+        args = addr + 4 * _WORDS
+    want_uv = uv.shape[0] > 0
     one = origins.shape[0] == 1
     for s in range(0, n, PACKET):
         m = min(PACKET, n - s)
@@ -111,10 +125,16 @@ def _cast(scene, origins, dirs, tfar, prim):
                 ib[_VALID + j] = -1
             else:
                 ib[_VALID + j] = 0  # an inactive lane: its results are neither written nor read
-        _rtc_intersect8(valid, scene, addr, 0)
+        _rtc_intersect8(valid, scene, addr, args)
         for j in range(m):
             tfar[s + j] = fb[_TFAR + j]  # unchanged on a miss
             prim[s + j] = ib[_PRIM + j]
+            if want_uv:
+                uv[s + j, 0] = fb[_U + j]
+                uv[s + j, 1] = fb[_V + j]
+
+
+_NO_UV = np.zeros((0, 2), np.float32)
 
 
 class _Embree:
@@ -282,19 +302,26 @@ class TriangleScene:
         lib.commit_scene(scene)  # builds the BVH now (TBB)
         lib.check("building a scene")
 
-    def intersect(self, origins: np.ndarray, directions: np.ndarray, tfar: np.ndarray) -> np.ndarray:
+    def intersect(self, origins: np.ndarray, directions: np.ndarray, tfar: np.ndarray,
+                  uv: np.ndarray | None = None, coherent: bool = False) -> np.ndarray:
         """Cast rays; ``tfar`` takes the hit distance IN PLACE where a hit is closer.
 
         Args:
             origins: (1, 3) (one for all rays) or (N, 3) float32 C-contiguous.
             directions: (N, 3) float32 C-contiguous.
             tfar: (N,) float32 C-contiguous limits.
+            uv: optional (N, 2) float32 C-contiguous output: the hit's barycentric (u, v)
+                (point = (1 - u - v) v0 + u v1 + v v2; unwritten on a miss).
+            coherent: pass ``RTC_RAY_QUERY_FLAG_COHERENT`` (Embree's frustum traversal for
+                packets of neighbouring rays: about 3x faster on a LiDAR frame, but where two
+                faces tie within rounding it may report the other one; see
+                :mod:`adv3d_runner.sensors.coherent`, which makes its results exact).
 
         Returns:
             (N,) int32 face hit, -1 where none is closer than ``tfar``.
         """
         prim = np.empty(len(directions), np.int32)
-        _cast(self._scene, origins, directions, tfar, prim)
+        _cast(self._scene, origins, directions, tfar, prim, _NO_UV if uv is None else uv, COHERENT if coherent else 0)
         return prim
 
     def __reduce__(self):

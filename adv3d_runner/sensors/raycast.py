@@ -26,6 +26,7 @@ import hashlib
 import numpy as np
 
 from . import embree
+from .coherent import MIN_SIN_INCIDENCE, FaceCertificates, face_certificates, uncertain_rays
 
 __all__ = ["MeshBVH", "mesh_key", "cast_nearest"]
 
@@ -64,6 +65,10 @@ class MeshBVH:
         direct: cast through the direct binding (:mod:`~adv3d_runner.sensors.embree`, True) or
             ``embreex``'s ``run`` (False); None (default): the binding where it is available.
             Same results either way.
+        coherent: cast with Embree's coherent query and certify its hits
+            (:mod:`~adv3d_runner.sensors.coherent`): the same results, about half the time on a
+            LiDAR frame of rays in neighbouring packets; costs a certificate per face at build
+            (about 0.1 s for a 9k-face highway). Only with the direct binding.
 
     Attributes:
         n_faces: F (0 means the mesh is empty and every ray misses).
@@ -72,11 +77,15 @@ class MeshBVH:
         radius: radius of the origin-centred sphere holding the mesh.
         z_range: (zmin, zmax) of the vertices.
         direct: whether casts go through the direct binding (False for an empty mesh).
+        certificates: the :class:`~adv3d_runner.sensors.coherent.FaceCertificates` of a
+            coherent mesh (None: plain casts); ``coherent_rays`` and ``recast_rays`` count its
+            rays and those cast again.
         face_normals: (F + 1, 3) float32 unit face normals (zero for degenerate faces), with
             a trailing zero row so that a miss (face -1) indexes safely.
     """
 
-    def __init__(self, vertices: np.ndarray, faces: np.ndarray, direct: bool | None = None):
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray, direct: bool | None = None,
+                 coherent: bool = False):
         v = np.ascontiguousarray(vertices, dtype=np.float32).reshape(-1, 3)
         f = np.ascontiguousarray(faces, dtype=np.int32).reshape(-1, 3)
         if f.size and (f.min() < 0 or f.max() >= len(v)):
@@ -104,12 +113,16 @@ class MeshBVH:
         self.normal_columns = tuple(np.ascontiguousarray(normals[:, j]) for j in range(3))
         self._scene = None
         self.direct = False
+        self.coherent_rays = self.recast_rays = 0  # counters of the coherent path
+        self.certificates: FaceCertificates | None = None  # set: casts are coherent, verified
         if self.n_faces:
             if direct is None:
                 direct = embree.available()
             if direct:
                 self._scene = embree.TriangleScene(v, f)  # committed: the BVH is built now
                 self.direct = True
+                if coherent:
+                    self.certificates = face_certificates(v, f)
             else:
                 from embreex import rtcore_scene as rtcs
                 from embreex.mesh_construction import TriangleMesh
@@ -145,12 +158,32 @@ class MeshBVH:
             if len(origins) != n:
                 origins = np.broadcast_to(origins, (n, 3))
             return self._scene.run(origins, directions, dists=tfar, output=1)["primID"], None
+        cast = self._scene.intersect if self.certificates is None else self._intersect_coherent
         if tfar.flags.c_contiguous:
-            return self._scene.intersect(origins, directions, tfar), None
+            return cast(origins, directions, tfar), None
         t = np.ascontiguousarray(tfar)  # a strided view: cast a copy, write it back
-        prim = self._scene.intersect(origins, directions, t)
+        prim = cast(origins, directions, t)
         tfar[...] = t
         return prim, None
+
+    def _intersect_coherent(self, origins: np.ndarray, directions: np.ndarray, tfar: np.ndarray) -> np.ndarray:
+        """The reference hits from a coherent cast plus a reference cast of the rays it cannot
+        certify (:mod:`adv3d_runner.sensors.coherent`); arguments as :meth:`intersect`'s."""
+        cert = self.certificates
+        limit = tfar.copy()
+        tfar += np.float32(cert.margin)  # see coherent.py: a miss must be a miss up to the margin
+        uv = np.empty((len(directions), 2), np.float32)
+        prim = self._scene.intersect(origins, directions, tfar, uv=uv, coherent=True)
+        redo = uncertain_rays(prim, tfar, uv, directions, limit, cert.crowded, cert.altitudes, cert.normals,
+                              cert.margin, MIN_SIN_INCIDENCE)
+        self.recast_rays += len(redo)
+        self.coherent_rays += len(directions)
+        if len(redo):
+            t = limit[redo]
+            o = origins if len(origins) == 1 else np.ascontiguousarray(origins[redo])
+            prim[redo] = self._scene.intersect(o, np.ascontiguousarray(directions[redo]), t)
+            tfar[redo] = t
+        return prim
 
 
 def cast_nearest(bvh: MeshBVH, origins: np.ndarray, directions: np.ndarray, max_range: float):

@@ -55,7 +55,8 @@ class LidarWorld:
             if len(vertices):
                 origin[:2] = 0.5 * (vertices[:, :2].min(axis=0) + vertices[:, :2].max(axis=0))
         self.origin = np.asarray(origin, dtype=np.float64).reshape(3)
-        self.background = MeshBVH(vertices - self.origin, faces)
+        # Coherent: a frame's background rays come in packets of neighbouring azimuths.
+        self.background = MeshBVH(vertices - self.origin, faces, coherent=True)
         refl = np.asarray(reflectivity, dtype=np.float32)
         if refl.ndim == 0:
             refl = np.full(len(faces), refl, np.float32)

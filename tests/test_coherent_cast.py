@@ -1,0 +1,168 @@
+"""Coherent casts with certificates (sensors/coherent.py) give the reference hits bit for bit."""
+import numpy as np
+import pytest
+
+from adv3d_runner.sensors import coherent
+from adv3d_runner.sensors.raycast import MeshBVH
+from tests.test_raycast import _embreex_cast, _ray_sets, _same_bits, meshes  # noqa: F401 (fixture)
+
+pytestmark = pytest.mark.skipif(not __import__("adv3d_runner.sensors.embree", fromlist=["available"]).available(),
+                                reason="the direct Embree binding is unavailable")
+
+
+def _grid(x0, x1, y0, y1, nx, ny, z=0.0):
+    """A flat rectangle (z) of nx x ny squares, two triangles each: (V, 3), (F, 3)."""
+    xs, ys = np.linspace(x0, x1, nx + 1), np.linspace(y0, y1, ny + 1)
+    gx, gy = np.meshgrid(xs, ys, indexing="ij")
+    v = np.stack([gx.ravel(), gy.ravel(), np.full(gx.size, z)], axis=1)
+    idx = np.arange(gx.size).reshape(nx + 1, ny + 1)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+    return v, np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
+
+
+def _two_layers(gap):
+    """A road grid and a second, differently tessellated grid ``gap`` above it (0: coplanar)."""
+    v1, f1 = _grid(-60, 60, -20, 20, 12, 4)
+    v2, f2 = _grid(-55, 65, -18, 22, 7, 3, z=gap)
+    return (np.concatenate([v1, v2]).astype(np.float32),
+            np.concatenate([f1, f2 + len(v1)]).astype(np.int32))
+
+
+def _lidar_rays():
+    from adv3d_runner.sensors.lidar import MountedLidar
+
+    return np.ascontiguousarray(MountedLidar("hdl64", (0, 0, 1.73, 0, 0, 0)).dirs, np.float32)
+
+
+def _cast(bvh, o, d, limit=120.0, coherent_query=False):
+    t = np.full(len(d), limit, np.float32)
+    if coherent_query:  # Embree's coherent query without certificates
+        return t, bvh._scene.intersect(o, d, t, coherent=True)
+    return t, bvh.intersect(o, d, t)[0]
+
+
+def test_raw_coherent_query_differs_where_faces_tie_and_the_certified_cast_does_not():
+    """Two coplanar tessellations of one road: every hit ties, and Embree's coherent query
+    reports the other face on a good part of the rays. Every face is crowded, so the certified
+    cast casts them all again and equals the reference."""
+    v, f = _two_layers(0.0)
+    plain, coh = MeshBVH(v, f), MeshBVH(v, f, coherent=True)
+    assert coh.certificates is not None and coh.certificates.crowded.all()
+    d, o = _lidar_rays(), np.array([[0.3, 0.2, 1.73]], np.float32)
+    t_ref, p_ref = _cast(plain, o, d)
+    t_raw, p_raw = _cast(plain, o, d, coherent_query=True)
+    assert (p_raw != p_ref).sum() > 1000  # the certificate is needed
+    t_new, p_new = _cast(coh, o, d)
+    assert _same_bits(t_new, t_ref) and np.array_equal(p_new, p_ref)
+
+
+def test_certified_hits_are_kept_where_no_face_competes():
+    """A second layer 1 cm above the road (like a lane marking) competes with nothing at a 2 mm
+    margin: most hits keep their coherent result, and every ray equals the reference."""
+    v, f = _two_layers(0.01)
+    plain, coh = MeshBVH(v, f), MeshBVH(v, f, coherent=True)
+    assert not coh.certificates.crowded.any()
+    d = _lidar_rays()
+    for o in ([0.3, 0.2, 1.73], [-20.0, 5.0, 1.73], [40.0, -3.0, 2.5]):
+        o = np.array([o], np.float32)
+        before = coh.recast_rays
+        t_ref, p_ref = _cast(plain, o, d)
+        t_new, p_new = _cast(coh, o, d)
+        assert _same_bits(t_new, t_ref) and np.array_equal(p_new, p_ref)
+        assert coh.recast_rays - before < 0.1 * (p_ref >= 0).sum()  # near edges and the range limit only
+
+
+@pytest.mark.parametrize("name", ["background", "sedan", "truck"])
+def test_certified_cast_equals_embreex_bit_for_bit(meshes, name):  # noqa: F811
+    """The ray sets of test_raycast (random, at vertices, on edges, along edges, in face planes;
+    limits at, one ulp either side of, and below the hits) on a coherent mesh."""
+    v, f, ref, _ = meshes[name]
+    coh = MeshBVH(v, f, coherent=True)
+    rng = np.random.default_rng(11)
+    for what, (o, d, tfar) in _ray_sets(v, f, rng).items():
+        t_ref, t_new = tfar.copy(), tfar.copy()
+        p_ref = _embreex_cast(ref, o, d, t_ref)
+        p_new, _ = coh.intersect(o, d, t_new)
+        assert _same_bits(t_new, t_ref) and np.array_equal(p_new, p_ref), (name, what)
+        hit = p_ref >= 0
+        if hit.sum() < 10:
+            continue
+        t_hit = t_ref[hit]
+        oh = o if len(o) == 1 else o[hit]
+        for limit in (t_hit, np.nextafter(t_hit, np.float32(0)), np.nextafter(t_hit, np.float32(np.inf)),
+                      np.float32(0.5) * t_hit):
+            t1, t2 = limit.astype(np.float32), limit.astype(np.float32)
+            p1 = _embreex_cast(ref, oh, d[hit], t1)
+            p2, _ = coh.intersect(oh, d[hit], t2)
+            assert _same_bits(t2, t1) and np.array_equal(p2, p1), (name, what)
+
+
+def test_certified_cast_equals_embreex_on_lidar_frames(meshes):  # noqa: F811
+    """HDL-64E frames from 25 sensor positions over the highway background, and a strided
+    (non-contiguous) limit array."""
+    v, f, ref, _ = meshes["background"]
+    coh = MeshBVH(v, f, coherent=True)
+    d = _lidar_rays()
+    rng = np.random.default_rng(3)
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    kept = 0
+    for _ in range(25):
+        o = np.array([[rng.uniform(lo[0], hi[0]), rng.uniform(lo[1], hi[1]), rng.uniform(1.5, 2.5)]], np.float32)
+        t_ref = np.full(len(d), 120.0, np.float32)
+        p_ref = _embreex_cast(ref, o, d, t_ref)
+        before = coh.recast_rays
+        t_new, p_new = _cast(coh, o, d)
+        assert _same_bits(t_new, t_ref) and np.array_equal(p_new, p_ref)
+        kept += int((p_ref >= 0).sum()) - (coh.recast_rays - before)
+    assert kept > 0.5 * 25 * 50_000  # the coherent results are mostly used, not all cast again
+    t = np.full(2 * len(d), 120.0, np.float32)
+    p, _ = coh.intersect(o, d, t[::2])
+    assert _same_bits(t[::2], t_ref) and np.array_equal(p, p_ref)
+
+
+def test_face_certificates():
+    m = coherent.MARGIN_M
+    # coplanar neighbours sharing an edge: not crowded; a face on top of another: crowded.
+    v = np.array([[0, 0, 0], [10, 0, 0], [0, 10, 0], [10, 10, 0]], float)
+    f = np.array([[0, 1, 2], [1, 3, 2]])
+    assert not coherent.face_certificates(v, f).crowded.any()
+    v2 = np.concatenate([v, v + [1, 1, 0]])
+    f2 = np.concatenate([f, f + 4])
+    assert coherent.face_certificates(v2, f2).crowded.all()
+    # parallel layers: crowded within the margin, not beyond it
+    for gap, expect in ((0.5 * m, True), (3 * m, False)):
+        v3 = np.concatenate([v, v + [0.5, 0.5, gap]])
+        assert coherent.face_certificates(v3, f2).crowded.all() == expect, gap
+    # a face too small for its inner triangle, and a degenerate one
+    tiny = np.array([[0, 0, 0], [0.005, 0, 0], [0, 0.005, 0], [1, 1, 1], [2, 2, 2], [3, 3, 3]], float)
+    assert coherent.face_certificates(tiny, np.array([[0, 1, 2], [3, 4, 5]])).crowded.all()
+    cert = coherent.face_certificates(v, f)
+    assert np.allclose(cert.altitudes[0], [10 / np.sqrt(2), 10, 10]) and np.allclose(cert.normals[0], [0, 0, 1])
+
+
+def test_separated_never_claims_a_gap_that_points_close_the_triangles_do_not_have():
+    """Pairs of random triangles: where two sampled points (one on each) are within the gap,
+    the test must not call them separated by more than it."""
+    rng = np.random.default_rng(5)
+    a = rng.uniform(-1, 1, (4000, 3, 3))
+    b = a[:, :1] + rng.uniform(-1, 1, (4000, 3, 3)) * rng.uniform(0.05, 1, (4000, 1, 1)) + rng.normal(0, 0.3, (4000, 1, 3))
+    w = rng.dirichlet(np.ones(3), 300)
+    pa, pb = np.einsum("sk,pkd->psd", w, a), np.einsum("sk,pkd->psd", w, b)
+    close = np.array([np.sqrt(((x[:, None] - y[None]) ** 2).sum(-1)).min() for x, y in zip(pa, pb)])
+    gap = 0.05
+    sep = coherent.separated(a, b, gap)
+    assert not (sep & (close <= gap)).any()
+    assert sep.sum() > 500 and (~sep).sum() > 500  # both outcomes occur
+
+
+def test_uncertain_rays_restores_the_limit_of_misses_and_flags_edges_and_limits():
+    cert = coherent.face_certificates(np.array([[0, 0, 0], [10, 0, 0], [0, 10, 0]], float), np.array([[0, 1, 2]]))
+    prim = np.array([-1, 0, 0, 0, 0], np.int32)
+    limit = np.full(5, 50.0, np.float32)
+    t = np.array([50.002, 20.0, 20.0, 49.999, 20.0], np.float32)
+    uv = np.array([[0, 0], [0.3, 0.3], [0.0001, 0.5], [0.3, 0.3], [0.3, 0.3]], np.float32)
+    dirs = np.array([[0, 0, -1]] * 4 + [[1, 0, -0.001]], np.float32)
+    redo = coherent.uncertain_rays(prim, t, uv, dirs, limit, cert.crowded, cert.altitudes, cert.normals,
+                                   cert.margin, coherent.MIN_SIN_INCIDENCE)
+    assert t[0] == 50.0  # a miss gets its limit back
+    assert redo.tolist() == [2, 3, 4]  # near an edge, near the limit, grazing
