@@ -1,10 +1,12 @@
-"""Coherent casts with certificates (sensors/coherent.py) give the reference hits bit for bit."""
+"""Coherent casts with certificates (sensors/coherent.py) give the reference hits bit for bit.
+
+(test_raycast.py's ray sets run on coherent meshes too: test_direct_cast_equals_embreex_bit_for_bit.)"""
 import numpy as np
 import pytest
 
 from adv3d_runner.sensors import coherent
 from adv3d_runner.sensors.raycast import MeshBVH
-from tests.test_raycast import _embreex_cast, _ray_sets, _same_bits, meshes  # noqa: F401 (fixture)
+from tests.test_raycast import _embreex_cast, _same_bits, meshes  # noqa: F401 (fixture)
 
 pytestmark = pytest.mark.skipif(not __import__("adv3d_runner.sensors.embree", fromlist=["available"]).available(),
                                 reason="the direct Embree binding is unavailable")
@@ -69,32 +71,8 @@ def test_certified_hits_are_kept_where_no_face_competes():
         t_ref, p_ref = _cast(plain, o, d)
         t_new, p_new = _cast(coh, o, d)
         assert _same_bits(t_new, t_ref) and np.array_equal(p_new, p_ref)
-        assert coh.recast_rays - before < 0.1 * (p_ref >= 0).sum()  # near edges and the range limit only
-
-
-@pytest.mark.parametrize("name", ["background", "sedan", "truck"])
-def test_certified_cast_equals_embreex_bit_for_bit(meshes, name):  # noqa: F811
-    """The ray sets of test_raycast (random, at vertices, on edges, along edges, in face planes;
-    limits at, one ulp either side of, and below the hits) on a coherent mesh."""
-    v, f, ref, _ = meshes[name]
-    coh = MeshBVH(v, f, coherent=True)
-    rng = np.random.default_rng(11)
-    for what, (o, d, tfar) in _ray_sets(v, f, rng).items():
-        t_ref, t_new = tfar.copy(), tfar.copy()
-        p_ref = _embreex_cast(ref, o, d, t_ref)
-        p_new, _ = coh.intersect(o, d, t_new)
-        assert _same_bits(t_new, t_ref) and np.array_equal(p_new, p_ref), (name, what)
-        hit = p_ref >= 0
-        if hit.sum() < 10:
-            continue
-        t_hit = t_ref[hit]
-        oh = o if len(o) == 1 else o[hit]
-        for limit in (t_hit, np.nextafter(t_hit, np.float32(0)), np.nextafter(t_hit, np.float32(np.inf)),
-                      np.float32(0.5) * t_hit):
-            t1, t2 = limit.astype(np.float32), limit.astype(np.float32)
-            p1 = _embreex_cast(ref, oh, d[hit], t1)
-            p2, _ = coh.intersect(oh, d[hit], t2)
-            assert _same_bits(t2, t1) and np.array_equal(p2, p1), (name, what)
+        recast_hits = coh.recast_rays - before - int((p_ref < 0).sum())  # misses are always cast again
+        assert recast_hits < 0.1 * (p_ref >= 0).sum()  # near edges and the range limit only
 
 
 def test_certified_cast_equals_embreex_on_lidar_frames(meshes):  # noqa: F811
@@ -113,7 +91,7 @@ def test_certified_cast_equals_embreex_on_lidar_frames(meshes):  # noqa: F811
         before = coh.recast_rays
         t_new, p_new = _cast(coh, o, d)
         assert _same_bits(t_new, t_ref) and np.array_equal(p_new, p_ref)
-        kept += int((p_ref >= 0).sum()) - (coh.recast_rays - before)
+        kept += len(d) - (coh.recast_rays - before)
     assert kept > 0.5 * 25 * 50_000  # the coherent results are mostly used, not all cast again
     t = np.full(2 * len(d), 120.0, np.float32)
     p, _ = coh.intersect(o, d, t[::2])
@@ -155,7 +133,7 @@ def test_separated_never_claims_a_gap_that_points_close_the_triangles_do_not_hav
     assert sep.sum() > 500 and (~sep).sum() > 500  # both outcomes occur
 
 
-def test_uncertain_rays_restores_the_limit_of_misses_and_flags_edges_and_limits():
+def test_uncertain_rays_restores_the_limit_of_misses_and_flags_misses_edges_and_limits():
     cert = coherent.face_certificates(np.array([[0, 0, 0], [10, 0, 0], [0, 10, 0]], float), np.array([[0, 1, 2]]))
     prim = np.array([-1, 0, 0, 0, 0], np.int32)
     limit = np.full(5, 50.0, np.float32)
@@ -165,4 +143,4 @@ def test_uncertain_rays_restores_the_limit_of_misses_and_flags_edges_and_limits(
     redo = coherent.uncertain_rays(prim, t, uv, dirs, limit, cert.crowded, cert.altitudes, cert.normals,
                                    cert.margin, coherent.MIN_SIN_INCIDENCE)
     assert t[0] == 50.0  # a miss gets its limit back
-    assert redo.tolist() == [2, 3, 4]  # near an edge, near the limit, grazing
+    assert redo.tolist() == [0, 2, 3, 4]  # a miss, near an edge, near the limit, grazing

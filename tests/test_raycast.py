@@ -239,9 +239,13 @@ def _cast_both(ref, bvh, origins, dirs, tfar):
     return (t_ref, p_ref), (t_dir, p_dir)
 
 
+@pytest.mark.parametrize("coherent", [False, True])
 @pytest.mark.parametrize("name", ["background", "sedan", "suv", "truck"])
-def test_direct_cast_equals_embreex_bit_for_bit(meshes, name):
+def test_direct_cast_equals_embreex_bit_for_bit(meshes, name, coherent):
+    """Also for a coherent mesh (sensors/coherent.py: Embree's coherent query, certified)."""
     v, f, ref, bvh = meshes[name]
+    if coherent:
+        bvh = MeshBVH(v, f, coherent=True)
     rng = np.random.default_rng(7)
     hits = misses = 0
     for what, (o, d, tfar) in _ray_sets(v, f, rng).items():
