@@ -200,6 +200,7 @@ def uncertain_rays(prim, t, uv, dirs, limit, crowded, altitudes, normals, margin
     out = np.empty(n, np.int64)
     k = 0
     edge_min = 2.5 * margin
+    min_sin2 = min_sin * min_sin
     for i in range(n):
         f = prim[i]
         if f < 0:  # cast again: the coherent query can miss a hit of a ray in a face's plane
@@ -207,14 +208,18 @@ def uncertain_rays(prim, t, uv, dirs, limit, crowded, altitudes, normals, margin
             out[k] = i
             k += 1
             continue
-        dx, dy, dz = np.float64(dirs[i, 0]), np.float64(dirs[i, 1]), np.float64(dirs[i, 2])
-        length = np.sqrt(dx * dx + dy * dy + dz * dz)
         u, v = np.float64(uv[i, 0]), np.float64(uv[i, 1])
-        w = 1.0 - u - v
-        sin_inc = abs(normals[f, 0] * dx + normals[f, 1] * dy + normals[f, 2] * dz) / length
-        if (crowded[f] or w * altitudes[f, 0] < edge_min or u * altitudes[f, 1] < edge_min
-                or v * altitudes[f, 2] < edge_min or sin_inc < min_sin
-                or (np.float64(limit[i]) - np.float64(t[i])) * length <= margin):
+        if (crowded[f] or (1.0 - u - v) * altitudes[f, 0] < edge_min or u * altitudes[f, 1] < edge_min
+                or v * altitudes[f, 2] < edge_min):
+            out[k] = i
+            k += 1
+            continue
+        # squared forms of |n.d| / |d| < min_sin and (limit - t) |d| <= margin (no square root)
+        dx, dy, dz = np.float64(dirs[i, 0]), np.float64(dirs[i, 1]), np.float64(dirs[i, 2])
+        length2 = dx * dx + dy * dy + dz * dz
+        dot = normals[f, 0] * dx + normals[f, 1] * dy + normals[f, 2] * dz
+        ahead = np.float64(limit[i]) - np.float64(t[i])
+        if dot * dot < min_sin2 * length2 or ahead <= 0.0 or ahead * ahead * length2 <= margin * margin:
             out[k] = i
             k += 1
     return out[:k]
