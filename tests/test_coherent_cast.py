@@ -141,6 +141,44 @@ def test_uncertain_rays_restores_the_limit_of_misses_and_flags_misses_edges_and_
     uv = np.array([[0, 0], [0.3, 0.3], [0.0001, 0.5], [0.3, 0.3], [0.3, 0.3]], np.float32)
     dirs = np.array([[0, 0, -1]] * 4 + [[1, 0, -0.001]], np.float32)
     redo = coherent.uncertain_rays(prim, t, uv, dirs, limit, cert.crowded, cert.altitudes, cert.normals,
-                                   cert.margin, coherent.MIN_SIN_INCIDENCE)
+                                   cert.cell_slot, cert.cell_frame, cert.cell_crowded, cert.margin,
+                                   coherent.MIN_SIN_INCIDENCE)
     assert t[0] == 50.0  # a miss gets its limit back
     assert redo.tolist() == [0, 2, 3, 4]  # a miss, near an edge, near the limit, grazing
+
+
+def test_cells_index_the_points_they_hold():
+    """cell_index of a point inside the triangle names a cell whose corners hold it."""
+    corners, exists = coherent.cell_corners()
+    rng = np.random.default_rng(2)
+    w = rng.dirichlet(np.ones(3), 5000)
+    for (u, v) in w[:, 1:]:
+        c = coherent.cell_index(u, v)
+        assert c < len(exists) and exists[c]
+        # barycentric of (u, v) in the cell's corner triangle (in the (u, v) plane)
+        a, b, d = corners[c][:, 1:]
+        m = np.array([b - a, d - a]).T
+        s, t = np.linalg.solve(m, np.array([u, v]) - a)
+        assert s >= -1e-9 and t >= -1e-9 and s + t <= 1 + 1e-9
+    assert coherent.cell_index(-0.01, 0.5) == coherent.cell_index(0.6, 0.5) == len(exists)  # outside
+
+
+def test_only_the_cells_a_patch_overlaps_are_cast_again():
+    """A road of two big faces with a small coplanar patch over one corner: both road faces are
+    crowded, but only the cells near the patch; most hits keep the coherent result, and every ray
+    equals the reference."""
+    v1, f1 = _grid(-60, 60, -20, 20, 1, 1)
+    v2, f2 = _grid(-58, -52, -18, -12, 1, 1)
+    v = np.concatenate([v1, v2]).astype(np.float32)
+    f = np.concatenate([f1, f2 + len(v1)]).astype(np.int32)
+    plain, coh = MeshBVH(v, f), MeshBVH(v, f, coherent=True)
+    cert = coh.certificates
+    assert cert.crowded[:2].all() and (cert.cell_slot[:2] >= 0).all()
+    table = cert.cell_crowded[cert.cell_slot[:2], :-1][:, coherent.cell_corners()[1]]
+    assert 0 < table.sum() < 0.5 * table.size  # some cells, not most
+    d, o = _lidar_rays(), np.array([[10.0, 5.0, 1.73]], np.float32)
+    t_ref, p_ref = _cast(plain, o, d)
+    t_new, p_new = _cast(coh, o, d)
+    assert _same_bits(t_new, t_ref) and np.array_equal(p_new, p_ref)
+    recast_hits = coh.recast_rays - int((p_ref < 0).sum())
+    assert recast_hits < 0.2 * (p_ref >= 0).sum()

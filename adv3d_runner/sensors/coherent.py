@@ -58,12 +58,21 @@ class FaceCertificates:
         altitudes: (F, 3) float64 altitude from vertex k onto the opposite edge, metres.
         normals: (F, 3) float64 unit face normals (zero for degenerate faces).
         margin: metres.
+        cell_slot: (F,) int32 row of a crowded face in the cell tables (-1: none, every hit on
+            the face is cast again).
+        cell_frame: (S, 3) float64 per row: the incentre's barycentric (u, v) and 1 / k, the
+            inner triangle's scale (its barycentric u' = (u - u_c) / k + u_c).
+        cell_crowded: (S, 2 CELLS^2) bool per row: which cells of the inner triangle (a
+            CELLS x CELLS midpoint grid, see :func:`cell_index`) another face comes near.
     """
 
     crowded: np.ndarray
     altitudes: np.ndarray
     normals: np.ndarray
     margin: float
+    cell_slot: np.ndarray
+    cell_frame: np.ndarray
+    cell_crowded: np.ndarray
 
 
 def face_certificates(vertices: np.ndarray, faces: np.ndarray, margin: float = MARGIN_M) -> FaceCertificates:
@@ -86,12 +95,73 @@ def face_certificates(vertices: np.ndarray, faces: np.ndarray, margin: float = M
     inner, has_inner = inner_triangles(tri, 2.0 * margin)
     crowded = ~has_inner
     i, j = candidate_pairs(tri.min(axis=1), tri.max(axis=1), margin)
+    near_b, near_a = [], []
     for b, a in ((i, j), (j, i)):
         keep = has_inner[b]
         b, a = b[keep], a[keep]
         near = ~separated(tri[a], inner[b], margin)
         crowded[b[near]] = True
-    return FaceCertificates(crowded, altitudes, normals, float(margin))
+        near_b.append(b[near])
+        near_a.append(a[near])
+    slot, frame, table = crowded_cells(tri, inner, has_inner, np.concatenate(near_b), np.concatenate(near_a), margin)
+    return FaceCertificates(crowded, altitudes, normals, float(margin), slot, frame, table)
+
+
+#: Cells per side of a crowded face's inner triangle (2 CELLS^2 cells): only the cells that
+#: another face comes near are cast again, not the whole face (coplanar road patches overlap at
+#: their ends).
+CELLS = 4
+
+
+def crowded_cells(tri: np.ndarray, inner: np.ndarray, has_inner: np.ndarray, near_b: np.ndarray,
+                  near_a: np.ndarray, margin: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Cell tables of the crowded faces that have an inner triangle (see :class:`FaceCertificates`).
+
+    A cell is crowded when a near face (``near_a[k]`` of ``near_b[k]``) is not shown more than
+    1.5 ``margin`` from it: the extra half margin covers the rounding of the hit's u, v, which
+    places the hit in its cell."""
+    faces = np.unique(near_b)
+    slot = np.full(len(tri), -1, np.int32)
+    slot[faces] = np.arange(len(faces), dtype=np.int32)
+    n_cells = 2 * CELLS * CELLS
+    table = np.ones((len(faces), n_cells + 1), bool)  # + "outside the inner triangle"
+    frame = np.zeros((len(faces), 3))
+    if not len(faces):
+        return slot, frame, table
+    side = np.stack([np.linalg.norm(tri[faces, (k + 2) % 3] - tri[faces, (k + 1) % 3], axis=1) for k in range(3)], axis=1)
+    bary_c = side / side.sum(axis=1, keepdims=True)  # the incentre's barycentric weights
+    e_in = np.linalg.norm(inner[faces, 1] - inner[faces, 0], axis=1)
+    e_out = np.linalg.norm(tri[faces, 1] - tri[faces, 0], axis=1)
+    frame[:, 0], frame[:, 1] = bary_c[:, 1], bary_c[:, 2]
+    frame[:, 2] = e_out / e_in  # 1 / k
+    corners, exists = cell_corners()
+    cells = np.einsum("ckw,fwd->fckd", corners, inner[faces])  # (S, n_cells, 3, 3)
+    table[:, :n_cells][:, exists] = False  # the rest (no cell, outside) stays crowded
+    rows = slot[near_b]
+    for c in np.flatnonzero(exists):
+        sep = separated(tri[near_a], cells[rows, c], 1.5 * margin)
+        table[rows[~sep], c] = True
+    return slot, frame, table
+
+
+def cell_corners() -> tuple[np.ndarray, np.ndarray]:
+    """(2 CELLS^2, 3, 3) barycentric weights (w, u, v) of each cell's corners, in
+    :func:`cell_index` order, and (2 CELLS^2,) bool: the cell exists (the "down" cells past the
+    hypotenuse do not)."""
+    n = CELLS
+    corners = np.zeros((2 * n * n, 3, 3))
+    exists = np.zeros(2 * n * n, bool)
+    for i in range(n):
+        for j in range(n - i):
+            up = [(i, j), (i + 1, j), (i, j + 1)]
+            down = [(i + 1, j), (i + 1, j + 1), (i, j + 1)]
+            for k, pts in ((2 * (i * n + j), up), (2 * (i * n + j) + 1, down)):
+                if k % 2 and i + j > n - 2:
+                    continue
+                for q, (a, b) in enumerate(pts):
+                    corners[k, q] = (1 - (a + b) / n, a / n, b / n)
+                exists[k] = True
+    return corners, exists
 
 
 def inner_triangles(tri: np.ndarray, inset: float) -> tuple[np.ndarray, np.ndarray]:
@@ -181,7 +251,8 @@ def _axes():
 
 
 @kernel
-def uncertain_rays(prim, t, uv, dirs, limit, crowded, altitudes, normals, margin, min_sin):
+def uncertain_rays(prim, t, uv, dirs, limit, crowded, altitudes, normals, cell_slot, cell_frame, cell_crowded,
+                   margin, min_sin):
     """The rays whose coherent result must be cast again; restores the limit of the misses.
 
     Args:
@@ -191,7 +262,8 @@ def uncertain_rays(prim, t, uv, dirs, limit, crowded, altitudes, normals, margin
         uv: (N, 2) float32 barycentric u, v of the hits.
         dirs: (N, 3) float32 ray directions.
         limit: (N,) float32 the rays' real limits.
-        crowded, altitudes, normals: a :class:`FaceCertificates`' arrays.
+        crowded, altitudes, normals, cell_slot, cell_frame, cell_crowded: a
+            :class:`FaceCertificates`' arrays.
         margin, min_sin: floats (see the module docstring).
     Returns:
         (K,) int64 indices of the uncertain rays.
@@ -209,8 +281,9 @@ def uncertain_rays(prim, t, uv, dirs, limit, crowded, altitudes, normals, margin
             k += 1
             continue
         u, v = np.float64(uv[i, 0]), np.float64(uv[i, 1])
-        if (crowded[f] or (1.0 - u - v) * altitudes[f, 0] < edge_min or u * altitudes[f, 1] < edge_min
-                or v * altitudes[f, 2] < edge_min):
+        if ((1.0 - u - v) * altitudes[f, 0] < edge_min or u * altitudes[f, 1] < edge_min
+                or v * altitudes[f, 2] < edge_min
+                or (crowded[f] and cell_is_crowded(cell_slot[f], u, v, cell_frame, cell_crowded))):
             out[k] = i
             k += 1
             continue
@@ -223,3 +296,28 @@ def uncertain_rays(prim, t, uv, dirs, limit, crowded, altitudes, normals, margin
             out[k] = i
             k += 1
     return out[:k]
+
+
+@kernel
+def cell_is_crowded(slot, u, v, frame, table):
+    """Whether the hit at barycentric (u, v) of a crowded face (row ``slot``; -1: no table)
+    lies in a crowded cell of the face's inner triangle, or outside it."""
+    if slot < 0:
+        return True
+    uc, vc, inv_k = frame[slot, 0], frame[slot, 1], frame[slot, 2]
+    return table[slot, cell_index((u - uc) * inv_k + uc, (v - vc) * inv_k + vc)]
+
+
+@kernel
+def cell_index(u, v):
+    """The cell of barycentric (u, v) in a CELLS x CELLS midpoint grid of a triangle: the up
+    cell (i, j) is 2 (i CELLS + j), the down cell next to it 2 (i CELLS + j) + 1 (see
+    :func:`cell_corners`); a point outside the triangle gets 2 CELLS^2, the last column of the
+    tables (always crowded)."""
+    n = CELLS
+    x, y = u * n, v * n
+    if x < 0.0 or y < 0.0 or x + y >= n:
+        return 2 * n * n
+    i, j = int(x), int(y)
+    down = (x - i) + (y - j) >= 1.0
+    return 2 * (i * n + j) + (1 if down else 0)

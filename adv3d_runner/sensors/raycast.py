@@ -175,7 +175,7 @@ class MeshBVH:
         uv = np.empty((len(directions), 2), np.float32)
         prim = self._scene.intersect(origins, directions, tfar, uv=uv, coherent=True)
         redo = uncertain_rays(prim, tfar, uv, directions, limit, cert.crowded, cert.altitudes, cert.normals,
-                              cert.margin, MIN_SIN_INCIDENCE)
+                              cert.cell_slot, cert.cell_frame, cert.cell_crowded, cert.margin, MIN_SIN_INCIDENCE)
         self.recast_rays += len(redo)
         self.coherent_rays += len(directions)
         if len(redo):
