@@ -22,8 +22,7 @@ face can compete, and every other ray is cast again with the reference (incohere
   more than ``margin`` before the ray's limit (the traversal culls against the limit);
 * a coherent miss is cast again: for a ray lying in a face's plane the coherent query can miss
   a hit that the reference query reports (``tests/test_raycast.py``'s "in plane" rays on a car
-  mesh). The coherent cast runs with the limit raised by ``margin``, so a hit near the limit is
-  found and cast again too.
+  mesh), and a hit within rounding of the limit may be culled.
 
 The margin (2 mm) is about twenty times the rounding of a float32 distance on a background a
 kilometre across, and below the 5 mm by which the generated highway's lane markings stand on
@@ -256,12 +255,12 @@ def _axes():
 @kernel
 def uncertain_rays(prim, t, uv, dirs, limit, crowded, altitudes, normals, cell_slot, cell_frame, cell_crowded,
                    margin, min_sin):
-    """The rays whose coherent result must be cast again; restores the limit of the misses.
+    """The rays whose coherent result must be cast again: every miss and every hit without a
+    certificate.
 
     Args:
         prim: (N,) int32 coherent face hit (-1: miss).
-        t: (N,) float32 coherent distances, cast with ``limit + margin``; misses get ``limit``
-            back in place (and are returned).
+        t: (N,) float32 coherent distances (``limit`` where missed).
         uv: (N, 2) float32 barycentric u, v of the hits.
         dirs: (N, 3) float32 ray directions.
         limit: (N,) float32 the rays' real limits.
@@ -279,7 +278,6 @@ def uncertain_rays(prim, t, uv, dirs, limit, crowded, altitudes, normals, cell_s
     for i in range(n):
         f = prim[i]
         if f < 0:  # cast again: the coherent query can miss a hit of a ray in a face's plane
-            t[i] = limit[i]
             out[k] = i
             k += 1
             continue

@@ -68,7 +68,7 @@ class MeshBVH:
         coherent: cast with Embree's coherent query and certify its hits
             (:mod:`~adv3d_runner.sensors.coherent`): the same results, about half the time on a
             LiDAR frame of rays in neighbouring packets; costs a certificate per face at build
-            (about 0.1 s for a 9k-face highway). Only with the direct binding.
+            (about 0.25 s for a 9k-face highway). Only with the direct binding.
 
     Attributes:
         n_faces: F (0 means the mesh is empty and every ray misses).
@@ -171,7 +171,6 @@ class MeshBVH:
         certify (:mod:`adv3d_runner.sensors.coherent`); arguments as :meth:`intersect`'s."""
         cert = self.certificates
         limit = tfar.copy()
-        tfar += np.float32(cert.margin)  # see coherent.py: a miss must be a miss up to the margin
         uv = np.empty((len(directions), 2), np.float32)
         prim = self._scene.intersect(origins, directions, tfar, uv=uv, coherent=True)
         redo = uncertain_rays(prim, tfar, uv, directions, limit, cert.crowded, cert.altitudes, cert.normals,
