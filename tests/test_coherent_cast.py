@@ -181,3 +181,29 @@ def test_only_the_cells_a_patch_overlaps_are_cast_again():
     assert _same_bits(t_new, t_ref) and np.array_equal(p_new, p_ref)
     recast_hits = coh.recast_rays - int((p_ref < 0).sum())
     assert recast_hits < 0.2 * (p_ref >= 0).sum()
+
+
+def test_candidate_pairs_in_chunks_equal_one_sweep(monkeypatch):
+    rng = np.random.default_rng(4)
+    lo = rng.uniform(0, 100, (400, 3)) * [1.0, 0.2, 0.05]  # a road-like strip: long in x
+    hi = lo + rng.uniform(0, 8, (400, 3))
+    i, j = coherent.candidate_pairs(lo, hi, 0.5)
+    monkeypatch.setattr(coherent, "_CHUNK_PAIRS", 7)
+    i2, j2 = coherent.candidate_pairs(lo, hi, 0.5)
+    assert len(i) > 100
+    assert sorted(zip(i.tolist(), j.tolist())) == sorted(zip(i2.tolist(), j2.tolist()))
+    brute = {(a, b) for a in range(400) for b in range(a + 1, 400)
+             if np.all(lo[a] <= hi[b] + 0.5) and np.all(lo[b] <= hi[a] + 0.5)}
+    assert {tuple(sorted(p)) for p in zip(i.tolist(), j.tolist())} == brute
+
+
+def test_a_mesh_of_long_overlapping_strips_is_cast_plainly(monkeypatch):
+    """Past MAX_SWEEP_PAIRS x-overlaps the mesh gets no certificates and the reference query."""
+    v, f = _two_layers(0.01)
+    monkeypatch.setattr(coherent, "MAX_SWEEP_PAIRS", 10)
+    coh = MeshBVH(v, f, coherent=True)
+    assert coh.certificates is None
+    d, o = _lidar_rays(), np.array([[0.3, 0.2, 1.73]], np.float32)
+    t_ref, p_ref = _cast(MeshBVH(v, f), o, d)
+    t_new, p_new = _cast(coh, o, d)
+    assert _same_bits(t_new, t_ref) and np.array_equal(p_new, p_ref)

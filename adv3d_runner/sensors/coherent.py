@@ -48,6 +48,12 @@ MARGIN_M = 0.002
 MIN_SIN_INCIDENCE = 0.01
 # Separating axes shorter than this (parallel edges) are skipped: they separate nothing.
 _MIN_AXIS = 1e-12
+#: Above this many face boxes overlapping along x (a background of long strips, say) the
+#: certificates would cost more than they save, and such a mesh is cast with the reference
+#: query alone (:func:`face_certificates` returns None).
+MAX_SWEEP_PAIRS = 20_000_000
+# The sweep's pairs are made in chunks of about this many (memory).
+_CHUNK_PAIRS = 1_000_000
 
 
 @dataclass(frozen=True)
@@ -77,8 +83,9 @@ class FaceCertificates:
     cell_crowded: np.ndarray
 
 
-def face_certificates(vertices: np.ndarray, faces: np.ndarray, margin: float = MARGIN_M) -> FaceCertificates:
-    """Per-face certificates of a triangle mesh (see the module docstring).
+def face_certificates(vertices: np.ndarray, faces: np.ndarray, margin: float = MARGIN_M) -> FaceCertificates | None:
+    """Per-face certificates of a triangle mesh (see the module docstring); None where the mesh
+    has too many overlapping face boxes for them (``MAX_SWEEP_PAIRS``).
 
     Args:
         vertices: (V, 3) float vertex positions, metres (the coordinates Embree sees).
@@ -96,7 +103,10 @@ def face_certificates(vertices: np.ndarray, faces: np.ndarray, margin: float = M
 
     inner, has_inner = inner_triangles(tri, 2.0 * margin)
     crowded = ~has_inner
-    i, j = candidate_pairs(tri.min(axis=1), tri.max(axis=1), margin)
+    pairs = candidate_pairs(tri.min(axis=1), tri.max(axis=1), margin)
+    if pairs is None:
+        return None
+    i, j = pairs
     near_b, near_a = [], []
     for b, a in ((i, j), (j, i)):
         keep = has_inner[b]
@@ -186,22 +196,34 @@ def inner_triangles(tri: np.ndarray, inset: float) -> tuple[np.ndarray, np.ndarr
     return incentre[:, None, :] + (tri - incentre[:, None, :]) * scale[:, None, None], ok
 
 
-def candidate_pairs(lo: np.ndarray, hi: np.ndarray, pad: float) -> tuple[np.ndarray, np.ndarray]:
-    """Pairs (i < j in sweep order) whose boxes, grown by ``pad``, overlap.
+def candidate_pairs(lo: np.ndarray, hi: np.ndarray, pad: float) -> tuple[np.ndarray, np.ndarray] | None:
+    """Pairs (i < j in sweep order) whose boxes, grown by ``pad``, overlap; None when more than
+    ``MAX_SWEEP_PAIRS`` boxes overlap along x (the sweep axis).
 
     Args:
         lo, hi: (F, 3) box corners.
     Returns:
-        two (P,) int64 index arrays.
+        two (P,) int64 index arrays, or None.
     """
     order = np.argsort(lo[:, 0], kind="stable")
     lo_s, hi_s = lo[order], hi[order]
     end = np.searchsorted(lo_s[:, 0], hi_s[:, 0] + pad, "right")
     count = end - np.arange(len(lo_s)) - 1
-    i = np.repeat(np.arange(len(lo_s)), count)
-    j = np.arange(int(count.sum())) - np.repeat(np.cumsum(count) - count, count) + i + 1
-    overlap = np.all((lo_s[j] <= hi_s[i] + pad) & (lo_s[i] <= hi_s[j] + pad), axis=1)
-    return order[i[overlap]], order[j[overlap]]
+    if int(count.sum()) > MAX_SWEEP_PAIRS:
+        return None
+    done = np.concatenate([[0], np.cumsum(count)])
+    out_i, out_j = [], []
+    start = 0
+    while start < len(lo_s):  # in chunks of about _CHUNK_PAIRS x-overlaps: bounded memory
+        stop = max(start + 1, int(np.searchsorted(done, done[start] + _CHUNK_PAIRS, "right")) - 1)
+        c = count[start:stop]
+        i = np.repeat(np.arange(start, stop), c)
+        j = np.arange(int(c.sum())) - np.repeat(np.cumsum(c) - c, c) + i + 1
+        overlap = np.all((lo_s[j] <= hi_s[i] + pad) & (lo_s[i] <= hi_s[j] + pad), axis=1)
+        out_i.append(order[i[overlap]])
+        out_j.append(order[j[overlap]])
+        start = stop
+    return np.concatenate(out_i), np.concatenate(out_j)
 
 
 def separated(a: np.ndarray, b: np.ndarray, gap: float) -> np.ndarray:
