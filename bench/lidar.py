@@ -25,6 +25,9 @@ car/truck boxes when the vehicle library is present, boxes otherwise).
     new shape; a frame whose geometry was seen before (cache hit) against the plain frame and
     the first sight (miss: the static layers cast and stored); points identical in all three.
 
+``--coherent REPEATS``: only the background cast with Embree's coherent query, raw and certified
+(``sensors/coherent.py``), against the reference query (``bench/results/lidar_coherent.json``).
+
 ``--ab COMMIT``: (a) only, this code's pipeline against COMMIT's ``sensors/lidar.py``, the two
 alternating frame by frame in one process (``bench/results/lidar_ab.json``).
 
@@ -562,6 +565,82 @@ def section_cache_ab(repeats: int, base: str) -> dict:
     return out
 
 
+COHERENT_SCENES = ("scenes/highway/highway-benchmark-000010.json.gz", "scenes/highway/highway-benchmark-000000.json.gz",
+                   "scenes/real/USA_US101-9_3_T-1.json.gz")
+
+
+def section_coherent(repeats: int) -> list[dict]:
+    """The background cast of HDL-64E frames (10 logged ego poses per scene): the reference
+    query (packets of 8), Embree's raw coherent query (packets of 8 and 16), and the certified
+    coherent cast (``MeshBVH(..., coherent=True)``, docs/lidar.md) with its parts: the coherent
+    query, the certification loop, the uncertain hits and the misses cast again. Checks that
+    the certified cast equals the reference bit for bit and counts the rays where the raw
+    coherent query differs."""
+    from adv3d_runner.scene import load_scene
+    from adv3d_runner.sensors import coherent, embree
+    from adv3d_runner.sensors.world import rig_from_scene, world_from_scene
+    from adv3d_runner.sim.episode import default_library
+
+    rows = []
+    for path in COHERENT_SCENES:
+        scene = load_scene(ROOT / path)
+        world = world_from_scene(scene, default_library())
+        bvh, sensor = world.background, rig_from_scene(scene).sensors[0]
+        cert, sc = bvh.certificates, bvh._scene
+        t0 = time.process_time()
+        coherent.face_certificates(sc._vertices[:-1], sc._faces[:-1])
+        build_s = time.process_time() - t0
+        times: dict[str, list[float]] = {}
+        counts = {"rays": 0, "recast_hits": 0, "recast_misses": 0, "raw_coherent_differs": 0}
+        same = True
+        for k in np.linspace(0, len(scene.ego_poses()) - 1, 10).astype(int):
+            origin, dirs = raw_rays(sensor, world, scene.ego_poses()[k])
+            limit = np.full(len(dirs), sensor.model.max_range, np.float32)
+            for _ in range(repeats):
+                def clock(name, fn):
+                    a = time.thread_time()
+                    out = fn()
+                    times.setdefault(name, []).append(time.thread_time() - a)
+                    return out
+                t_ref = limit.copy()
+                p_ref = clock("reference_8", lambda: sc.intersect(origin, dirs, t_ref))
+                t_raw = limit.copy()
+                p_raw = clock("raw_coherent_16", lambda: sc.intersect(origin, dirs, t_raw, coherent=True))
+                t8 = limit.copy()
+                clock("raw_coherent_8", lambda: embree._cast(sc._scene, origin, dirs, t8, np.empty(len(dirs), np.int32),
+                                                              embree._NO_UV, embree.COHERENT, 8))
+                t_new = limit.copy()
+                p_new = clock("certified", lambda: bvh.intersect(origin, dirs, t_new)[0])
+                same &= bool(np.array_equal(t_new.view(np.int32), t_ref.view(np.int32)) and np.array_equal(p_new, p_ref))
+                # the certified cast's parts
+                t = limit.copy()
+                uv = np.empty((len(dirs), 2), np.float32)
+                prim = clock("part_coherent", lambda: sc.intersect(origin, dirs, t, uv=uv, coherent=True))
+                redo = clock("part_certify", lambda: coherent.uncertain_rays(
+                    prim, t, uv, dirs, limit, cert.crowded, cert.altitudes, cert.normals, cert.cell_slot,
+                    cert.cell_frame, cert.cell_crowded, cert.margin, coherent.MIN_SIN_INCIDENCE))
+                miss = prim[redo] < 0
+                for name, idx in (("part_recast_hits", redo[~miss]), ("part_recast_misses", redo[miss])):
+                    tt = limit[idx]
+                    d = np.ascontiguousarray(dirs[idx])
+                    clock(name, lambda: sc.intersect(origin, d, tt))
+            counts["rays"] += len(dirs)
+            counts["recast_hits"] += int((~miss).sum())
+            counts["recast_misses"] += int(miss.sum())
+            counts["raw_coherent_differs"] += int((p_raw != p_ref).sum() + ((p_raw == p_ref) & (t_raw != t_ref)).sum())
+        row = {"scene": Path(path).name, "faces": int(len(cert.crowded)), "crowded_faces": int(cert.crowded.sum()),
+               "certificates_s": build_s, "frames": 10, "repeats": repeats,
+               "ms_per_frame": {k: 1e3 * float(np.median(v)) for k, v in times.items()},
+               "per_frame": {k: v / 10 for k, v in counts.items()}, "certified_equals_reference": same}
+        rows.append(row)
+        ms = row["ms_per_frame"]
+        print(f"{row['scene']:34s} reference {ms['reference_8']:5.2f}  raw coherent 8 {ms['raw_coherent_8']:5.2f} "
+              f"16 {ms['raw_coherent_16']:5.2f}  certified {ms['certified']:5.2f} (coherent {ms['part_coherent']:.2f}, "
+              f"certify {ms['part_certify']:.2f}, hits again {ms['part_recast_hits']:.2f}, misses again "
+              f"{ms['part_recast_misses']:.2f}) ms; per frame {row['per_frame']}; equal: {same}")
+    return rows
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="fewer repeats")
@@ -572,8 +651,21 @@ def main() -> int:
                              "(bench/results/lidar_ratio.json)")
     parser.add_argument("--base", metavar="COMMIT", default=None,
                         help="with --ratio: also COMMIT's sensors/lidar.py, in the same rotation")
-    parser.add_argument("--out", default=None, help="with --ratio: the JSON to write")
+    parser.add_argument("--out", default=None, help="with --ratio or --coherent: the JSON to write")
+    parser.add_argument("--coherent", type=int, metavar="REPEATS", default=None,
+                        help="only the coherent background casts against the reference query "
+                             "(bench/results/lidar_coherent.json)")
     args = parser.parse_args()
+    if args.coherent:
+        result = {"benchmark": "lidar_coherent", "command": " ".join([Path(sys.executable).name] + sys.argv),
+                  "machine": machine_info(), "load_average_before": list(os.getloadavg()),
+                  "timing": "median CPU time of the (single) thread per call, time.thread_time",
+                  "scenes": section_coherent(args.coherent)}
+        result["load_average_after"] = list(os.getloadavg())
+        out = Path(args.out) if args.out else ROOT / "bench" / "results" / "lidar_coherent.json"
+        write_json(out, result)
+        print(f"\nwrote {out}")
+        return 0
     if args.ratio:
         result = {"benchmark": "lidar_ratio", "command": " ".join([Path(sys.executable).name] + sys.argv),
                   "machine": machine_info(), "load_average_before": list(os.getloadavg()),

@@ -2,8 +2,8 @@
 
 Why: Embree's ``RTC_RAY_QUERY_FLAG_COHERENT`` traverses a packet of neighbouring rays with one
 frustum, and a LiDAR frame's packets (16 neighbouring azimuths of one laser) are as coherent
-as rays get: a frame's background cast takes under a third of the time (9.3 -> 2.8 ms on the
-generated highway; docs/lidar.md, "Coherent background casts"). Its per-face arithmetic is the
+as rays get: a frame's background cast takes under a third of the time (9.7 -> 2.9 ms on the
+generated highway; ``bench/lidar.py --coherent``). Its per-face arithmetic is the
 reference query's (over 297 million rays of 51 episodes no ray hit the same face at another
 distance), but it decides near-ties differently: where two faces are hit at the same distance
 or within an ulp (coplanar overlapping road patches, a ray through a shared edge) it may report

@@ -65,8 +65,8 @@ _RTC_DEVICE_PROPERTY_VERSION_MAJOR = 1
 # the largest hit layout.
 _TFAR, _MASK, _ID, _FLAGS, _U, _V, _PRIM, _GEOM, _INST, _VALID = 8, 9, 10, 11, 15, 16, 17, 18, 19, 24
 #: The coherent query's packet width: its frustum traversal gains from wider packets (a
-#: highway frame's background: 3.2 ms in packets of 8, 2.6 ms of 16, 5.4 of 4), unlike the
-#: reference query's (9.3 ms of 8, 11.8 of 16).
+#: highway frame's background: 3.5 ms in packets of 8, 2.9 of 16; ``bench/lidar.py
+#: --coherent``), unlike the reference query's (9.6 ms of 8, 12.0 of 16; docs/lidar.md).
 COHERENT_PACKET = 16
 _WIDEST = 16
 _WORDS = (_VALID + 1) * _WIDEST

@@ -68,7 +68,7 @@ class MeshBVH:
         coherent: cast with Embree's coherent query and certify its hits
             (:mod:`~adv3d_runner.sensors.coherent`): the same results, about half the time on a
             LiDAR frame of rays in neighbouring packets; costs a certificate per face at build
-            (about 0.25 s for a 9k-face highway). Only with the direct binding, and not for a
+            (about 0.2 s for a 9k-face highway). Only with the direct binding, and not for a
             mesh with too many overlapping face boxes (``coherent.MAX_SWEEP_PAIRS``).
 
     Attributes:
