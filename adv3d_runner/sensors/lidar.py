@@ -30,6 +30,7 @@ import numpy as np
 
 from . import kernels
 from .beams import LidarModel, get_model
+from .draws import draw_f32
 
 __all__ = ["MountedLidar", "LidarRig", "LidarFrame", "simulate_frame", "rotation_rpy",
            "BACKGROUND", "DEFAULT_ATTENUATION"]
@@ -752,11 +753,13 @@ def _effects(world, rig: LidarRig, k: int, ego: np.ndarray, hits: RayHits, actor
 
     # Effects drawn from the caller's generator in a fixed order (noise, then drop), one draw
     # per return, so the same returns and seed give the same frame.
+    # (draws.draw_f32: numpy's own values, from a compiled loop)
     gauss = uniform = _NONE_F32
-    if rng is not None and noise and model.range_noise > 0:
-        gauss = rng.standard_normal(idx.size, dtype=np.float32)
-    if rng is not None and drop and model.ray_drop > 0:
-        uniform = rng.random(idx.size, dtype=np.float32)
+    if rng is not None:
+        n_gauss = idx.size if noise and model.range_noise > 0 else 0
+        n_uniform = idx.size if drop and model.ray_drop > 0 else 0
+        if n_gauss or n_uniform:
+            gauss, uniform = draw_f32(rng, n_gauss, n_uniform)
 
     # One pass over the returns (the dropped ones skipped): measured range, the point, and
     # intensity = reflectivity x |cos incidence| x fade, the background's map-frame normals
