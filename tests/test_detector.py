@@ -364,6 +364,12 @@ def test_upsample_concat_is_interpolate_then_cat():
             out = upsample_concat(coarse, skip)
         assert out.shape == ref.shape and torch.equal(out, ref)
         assert torch.equal(upsample_concat(coarse, skip), ref)  # the training (grad) path
+        # the compiled copy takes contiguous float32; a strided or float64 coarse map the torch copy
+        strided = coarse.transpose(2, 3).contiguous().transpose(2, 3)
+        assert not strided.is_contiguous()
+        with torch.inference_mode():
+            assert torch.equal(upsample_concat(strided, skip), ref)
+            assert torch.equal(upsample_concat(coarse.double(), skip.double()), ref.double())
 
 
 def test_flat_forward_equals_the_folded_graph_module():

@@ -757,15 +757,37 @@ def upsample_concat(coarse: torch.Tensor, skip: torch.Tensor) -> torch.Tensor:
     coarse (B, C, h, w) and skip (B, S, H, W) -> (B, C + S, H, W). Where H, W = 2h, 2w (always
     here: the strides are powers of 2) and no gradient is recorded, each coarse cell is copied
     into its 2 x 2 block of one preallocated tensor: the same values, without the upsampled
-    temporary and the concatenation's second copy (0.57 -> 0.37 ms per 0.25 m frame)."""
+    temporary and the concatenation's second copy (0.57 -> 0.37 ms per 0.25 m frame). The
+    blocks are written by a compiled loop (:func:`_upsample2_into`) where both tensors are
+    contiguous float32 on the CPU: torch's strided 6-D copy took 0.33 of those 0.37 ms, the
+    loop 0.09 (issue 16)."""
     B, C, h, w = coarse.shape
     H, W = skip.shape[-2:]
     if torch.is_grad_enabled() or (H, W) != (2 * h, 2 * w):
         return torch.cat([nn.functional.interpolate(coarse, size=(H, W), mode="nearest"), skip], dim=1)
     out = coarse.new_empty((B, C + skip.shape[1], H, W))
-    out[:, :C].view(B, C, h, 2, w, 2).copy_(coarse[:, :, :, None, :, None].expand(B, C, h, 2, w, 2))
+    if coarse.dtype == torch.float32 and coarse.device.type == "cpu" and coarse.is_contiguous():
+        _upsample2_into(coarse.numpy(), out.numpy())
+    else:
+        out[:, :C].view(B, C, h, 2, w, 2).copy_(coarse[:, :, :, None, :, None].expand(B, C, h, 2, w, 2))
     out[:, C:].copy_(skip)
     return out
+
+
+@kernel
+def _upsample2_into(src: np.ndarray, dst: np.ndarray) -> None:
+    """Each cell of ``src`` (B, C, h, w) copied into its 2 x 2 block of ``dst[:, :C]`` (B, >= C,
+    2h, 2w), in place (nearest upsampling by 2: copies, so the same bits)."""
+    B, C, h, w = src.shape
+    for b in range(B):
+        for c in range(C):
+            for i in range(h):
+                top = dst[b, c, 2 * i]
+                for j in range(w):
+                    v = src[b, c, i, j]
+                    top[2 * j] = v
+                    top[2 * j + 1] = v
+                dst[b, c, 2 * i + 1, :] = top
 
 
 # A leaf of torch.fx graphs (fold_batchnorm traces the network): its shape test runs at call time.
