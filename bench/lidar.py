@@ -451,7 +451,8 @@ def section_ratio(repeats: int, base: str | None) -> dict:
 def _breakdown(mod, world, rig, ego, poses, repeats: int = 41) -> dict:
     """Where one frame's CPU time goes (after the timed rounds, instrumented, so not part of
     the ratio): Embree calls on the background and on the actors, the sensor effects, and the
-    noise and drop draws alone (the same sizes drawn from a fresh generator); ms per frame."""
+    noise and drop draws alone (the same sizes drawn from a fresh generator, as the effects
+    draw them); ms per frame."""
     from adv3d_runner.sensors import raycast
 
     acc = {"background_embree": 0.0, "actor_embree": 0.0, "actor_calls": 0, "effects": 0.0}
@@ -484,12 +485,16 @@ def _breakdown(mod, world, rig, ego, poses, repeats: int = 41) -> dict:
         raycast.MeshBVH.intersect, mod._effects = intersect, effects
     model = rig.sensors[0].model
     valid = int(sizes[-1] / (1.0 - model.ray_drop))  # about the returns before the drop
+    try:  # the effects' own draws (issue 16: a compiled loop giving numpy's values), numpy's before
+        from adv3d_runner.sensors.draws import draw_f32
+    except ImportError:
+        def draw_f32(rng, n_gauss, n_uniform):
+            return rng.standard_normal(n_gauss, dtype=np.float32), rng.random(n_uniform, dtype=np.float32)
     draws = []
     for _ in range(repeats):
         rng = np.random.default_rng(0)
         t0 = CLOCK()
-        rng.standard_normal(valid, dtype=np.float32)
-        rng.random(valid, dtype=np.float32)
+        draw_f32(rng, valid, valid)
         draws.append(CLOCK() - t0)
     out = {k: 1e3 * v / repeats for k, v in acc.items() if k != "actor_calls"}
     out["actor_calls"] = acc["actor_calls"] / repeats
