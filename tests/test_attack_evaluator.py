@@ -177,6 +177,19 @@ def test_objective_and_metrics_share_one_episode_evaluation(repo_root):
     for m in (shared, alone):
         m.pop("ms_per_frame"), m.pop("fps")
     assert shared == alone and shared["detection"]["n_gt"] > 0
+    # the shared matchings and plan comforts are made once and equal the per-caller definitions
+    from adv3d_runner.attack.objective import detection_terms, planning_terms
+    from adv3d_runner.metrics.comfort import planning_comfort
+    from adv3d_runner.metrics.detection import evaluate_frames
+
+    assert ev.matches(0.5) is ev.matches(0.5) and len(ev.matches(0.5)) == r.frames
+    det = evaluate_frames(*([f[i] for f in ev.detection] for i in range(3)))
+    assert shared["detection"]["ap"] == det.ap and shared["detection"]["n_tp"] == det.n_tp
+    assert shared["planning_comfort"] == planning_comfort(r.plans(), r.dt).as_dict()
+    for thr in (0.5, 0.3):
+        a, b = detection_terms(ev.detection, thr, ev.matches(thr)), detection_terms(ev.detection, thr)
+        assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
+    assert [c.jerk + c.lat for c in ev.plan_comfort] == planning_terms(r.plans(), r.dt).tolist()
     # an evaluation made with another visibility rule is refused, not silently used
     other = episode_evaluation(r, min_gt_points=50)
     with pytest.raises(ValueError):

@@ -139,16 +139,20 @@ def parse_objective(text: str | None, autonomy: str = "A") -> ObjectiveWeights:
 # ------------------------------------------------------------------------ per-frame terms
 
 def detection_terms(frames: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]],
-                    iou_threshold: float = IOU_THRESHOLD) -> tuple[np.ndarray, np.ndarray]:
+                    iou_threshold: float = IOU_THRESHOLD, matches: Sequence | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Per frame sum_TP IoU x conf and sum_FP (1 - IoU) x conf.
 
     Args:
         frames: T tuples (gt boxes (G, 5), detected boxes (D, 5), scores (D,)), already
             restricted to the region of interest.
+        matches: the frames' ``match_frame`` at ``iou_threshold`` when the caller has them
+            (``EpisodeEvaluation.matches``); made here otherwise.
     Returns:
         tp (T,), fp (T,), both >= 0.
     """
-    terms = np.array([detection_frame_terms(g, d, s, iou_threshold) for g, d, s in frames], dtype=np.float64).reshape(-1, 2)
+    ms = [None] * len(frames) if matches is None else matches
+    terms = np.array([detection_frame_terms(g, d, s, iou_threshold, m) for (g, d, s), m in zip(frames, ms)],
+                     dtype=np.float64).reshape(-1, 2)
     return np.ascontiguousarray(terms[:, 0]), np.ascontiguousarray(terms[:, 1])
 
 
@@ -247,11 +251,12 @@ def episode_objective(result, weights: ObjectiveWeights = ABLATIONS["M0"], evalu
     elif evaluation.min_gt_points != MIN_GT_POINTS:
         raise ValueError(f"the objective uses min_gt_points={MIN_GT_POINTS}, the evaluation has "
                          f"{evaluation.min_gt_points}")
-    plan = planning_terms(result.plans(), result.dt)
+    plan = (planning_terms(result.plans(), result.dt) if evaluation.plan_comfort is None
+            else np.array([c.jerk + c.lat for c in evaluation.plan_comfort], dtype=np.float64).reshape(-1))
     if evaluation.occupancy is not None:
         iou, epe = occupancy_terms(evaluation.occupancy)
         return combine_occupancy(iou, epe, plan, weights)
-    tp, fp = detection_terms(evaluation.detection, weights.iou_threshold)
+    tp, fp = detection_terms(evaluation.detection, weights.iou_threshold, evaluation.matches(weights.iou_threshold))
     # l_pred is measured even when its weight is 0 (M1, M3, M5): the journal reports every term
     # unweighted, whatever the search maximised.
     pred = prediction_terms(evaluation.prediction, weights.pred_reduction)

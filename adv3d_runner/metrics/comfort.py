@@ -98,10 +98,15 @@ def plan_comfort_cost(plan: np.ndarray, dt: float = DT) -> float:
 
 def planning_comfort(plans: Sequence[np.ndarray], dt: float = DT) -> Comfort:
     """Planning comfort: the comfort of each plan, averaged over the plans (means and maxes)."""
-    if len(plans) == 0:
+    return mean_comfort([trajectory_comfort(p, dt) for p in plans])
+
+
+def mean_comfort(comforts: Sequence[Comfort]) -> Comfort:
+    """Each field's mean over ``comforts`` (zeros for none): :func:`planning_comfort` of plans
+    whose comforts are already known."""
+    if len(comforts) == 0:
         return Comfort(0.0, 0.0, 0.0, 0.0)
-    cs = [trajectory_comfort(p, dt) for p in plans]
-    return Comfort(*(float(np.mean([getattr(c, f) for c in cs])) for f in ("lat", "jerk", "max_lat", "max_jerk")))
+    return Comfort(*(float(np.mean([getattr(c, f) for c in comforts])) for f in ("lat", "jerk", "max_lat", "max_jerk")))
 
 
 def driving_comfort(executed: np.ndarray, dt: float = DT) -> Comfort:

@@ -162,13 +162,19 @@ def average_precision(frames: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]
             frame; apply :func:`roi_mask` first to restrict to the region of interest.
         iou_threshold: BEV IoU needed for a true positive (paper: 0.5).
     """
+    frames = list(frames)
+    return average_precision_of_matches([match_frame(gt, det, sc, iou_threshold) for gt, det, sc in frames],
+                                        [sc for _, _, sc in frames])
+
+
+def average_precision_of_matches(matches: Sequence[FrameMatch], scores: Sequence[np.ndarray]) -> DetectionMetrics:
+    """:func:`average_precision` from each frame's :func:`match_frame` (made once and shared
+    with the attack objective, ``sim.evaluate.EpisodeEvaluation.matches``) and its scores (D,)."""
     all_scores, all_tp = [], []
     n_gt = 0
-    for gt, det, sc in frames:
-        det = as_boxes(det).reshape(-1, 5)
-        m = match_frame(gt, det, sc, iou_threshold)
+    for m, sc in zip(matches, scores):
         n_gt += m.n_gt
-        all_scores.append(_scores(sc, len(det)))
+        all_scores.append(_scores(sc, len(m.tp)))
         all_tp.append(m.tp)
     scores = np.concatenate(all_scores) if all_scores else np.zeros(0)
     tp = np.concatenate(all_tp) if all_tp else np.zeros(0, bool)
@@ -332,10 +338,11 @@ def false_positive_term(gt_boxes: np.ndarray, det_boxes: np.ndarray, det_scores:
 
 
 def detection_frame_terms(gt_boxes: np.ndarray, det_boxes: np.ndarray, det_scores: np.ndarray,
-                iou_threshold: float = IOU_THRESHOLD) -> tuple[float, float]:
+                iou_threshold: float = IOU_THRESHOLD, match: FrameMatch | None = None) -> tuple[float, float]:
     """(:func:`true_positive_term`, :func:`false_positive_term`) of one frame from one matching
-    (the attack objective needs both for every frame of every query)."""
-    m = match_frame(gt_boxes, det_boxes, det_scores, iou_threshold)
+    (the attack objective needs both for every frame of every query); ``match``: that frame's
+    :func:`match_frame` at ``iou_threshold`` when the caller has it."""
+    m = match_frame(gt_boxes, det_boxes, det_scores, iou_threshold) if match is None else match
     s = _scores(det_scores, len(m.tp))
     fp = ~m.tp
     return float(np.sum(m.iou[m.tp] * s[m.tp])), float(np.sum((1.0 - m.iou[fp]) * s[fp]))

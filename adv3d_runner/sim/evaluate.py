@@ -32,13 +32,14 @@ the objective (``attack.objective.episode_objective``) share.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from ..geometry.boxes import box_corners, iou_pairwise
-from ..metrics.comfort import collisions, driving_comfort, planning_comfort
-from ..metrics.detection import ROI_AHEAD, evaluate_frames, roi_mask
+from ..metrics.comfort import Comfort, collisions, driving_comfort, mean_comfort, planning_comfort, trajectory_comfort
+from ..metrics.detection import (IOU_THRESHOLD, ROI_AHEAD, FrameMatch, average_precision_of_matches, match_frame,
+                                 roi_mask)
 from ..metrics.occupancy import FLOW_LAG, OccupancySample, flow_grounded, occupancy_metrics, occupancy_targets
 from ..metrics.prediction import match_to_ground_truth, prediction_metrics
 from ..scene import lanes as lanegeo
@@ -169,24 +170,36 @@ class EpisodeEvaluation:
         min_gt_points: the visibility rule ``detection`` was made with.
         occupancy: per frame the occupancy query slices (:func:`occupancy_frames`), or None for
             a stack without occupancy output.
+        plan_comfort: each plan's :func:`~adv3d_runner.metrics.comfort.trajectory_comfort`
+            (the planning comfort and the objective's c_plan), or None: computed by each.
     """
 
     detection: list[tuple[np.ndarray, np.ndarray, np.ndarray]]
     prediction: list[tuple[np.ndarray, np.ndarray, np.ndarray]]
     min_gt_points: int = MIN_GT_POINTS
     occupancy: list[list[OccupancySample]] | None = None
+    plan_comfort: list[Comfort] | None = None
+    _matches: dict = field(default_factory=dict, repr=False)
 
     @property
     def instance_free(self) -> bool:
         """The stack gave occupancy instead of detections and predictions (Autonomy-B)."""
         return self.occupancy is not None
 
+    def matches(self, iou_threshold: float = IOU_THRESHOLD) -> list[FrameMatch]:
+        """Each ``detection`` frame's :func:`~adv3d_runner.metrics.detection.match_frame` at
+        ``iou_threshold``, made once (the metrics' AP and the objective's terms share them)."""
+        key = float(iou_threshold)
+        if key not in self._matches:
+            self._matches[key] = [match_frame(g, d, s, key) for g, d, s in self.detection]
+        return self._matches[key]
+
 
 def episode_evaluation(result, min_gt_points: int = MIN_GT_POINTS) -> EpisodeEvaluation:
-    """Detection frames, prediction pairs and occupancy slices of an episode, once (see
-    :class:`EpisodeEvaluation`)."""
+    """Detection frames, prediction pairs, occupancy slices and each plan's comfort of an
+    episode, once (see :class:`EpisodeEvaluation`)."""
     return EpisodeEvaluation(detection_frames(result, min_gt_points), prediction_pairs(result), int(min_gt_points),
-                             occupancy_frames(result))
+                             occupancy_frames(result), [trajectory_comfort(p, result.dt) for p in result.plans()])
 
 
 def off_road_distance(lanes, boxes: np.ndarray) -> np.ndarray:
@@ -219,8 +232,7 @@ def episode_metrics(result, lanes, min_gt_points: int = MIN_GT_POINTS,
         evaluation = episode_evaluation(result, min_gt_points)
     elif evaluation.min_gt_points != int(min_gt_points):
         raise ValueError(f"evaluation made with min_gt_points={evaluation.min_gt_points}, not {min_gt_points}")
-    frames = evaluation.detection
-    det = evaluate_frames([g for g, _, _ in frames], [d for _, d, _ in frames], [s for _, _, s in frames])
+    det = average_precision_of_matches(evaluation.matches(IOU_THRESHOLD), [s for _, _, s in evaluation.detection])
     pairs = evaluation.prediction
     K = max((p.shape[1] for p, _, _ in pairs if len(p)), default=3)
     H = max((p.shape[2] for p, _, _ in pairs if len(p)), default=60)
@@ -242,7 +254,9 @@ def episode_metrics(result, lanes, min_gt_points: int = MIN_GT_POINTS,
             rel = b[:2] - e[:2]
             at_fault |= bool(rel[0] * np.cos(e[4]) + rel[1] * np.sin(e[4]) > 0)
     off = off_road_distance(lanes, ego_boxes)
-    pc, dc = planning_comfort(result.plans(), result.dt), driving_comfort(result.ego_poses, result.dt)
+    pc = (planning_comfort(result.plans(), result.dt) if evaluation.plan_comfort is None
+          else mean_comfort(evaluation.plan_comfort))
+    dc = driving_comfort(result.ego_poses, result.dt)
     path = float(np.sum(np.hypot(*np.diff(result.ego_poses[:, :2], axis=0).T))) if T > 1 else 0.0
     timing = {k: _f(1000 * np.mean(v)) for k, v in result.timings.items()}
     total = float(np.sum(result.timings.get("total", np.zeros(1))))
