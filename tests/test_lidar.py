@@ -401,3 +401,39 @@ def test_count_labels_is_bincount_of_the_actor_labels():
             want = np.bincount(label[label >= 0], minlength=n)
             assert got.dtype == want.dtype and got.tobytes() == want.tobytes()
     assert count_labels(np.array([0, 7, -1], np.int32), 5).size == 0
+
+
+def test_compiled_actor_windows_equal_the_python_windows():
+    """kernels.actor_windows (all actors in one call) gives each actor the rays, the nearest
+    distance and the out-of-range verdict of ``_Cast.segments`` (the per-actor Python windows),
+    for random poses all around the sensor, across the azimuth seam, inside footprints and
+    beyond range."""
+    from adv3d_runner.sensors import kernels
+    from adv3d_runner.sensors.lidar import _ANGLE_PAD, _RADIUS_PAD, _Cast, _segments_to_indices
+    from adv3d_runner.sensors.raycast import MeshBVH
+
+    rng = np.random.default_rng(3)
+    sensor = MountedLidar(get_model("hdl64", columns=900), (0.4, 0.1, 1.73, 0.0, 0.0, 0.0))
+    assert sensor._common_azimuth is not None and sensor._rows_sorted
+    bvhs = [MeshBVH(*box_mesh(*size)) for size in ((4.5, 1.9, 1.5), (12.0, 2.5, 3.4), (0.6, 0.6, 0.4))]
+    for trial in range(40):
+        ego = np.array([EGO[0], EGO[1], rng.uniform(-np.pi, np.pi)])
+        cast = _Cast(sensor, ego, None)
+        K = 60
+        dist = np.concatenate([rng.uniform(0.0, 3.0, 5), rng.uniform(3.0, 130.0, K - 5)])
+        ang = rng.uniform(-np.pi, np.pi, K)
+        poses = np.stack([cast.sx + dist * np.cos(ang), cast.sy + dist * np.sin(ang), rng.uniform(-4, 4, K)], 1)
+        which = rng.integers(0, len(bvhs), K)
+        keep, counts, cuts, rays = kernels.actor_windows(
+            cast.sx, cast.sy, cast.ego_yaw, cast.reach, poses, np.stack([bvhs[w].window_shape for w in which]),
+            sensor._z, sensor.row_elevation_min, sensor.row_elevation_max, sensor._common_azimuth, sensor.columns,
+            sensor.n_rays, _RADIUS_PAD, _ANGLE_PAD)
+        offsets = np.concatenate([[0], np.cumsum(counts)])
+        for k in range(K):
+            seg = cast.segments(bvhs[which[k]], poses[k])
+            assert keep[k] == (seg is not False)
+            if seg is False:
+                continue
+            expect = np.arange(sensor.n_rays) if seg is None else _segments_to_indices(seg[0], seg[1])
+            np.testing.assert_array_equal(rays[offsets[k]:offsets[k + 1]], expect)
+            assert cuts[k] == np.float32((0.0 if seg is None else seg[2]) * (1.0 - 1e-5))

@@ -6,7 +6,7 @@ half of what the pipeline spends outside Embree. Every kernel computes each valu
 same float32 operations in the same order as the numpy code it replaced (no FMA: numba's
 default contracts nothing), so the frames are the same bytes (``tests/test_lidar_pinned.py``).
 Transcendentals stay in numpy (numpy's float32 ``exp`` is a SIMD version that need not round
-like the C library's); the random draws stay with the caller's ``numpy.random.Generator``.
+like the C library's); the random draws are :mod:`.draws`'s (numpy's values).
 
 Conventions: float32 arrays and scalars (``np.float32``; a Python float would make numba
 compute in float64), flat ray indices int64, C-contiguous arrays, so each kernel sees one
@@ -14,11 +14,13 @@ signature and compiles once (cached in ``__pycache__``).
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from ..jit import kernel
 
-__all__ = ["turn_rays", "actor_rays", "take_hits", "valid_returns", "make_returns", "count_labels"]
+__all__ = ["turn_rays", "actor_rays", "take_hits", "valid_returns", "make_returns", "count_labels", "actor_windows"]
 
 #: Label of the rays blocked by the ego's own body (no return).
 EGO = -3
@@ -228,3 +230,118 @@ def count_labels(label, n):
                 return np.zeros(0, np.int64)
             out[v] += 1
     return out
+
+
+@kernel
+def actor_windows(sx, sy, ego_yaw, reach, poses, shapes, sensor_z, row_min, row_max, azimuth, columns, n_rays,
+                  radius_pad, angle_pad):
+    """The rays that can reach each actor, for a sensor whose rows share one column azimuth
+    table and whose row elevations are sorted: :meth:`MountedLidar.footprint_segments` (through
+    ``_Cast.segments``) for every actor in one call, their rays concatenated.
+
+    Args:
+        sx, sy: the sensor in the map frame (m); ego_yaw: rad; reach: max range + pad (m).
+        poses: (K, 3) float64 actor poses (x, y, yaw) in the map frame.
+        shapes: (K, 7) float64 per actor mesh: xy radius, footprint (xmin, xmax, ymin, ymax)
+            and z range (zmin, zmax), metres, in the actor's frame.
+        sensor_z: mount height (m); row_min, row_max: (B,) float64 min / max elevation per row
+            (both ascending); azimuth: (C,) float64 ascending column azimuths in [-pi, pi);
+            columns: C; n_rays: B x C.
+        radius_pad, angle_pad: the windows' padding (m, rad).
+    Returns:
+        keep: (K,) bool, False where the actor is out of range (no cast at all); counts (K,)
+        int64 rays per actor; cuts (K,) float32 the footprint's nearest horizontal distance
+        less 1e-5 of it (0 where every ray is taken); rays (sum counts,) int64 flat ray
+        indices, actor after actor, each window interval by interval and row by row (the
+        order of the Python windows).
+
+    The same float64 steps as the Python methods; the transcendentals are the C library's
+    (CPython's ``math.hypot`` is its own and may differ in the last bit), which the windows'
+    padding (``radius_pad``, ``angle_pad``: far above rounding) makes irrelevant: a ray at a
+    window's edge cannot hit the mesh, so the hits are the same (``tests/test_lidar.py``)."""
+    K = poses.shape[0]
+    pi = np.pi
+    two_pi = 2.0 * np.pi
+    keep = np.zeros(K, np.bool_)
+    counts = np.zeros(K, np.int64)
+    cuts = np.zeros(K, np.float32)
+    # per actor: row range [r0, r1) and up to two column intervals [c0, c1), or every ray
+    win = np.zeros((K, 6), np.int64)
+    n_int = np.zeros(K, np.int64)  # 0: empty, 1 or 2 intervals, 3: every ray
+    for k in range(K):
+        relx, rely = sx - poses[k, 0], sy - poses[k, 1]
+        if math.hypot(relx, rely) - shapes[k, 0] > reach:
+            continue
+        keep[k] = True
+        yaw = poses[k, 2]
+        ca, sa = math.cos(yaw), math.sin(yaw)
+        px = ca * relx + sa * rely  # the sensor in the actor's frame
+        py = -sa * relx + ca * rely
+        x0, x1, y0, y1 = shapes[k, 1], shapes[k, 2], shapes[k, 3], shapes[k, 4]
+        pad_x = 1e-6 * max(abs(x0), abs(x1)) + radius_pad
+        pad_y = 1e-6 * max(abs(y0), abs(y1)) + radius_pad
+        x0, x1, y0, y1 = x0 - pad_x, x1 + pad_x, y0 - pad_y, y1 + pad_y
+        if x0 <= px <= x1 and y0 <= py <= y1:  # the sensor above the footprint: every ray
+            n_int[k] = 3
+            counts[k] = n_rays
+            continue
+        rho0 = math.hypot(max(max(x0 - px, 0.0), px - x1), max(max(y0 - py, 0.0), py - y1))
+        cuts[k] = np.float32(rho0 * (1.0 - 1e-5))
+        rho1 = 0.0
+        mid = math.atan2(0.5 * (y0 + y1) - py, 0.5 * (x0 + x1) - px)
+        lo, hi = np.inf, -np.inf
+        for c in range(4):
+            cx = x0 if c == 0 or c == 3 else x1
+            cy = y0 if c < 2 else y1
+            rho1 = max(rho1, math.hypot(cx - px, cy - py))
+            d = (math.atan2(cy - py, cx - px) - mid + pi) % two_pi - pi
+            lo, hi = min(lo, d), max(hi, d)
+        center = mid + 0.5 * (lo + hi) + yaw - ego_yaw
+        half = 0.5 * (hi - lo) + angle_pad
+        z_lo = shapes[k, 5] - sensor_z - radius_pad
+        z_hi = shapes[k, 6] - sensor_z + radius_pad
+        e_lo = math.atan(z_lo / (rho0 if z_lo < 0 else rho1)) - angle_pad
+        e_hi = math.atan(z_hi / (rho0 if z_hi > 0 else rho1)) + angle_pad
+        r0 = np.searchsorted(row_max, e_lo, side="left")
+        r1 = np.searchsorted(row_min, e_hi, side="right")
+        if r1 <= r0:
+            continue
+        # the azimuth interval(s), split at the seam
+        if half >= pi:
+            a0, a1, b0, b1, m = -pi, pi, 0.0, 0.0, 1
+        else:
+            center = (center + pi) % two_pi - pi
+            a0, a1 = center - half, center + half
+            if a0 < -pi:
+                a0, a1, b0, b1, m = a0 + two_pi, pi, -pi, a1, 2
+            elif a1 >= pi:
+                a0, a1, b0, b1, m = a0, pi, -pi, a1 - two_pi, 2
+            else:
+                b0, b1, m = 0.0, 0.0, 1
+        c0 = np.searchsorted(azimuth, a0, side="left")
+        c1 = np.searchsorted(azimuth, a1, side="right")
+        win[k, 0], win[k, 1], win[k, 2], win[k, 3] = r0, r1, c0, c1
+        per_row = c1 - c0
+        if m == 2:
+            d0 = np.searchsorted(azimuth, b0, side="left")
+            d1 = np.searchsorted(azimuth, b1, side="right")
+            win[k, 4], win[k, 5] = d0, d1
+            per_row += d1 - d0
+        n_int[k] = m
+        counts[k] = (r1 - r0) * per_row
+    rays = np.empty(counts.sum(), np.int64)
+    j = 0
+    for k in range(K):
+        if n_int[k] == 3:
+            for i in range(n_rays):
+                rays[j] = i
+                j += 1
+            continue
+        for q in range(n_int[k]):
+            c0, c1 = win[k, 2 + 2 * q], win[k, 3 + 2 * q]
+            for r in range(win[k, 0], win[k, 1]):
+                base = r * columns
+                for i in range(base + c0, base + c1):
+                    rays[j] = i
+                    j += 1
+    return keep, counts, cuts, rays

@@ -113,6 +113,7 @@ class MountedLidar:
         self._azimuth_list = None if self._common_azimuth is None else self._common_azimuth.tolist()
         emin, emax = self.row_elevation[:, 0], self.row_elevation[:, 1]
         self._rows_sorted = bool((np.diff(emin) >= 0).all() and (np.diff(emax) >= 0).all())
+        self.row_elevation_min, self.row_elevation_max = np.ascontiguousarray(emin), np.ascontiguousarray(emax)
         self._row_min_list, self._row_max_list = emin.tolist(), emax.tolist()
         # Smallest dz of the rays from each flat index on (non-decreasing): the rays from index
         # k on stay above height z_s + max_range * dz_suffix_min[k] within range, so they cannot
@@ -573,30 +574,40 @@ class _Cast:
         """
         if hits.cos_actor is not None:
             raise ValueError("actors() takes the hits of background() alone")
-        n = self.sensor.n_rays
-        cast_rows, bvhs, starts, ends, cuts = [], [], [], [], []
-        for i in rows:
-            i = int(i)
-            bvh = world.actor_bvh(i)
-            if bvh is None:
-                continue
-            seg = self.segments(bvh, poses[i]) if cull else None
-            if seg is False:
-                continue
-            if seg is None:
-                seg = (np.zeros(1, np.intp), np.full(1, n, np.intp), 0.0)
-            cast_rows.append(i)
-            bvhs.append(bvh)
-            starts.append(seg[0])
-            ends.append(seg[1])
-            # Embree's float32 distances are within 1e-5 relative of the true ones, far below
-            # the 1 mm the footprint is padded by.
-            cuts.append(np.float32(seg[2] * (1.0 - 1e-5)))
-        if not cast_rows:
-            return
-        counts = [int((e - s).sum()) for s, e in zip(starts, ends)]
-        rays = _segments_to_indices(np.concatenate(starts), np.concatenate(ends)).astype(np.int64, copy=False)
-        if rays.size == 0:
+        sensor = self.sensor
+        n = sensor.n_rays
+        with_mesh = [(int(i), world.actor_bvh(int(i))) for i in rows]
+        with_mesh = [(i, bvh) for i, bvh in with_mesh if bvh is not None]
+        if cull and with_mesh and sensor._azimuth_list is not None and sensor._rows_sorted:
+            # every actor's window in one compiled call (the Python path below, per actor)
+            rows_k = [i for i, _ in with_mesh]
+            keep, counts_k, cuts_k, rays = kernels.actor_windows(
+                self.sx, self.sy, self.ego_yaw, self.reach, np.ascontiguousarray(poses[rows_k], dtype=np.float64),
+                np.stack([bvh.window_shape for _, bvh in with_mesh]), sensor._z, sensor.row_elevation_min,
+                sensor.row_elevation_max, sensor._common_azimuth, sensor.columns, n, _RADIUS_PAD, _ANGLE_PAD)
+            cast_rows = [i for (i, _), k in zip(with_mesh, keep) if k]
+            bvhs = [bvh for (_, bvh), k in zip(with_mesh, keep) if k]
+            counts, cuts = counts_k[keep].tolist(), cuts_k[keep]
+        else:
+            cast_rows, bvhs, starts, ends, cuts = [], [], [], [], []
+            for i, bvh in with_mesh:
+                seg = self.segments(bvh, poses[i]) if cull else None
+                if seg is False:
+                    continue
+                if seg is None:
+                    seg = (np.zeros(1, np.intp), np.full(1, n, np.intp), 0.0)
+                cast_rows.append(i)
+                bvhs.append(bvh)
+                starts.append(seg[0])
+                ends.append(seg[1])
+                # Embree's float32 distances are within 1e-5 relative of the true ones, far below
+                # the 1 mm the footprint is padded by.
+                cuts.append(np.float32(seg[2] * (1.0 - 1e-5)))
+            if not cast_rows:
+                return
+            counts = [int((e - s).sum()) for s, e in zip(starts, ends)]
+            rays = _segments_to_indices(np.concatenate(starts), np.concatenate(ends)).astype(np.int64, copy=False)
+        if not cast_rows or rays.size == 0:
             return
         origins, cp, sp = self.frames(poses[cast_rows])
         buffers = _buffers(max(counts))

@@ -81,6 +81,8 @@ class MeshBVH:
         certificates: the :class:`~adv3d_runner.sensors.coherent.FaceCertificates` of a
             coherent mesh (None: plain casts); ``coherent_rays`` and ``recast_rays`` count its
             rays and those cast again.
+        window_shape: (7,) float64 xy_radius, footprint and z_range in one row (what a
+            LiDAR's compiled actor windows read, ``kernels.actor_windows``).
         face_normals: (F + 1, 3) float32 unit face normals (zero for degenerate faces), with
             a trailing zero row so that a miss (face -1) indexes safely.
     """
@@ -103,6 +105,8 @@ class MeshBVH:
             self.xy_radius = self.radius = 0.0
             self.z_range = (0.0, 0.0)
             self.footprint = (0.0, 0.0, 0.0, 0.0)
+        # what a LiDAR's actor windows need of the mesh, in one row (kernels.actor_windows)
+        self.window_shape = np.array([self.xy_radius, *self.footprint, *self.z_range], np.float64)
         normals = np.zeros((self.n_faces + 1, 3), np.float32)
         if self.n_faces:
             v64 = v.astype(np.float64)
