@@ -257,6 +257,35 @@ def _planner_overrides(args) -> dict:
     return overrides
 
 
+def _train_scenes_of(folder: Path, split) -> list[Path]:
+    """The scene files of ``folder``, each checked to come from a train recording of ``split``
+    (its CommonRoad file named in ``source.details.file``), so that tuning on a folder of
+    extra scenes cannot look at the benchmark part.
+
+    Raises:
+        ConfigError: no scene files, or a scene that is not from a train recording.
+    """
+    from adv3d_runner.scene import load_scene
+    from adv3d_runner.scene.real import recording_of
+
+    paths = sorted(p for p in folder.glob("*.json*") if p.is_file() and p.name not in ("split.json",))
+    if not paths:
+        raise ConfigError(f"--real-dir {folder}: no scene files (*.json, *.json.gz)")
+    train = set(split.recordings["train"])
+    for p in paths:
+        try:
+            details = load_scene(p).source.details or {}
+        except Exception as exc:  # noqa: BLE001 - any unreadable file: say which
+            raise ConfigError(f"{p}: not a scene file ({exc})") from None
+        try:
+            rec = recording_of(Path(str(details.get("file", ""))).stem)
+        except ValueError:
+            raise ConfigError(f"{p}: source.details.file does not name a CommonRoad US-101 recording") from None
+        if rec not in train:
+            raise ConfigError(f"{p}: recording {rec} is not in the train part {sorted(train)} (split.json)")
+    return paths
+
+
 def _run_set(paths: list[Path], autonomy: str, seconds: float, workers: int, real: bool,
              overrides: dict | None = None, seed: int = 0) -> list[dict]:
     jobs = [(str(p), autonomy, seconds, real, overrides or {}, seed) for p in paths]
@@ -296,6 +325,9 @@ def main() -> int:
     ap.add_argument("--generated-dir", default=None, metavar="DIR",
                     help="run the generated set on the scene files of DIR instead of scenes/highway (e.g. scenes of "
                          "the generator's train split, for tuning without looking at the benchmark)")
+    ap.add_argument("--real-dir", default=None, metavar="DIR",
+                    help="run the real set on the scene files of DIR (e.g. scenes/real-train-egos: other cars of "
+                         "the train recordings as the ego); every scene must come from a train recording")
     ap.add_argument("--name", default=None,
                     help="result file stem under bench/results/ (default sanity[.<autonomy>][.quick])")
     ap.add_argument("--reference", default="bench/results/sanity.json",
@@ -308,6 +340,8 @@ def main() -> int:
         ap.error("--tag takes letters, digits, '-' and '_'")
     if args.name and not all(c.isalnum() or c in "-_." for c in args.name):
         ap.error("--name is a file stem under bench/results/: letters, digits, '-', '_' and '.'")
+    if args.real_dir and not args.name:
+        ap.error("--real-dir needs --name (the kept real-benchmark result would be overwritten)")
     if args.generated_dir and not args.name:
         ap.error("--generated-dir needs --name (the kept generated-benchmark result would be overwritten)")
     sets = [s.strip() for s in args.sets.split(",") if s.strip()]
@@ -342,13 +376,20 @@ def main() -> int:
         out["generated"] = (summarise(rows, real=False), rows)
     if "real" in sets:
         split = load_real_split()
-        paths = split.paths(args.real_part)
-        print(f"real {args.real_part} part: {len(paths)} scenes (recordings {list(split.recordings[args.real_part])})")
+        if args.real_dir:
+            try:
+                paths = _train_scenes_of(Path(args.real_dir), split)
+            except ConfigError as exc:
+                ap.error(str(exc))
+            print(f"real scenes of {args.real_dir}: {len(paths)} (train recordings only)")
+        else:
+            paths = split.paths(args.real_part)
+            print(f"real {args.real_part} part: {len(paths)} scenes (recordings {list(split.recordings[args.real_part])})")
         rows = _run_set(paths, args.autonomy, args.seconds, args.workers, real=True, overrides=overrides,
                         seed=args.seed)
         summary = summarise(rows, real=True)
-        summary["part"] = args.real_part
-        summary["recordings"] = list(split.recordings[args.real_part])
+        summary["part"] = args.real_dir or args.real_part
+        summary["recordings"] = list(split.recordings["train" if args.real_dir else args.real_part])
         summary["targets"] = check_targets(summary)
         if args.autonomy == "B":  # no trajectories: the prediction targets do not apply
             summary["targets"] = {k: v for k, v in summary["targets"].items() if not k.startswith("min_ade")}

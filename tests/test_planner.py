@@ -1113,3 +1113,74 @@ def test_smooth_resolution_shrinks_with_speed_below_the_reference():
         n = first[ref] / step
         assert abs(n - round(n)) < 1e-9, (ref, first[ref])
     assert first[0.0] != first[10.0]
+
+
+# ------------------------------------------ the cautious least-jerk candidate (issue 17, round 10)
+
+def _leader_with_a_rare_stop(stop_prob):
+    """A car 25 m (bumper to bumper) ahead of an ego at 14 m/s in lane 0, at 14 m/s itself; two
+    predicted modes: it keeps its speed (1 - ``stop_prob``) or brakes at 4 m/s^2 to a standstill
+    (``stop_prob``, below ``min_mode_prob`` here, so no IDM or ``smooth`` leader follows it)."""
+    t = np.arange(1, 61) * DT
+    x0 = 25.0 + 4.6
+    keep = np.stack([x0 + 14.0 * t, 0 * t], -1)
+    stop = np.stack([x0 + np.where(t < 3.5, 14.0 * t - 2.0 * t * t, 24.5), 0 * t], -1)
+    now = np.array([[x0, 0.0, 4.6, 1.9, 0.0]])
+    tracks = Tracks(np.array([7]), now, np.array([[14.0, 0.0]]), np.ones(1), np.zeros(1, np.int64),
+                    np.zeros((1, 1, 3)), np.ones((1, 1), bool))
+    preds = Predictions(np.array([7]), np.stack([keep, stop])[None], np.array([[1 - stop_prob, stop_prob]]))
+    return tracks, preds, EgoState([0.0, 0.0, 0.0], 14.0, length=4.6, width=1.9)
+
+
+def test_cautious_smooth_candidate_keeps_clear_of_every_mode_the_collision_term_counts():
+    """A 5 % mode of the leader that stops is no IDM or ``smooth`` leader (``min_mode_prob``
+    0.1), but the collision term counts it: the ``smooth`` profile behind the expected leader
+    runs into it, the ``smooth-c`` profile behind every mode does not, and brakes less than the
+    IDM's step-by-step reaction would in its first second. The other candidates are unchanged."""
+    lanes = straight_lanes(1)
+    tracks, preds, ego = _leader_with_a_rare_stop(0.05)
+    plan, cands, table = planner_on(lanes, _with(smooth_cautious=True)).plan_with_scores(ego, preds, tracks)
+    _, plain, _ = planner_on(lanes).plan_with_scores(ego, preds, tracks)
+    labels = cands.spec.labels
+    assert labels.count("lane0/d+0.0/smooth-c") == 1 and len(labels) == len(plain.spec.labels) + 1
+    smooth, cautious = labels.index("lane0/d+0.0/smooth"), labels.index("lane0/d+0.0/smooth-c")
+    assert table.raw["collision"][smooth] > 0.0
+    assert table.raw["collision"][cautious] == 0.0
+    others = [i for i in range(len(labels)) if i != cautious]
+    assert np.array_equal(cands.accel[others], plain.accel)
+    # it slows down behind the stopping mode (rear bumper at 25 + 24.5 m), the other does not
+    assert cands.speeds[cautious, -1] < 0.5 * cands.speeds[smooth, -1]
+    assert cands.s[cautious, -1] - cands.s[cautious, 0] < 25.0 + 24.5
+    # without the stopping mode the cautious candidate is the smooth one, bit for bit
+    tracks, preds, ego = _leader_with_a_rare_stop(0.0)
+    cands = planner_on(lanes, _with(smooth_cautious=True)).plan_with_scores(ego, preds, tracks)[1]
+    assert np.array_equal(cands.accel[cautious], cands.accel[smooth])
+
+
+def test_cautious_smooth_candidate_is_chosen_where_the_smooth_one_collides():
+    """Closed loop behind a car whose predictor gives a 5 % stopping mode every frame while it
+    keeps 14 m/s: without ``smooth_cautious`` only the IDM candidates are collision-free behind
+    that mode, and the ego brakes for it for 1.6 s; with it the least-jerk profile behind
+    every mode wins most frames and the ego gives up less speed for a stop that never comes
+    (a trade, not a free lunch: its acceleration changes sign twice in these 3 s)."""
+    lanes = straight_lanes(1)
+    speeds, chosen = {}, {}
+    for flag in (False, True):
+        planner = planner_on(lanes, _with(smooth_cautious=flag))
+        ego, v, labels = EgoState([0.0, 0.0, 0.0], 14.0, length=4.6, width=1.9), [], []
+        for k in range(30):
+            tracks, preds, _ = _leader_with_a_rare_stop(0.05)
+            lead_x = 14.0 * k * DT  # the leader in fact keeps its 14 m/s
+            tracks = Tracks(tracks.ids, tracks.boxes + np.r_[lead_x, 0, 0, 0, 0], tracks.velocities, tracks.scores,
+                            tracks.misses, tracks.history, tracks.history_valid)
+            preds = Predictions(preds.track_ids, preds.trajectories + np.r_[lead_x, 0.0], preds.probabilities)
+            plan = planner.plan(ego, preds, tracks)
+            labels.append(plan.label)
+            ego = EgoState(plan.trajectory[1], plan.speed[1], acceleration=float(plan.acceleration[0]),
+                           length=4.6, width=1.9, time=(k + 1) * DT)
+            v.append(ego.speed)
+        speeds[flag], chosen[flag] = np.array(v), labels
+    assert not any(lab.endswith("smooth-c") for lab in chosen[False])
+    assert sum(lab.endswith("smooth-c") for lab in chosen[True]) >= 15
+    assert speeds[True].min() > speeds[False].min() + 0.5
+    assert speeds[True][-1] > speeds[False][-1] + 1.0

@@ -44,6 +44,30 @@ def test_every_real_scene_is_valid_and_in_exactly_one_part():
             egos[key] = path.name
 
 
+def test_extra_train_egos_are_other_cars_of_the_train_recordings_only():
+    """``scenes/real-train-egos`` (``bench/real_train_egos.py``): tuning scenes with other recorded
+    cars as the ego; none from a benchmark recording, none repeating an ego of ``scenes/real``."""
+    split = load_real_split()
+    taken = set()
+    for part in PARTS:
+        for path in split.paths(part):
+            d = load_scene(path).source.details
+            taken.add((recording_of(d["benchmark_id"]), d["ego_obstacle_id"]))
+    folder = REPO / "scenes" / "real-train-egos"
+    files = sorted(folder.glob("*.json.gz"))
+    index = (folder / "index.csv").read_text().splitlines()[1:]
+    assert len(files) == len(index) == 33
+    seen = set()
+    for path in files:
+        scene = load_scene(path)
+        d = scene.source.details
+        key = (recording_of(d["benchmark_id"]), d["ego_obstacle_id"])
+        assert key[0] in split.recordings["train"] and key not in taken and key not in seen
+        seen.add(key)
+        assert scene.id == f"commonroad-{path.name[:-len('.json.gz')]}" and scene.frames == 100
+        assert "BSD-3-Clause" in scene.source.licence
+
+
 def _write_split(tmp_path, doc):
     for part in PARTS:
         for name in doc["scenes"][part]:

@@ -26,6 +26,10 @@ def _sanity(*args: str) -> subprocess.CompletedProcess:
     (["--sets", "generated", "--generated-dir", "scenes/highway"], "--generated-dir needs --name"),
     (["--sets", "generated", "--generated-dir", "no-such-dir", "--name", "x"], "no scene files"),
     (["--seed", "3"], "--seed other than 0 needs --name or --tag"),
+    (["--real-dir", "scenes/real-train-egos"], "--real-dir needs --name"),
+    # tuning on extra scenes cannot reach the benchmark recordings
+    (["--real-dir", "scenes/real", "--name", "x"], "recording 4 is not in the train part"),
+    (["--real-dir", "scenes/highway", "--name", "x"], "does not name a CommonRoad US-101 recording"),
 ])
 def test_bad_planner_options_stop_before_any_episode(args, message):
     before = sorted((ROOT / "bench" / "results").iterdir())

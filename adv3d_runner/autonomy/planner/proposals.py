@@ -113,6 +113,13 @@ class ProposalConfig:
             proportion to the speed (to a tenth of it at most): in crawls the profile asks for
             a few hundredths of m/s^2 and a whole step made it lose to the IDM's candidates.
             0: a fixed resolution.
+            ``smooth_cautious``: add one more least-jerk candidate (``smooth-c``) whose leader
+            is, at every step, the nearest in-lane mode of any actor, of any probability (the
+            modes the collision term counts, not only those of ``min_mode_prob``): when one
+            mode of the leader stops, even a 1 % one at the end of the horizon, the collision
+            term rejects the ``smooth`` profile behind the expected leader, and only the IDM's
+            step-by-step braking was left (crawls of the train recordings, issue 17's tenth
+            round). False: none.
         firm_braking: m/s^2; braking demanded harder than this builds up at ``max_brake_jerk``
             and is released as fast (``firm_release``); None: ``idm_decel``.
         stop_jerk: m/s^3; > 0: every candidate but the emergency stop brakes at most
@@ -164,6 +171,7 @@ class ProposalConfig:
     smooth_resolution: float = 0.1
     stop_jerk: float = 4.0
     smooth_resolution_speed: float = 0.0
+    smooth_cautious: bool = False
 
     def __post_init__(self):
         if self.leader_modes not in ("expected", "quantile", "nearest"):
@@ -190,6 +198,7 @@ class CandidateSpec:
     labels: list[str] = field(default_factory=list)
     accel_target: np.ndarray | None = None  # m/s^2 held instead of the IDM; NaN: the IDM
     smooth: np.ndarray | None = None  # bool: the least-jerk speed plan instead of the IDM (smooth_follow)
+    cautious: np.ndarray | None = None  # bool: a smooth candidate behind the nearest modes (smooth_cautious)
 
     def __len__(self) -> int:
         return len(self.corridor)
@@ -266,7 +275,7 @@ def make_specs(corridors: CorridorSet, lane_names: list[str], speed_limit: float
                current_index: int = 0) -> CandidateSpec:
     """Cartesian product of corridors x offsets x target speeds (+ the fixed-acceleration
     candidates of ``accel_targets`` and the emergency stop)."""
-    cor, off, tgt, emg, labels, acc, smooth = [], [], [], [], [], [], []
+    cor, off, tgt, emg, labels, acc, smooth, cautious = [], [], [], [], [], [], [], []
     for ci in range(len(corridors)):
         offsets = config.lateral_offsets if ci == current_index else config.neighbour_offsets
         for o in offsets:
@@ -285,7 +294,10 @@ def make_specs(corridors: CorridorSet, lane_names: list[str], speed_limit: float
         acc.append(float(a))
         labels.append(f"{lane_names[current_index]}/d+0.0/a{a:+.1f}")
     if config.smooth_follow:
-        for suffix in ["smooth"] + [f"smooth-s{w:g}" for w in config.smooth_speed_weights]:
+        suffixes = ["smooth"] + [f"smooth-s{w:g}" for w in config.smooth_speed_weights]
+        for suffix in suffixes + (["smooth-c"] if config.smooth_cautious else []):
+            if suffix == "smooth-c":
+                cautious.append(len(cor))
             cor.append(current_index)
             off.append(0.0)
             tgt.append(speed_limit)
@@ -300,12 +312,15 @@ def make_specs(corridors: CorridorSet, lane_names: list[str], speed_limit: float
         emg.append(True)
         acc.append(np.nan)
         labels.append(f"{lane_names[current_index]}/emergency-stop")
-    flags = None
+    flags = cflags = None
     if smooth:
         flags = np.zeros(len(cor), bool)
         flags[smooth] = True
+    if cautious:
+        cflags = np.zeros(len(cor), bool)
+        cflags[cautious] = True
     return CandidateSpec(np.array(cor, np.int64), np.array(off, float), np.array(tgt, float), np.array(emg, bool), labels,
-                         np.array(acc, float), flags)
+                         np.array(acc, float), flags, cflags)
 
 
 def _hermite(u: np.ndarray, d0: np.ndarray, slope0: np.ndarray, d1: np.ndarray) -> np.ndarray:
@@ -347,7 +362,8 @@ def rollout_candidates(ego_pose: np.ndarray, ego_speed: float, ego_accel: float,
     slope0 = np.where(np.abs(span) > 1e-6, np.clip(slope0 / np.where(span == 0, 1, span), -1.0, 3.0) * span, 0.0)
 
     # actors' Frenet coordinates on each corridor, for the IDM leader
-    leader_s, leader_ok, leader_len = _actor_frenet(actors, corridors, spec, target_d, ego_width, config, T)
+    modes: dict | None = {} if spec.cautious is not None and spec.cautious.any() else None
+    leader_s, leader_ok, leader_len = _actor_frenet(actors, corridors, spec, target_d, ego_width, config, T, modes)
     has_leaders = leader_s.shape[1] > 0
 
     # time-major leader arrays (one contiguous (B, M) slab per step), step-independent parts first
@@ -395,7 +411,10 @@ def rollout_candidates(ego_pose: np.ndarray, ego_speed: float, ego_accel: float,
         config.idm_decel if config.firm_braking is None else config.firm_braking,
         config.smooth_resolution, config.stop_jerk, config.smooth_resolution_speed,
     ], dtype=np.float64)
-    plan = _smooth_plans(spec, s0, v0, float(ego_accel), lead_s_ok, lead_back, config, params, headway, T)
+    smooth_s_ok, smooth_back = lead_s_ok, lead_back
+    if modes:  # the smooth-c candidates' leaders: every in-lane actor-mode on their own
+        smooth_s_ok, smooth_back = _with_mode_leaders(spec, target_d, lead_s_ok, lead_back, modes, ego_length)
+    plan = _smooth_plans(spec, s0, v0, float(ego_accel), smooth_s_ok, smooth_back, config, params, headway, T)
     states, acc, kap, s_hist, d_hist, gap_hist, lead_v0 = _rollout_kernel(
         pose, v0, float(ego_accel), np.ascontiguousarray(s0, dtype=np.float64), 1.0 / trans_len, hermite,
         v_des, np.ascontiguousarray(spec.emergency, dtype=np.bool_),
@@ -404,6 +423,26 @@ def rollout_candidates(ego_pose: np.ndarray, ego_speed: float, ego_accel: float,
         lead_s_ok, np.ascontiguousarray(lead_back), np.ascontiguousarray(lead_v), np.ascontiguousarray(lead_a),
         limits, T)
     return Candidates(spec, states, acc, kap, s_hist, d_hist, gap_hist, dt, lead_v0)
+
+
+def _with_mode_leaders(spec: CandidateSpec, target_d: np.ndarray, lead_s_ok: np.ndarray, lead_back: np.ndarray,
+                       modes: dict, ego_length: float) -> tuple[np.ndarray, np.ndarray]:
+    """``lead_s_ok``, ``lead_back`` (T + 1, B, L) with the M actor-modes of ``modes``
+    (:func:`_actor_frenet`'s ``modes_out``) appended as leaders of the ``smooth-c`` candidates
+    only: (T + 1, B, L + M), and their expected leaders set to -inf (never lead) for them."""
+    s_all, d_all, half_l, band, prob_ok = (modes[k] for k in ("s", "d", "half_l", "band", "prob_ok"))
+    T1, B, L = lead_s_ok.shape
+    M = s_all.shape[1]
+    add_s = np.full((T1, B, M), -np.inf)
+    add_back = np.full((T1, B, M), -np.inf)
+    for b in np.flatnonzero(spec.cautious):
+        ci = int(spec.corridor[b])
+        ok = (np.abs(d_all[ci] - target_d[b]) < band[:, None]) & prob_ok[:, None]  # (M, T + 1)
+        add_s[:, b] = np.where(ok, s_all[ci], -np.inf).T
+        add_back[:, b] = (s_all[ci] - (half_l + 0.5 * ego_length)[:, None]).T
+    lead_s_ok = lead_s_ok.copy()
+    lead_s_ok[:, spec.cautious] = -np.inf
+    return np.concatenate([lead_s_ok, add_s], axis=2), np.concatenate([lead_back, add_back], axis=2)
 
 
 def _smooth_plans(spec: CandidateSpec, s0: np.ndarray, v0: float, a0: float, lead_s_ok: np.ndarray,
@@ -419,6 +458,8 @@ def _smooth_plans(spec: CandidateSpec, s0: np.ndarray, v0: float, a0: float, lea
     base = SmoothWeights(*config.smooth_weights)
     # the smooth candidates in make_specs' order: the base weights, then one per extra speed weight
     variants = [base] + [replace(base, speed=float(w)) for w in config.smooth_speed_weights]
+    if config.smooth_cautious:
+        variants.append(base)  # smooth-c: the same weights behind the nearest modes
     max_accel = min(config.idm_accel, params.max_accel)
     max_decel = min(config.max_decel, params.max_decel)
     for b, weights in zip(np.flatnonzero(spec.smooth), variants):
@@ -627,10 +668,17 @@ def _path_point(s, d, px, py, ux, uy, base_p, base_u, spacing, last_i):
 
 
 def _actor_frenet(actors: ActorForecast, corridors: CorridorSet, spec: CandidateSpec, target_d: np.ndarray,
-                  ego_width: float, config: ProposalConfig, T: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                  ego_width: float, config: ProposalConfig, T: int, modes_out: dict | None = None
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per candidate, the actor-mode arc lengths on its corridor over time and whether the
     actor-mode is inside the candidate's lane strip (around its target offset), for the M of the
     N * K actor-modes that are ever inside some candidate's strip.
+
+    ``modes_out``: a dict that receives every actor-mode's projection before the leaders are
+    chosen: ``s``, ``d`` (C, N * K, T + 1) on each corridor (d = inf where not projected),
+    ``half_l``, ``band`` (N * K,) and ``prob_ok`` (N * K,) bool, and ``M`` = N * K. With it,
+    modes below ``min_mode_prob`` are projected too (``prob_ok`` marks every mode of p > 0);
+    the leaders returned are the same.
 
     Returns:
         s (B, M, T + 1), ok (B, M, T + 1) bool, half_length (M,).
@@ -642,8 +690,9 @@ def _actor_frenet(actors: ActorForecast, corridors: CorridorSet, spec: Candidate
     K = actors.poses.shape[1]
     xy = actors.poses[:, :, :T + 1, :2]
     M = N * K
-    # modes too unlikely to lead are not projected at all
-    relevant = (actors.probs >= config.min_mode_prob).reshape(M)
+    # modes too unlikely to lead are not projected at all (the smooth-c candidates' leaders are
+    # every mode the collision term sees: all of them with ``modes_out``)
+    relevant = ((actors.probs > 0.0) if modes_out is not None else (actors.probs >= config.min_mode_prob)).reshape(M)
     s_all = np.zeros((len(corridors), M, T + 1))
     d_all = np.full((len(corridors), M, T + 1), np.inf)
     xy = xy.reshape(M, T + 1, 2)[relevant]
@@ -681,6 +730,9 @@ def _actor_frenet(actors: ActorForecast, corridors: CorridorSet, spec: Candidate
     gc = groups[:, 0].astype(np.int64)
     # an actor is in the candidate's lane when its footprint overlaps the ego's lateral band
     band_m = 0.5 * ego_width + half_w + config.lane_margin  # (M,)
+    if modes_out is not None:
+        modes_out.update(s=s_all, d=d_all, half_l=half_l, band=band_m, M=M,
+                         prob_ok=actors.probs.reshape(M) > 0.0)
     if config.leader_modes == "expected" and K > 1:
         # the lane test and _expected_leaders (quantile None) in one compiled pass
         s_g, ok_g = _lane_expected_leaders(d_all, s_all, gc, np.ascontiguousarray(groups[:, 1]), band_m, prob_ok,
