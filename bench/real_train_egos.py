@@ -26,7 +26,9 @@ sys.path.insert(0, str(ROOT))
 
 from adv3d_runner.scene import Scene, load_scene, save_scene  # noqa: E402
 from adv3d_runner.scene.commonroad import import_commonroad  # noqa: E402
+from adv3d_runner.scene.actors import assign_assets  # noqa: E402
 from adv3d_runner.scene.real import load_real_split, recording_of  # noqa: E402
+from adv3d_runner.shapes.library import load_library  # noqa: E402
 
 SHARED = ROOT.parent / "shared" / "scenarios" / "commonroad-us101"
 
@@ -68,6 +70,7 @@ def main() -> int:
         size = f.stat().st_size
         if r not in files or size > files[r][0]:
             files[r] = (size, f)
+    library = load_library()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     index = []
@@ -79,6 +82,9 @@ def main() -> int:
             name = f"{f.stem}.ego{oid}"
             # one id per scene (the variants' id names the recording only); rows are keyed by it
             scene = Scene.from_dict(dict(scene.to_dict(), id=f"commonroad-{name}"), f)
+            # record the meshes (the library's draw by scene and actor id, what loading the
+            # scene would draw anyway), so the library's growth does not change these scenes
+            scene = assign_assets(scene, library)
             save_scene(scene, out / f"{name}.json.gz")
             v = scene.ego_speeds()[: int(round(5.0 / scene.dt))]
             index.append({"scene": name, "recording": r, "file": f.name, "ego_obstacle_id": oid,

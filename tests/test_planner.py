@@ -408,8 +408,8 @@ def test_plan_with_scores_reports_every_term():
     assert set(plan.cost_terms) == set(TERMS) - set(OCCUPANCY_TERMS) - set(OPTIONAL_TERMS) == set(table.raw)
     with_own = planner_on(straight_lanes(3), SamplingPlanner(PlannerConfig(own_lane_floor=5.0)))
     assert set(with_own.plan(EgoState([0.0, LANE_W, 0.0], 10.0)).cost_terms) == set(TERMS) - set(OCCUPANCY_TERMS)
-    # offsets x speeds per lane + the least-jerk candidate + the emergency stop
-    assert len(cands) == len(table.total) == 3 * 5 + 2 * 5 + 1 + 1
+    # offsets x speeds per lane + the two least-jerk candidates (smooth, smooth-c) + the emergency stop
+    assert len(cands) == len(table.total) == 3 * 5 + 2 * 5 + 2 + 1
     assert plan.cost == pytest.approx(sum(plan.cost_terms.values()))
     assert plan.trajectory.shape == (51, 3) and plan.acceleration.shape == (50,)
     assert np.allclose(plan.trajectory[0], [0.0, LANE_W, 0.0]) and plan.speed[0] == 10.0
@@ -1024,7 +1024,7 @@ def test_smooth_follow_adds_one_current_lane_candidate_that_plans_its_own_speed(
 
     lanes = straight_lanes(2)
     (tracks, preds), ego = _leader_at(16.0, 14.0)
-    cfg = PlannerConfig(proposals=replace(PlannerConfig().proposals, smooth_follow=True))
+    cfg = PlannerConfig(proposals=replace(PlannerConfig().proposals, smooth_follow=True, smooth_cautious=False))
     cands = planner_on(lanes, SamplingPlanner(cfg)).plan_with_scores(ego, preds, tracks)[1]
     default = planner_on(lanes, idm_only()).plan_with_scores(ego, preds, tracks)[1]
     labels = cands.spec.labels
@@ -1140,7 +1140,7 @@ def test_cautious_smooth_candidate_keeps_clear_of_every_mode_the_collision_term_
     lanes = straight_lanes(1)
     tracks, preds, ego = _leader_with_a_rare_stop(0.05)
     plan, cands, table = planner_on(lanes, _with(smooth_cautious=True)).plan_with_scores(ego, preds, tracks)
-    _, plain, _ = planner_on(lanes).plan_with_scores(ego, preds, tracks)
+    _, plain, _ = planner_on(lanes, _with(smooth_cautious=False)).plan_with_scores(ego, preds, tracks)
     labels = cands.spec.labels
     assert labels.count("lane0/d+0.0/smooth-c") == 1 and len(labels) == len(plain.spec.labels) + 1
     smooth, cautious = labels.index("lane0/d+0.0/smooth"), labels.index("lane0/d+0.0/smooth-c")
@@ -1184,3 +1184,21 @@ def test_cautious_smooth_candidate_is_chosen_where_the_smooth_one_collides():
     assert sum(lab.endswith("smooth-c") for lab in chosen[True]) >= 15
     assert speeds[True].min() > speeds[False].min() + 0.5
     assert speeds[True][-1] > speeds[False][-1] + 1.0
+
+
+def test_cautious_smooth_candidate_changes_nothing_behind_single_mode_actors():
+    """With one mode per actor (Autonomy-B's lane leaders, oracle forecasts) ``smooth-c`` has the
+    ``smooth`` candidate's leader: its profile is reused, never solved again, and the tie goes to
+    ``smooth`` (first in order), so every plan is the one without the option."""
+    lanes = straight_lanes(2)
+    (tracks, preds), ego = _leader_at(12.0, 11.0)
+    plans = {}
+    for flag in (False, True):
+        plan, cands, _ = planner_on(lanes, _with(smooth_cautious=flag)).plan_with_scores(ego, preds, tracks)
+        plans[flag] = plan
+        if flag:
+            labels = cands.spec.labels
+            i, j = labels.index("lane0/d+0.0/smooth"), labels.index("lane0/d+0.0/smooth-c")
+            assert np.array_equal(cands.accel[i], cands.accel[j])
+    assert plans[True].label == plans[False].label
+    assert np.array_equal(plans[True].trajectory, plans[False].trajectory)

@@ -119,7 +119,7 @@ class ProposalConfig:
             mode of the leader stops, even a 1 % one at the end of the horizon, the collision
             term rejects the ``smooth`` profile behind the expected leader, and only the IDM's
             step-by-step braking was left (crawls of the train recordings, issue 17's tenth
-            round). False: none.
+            round; the default since). False: none (the planner before that round).
         firm_braking: m/s^2; braking demanded harder than this builds up at ``max_brake_jerk``
             and is released as fast (``firm_release``); None: ``idm_decel``.
         stop_jerk: m/s^3; > 0: every candidate but the emergency stop brakes at most
@@ -171,7 +171,7 @@ class ProposalConfig:
     smooth_resolution: float = 0.1
     stop_jerk: float = 4.0
     smooth_resolution_speed: float = 0.0
-    smooth_cautious: bool = False
+    smooth_cautious: bool = True
 
     def __post_init__(self):
         if self.leader_modes not in ("expected", "quantile", "nearest"):
@@ -462,10 +462,18 @@ def _smooth_plans(spec: CandidateSpec, s0: np.ndarray, v0: float, a0: float, lea
         variants.append(base)  # smooth-c: the same weights behind the nearest modes
     max_accel = min(config.idm_accel, params.max_accel)
     max_decel = min(config.max_decel, params.max_decel)
+    done: list[tuple[np.ndarray, SmoothWeights, float, int]] = []
     for b, weights in zip(np.flatnonzero(spec.smooth), variants):
         ahead = (lead_s_ok[0, b] > s0[b]) & (lead_back[0, b] > s0[b])  # (M,) leads from the start
         back = np.where(np.isfinite(lead_s_ok[1:, b][:, ahead]), lead_back[1:, b][:, ahead], np.inf)
         bound = (back.min(axis=1) if back.shape[1] else np.full(T, np.inf)) - s0[b]
+        # smooth-c behind single-mode actors (Autonomy-B's lane leaders, oracle forecasts) has
+        # the smooth candidate's bound: the same problem, solved once
+        same = [k for bd, w, v, k in done if w == weights and v == spec.target_speed[b] and np.array_equal(bd, bound)]
+        if same:
+            plan[b] = plan[same[0]]
+            continue
+        done.append((bound, weights, float(spec.target_speed[b]), int(b)))
         plan[b] = smooth_profile(v0, a0, float(spec.target_speed[b]), bound, config.idm_gap,
                                  config.idm_headway if headway is None else headway, config.dt,
                                  max_accel, max_decel, config.smooth_recover, config.idm_decel, weights)
