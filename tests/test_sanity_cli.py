@@ -6,6 +6,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -44,3 +45,17 @@ def test_planner_config_file_is_read(tmp_path):
     bad.write_text(json.dumps({"weights": {"no_such_term": 1.0}}))
     done = _sanity("--planner-config", str(bad), "--tag", "t")
     assert done.returncode == 2 and f"{bad}: weights.no_such_term is not a field" in done.stderr
+
+
+def test_real_seed_files_behind_the_jerk_figure_hold_twenty_seeds_of_the_same_scenes():
+    """``bench/real_seeds_plot.py`` reads the kept real-benchmark files of two planners; each set
+    holds 20 seeds of the same 7 scenes, and the seeds differ (the sensor's noise is seeded)."""
+    sys.path.insert(0, str(ROOT / "bench"))
+    try:
+        import real_seeds_plot
+    finally:
+        sys.path.remove(str(ROOT / "bench"))
+    for files in real_seeds_plot.PLANNERS.values():
+        names, jerk = real_seeds_plot.drive_jerks(files)
+        assert jerk.shape == (20, 7) and len(names) == 7 and np.isfinite(jerk).all()
+        assert len({tuple(row) for row in jerk.round(6)}) > 10
