@@ -46,7 +46,7 @@ def _full_cover_cars(path: Path) -> list[int]:
     t_end = max(t[-1] for t, _ in states.values())
     return sorted(oid for oid, (t, o) in states.items()
                   if t[0] <= 1e-6 and t[-1] >= t_end - 1e-6
-                  and cr._obstacle_class(o) in ("sedan", "hatchback", "suv"))
+                  and cr._obstacle_class(o) in cr.EGO_CLASSES)
 
 
 def main() -> int:

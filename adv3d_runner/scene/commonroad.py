@@ -47,6 +47,11 @@ CLASS_HEIGHT = {"hatchback": 1.48, "sedan": 1.45, "suv": 1.75, "truck": 3.8, "bu
                 "motorcycle": 1.3, "other": 1.6, "van": 2.0}
 
 
+#: vehicle classes that can be the ego (a car; the rule of ``_pick_ego`` and of
+#: ``bench/real_train_egos.py``, which takes every such car of a recording in turn)
+EGO_CLASSES = ("sedan", "hatchback", "suv")
+
+
 def _car_class(length: float, width: float) -> str:
     if length >= 5.3 or width >= 2.05:
         return "suv"
@@ -438,7 +443,7 @@ def _pick_ego(tracks: dict[int, np.ndarray], info: dict, lanes: list[Lane], ego_
     keys = []
     for oid in sorted(tracks):
         arr = tracks[oid]
-        if not np.isfinite(arr[:, 0]).all() or _obstacle_class(info[oid]) not in ("sedan", "hatchback", "suv"):
+        if not np.isfinite(arr[:, 0]).all() or _obstacle_class(info[oid]) not in EGO_CLASSES:
             continue
         x, y, yaw, _ = arr[0]
         lane = by_id[_nearest_lane(lanes, np.array([x, y]), yaw)]

@@ -411,10 +411,8 @@ def rollout_candidates(ego_pose: np.ndarray, ego_speed: float, ego_accel: float,
         config.idm_decel if config.firm_braking is None else config.firm_braking,
         config.smooth_resolution, config.stop_jerk, config.smooth_resolution_speed,
     ], dtype=np.float64)
-    smooth_s_ok, smooth_back = lead_s_ok, lead_back
-    if modes:  # the smooth-c candidates' leaders: every in-lane actor-mode on their own
-        smooth_s_ok, smooth_back = _with_mode_leaders(spec, target_d, lead_s_ok, lead_back, modes, ego_length)
-    plan = _smooth_plans(spec, s0, v0, float(ego_accel), smooth_s_ok, smooth_back, config, params, headway, T)
+    cautious = _mode_bounds(spec, target_d, s0, modes, ego_length, T) if modes else {}
+    plan = _smooth_plans(spec, s0, v0, float(ego_accel), lead_s_ok, lead_back, config, params, headway, T, cautious)
     states, acc, kap, s_hist, d_hist, gap_hist, lead_v0 = _rollout_kernel(
         pose, v0, float(ego_accel), np.ascontiguousarray(s0, dtype=np.float64), 1.0 / trans_len, hermite,
         v_des, np.ascontiguousarray(spec.emergency, dtype=np.bool_),
@@ -425,29 +423,28 @@ def rollout_candidates(ego_pose: np.ndarray, ego_speed: float, ego_accel: float,
     return Candidates(spec, states, acc, kap, s_hist, d_hist, gap_hist, dt, lead_v0)
 
 
-def _with_mode_leaders(spec: CandidateSpec, target_d: np.ndarray, lead_s_ok: np.ndarray, lead_back: np.ndarray,
-                       modes: dict, ego_length: float) -> tuple[np.ndarray, np.ndarray]:
-    """``lead_s_ok``, ``lead_back`` (T + 1, B, L) with the M actor-modes of ``modes``
-    (:func:`_actor_frenet`'s ``modes_out``) appended as leaders of the ``smooth-c`` candidates
-    only: (T + 1, B, L + M), and their expected leaders set to -inf (never lead) for them."""
+def _mode_bounds(spec: CandidateSpec, target_d: np.ndarray, s0: np.ndarray, modes: dict, ego_length: float,
+                 T: int) -> dict[int, np.ndarray]:
+    """Per ``smooth-c`` candidate b, the (T,) arc length (m, from the ego's s0) it may reach at
+    each step: the rear of the nearest actor-mode that is in its lane strip then and was in it and
+    ahead at step 0, over every mode of ``modes`` (:func:`_actor_frenet`'s ``modes_out``, any
+    probability); +inf where none leads. The same rule as :func:`_smooth_plans` applies to the
+    expected leaders."""
     s_all, d_all, half_l, band, prob_ok = (modes[k] for k in ("s", "d", "half_l", "band", "prob_ok"))
-    T1, B, L = lead_s_ok.shape
-    M = s_all.shape[1]
-    add_s = np.full((T1, B, M), -np.inf)
-    add_back = np.full((T1, B, M), -np.inf)
+    out = {}
     for b in np.flatnonzero(spec.cautious):
         ci = int(spec.corridor[b])
         ok = (np.abs(d_all[ci] - target_d[b]) < band[:, None]) & prob_ok[:, None]  # (M, T + 1)
-        add_s[:, b] = np.where(ok, s_all[ci], -np.inf).T
-        add_back[:, b] = (s_all[ci] - (half_l + 0.5 * ego_length)[:, None]).T
-    lead_s_ok = lead_s_ok.copy()
-    lead_s_ok[:, spec.cautious] = -np.inf
-    return np.concatenate([lead_s_ok, add_s], axis=2), np.concatenate([lead_back, add_back], axis=2)
+        back = s_all[ci] - (half_l + 0.5 * ego_length)[:, None]
+        ahead = ok[:, 0] & (s_all[ci][:, 0] > s0[b]) & (back[:, 0] > s0[b])  # leads from the start
+        lead = np.where(ok[ahead, 1:], back[ahead, 1:], np.inf)
+        out[int(b)] = (lead.min(axis=0) if len(lead) else np.full(T, np.inf)) - s0[b]
+    return out
 
 
 def _smooth_plans(spec: CandidateSpec, s0: np.ndarray, v0: float, a0: float, lead_s_ok: np.ndarray,
                   lead_back: np.ndarray, config: ProposalConfig, params: BicycleParams, headway: float | None,
-                  T: int) -> np.ndarray:
+                  T: int, cautious: dict[int, np.ndarray] | None = None) -> np.ndarray:
     """(B, T) accelerations of the ``smooth_follow`` candidates (NaN rows for the others), or a
     (0, T) array when there are none. Their leaders: the actor-modes in the lane strip and ahead
     of the ego at step 0, the nearest one at each step (lead_s_ok, lead_back: (T + 1, B, M), see
@@ -464,9 +461,12 @@ def _smooth_plans(spec: CandidateSpec, s0: np.ndarray, v0: float, a0: float, lea
     max_decel = min(config.max_decel, params.max_decel)
     done: list[tuple[np.ndarray, SmoothWeights, float, int]] = []
     for b, weights in zip(np.flatnonzero(spec.smooth), variants):
-        ahead = (lead_s_ok[0, b] > s0[b]) & (lead_back[0, b] > s0[b])  # (M,) leads from the start
-        back = np.where(np.isfinite(lead_s_ok[1:, b][:, ahead]), lead_back[1:, b][:, ahead], np.inf)
-        bound = (back.min(axis=1) if back.shape[1] else np.full(T, np.inf)) - s0[b]
+        if cautious and int(b) in cautious:  # smooth-c: behind every mode (:func:`_mode_bounds`)
+            bound = cautious[int(b)]
+        else:
+            ahead = (lead_s_ok[0, b] > s0[b]) & (lead_back[0, b] > s0[b])  # (M,) leads from the start
+            back = np.where(np.isfinite(lead_s_ok[1:, b][:, ahead]), lead_back[1:, b][:, ahead], np.inf)
+            bound = (back.min(axis=1) if back.shape[1] else np.full(T, np.inf)) - s0[b]
         # smooth-c behind single-mode actors (Autonomy-B's lane leaders, oracle forecasts) has
         # the smooth candidate's bound: the same problem, solved once
         same = [k for bd, w, v, k in done if w == weights and v == spec.target_speed[b] and np.array_equal(bd, bound)]
@@ -684,7 +684,7 @@ def _actor_frenet(actors: ActorForecast, corridors: CorridorSet, spec: Candidate
 
     ``modes_out``: a dict that receives every actor-mode's projection before the leaders are
     chosen: ``s``, ``d`` (C, N * K, T + 1) on each corridor (d = inf where not projected),
-    ``half_l``, ``band`` (N * K,) and ``prob_ok`` (N * K,) bool, and ``M`` = N * K. With it,
+    ``half_l``, ``band`` (N * K,) and ``prob_ok`` (N * K,) bool. With it,
     modes below ``min_mode_prob`` are projected too (``prob_ok`` marks every mode of p > 0);
     the leaders returned are the same.
 
@@ -739,8 +739,7 @@ def _actor_frenet(actors: ActorForecast, corridors: CorridorSet, spec: Candidate
     # an actor is in the candidate's lane when its footprint overlaps the ego's lateral band
     band_m = 0.5 * ego_width + half_w + config.lane_margin  # (M,)
     if modes_out is not None:
-        modes_out.update(s=s_all, d=d_all, half_l=half_l, band=band_m, M=M,
-                         prob_ok=actors.probs.reshape(M) > 0.0)
+        modes_out.update(s=s_all, d=d_all, half_l=half_l, band=band_m, prob_ok=actors.probs.reshape(M) > 0.0)
     if config.leader_modes == "expected" and K > 1:
         # the lane test and _expected_leaders (quantile None) in one compiled pass
         s_g, ok_g = _lane_expected_leaders(d_all, s_all, gc, np.ascontiguousarray(groups[:, 1]), band_m, prob_ok,
