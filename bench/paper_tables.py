@@ -256,6 +256,7 @@ class Compute:
                       "note": f"{os.cpu_count()}-core machine, maybe shared with other jobs; "
                               "CPU s = this process + its finished workers",
                       "environment": {k: info.get(k) for k in ("python", "platform", *ENV_PACKAGES)},
+                      "numerics": info["numerics"],
                       "cpu_s": 0.0, "wall_s": 0.0, "queries": 0, "heldout_evaluations": 0}
         self.doc["invocations"].append(self.entry)
         self.t_cpu, self.t_wall = cpu_now(), time.perf_counter()
@@ -760,7 +761,11 @@ def build_table(spec: TableSpec, autonomy: str, results_root: Path, budget: int 
                                                            if e.get("cores")}),
                                           "environments": sorted({json.dumps(e["environment"], sort_keys=True)
                                                                   for e in compute.get("invocations", [])
-                                                                  if e.get("environment")})},
+                                                                  if e.get("environment")}),
+                                          # the numerical configurations (docs/reliability.md)
+                                          "numerics": sorted({json.dumps(e["numerics"], sort_keys=True)
+                                                              for e in compute.get("invocations", [])
+                                                              if e.get("numerics")})},
            "paper": paper, "note": spec.note, **table}
     if outside:
         units = len(spec.settings) * len(proto.get("scenes", []))
@@ -843,15 +848,20 @@ def table_figure(spec: TableSpec, doc: dict, scene_part: dict, path: Path) -> No
 
 def _machine_words(compute: dict) -> str:
     """Where a table ran, for its header: the shared 2-core machine, or another one with the
-    numerical libraries it used (their floating point differs from this machine's)."""
+    numerical libraries it used (their floating point differs from this machine's), and the
+    numerical configurations recorded (docs/reliability.md)."""
+    from adv3d_runner.machine import describe_numerics
+
+    configs = "; ".join(describe_numerics(json.loads(n)) for n in compute.get("numerics", []))
+    configs = f"; numerics: {configs}" if configs else ""
     cores = compute.get("cores") or [2]
     if cores == [2]:
-        return "shared 2-core machine"
+        return "shared 2-core machine" + configs
     envs = [json.loads(e) for e in compute.get("environments", [])]
     # environments that differ only in what is not listed (the kernel's build) are named once
     libs = "; ".join(dict.fromkeys(", ".join(f"{k} {e.get(k)}" for k in ("python", *ENV_PACKAGES) if e.get(k))
                                    for e in envs))
-    return f"{'/'.join(map(str, cores))}-core machine, one process per core" + (f"; {libs}" if libs else "")
+    return f"{'/'.join(map(str, cores))}-core machine, one process per core" + (f"; {libs}" if libs else "") + configs
 
 
 def growth_words(done_seeds: list[int], seeds: list[int], growing: dict | None) -> str:

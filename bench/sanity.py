@@ -405,6 +405,7 @@ def main() -> int:
     else:
         _print(out, args)
     from adv3d_runner.fileio import write_json
+    from adv3d_runner.machine import numerical_config
 
     tag = "" if args.autonomy == "A" else f".{args.autonomy}"
     if args.name:
@@ -418,7 +419,8 @@ def main() -> int:
     doc = {"format": "adv3d-bench", "version": 1, "topic": "sanity",
            "command": " ".join(["bench/sanity.py"] + sys.argv[1:]),
            "machine": {"python": platform.python_version(), "platform": platform.platform(),
-                       "processor": platform.processor(), "cpus": os.cpu_count()},
+                       "processor": platform.processor(), "cpus": os.cpu_count(),
+                       "numerics": numerical_config()},
            "planner_limits": args.planner_limits if args.planner_limits == "shipped" else LIMITS_BEFORE_ISSUE17,
            "planner_overrides": overrides,
            "paper_original_autonomy_a": PAPER_ORIGINAL_A, "paper_original_autonomy_b": PAPER_ORIGINAL_B,

@@ -1,9 +1,16 @@
 """The LiDAR pipeline's output pinned to its bytes: sha256 of every frame array for a fixed
-scene, rig and seed. Written before the pipeline was sped up (issue 16, point 2), so any
-optimisation that changes one bit of a point, a label or a random draw fails here.
+scene, rig and seed. Written before the pipeline was sped up, so any optimisation that changes
+one bit of a point, a label or a random draw fails here.
 
-The digests were taken on this project's machine (x86-64, numpy 1.26.4, embreex 4.4.0.post1);
-numpy's float32 exp and Embree's traversal may round differently on other CPUs or versions.
+Bits hold only on one numerical configuration (docs/reliability.md): Embree's ISA and numpy's
+SIMD target change the last bits of hits and of float32 transcendental functions. So the
+digests are kept per configuration (``tests/data/lidar_pinned.json``, keyed by
+``machine.numerical_config()["key"]``) and checked only where the running configuration has
+them. Record them for the configuration you run (after checking, e.g. with the fast suite,
+that the pipeline is right there)::
+
+    python -m tests.test_lidar_pinned --record
+    adv3d numerics --emulate avx2 -- python -m tests.test_lidar_pinned --record
 """
 from __future__ import annotations
 
@@ -22,17 +29,7 @@ ROOT = Path(__file__).resolve().parent.parent
 SCENE = ROOT / "scenes" / "highway" / "highway-benchmark-000000.json.gz"
 FIELDS = ("points", "ring", "label", "sensor", "distance")
 
-PINNED = {
-    "hdl64-frame0": "548cbef5cd2909c8c9796548dcfb8cc04b2b87a0f4ed947b901695fb46867531",  # 106836 points
-    "hdl64-frame20": "7ff80ff2412743e86fa871d425af119c3fd47b3cb09028ac7bed76b975babfb0",  # 106805 points
-    "hdl64-frame40": "5500265e226a8b2f9b544905a89a62291e6994dcd4441106e1f81130a68769f1",  # 106883 points
-    "hdl64-frame10-ideal": "4d13459fd09ff2f7dbd76383c1c5608f6f726b475d9b529622cfcf18c28286af",  # 109068 points
-    "two-sensors-ego-body-frame5": "0ea04388534c757ca213b80ff22f185c8d12d44900f8860702cba818fe4a710a",  # 54055 points
-    "cache-miss-frame0": "b40cff88f77b9ef75d00e6aaec844baf43f757e0f841864b4b23b6a38ee025d9",  # 107022 points
-    "cache-miss-frame30": "89e483996a6b74ed0e757f0062813fb686b5b2aa531b8881d114a8e871743ec4",  # 106976 points
-    "cache-hit-frame0": "b40cff88f77b9ef75d00e6aaec844baf43f757e0f841864b4b23b6a38ee025d9",  # 107022 points
-    "cache-hit-frame30": "89e483996a6b74ed0e757f0062813fb686b5b2aa531b8881d114a8e871743ec4",  # 106976 points
-}
+PINNED_FILE = ROOT / "tests" / "data" / "lidar_pinned.json"
 
 
 def digest(frame) -> str:
@@ -103,22 +100,61 @@ def _ego_body():
     return v, f
 
 
-def _pinned_platform() -> bool:
-    """The digests hold where they were taken: x86-64 with the pinned numpy and embreex."""
-    import platform
-    from importlib.metadata import version
+def _recorded() -> dict:
+    import json
 
-    return (platform.machine() in ("x86_64", "AMD64") and np.__version__ == "1.26.4"
-            and version("embreex") == "4.4.0.post1")
+    return json.loads(PINNED_FILE.read_text()) if PINNED_FILE.exists() else {}
 
 
-@pytest.mark.skipif(not _pinned_platform(), reason="digests taken on x86-64, numpy 1.26.4, embreex 4.4.0.post1")
+def _this_configuration() -> dict:
+    from adv3d_runner.machine import numerical_config
+
+    return numerical_config()
+
+
+FRAMES = ("hdl64-frame0", "hdl64-frame20", "hdl64-frame40", "hdl64-frame10-ideal", "two-sensors-ego-body-frame5",
+          "cache-miss-frame0", "cache-miss-frame30", "cache-hit-frame0", "cache-hit-frame30")
+
+
 def test_frames_are_pinned_to_their_bytes():
+    config = _this_configuration()
+    recorded = _recorded().get(config["key"])
+    if recorded is None:
+        pytest.skip(f"no digests recorded for numerical configuration {config['key']} "
+                    f"(python -m tests.test_lidar_pinned --record)")
     frames = pinned_frames()
     assert set(frames["two-sensors-ego-body-frame5"].sensor) == {0, 1}
-    assert {name: digest(frame) for name, frame in frames.items()} == PINNED
+    assert {name: digest(frame) for name, frame in frames.items()} == recorded["digests"]
 
 
-if __name__ == "__main__":  # prints the table to paste above
-    for name, frame in pinned_frames().items():
-        print(f'    "{name}": "{digest(frame)}",  # {len(frame)} points')
+def test_configurations_on_record_are_whole_and_differ_where_embree_does():
+    """Each entry holds its configuration and every frame; configurations whose Embree ISAs
+    differ give other frames (else the ISA would not need to be part of the key)."""
+    kept = _recorded()
+    assert kept, f"{PINNED_FILE} is missing"
+    first_frame = {}
+    for key, entry in kept.items():
+        assert entry["config"]["key"] == key and set(entry["digests"]) == set(FRAMES)
+        first_frame.setdefault(entry["config"]["embree_isa"], set()).add(entry["digests"]["hdl64-frame0"])
+    if len(first_frame) > 1:
+        assert len(set.union(*first_frame.values())) > 1
+
+
+def _record() -> None:
+    import json
+
+    config = _this_configuration()
+    frames = pinned_frames()
+    kept = _recorded()
+    kept[config["key"]] = {"config": config, "digests": {name: digest(frame) for name, frame in frames.items()}}
+    PINNED_FILE.write_text(json.dumps(kept, indent=1, sort_keys=True) + "\n")
+    print(f"recorded {len(frames)} digests for {config['key']}: {config['cpu']}, Embree {config['embree_isa']}, "
+          f"numpy {config['numpy_simd']}")
+
+
+if __name__ == "__main__":
+    import sys
+
+    if sys.argv[1:] != ["--record"]:
+        sys.exit("usage: python -m tests.test_lidar_pinned --record")
+    _record()

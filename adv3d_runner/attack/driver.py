@@ -362,8 +362,9 @@ def _ordered_summary(summary: dict, config: AttackConfig, ids: list[str]) -> dic
 def versions(evaluator: QueryEvaluator) -> dict:
     """What the run's results depend on beyond its config (stored in run.json, not compared)."""
     from .. import __version__
+    from ..machine import numerical_config
 
-    return {"adv3d": __version__, "numpy": np.__version__, **evaluator.versions()}
+    return {"adv3d": __version__, "numpy": np.__version__, **evaluator.versions(), "numerics": numerical_config()}
 
 
 def stored_batch(out: str | Path) -> int | None:

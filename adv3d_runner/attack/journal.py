@@ -218,8 +218,15 @@ class Journal:
             if changed:  # allowed (a resume checks each reused query), but the user should know
                 from ..progress import status
 
-                status(f"note: {self.root} was started with other versions ({'; '.join(changed)}): its "
-                       f"journalled queries keep their results; use another --out to evaluate them anew")
+                numerics = [c for c in changed if c.startswith("numerics.")]
+                if any(c.startswith("numerics.key:") for c in numerics):
+                    status(f"note: {self.root} was started on another numerical configuration "
+                           f"({'; '.join(numerics)}): new queries may differ from what that machine would give "
+                           f"in the last bits, and searches may then diverge (docs/reliability.md)")
+                others = [c for c in changed if not c.startswith("numerics.")]
+                if others:
+                    status(f"note: {self.root} was started with other versions ({'; '.join(others)}): its "
+                           f"journalled queries keep their results; use another --out to evaluate them anew")
             self.load(repair=True)
             return old
         write_json(run_path, doc, indent=1)

@@ -43,6 +43,7 @@ import numpy as np
 from numba import types
 
 from ..jit import kernel
+from ..machine import embree_isa
 
 __all__ = ["PACKET", "TriangleScene", "available", "library_path", "unavailable_reason"]
 
@@ -174,7 +175,10 @@ class _Embree:
         self.commit_scene = fn("rtcCommitScene", [vp], None)
         self.release_scene = fn("rtcReleaseScene", [vp], None)
         getattr(lib, "rtcIntersect8"), getattr(lib, "rtcIntersect16")  # the kernel's symbols, before it links
-        self.device = self.new_device(None)
+        # The ISA is pinned (machine.embree_isa): Embree's kernels, and so the last bits of
+        # some hits, depend on it (docs/reliability.md).
+        self.isa = embree_isa()
+        self.device = self.new_device(f"isa={self.isa}".encode() if self.isa else None)
         if not self.device:
             raise OSError(f"rtcNewDevice failed (error {self.device_error(None)})")
         major = self.device_property(self.device, _RTC_DEVICE_PROPERTY_VERSION_MAJOR)
@@ -226,6 +230,7 @@ def _load() -> _Embree | None:
 
 def _open() -> dict:
     """{"lib": the loaded library or None, "reason": why it is None}."""
+    embree_isa()  # a bad ADV3D_EMBREE_ISA is the user's error, never a silent fallback
     if sys.maxsize <= 2 ** 32:
         return {"lib": None, "reason": "a 32-bit Python (pointers are passed as 64-bit integers)"}
     try:
@@ -249,6 +254,23 @@ def unavailable_reason() -> str | None:
     """Why :func:`available` is False (None when it is True)."""
     _load()
     return _STATE["reason"]
+
+
+def isa() -> str | None:
+    """The ISA the binding's Embree device runs (:func:`adv3d_runner.machine.embree_isa`; None:
+    Embree's own choice, or the binding is unavailable)."""
+    lib = _load()
+    return None if lib is None else lib.isa
+
+
+def coherent_pays() -> bool:
+    """Whether coherent casts (:mod:`~adv3d_runner.sensors.coherent`) are faster than plain
+    ones here: only where Embree runs AVX-512. A background frame of the HDL-64E on an AMD
+    EPYC (Zen 4): 4.2 ms coherent against 8.3 ms plain with AVX-512, but 13.3 against 8.2 with
+    AVX2 and 15.8 against 13.3 with SSE4.2 (``ADV3D_EMBREE_ISA=... bench/lidar.py --coherent``;
+    docs/lidar.md).
+    The hits are the same either way."""
+    return isa() == "avx512"
 
 
 def library_path() -> Path | None:

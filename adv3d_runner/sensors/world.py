@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import embree
 from .raycast import MeshBVH, mesh_key
 
 __all__ = ["LidarWorld", "ActorSlot", "DEFAULT_ACTOR_REFLECTIVITY", "world_from_scene", "rig_from_scene"]
@@ -55,8 +56,9 @@ class LidarWorld:
             if len(vertices):
                 origin[:2] = 0.5 * (vertices[:, :2].min(axis=0) + vertices[:, :2].max(axis=0))
         self.origin = np.asarray(origin, dtype=np.float64).reshape(3)
-        # Coherent: a frame's background rays come in packets of neighbouring azimuths.
-        self.background = MeshBVH(vertices - self.origin, faces, coherent=True)
+        # Coherent: a frame's background rays come in packets of neighbouring azimuths; it pays
+        # only where Embree runs AVX-512 (embree.coherent_pays), and the hits are the same.
+        self.background = MeshBVH(vertices - self.origin, faces, coherent=embree.coherent_pays())
         refl = np.asarray(reflectivity, dtype=np.float32)
         if refl.ndim == 0:
             refl = np.full(len(faces), refl, np.float32)
