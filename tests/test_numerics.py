@@ -99,8 +99,10 @@ def test_numerics_command_prints_the_configuration():
     assert bad.returncode == 1 and "needs --emulate" in bad.stderr
 
 
-def test_a_resume_on_another_configuration_says_so(tmp_path, capsys):
+def test_a_resume_on_another_configuration_says_so(tmp_path, capsys, monkeypatch):
     from adv3d_runner.attack.journal import Journal
+
+    monkeypatch.setattr("adv3d_runner.progress._QUIET", False)  # an earlier test may have set -q
 
     doc = {"algo": "random", "budget": 3, "versions": {"adv3d": "1", "numerics": machine.numerical_config()}}
     Journal(tmp_path / "run").start(doc)
