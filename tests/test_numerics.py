@@ -85,7 +85,9 @@ def test_an_emulated_sse42_cpu_runs_every_library_at_its_lowest_kernels():
     assert cfg["numpy_simd"] == "SSE42" and cfg["blas"] == "openblas Nehalem"
     assert cfg["torch_capability"] == "DEFAULT" and cfg["numba_target"] == "nehalem"
     assert cfg["device_isa"] == cfg["embree_isa"] == "sse4.2" and cfg["coherent"] is False
-    assert cfg["key"] != machine.numerical_config()["key"]
+    here = machine.numerical_config()
+    if here["embree_isa"] != "sse4.2":  # (this suite may itself run under the emulation)
+        assert cfg["key"] != here["key"]
 
 
 def test_numerics_command_prints_the_configuration():

@@ -66,8 +66,14 @@ def test_sphere_range_float32_precision():
     d = aim / dist_true[:, None]
     t, prim, _ = cast_nearest(bvh, origin[None], d, 200.0)
     visible = front & (np.abs(t - dist_true) < 1e-3)  # silhouette-adjacent vertices may be occluded
-    assert visible.sum() > 50
-    np.testing.assert_allclose(t[visible], dist_true[visible], rtol=RTOL)
+    # The rays as cast (float32) pass a vertex only within rounding: where the surface grazes
+    # the ray, that can land on a neighbouring face a fraction of a mm off (Embree's SSE4.2
+    # kernels do on 2 of these rays). Where the ray meets the surface at under 60 degrees from
+    # its normal, the hit is the vertex's own distance to a few ulps on every ISA.
+    normal = sphere.vertices / radius
+    head_on = visible & (np.abs(np.einsum("ij,ij->i", d, normal)) > 0.5)
+    assert head_on.sum() > 50
+    np.testing.assert_allclose(t[head_on], dist_true[head_on], rtol=RTOL)
     # Generic rays: equal to the exact float64 intersection of the faceted mesh.
     rng = np.random.default_rng(3)
     dirs = (centre - origin) + rng.uniform(-1.5, 1.5, (200, 3))
