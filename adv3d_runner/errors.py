@@ -46,8 +46,21 @@ class RunFailedError(Adv3dError):
     skipped); the message says why."""
 
 
+class StackFailure(Adv3dError):
+    """The stack under test failed: it crashed, hung past its per-frame timeout, or answered
+    something malformed (docs/stacks.md). In an attack the query fails with this reason and
+    the run goes on."""
+
+
 class ConfigError(Adv3dError):
     """Bad command-line or configuration value."""
+
+
+class UsageError(ConfigError):
+    """A command line that cannot run as given: an option value that is wrong for the other
+    options or for the files it names (``--vd-bound`` without ``--shape-model vd``, ``--frame``
+    past the scene's last frame). The CLI prints it as argparse prints a bad option value, one
+    usage line, exit code 2 (docs/reliability.md, "Exit codes")."""
 
 
 class UnknownIdError(ConfigError, KeyError):

@@ -10,7 +10,8 @@ DEFAULT_BATCH = 1
 
 def register(subparsers) -> None:
     from .. import argtypes as at
-    from .config import AUTONOMY, MODES, SHAPE_MODELS
+    from ..autonomy.plugins import stack_spec
+    from .config import MODES, SHAPE_MODELS
     from .realism_constraints import PRESETS
     from .search import ALGORITHMS
 
@@ -52,8 +53,9 @@ def register(subparsers) -> None:
     p.add_argument("--scene-seeds", action="store_true",
                    help="derive each scene's search seed and LiDAR-noise seed from --seed and the scene's "
                         "content (recorded in summary.json), so searches differ per scene; default: --seed for all")
-    p.add_argument("--autonomy", default="A", choices=AUTONOMY,
-                   help="stack under test: A (learned detector + predictor), B (instance-free: learned implicit "
+    p.add_argument("--autonomy", default="A", type=stack_spec, metavar="STACK",
+                   help="stack under test: any stack of `adv3d stacks list`, package.module:factory, exec:COMMAND, "
+                        "tcp://HOST:PORT or unix:PATH (docs/stacks.md); A (learned detector + predictor), B (instance-free: learned implicit "
                         "occupancy-and-flow model), oracle perception, or A-fast (A with the 0.4 m detector: "
                         "about 10 %% less CPU per query)")
     p.add_argument("--reactive", action="store_true", help="actors react to the ego (IDM/MOBIL)")

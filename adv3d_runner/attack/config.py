@@ -210,8 +210,9 @@ class AttackConfig:
         self._check_shape_options()
         if self.mode not in MODES:
             raise ConfigError(f"--mode must be one of {', '.join(MODES)}, got {self.mode!r}")
-        if self.autonomy not in AUTONOMY:
-            raise ConfigError(f"--autonomy must be one of {', '.join(AUTONOMY)}, got {self.autonomy!r}")
+        from ..autonomy.plugins import check_spec
+
+        check_spec(self.autonomy)  # ConfigError naming the stack
         for name, lo, hi in (("budget", 1, MAX_BUDGET), ("actors", 1, MAX_ACTORS), ("seed", 0, SEED_MAX),
                              ("batch", 1, 4096), ("n_initial", 1, MAX_BUDGET), ("target_rank", 0, MAX_ACTORS - 1)):
             value = getattr(self, name)

@@ -150,6 +150,15 @@ OPEN_LOOP_CACHE_BYTES = 128 * 2**20
 CLOSED_LOOP_CACHE_BYTES = 64 * 2**20
 
 
+def stack_info_of(autonomy: str):
+    """The :class:`~adv3d_runner.autonomy.api.StackInfo` of a stack: adv3d's own without
+    building it, any other from this process's instance (built once)."""
+    from ..autonomy.stacks import own_info
+
+    info = own_info(autonomy)
+    return info if info is not None else stack_for(autonomy).stack_info
+
+
 def stack_for(autonomy: str):
     """This process's autonomy stack of that name (loaded once: a stack is reset at the start of
     every episode, so the scenes of a process share it)."""
@@ -329,8 +338,9 @@ class EpisodeEvaluator:
             v["models"] = model_fingerprints((DETECTOR_MODELS[self.settings.autonomy], "predictor"))
         elif self.settings.autonomy == "B":
             v["models"] = model_fingerprints(("occupancy",))
-        if self.settings.autonomy != "oracle":
+        if self.settings.autonomy in (*DETECTOR_MODELS, "B"):
             v["planner"] = planner_fingerprint()
+        v["stack"] = stack_info_of(self.settings.autonomy).as_dict()
         return v
 
     def evaluate_best(self, ref: str, targets: list[int], unit: np.ndarray, out: Path, *, original: bool,
@@ -363,34 +373,14 @@ class EpisodeEvaluator:
 
 
 def planner_fingerprint() -> str:
-    """sha256 (first 16 hex digits) of the planner's default parameters (limits, weights,
-    proposals): retuning the planner changes every closed-loop result, like new weights do."""
-    import dataclasses
-    import hashlib
-    import json
+    """The planner's fingerprint (:func:`adv3d_runner.autonomy.plugins.planner_fingerprint`)."""
+    from ..autonomy.plugins import planner_fingerprint as fingerprint
 
-    from ..autonomy.planner.planner import PlannerConfig
-
-    text = json.dumps(dataclasses.asdict(PlannerConfig()), sort_keys=True, default=str)
-    return hashlib.sha256(text.encode()).hexdigest()[:16]
+    return fingerprint()
 
 
 def model_fingerprints(models: tuple[str, ...] = ("detector", "predictor")) -> dict[str, str]:
-    """sha256 (first 16 hex digits) of every file under assets/models/<model> for each of
-    ``models`` (Autonomy-A's by default): a run's results depend on the weights, which may be
-    retrained between runs."""
-    import hashlib
+    """The weights' fingerprints (:func:`adv3d_runner.autonomy.plugins.model_fingerprints`)."""
+    from ..autonomy.plugins import model_fingerprints as fingerprints
 
-    from ..fileio import REPO_ROOT
-
-    out = {}
-    for sub in models:
-        d = REPO_ROOT / "assets" / "models" / sub
-        if not d.is_dir():
-            continue
-        h = hashlib.sha256()
-        for f in sorted(p for p in d.rglob("*") if p.is_file() and p.suffix in (".pt", ".json", ".safetensors")):
-            h.update(f.relative_to(d).as_posix().encode())
-            h.update(f.read_bytes())
-        out[sub] = h.hexdigest()[:16]
-    return out
+    return fingerprints(models)

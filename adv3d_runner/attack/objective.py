@@ -193,8 +193,16 @@ class ObjectiveValue:
     plan: float
     frames: int
     soft_iou: float | None = None
+    #: terms the stack cannot provide ("det", "pred"): left out of ``total``, reported as null
+    not_available: tuple[str, ...] = ()
 
     def components(self) -> dict:
+        if self.not_available:
+            out = {"det": self.det, "tp": self.tp, "fp": self.fp, "pred": self.pred, "plan": self.plan,
+                   "frames": self.frames}
+            for term in self.not_available:
+                out.update({"det": None, "tp": None, "fp": None} if term == "det" else {term: None})
+            return {**out, "not_available": list(self.not_available)}
         if self.soft_iou is not None:
             return {"det": self.det, "soft_iou": self.soft_iou, "pred": self.pred, "plan": self.plan,
                     "frames": self.frames}
@@ -260,6 +268,16 @@ def episode_objective(result, weights: ObjectiveWeights = ABLATIONS["M0"], evalu
     # l_pred is measured even when its weight is 0 (M1, M3, M5): the journal reports every term
     # unweighted, whatever the search maximised.
     pred = prediction_terms(evaluation.prediction, weights.pred_reduction)
+    missing = tuple(t for t, output in (("det", "detections"), ("pred", "predictions"))
+                    if output in getattr(evaluation, "not_available", ()))
+    if missing:  # a stack without detections or predictions: only the terms it has count
+        from dataclasses import replace
+
+        if all(getattr(weights, t) == 0 for t in TERMS if t not in missing):
+            raise ConfigError(f"the objective weighs only {', '.join(t for t in TERMS if getattr(weights, t))}, which "
+                              f"this stack does not provide (not available: {', '.join(missing)}); weigh plan")
+        value = combine(tp, fp, pred, plan, replace(weights, **{t: 0.0 for t in missing}))
+        return replace(value, not_available=missing)
     return combine(tp, fp, pred, plan, weights)
 
 

@@ -267,6 +267,9 @@ class AutonomyOutputs:
     plan: Plan
     timings: dict[str, float] = field(default_factory=dict)
     occupancy: OccupancyField | None = None
+    #: What the stack provided this frame ("plan" and any of ``api.OUTPUTS``); None: adv3d's own
+    #: stacks, which provide detections, tracks and predictions, or occupancy.
+    provided: frozenset[str] | None = None
 
 
 @dataclass(frozen=True)
@@ -283,6 +286,7 @@ class SceneContext:
     lane_map: LaneMap
     dt: float = DT
     scene_id: str = ""
+    rig: Any = None  # the LiDAR rig (sensors.lidar.LidarRig), set by the episode loop
 
     @classmethod
     def from_scene(cls, scene: Any) -> "SceneContext":

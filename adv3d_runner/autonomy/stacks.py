@@ -43,9 +43,74 @@ INSTANCE_FREE = ("B",)
 TRACK_MIN_SCORE = 0.5
 
 
-def make_stack(autonomy: str = "A", *, detector_options: dict | None = None,
-               track_min_score: float = TRACK_MIN_SCORE):
-    """Build a fresh stack (call once per worker; ``run_episode`` resets it per episode).
+#: What each of adv3d's own stacks provides (``api.StackInfo.provides``) and the model folders
+#: its fingerprint covers.
+_OWN = {"A": (("detector", "predictor"), ("detections", "tracks", "predictions")),
+        "A-fast": (("detector-fast", "predictor"), ("detections", "tracks", "predictions")),
+        "A-lanefollow": (("detector",), ("detections", "tracks", "predictions")),
+        "B": (("occupancy",), ("occupancy",)),
+        "oracle": ((), ("detections", "tracks", "predictions"))}
+
+
+def own_stack(name: str, **options):
+    """One of adv3d's own stacks, carrying its ``stack_info`` (:func:`.plugins.builtin_info`)."""
+    from .plugins import builtin_info, with_info
+
+    models, provides = _OWN[name]
+    return with_info(_make_own(name, **options), builtin_info(name, models, provides))
+
+
+def own_info(name: str):
+    """The :class:`~.api.StackInfo` of one of adv3d's own stacks (None for any other name),
+    without building it."""
+    from .plugins import builtin_info
+
+    return builtin_info(name, *_OWN[name]) if name in _OWN else None
+
+
+# The factories registered in the ``adv3d.stacks`` entry-point group (pyproject.toml).
+def autonomy_a():
+    return own_stack("A")
+
+
+def autonomy_a_fast():
+    return own_stack("A-fast")
+
+
+def autonomy_a_lanefollow():
+    return own_stack("A-lanefollow")
+
+
+def autonomy_b():
+    return own_stack("B")
+
+
+def oracle():
+    return own_stack("oracle")
+
+
+def make_stack(autonomy: str = "A", **options):
+    """Build a fresh stack (call once per worker; ``run_episode`` resets it per episode): one of
+    adv3d's own by name (``options`` go to it), or any stack ``autonomy`` names
+    (:mod:`.plugins`: a registered plugin, ``package.module:factory``, or a stack in its own
+    process). The stack carries ``stack_info`` (:class:`~.api.StackInfo`).
+
+    Raises:
+        ConfigError: unknown name, a plugin that cannot be built, or Autonomy-A's models or
+            weights are not available.
+    """
+    if autonomy in _OWN:
+        return own_stack(autonomy, **options)
+    from .plugins import build
+
+    stack, info = build(autonomy)
+    stack.stack_info = info
+    return stack
+
+
+def _make_own(autonomy: str = "A", *, detector_options: dict | None = None,
+              track_min_score: float = TRACK_MIN_SCORE):
+    """Build one of adv3d's own stacks.
 
     Args:
         autonomy: ``"A"`` (learned detector + learned predictor), ``"A-lanefollow"``, ``"oracle"``

@@ -14,7 +14,7 @@ from pathlib import Path
 
 def register(subparsers) -> None:
     from .. import argtypes as at
-    from ..autonomy.stacks import AUTONOMY_CHOICES
+    from ..autonomy.plugins import stack_spec
 
     p = subparsers.add_parser("simulate", help="run one closed- or open-loop episode on a scene",
                               description=__doc__.splitlines()[0])
@@ -22,8 +22,9 @@ def register(subparsers) -> None:
     p.add_argument("--open-loop", action="store_true", help="the ego replays its log instead of following its plans")
     p.add_argument("--seconds", type=at.number(0.0, 3600.0, lo_open=True), default=5.0, help="episode length in s (default 5)")
     p.add_argument("--reactive", action="store_true", help="actors react to the ego (IDM/MOBIL) instead of replaying")
-    p.add_argument("--autonomy", choices=AUTONOMY_CHOICES, default="A",
-                   help="A: learned detector + predictor (needs the shipped weights); B: instance-free, the learned "
+    p.add_argument("--autonomy", type=stack_spec, default="A", metavar="STACK",
+                   help="any stack of `adv3d stacks list`, package.module:factory, exec:COMMAND, tcp://HOST:PORT "
+                        "or unix:PATH (docs/stacks.md); A: learned detector + predictor (needs the shipped weights); B: instance-free, the learned "
                         "implicit occupancy-and-flow model + the same planner; oracle: ground-truth "
                         "boxes of the actors the LiDAR hits + lane-following prediction; A-lanefollow: learned detector + lane-following prediction; A-fast: A with the 0.4 m detector (default A)")
     p.add_argument("--points", action="store_true", help="store the LiDAR points in the replay (large)")
@@ -64,12 +65,13 @@ def _simulate(args) -> int:
                          progress=not is_quiet())
     metrics = episode_metrics(result, scene.lanes)
     metrics["autonomy"] = args.autonomy
+    metrics["stack"] = stack.stack_info.as_dict()  # name, version, fingerprint (docs/stacks.md)
     metrics["command"] = "adv3d simulate " + " ".join(_argv(args))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     write_json(out / "metrics.json", metrics)
     replay = replay_from_episode(result, autonomy=args.autonomy, scene_file=str(scene_path),
-                                 metadata={"command": metrics["command"]})
+                                 metadata={"command": metrics["command"], "stack": metrics["stack"]})
     save_replay(replay, out / "replay.json.gz")
     d, p, c = metrics["detection"], metrics["prediction"], metrics["collision"]
 
@@ -81,14 +83,18 @@ def _simulate(args) -> int:
         perception = (f"occupancy mAP {f(o['map'])} Soft-IoU {f(o['soft_iou'])} | flow-grounded mAP "
                       f"{f(o['flow_grounded_map'])} Soft-IoU {f(o['flow_grounded_soft_iou'])} | EPE {f(o['epe'], '{:.2f}')} m/s")
     else:
-        perception = (f"AP {f(d['ap'], '{:.3f}')} recall {f(d['recall'])} | "
-                      f"minADE {f(p['min_ade'], '{:.2f}')} meanADE {f(p['mean_ade'], '{:.2f}')}")
+        d, p = d or {}, p or {}  # None: the stack does not provide them (not available)
+        perception = (f"AP {f(d.get('ap'), '{:.3f}')} recall {f(d.get('recall'))} | "
+                      f"minADE {f(p.get('min_ade'), '{:.2f}')} meanADE {f(p.get('mean_ade'), '{:.2f}')}")
     status(f"{scene.id}: {'open' if args.open_loop else 'closed'} loop{' reactive' if args.reactive else ''}, "
            f"{result.frames} frames | {perception} | "
            f"plan lat {metrics['planning_comfort']['lat']:.3f} jerk {metrics['planning_comfort']['jerk']:.3f} | "
            f"drive lat {metrics['driving_comfort']['lat']:.3f} jerk {metrics['driving_comfort']['jerk']:.3f} | "
            f"collision {'yes' if c['collided'] else 'no'} off-road {'yes' if metrics['off_road'] else 'no'} | "
            f"{f(metrics['fps'], '{:.1f}')} frames/s -> {out}")
+    close = getattr(stack, "close", None)
+    if close is not None:  # a stack in its own process ends with the command
+        close()
     return 0
 
 

@@ -31,7 +31,7 @@ draws random numbers, so the same scene, stack, overrides and seed give the same
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Mapping, Sequence
 
 import numpy as np
@@ -289,7 +289,8 @@ class Episode:
         try:
             for aid, spec in overrides.items():
                 world.set_actor_mesh(int(aid), spec.vertices, spec.faces)
-            stack.reset(context if context is not None else SceneContext.from_scene(scene))
+            context = context if context is not None else SceneContext.from_scene(scene)
+            stack.reset(replace(context, rig=self.rig))  # a plugin stack is told the rig (docs/stacks.md)
         except BaseException:  # a failed setup must not leave the adversarial meshes in the world
             self.close()
             raise
@@ -336,6 +337,9 @@ class Episode:
         self.n_points[k] = len(frame.points)
         gt = np.c_[poses_k[:, :2], dims[:, :2], poses_k[:, 2]]
         stack.observe_ground_truth(boxes_to_frame(gt, ego.pose), counts)
+        observe_frame = getattr(stack, "observe_lidar_frame", None)
+        if observe_frame is not None:  # a plugin stack gets each point's sensor
+            observe_frame(frame)
         out = stack.step(frame.points, ego)
         self.outputs.append(out)
         self.ego_poses[k], self.ego_speeds[k], self.ego_accels[k] = ego.pose, ego.speed, ego.acceleration

@@ -181,6 +181,9 @@ class EpisodeEvaluation:
     plan_comfort: list[Comfort] | None = None
     _matches: dict = field(default_factory=dict, repr=False)
 
+    #: the outputs the stack did not provide ("detections", "tracks", "predictions"; docs/stacks.md)
+    not_available: tuple[str, ...] = ()
+
     @property
     def instance_free(self) -> bool:
         """The stack gave occupancy instead of detections and predictions (Autonomy-B)."""
@@ -199,7 +202,19 @@ def episode_evaluation(result, min_gt_points: int = MIN_GT_POINTS) -> EpisodeEva
     """Detection frames, prediction pairs, occupancy slices and each plan's comfort of an
     episode, once (see :class:`EpisodeEvaluation`)."""
     return EpisodeEvaluation(detection_frames(result, min_gt_points), prediction_pairs(result), int(min_gt_points),
-                             occupancy_frames(result), [trajectory_comfort(p, result.dt) for p in result.plans()])
+                             occupancy_frames(result), [trajectory_comfort(p, result.dt) for p in result.plans()],
+                             not_available=not_provided(result))
+
+
+def not_provided(result) -> tuple[str, ...]:
+    """Which of detections, tracks and predictions the episode's stack never provided (a plugin
+    stack says so per frame, ``AutonomyOutputs.provided``; adv3d's own stacks provide them, or
+    occupancy instead). Their metrics and objective terms are reported as not available."""
+    said = [o.provided for o in result.outputs if getattr(o, "provided", None) is not None]
+    if not said:
+        return ()
+    given = frozenset().union(*said)
+    return tuple(k for k in ("detections", "tracks", "predictions") if k not in given)
 
 
 def off_road_distance(lanes, boxes: np.ndarray) -> np.ndarray:
@@ -280,6 +295,12 @@ def episode_metrics(result, lanes, min_gt_points: int = MIN_GT_POINTS,
         "progress_m": path, "mean_speed": _f(np.mean(result.ego_speeds)) if T else None,
         "ms_per_frame": timing, "fps": _f(T / total) if total > 0 else None,
     }
+    if evaluation.not_available:  # a plugin stack without these outputs: not available, never zero
+        doc["not_available"] = list(evaluation.not_available)
+        if "detections" in evaluation.not_available:
+            doc["detection"] = None
+        if "predictions" in evaluation.not_available:
+            doc["prediction"] = None
     if evaluation.instance_free:  # no boxes, no trajectories: occupancy and flow instead
         doc["detection"] = None
         doc["prediction"] = None
