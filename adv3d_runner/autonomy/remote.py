@@ -258,6 +258,11 @@ class RemoteStack:
         except StackFailure:
             raise
         except (EOFError, BrokenPipeError, ConnectionError, OSError) as exc:
+            if self._proc is not None:
+                try:  # it closed its end: give it a moment to exit, to say how it ended
+                    self._proc.wait(timeout=1.0)
+                except subprocess.TimeoutExpired:
+                    pass
             why = self._why_dead() if self._proc is not None and self._proc.poll() is not None else str(exc)
             self.close()
             raise StackFailure(f"stack {self.label!r} failed during {message['type']!r}: {why}") from None
