@@ -34,7 +34,7 @@ def pack_array(a: np.ndarray) -> dict:
     if a.dtype == bool:
         a = a.astype(np.uint8)
     a = np.ascontiguousarray(a.astype(a.dtype.newbyteorder("<")) if a.dtype.byteorder == ">" else a)
-    return {"dtype": a.dtype.str, "shape": list(a.shape), "data": a.tobytes()}
+    return {"dtype": a.dtype.str, "shape": list(a.shape), "data": memoryview(a).cast("B")}  # packed without a copy
 
 
 def _default(obj: Any) -> Any:
@@ -58,12 +58,17 @@ def _object_hook(m: dict) -> Any:
     return m
 
 
-def encode(message: dict) -> bytes:
-    """One framed message (header + msgpack)."""
+def encode_parts(message: dict) -> tuple[bytes, bytes]:
+    """(header, body) of one message: written one after the other (no copy of a large body)."""
     body = msgpack.packb(message, default=_default, use_bin_type=True)
     if len(body) > MAX_MESSAGE_BYTES:
         raise ProtocolError(f"message of {len(body)} bytes is over the limit ({MAX_MESSAGE_BYTES})")
-    return _HEADER.pack(len(body)) + body
+    return _HEADER.pack(len(body)), body
+
+
+def encode(message: dict) -> bytes:
+    """One framed message (header + msgpack)."""
+    return b"".join(encode_parts(message))
 
 
 def decode(body: bytes) -> dict:
