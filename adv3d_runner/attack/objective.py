@@ -291,10 +291,11 @@ def term_split(components: Mapping[str, float], weights: ObjectiveWeights) -> di
     holds alpha and beta). ``weighted`` = weight x unweighted, so the three weighted values add
     up to the objective (without a realism penalty); the unweighted values never do, and are
     never added up. ``pred``'s unit follows ``weights.pred_reduction`` (m x waypoints summed, or
-    m)."""
+    m). A term the stack does not provide (null in ``components``) is NaN: not available."""
     out = {}
     for term in TERMS:
-        value = float(components.get(term, float("nan")))
+        raw = components.get(term)
+        value = float("nan") if raw is None else float(raw)
         w = float(getattr(weights, term))
         out[term] = {"unweighted": value, "weight": w, "weighted": w * value}
     return out

@@ -309,7 +309,8 @@ def objective_split(runs: list[tuple[str, dict, list, dict]]) -> str:
     return head + body + ("\nPer scene: the attacked shape's frame sum of each term minus the original's, both in "
                           "closed loop, mean ± std over scenes. Unweighted: l_det (confidence-weighted IoU), l_pred "
                           "(m x waypoints for pred sum, m for pred mean), c_plan (m/s² + m/s³); weighted: times "
-                          "the run's weight. Only the weighted columns add up (to the objective's change).\n")
+                          "the run's weight. Only the weighted columns add up (to the objective's change). A dash: "
+                          "not available (a term the stack does not provide) or no finite value.\n")
 
 
 def _record_jsd(rec: dict) -> float:
