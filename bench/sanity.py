@@ -305,12 +305,16 @@ def _run_set(paths: list[Path], autonomy: str, seconds: float, workers: int, rea
 
 
 def main() -> int:
+    from adv3d_runner.autonomy.plugins import stack_spec
+
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="10 generated scenes instead of 100 (the real set is small)")
     ap.add_argument("--sets", default="generated,real", help="comma-separated: generated, real")
     ap.add_argument("--real-part", choices=("benchmark", "train"), default="benchmark",
                     help="part of scenes/real/ (split.json); tune only on train")
-    ap.add_argument("--autonomy", choices=("A", "B", "oracle", "A-lanefollow", "A-fast"), default="A")
+    ap.add_argument("--autonomy", type=stack_spec, default="A", metavar="STACK",
+                    help="any stack (docs/stacks.md): A, B, oracle, A-lanefollow, A-fast, a registered plugin, "
+                         "package.module:factory or exec:COMMAND (default A)")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--seconds", type=float, default=5.0)
     ap.add_argument("--seed", type=int, default=0,
@@ -358,7 +362,10 @@ def main() -> int:
         ap.error("--seed other than 0 needs --name or --tag (the kept result would be overwritten)")
     if overrides and not (args.name or args.tag):
         ap.error("a planner other than the shipped one needs --name or --tag (the kept result would be overwritten)")
-    make_stack(args.autonomy)  # fail early (e.g. no weights) before starting workers
+    probe = make_stack(args.autonomy)  # fail early (e.g. no weights) before starting workers
+    stack_info = probe.stack_info.as_dict()
+    if hasattr(probe, "close"):
+        probe.close()
     t0 = time.time()
     out: dict = {}
     if "generated" in sets:
@@ -421,6 +428,7 @@ def main() -> int:
            "machine": {"python": platform.python_version(), "platform": platform.platform(),
                        "processor": platform.processor(), "cpus": os.cpu_count(),
                        "numerics": numerical_config()},
+           "stack": stack_info,
            "planner_limits": args.planner_limits if args.planner_limits == "shipped" else LIMITS_BEFORE_ISSUE17,
            "planner_overrides": overrides,
            "paper_original_autonomy_a": PAPER_ORIGINAL_A, "paper_original_autonomy_b": PAPER_ORIGINAL_B,
@@ -540,9 +548,10 @@ def _line(m: dict, i: int, n: int) -> None:
         o = m["occupancy"]
         perception = (f"mAP={o['map'] and round(o['map'], 3)} softIoU={o['soft_iou'] and round(o['soft_iou'], 3)} "
                       f"EPE={o['epe'] and round(o['epe'], 2)}")
-    else:
-        perception = (f"AP={d['ap'] if d['ap'] is None else round(d['ap'], 3)} "
-                      f"minADE={m['prediction']['min_ade'] and round(m['prediction']['min_ade'], 2)}"
+    else:  # None: the stack does not provide detections or predictions (docs/stacks.md)
+        d, p = d or {"ap": None}, m["prediction"] or {"min_ade": None}
+        perception = (f"AP={'n/a' if d['ap'] is None else round(d['ap'], 3)} "
+                      f"minADE={'n/a' if p['min_ade'] is None else round(p['min_ade'], 2)}"
                       + (f" (rec {rec['min_ade'] and round(rec['min_ade'], 2)})" if rec else ""))
     print(f"[{i}/{n}] {m['scene']:30s} coll={int(c['collided'])} fault={int(c['at_fault'])} "
           f"off={m['off_road_m']:.2f} {perception}"
