@@ -105,14 +105,19 @@ class ADV3D_PG_scene(bpy.types.PropertyGroup):
                                description="Queries to evaluate (--budget)")
     attack_seconds: FloatProperty(name="Seconds", default=3.0, min=0.1, soft_max=20.0,
                                   description="Episode length in s (--seconds)")
-    attack_autonomy: EnumProperty(name="Autonomy", default="A",
-                                  items=[("A", "Autonomy-A", "The shipped detector and predictor (torch, in the runner)"),
-                                         ("A-fast", "Autonomy-A, fast detector",
-                                          "Autonomy-A with the 0.4 m detector: about 10 % less CPU per query"),
-                                         ("oracle", "Oracle", "Ground-truth perception (fast)")],
-                                  description="Stack under attack (--autonomy)")
+    attack_autonomy: EnumProperty(name="Autonomy", items=_stack_items,
+                                  description="Stack under attack (--autonomy): every stack the runner lists "
+                                              "(adv3d stacks list: its own and the registered plugins)")
     attack_seed: IntProperty(name="Seed", default=0, min=0, description="Search seed (--seed)")
     last_run: StringProperty(name="Last run", subtype="DIR_PATH", options={"HIDDEN"})
+
+
+def _stack_items(self, context):
+    """The runner's stacks (asked once; Blender keeps the strings of dynamic enum items only
+    while Python holds them, which the runner module's cache does)."""
+    from . import prefs, runner
+
+    return runner.runner_stacks(prefs.runner_command())
 
 
 def _review_items(self, context):

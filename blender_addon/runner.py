@@ -133,3 +133,37 @@ def full_realism(space, u: np.ndarray, vehicle_class: str | None = None,
              f"Genus {rep['genus']}/{rep['genus_robust']} (raw/robust); thinnest wall {rep['thinnest_wall_m']:.2f} m",
              "Realistic" if rep["realistic"] else "Fails: " + ", ".join(rep["flags"])]
     return rep, lines
+
+
+# -- the stacks the runner can attack (docs/stacks.md) -----------------------------------------
+
+#: Shown when the runner cannot be asked (not found, or it failed): adv3d's own stacks.
+FALLBACK_STACKS = (("A", "Autonomy-A", "The shipped detector and predictor (torch, in the runner)"),
+                   ("A-fast", "Autonomy-A, fast detector", "Autonomy-A with the 0.4 m detector"),
+                   ("B", "Autonomy-B", "Instance-free: the learned occupancy-and-flow model"),
+                   ("oracle", "Oracle", "Ground-truth perception (fast)"))
+_STACKS: dict[tuple[str, ...], tuple[tuple[str, str, str], ...]] = {}
+
+
+def runner_stacks(command: list[str], timeout: float = 60.0) -> tuple[tuple[str, str, str], ...]:
+    """(name, label, description) of every stack the runner ``command`` lists
+    (``adv3d stacks list --json``: its own and the registered plugins), asked once per command;
+    :data:`FALLBACK_STACKS` when it cannot be asked. A plugin that cannot be built is left out."""
+    import json
+    import subprocess
+
+    key = tuple(command)
+    if key not in _STACKS:
+        items = None
+        if command:
+            try:
+                out = subprocess.run([*command, "stacks", "list", "--json"], capture_output=True, text=True,
+                                     timeout=timeout)
+                rows = json.loads(out.stdout) if out.returncode == 0 else None
+                items = tuple((r["name"], r["name"], f"{r.get('version', '')}; provides "
+                               f"{', '.join(r.get('provides', [])) or 'a plan only'} ({r['source']})")
+                              for r in rows if "error" not in r) if rows else None
+            except (OSError, subprocess.SubprocessError, ValueError, KeyError, TypeError):
+                items = None
+        _STACKS[key] = items or FALLBACK_STACKS
+    return _STACKS[key]

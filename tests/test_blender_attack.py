@@ -103,3 +103,22 @@ def test_missing_runner_is_reported(ctx):
     prefs.get().runner = "/no/such/adv3d"
     with pytest.raises(RuntimeError, match="adv3d attack failed|No such file|no adv3d runner"):
         bpy.ops.adv3d.scene_attack()
+
+
+def test_the_stack_menu_lists_the_runners_stacks_and_plugins(ctx, tmp_path):
+    """The Autonomy menu is what `adv3d stacks list` says (its own stacks and any registered
+    plugin, with a broken plugin left out); a runner that cannot be asked gives adv3d's own."""
+    from blender_addon import props, runner
+
+    sc = ctx.scene.adv3d.scene
+    names = {item[0] for item in props._stack_items(sc, ctx)}  # a dynamic enum: its items callback
+    assert {"A", "A-fast", "B", "oracle"} <= names
+    fake = tmp_path / "fake_runner.py"
+    fake.write_text("import json, sys\nprint(json.dumps([{'name': 'A', 'source': 'adv3d', 'version': '0.1.0', "
+                    "'provides': []}, {'name': 'my-stack', 'source': 'entry point of mypkg', 'version': '2.0', "
+                    "'provides': ['detections']}, {'name': 'broken', 'source': 'x', 'error': 'cannot import'}]))\n")
+    items = runner.runner_stacks([sys.executable, str(fake)])
+    assert [i[0] for i in items] == ["A", "my-stack"] and "provides detections" in items[1][2]
+    assert runner.runner_stacks([str(tmp_path / "no-such-runner")]) == runner.FALLBACK_STACKS
+    sc.attack_autonomy = "oracle"
+    assert sc.attack_autonomy == "oracle"

@@ -26,7 +26,7 @@ import numpy as np
 from .interface import DT, Detections, EgoState, Plan, Predictions, Tracks
 
 __all__ = ["STACK_API_VERSION", "OUTPUTS", "StackInfo", "Sensors", "Lane", "LidarSensor", "Episode", "Frame",
-           "StepOutput", "Stack", "EgoState", "Detections", "Tracks", "Predictions", "Plan", "DT"]
+           "StepOutput", "Stack", "EgoState", "Detections", "Tracks", "Predictions", "Plan", "DT", "remote_stack"]
 
 #: The interface's version, "major.minor".
 STACK_API_VERSION = "1.0"
@@ -170,3 +170,12 @@ class Stack(Protocol):
     def run_step(self, frame: Frame) -> StepOutput:
         """Answer one frame."""
         ...
+
+
+def remote_stack(command: list[str]) -> Stack:
+    """A stack in its own process and environment, started with ``command`` (argv) and spoken
+    to over the wire protocol (docs/stack_protocol.md): what a plugin's factory returns for a
+    stack whose dependencies clash with adv3d's. Raises ``StackFailure`` if it cannot start."""
+    from .remote import RemoteStack
+
+    return RemoteStack(command=list(command), label="exec:" + " ".join(command))
