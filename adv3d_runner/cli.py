@@ -12,7 +12,7 @@ import sys
 
 from . import __version__
 from .argtypes import axis
-from .errors import Adv3dError
+from .errors import Adv3dError, UsageError
 from .progress import set_quiet
 
 # Modules that add subcommands, in the order they appear in --help. A module that is not
@@ -71,6 +71,7 @@ def build_parser() -> argparse.ArgumentParser:
         if sub is not parser and "--quiet" not in sub._option_string_actions:
             sub.add_argument("-q", "--quiet", action="store_true", default=argparse.SUPPRESS,
                              help="no progress bars or status lines")
+        sub.set_defaults(_prog=sub.prog)  # the innermost command's, for a UsageError's line
     return parser
 
 
@@ -112,6 +113,10 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     try:
         result = args.func(args)
+    except UsageError as exc:  # the command line cannot run as given: as argparse says it, exit 2
+        prog = getattr(args, "_prog", parser.prog)
+        print(f"{prog}: error: {exc} (see {prog} --help)", file=sys.stderr)
+        return 2
     except Adv3dError as exc:
         print(f"adv3d: error: {exc}", file=sys.stderr)
         return 1

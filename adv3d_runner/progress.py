@@ -44,6 +44,12 @@ def status(message: str) -> None:
         print(message, flush=True)
 
 
+def note(message: str) -> None:
+    """Print one line that changes what a result means (a run resumed under other versions, a
+    scene skipped), even when quiet: ``-q`` silences progress, not these."""
+    print(message, flush=True)
+
+
 def run_steps(steps: Steps[T]) -> T:
     """Drive a steps generator to its end and return its result."""
     while True:

@@ -16,7 +16,7 @@ from fuzz_contracts import SIGN_OBJ, _make_replay, commonroad_xml, small_scene_d
 
 from adv3d_runner.attack.config import AttackConfig
 from adv3d_runner.attack.driver import check_outcome, run_attack
-from adv3d_runner.attack.journal import Journal, read_run, strip_times
+from adv3d_runner.attack.journal import Journal, read_run, record_checksum, strip_times
 from adv3d_runner.cli import main
 from adv3d_runner.errors import ConfigError, FileFormatError, RunFailedError
 from adv3d_runner.fileio import is_safe_name, read_json, rel_path_problem, resolve_inside, write_json
@@ -517,7 +517,11 @@ def test_journal_line_whose_unit_does_not_match_the_run_is_refused_on_resume(tmp
     rows = [json.loads(x) for x in path.read_text().splitlines()]
     rows[1]["unit"][0] = rows[1]["unit"][0][:4]  # one number short
     path.write_text("".join(json.dumps(r) + "\n" for r in rows))
-    with pytest.raises(ConfigError, match="query 1 of synthetic:peak/closed does not match this run"):
+    with pytest.raises(FileFormatError, match=r"queries.jsonl: line 2: expected a record whose content matches its sha256"):
+        run_attack(cfg, tmp_path / "run", evaluator=SyntheticEvaluator, show_progress=False)
+    rows[1]["sha256"] = record_checksum(rows[1])  # checksum made anew: the search's own check refuses it
+    path.write_text("".join(json.dumps(r) + "\n" for r in rows))
+    with pytest.raises(ConfigError, match="queries.jsonl: line 2: query 1 of synthetic:peak/closed does not match this run"):
         run_attack(cfg, tmp_path / "run", evaluator=SyntheticEvaluator, show_progress=False)
     rows[1]["unit"][0] = rows[1]["unit"][0] + [7.0]  # out of [0, 1]
     path.write_text("".join(json.dumps(r) + "\n" for r in rows))

@@ -260,8 +260,10 @@ class _Search:
                     u = record_unit(rec)
                     if (u.shape != np.shape(x) or not np.allclose(u, x, rtol=0, atol=1e-9)
                             or rec.get("actors") != self.run.targets):
-                        raise ConfigError(f"{self.journal.path}: query {i} of {self.scene_id}/{self.mode} does not "
-                                          f"match this run (different code, options, or numerical libraries: a search resumes "
+                        raise ConfigError(f"{self.journal.where(self.scene_id, self.mode, i)}: query {i} of "
+                                          f"{self.scene_id}/{self.mode} does not match this run (its point or "
+                                          f"actors are not what the search asks at that index: different code, "
+                                          f"options, or numerical libraries, or an edited line; a search resumes "
                                           f"only where its journal was written); use a new --out")
                     self.results[i] = rec
                     self.run.reused += 1
@@ -274,6 +276,12 @@ class _Search:
                 return todo
             self.journal.clear_pending()
             self.tell()
+        unasked = sorted(i for i in self.done if i >= self.searcher.n_told)
+        if unasked:  # the search ended before these indices: records it never asked for
+            i = unasked[0]
+            raise ConfigError(f"{self.journal.where(self.scene_id, self.mode, i)}: query {i} of "
+                              f"{self.scene_id}/{self.mode} was never asked: the search ended after "
+                              f"{self.searcher.n_told} queries; use a new --out")
         return []
 
     def result(self, i: int, x: np.ndarray, out: QueryResult) -> bool:

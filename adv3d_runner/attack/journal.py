@@ -27,6 +27,15 @@ Every line, ``run.json`` and ``summary.json`` are validated on load (``validate.
 fields, types, ranges), so a damaged or hand-edited bundle is one error naming the file and
 field, never a crash of ``adv3d report``.
 
+Verified before use (docs/formats.md, "Run bundle"; docs/reliability.md): every line carries
+``sha256``, a checksum of its content (:func:`record_checksum`), so an edited line is refused;
+against the run's ``run.json`` each record's scene is one of the run's, its mode one of the
+run's, its index in ``[0, budget)`` and unique in its file (a pending line may repeat a journal
+line only as the same record: a kill between the move and the clean-up); the driver checks that
+each reused record holds the point its search asks at that index. Lines written before
+checksums (runs whose run.json lacks ``journal_sha256``) are accepted without one when they pass
+every other check.
+
 Line fields (fixed order): ``scene``, ``mode``, ``index`` (query number within the scene and
 mode), ``actors``, ``unit`` (m lists of the query's unit entries), ``latent``, ``scales``,
 ``dimensions``, ``realism`` (per actor the cheap realism figures, or null; absent in journals
@@ -35,8 +44,10 @@ written before issue 14), ``cost`` (null when failed), ``components``, ``metrics
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import os
+import re
 from pathlib import Path
 from typing import Any, Iterable
 
@@ -62,11 +73,16 @@ RUN_VERSION = 2
 RUN_VERSIONS = (1, 2)
 STATUSES = ("ok", "invalid", "error")
 _LINE_KEYS = ("scene", "mode", "index", "actors", "unit", "latent", "scales", "dimensions", "realism", "cost",
-              "components", "metrics", "status", "error", "wall_s")
+              "components", "metrics", "status", "error", "wall_s", "sha256")
+#: A journal line's checksum field (:func:`record_checksum`), written last.
+CHECKSUM_KEY = "sha256"
+#: run.json key of runs whose every journal line carries a checksum (runs started since).
+CHECKSUM_RUN_KEY = "journal_sha256"
+_HEX64 = re.compile(r"^[0-9a-f]{64}$")
 # Config keys that may differ between the first run and a resume (they do not change results).
 # ``scenes`` (the paths as typed) is free when both runs store ``scene_sha256``: the scenes
 # are then compared by content, so the same file given by another path resumes.
-RESUME_FREE_KEYS = ("workers", "ray_address", "quiet", "out")
+RESUME_FREE_KEYS = ("workers", "ray_address", "quiet", "out", CHECKSUM_RUN_KEY)
 MODES = ("closed", "open")
 PENDING_NAME = "queries.pending.jsonl"
 
@@ -104,6 +120,16 @@ def query_record(scene: str, mode: str, index: int, actors: list[int], unit: np.
     return _clean(rec)
 
 
+def record_checksum(rec: dict) -> str:
+    """The ``sha256`` of a journal record: SHA-256 (hex) of its JSON with sorted keys and no
+    spaces, without ``wall_s`` and ``sha256`` itself. ``wall_s`` (the query's wall time) is left
+    out so that the same query gives the same line up to its wall time, as before checksums
+    (runs are compared that way); it is still validated (a finite number >= 0)."""
+    body = {k: v for k, v in rec.items() if k not in ("wall_s", CHECKSUM_KEY)}
+    text = json.dumps(body, sort_keys=True, separators=(",", ":"), allow_nan=False)
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()
+
+
 def record_cost(rec: dict) -> float:
     """The record's cost as a float, NaN for failed queries."""
     c = rec.get("cost")
@@ -125,6 +151,9 @@ class Journal:
         self.pending_path = self.root / PENDING_NAME
         self.records: list[dict] = []
         self.pending: dict[tuple[str, str, int], dict] = {}
+        #: where each record was read or written: (scene, mode, index) -> (file, line number)
+        self.lines: dict[tuple[str, str, int], tuple[Path, int]] = {}
+        self._pending_lines = 0
         self._lock_key: str | None = None
 
     def _lock(self) -> None:
@@ -185,7 +214,7 @@ class Journal:
                 shown = ", ".join(names[:5]) + (", ..." if len(names) > 5 else "")
                 raise ConfigError(f"--out {self.root}: the folder holds files that are not an adv3d run "
                                   f"({shown}; no run.json); give a new or empty folder")
-        doc = _clean({"format": RUN_FORMAT, "version": RUN_VERSION, **config})
+        doc = _clean({"format": RUN_FORMAT, "version": RUN_VERSION, **config, CHECKSUM_RUN_KEY: True})
         self.root.mkdir(parents=True, exist_ok=True)
         self._lock()
         if run_path.exists():
@@ -227,39 +256,75 @@ class Journal:
                 if others:
                     status(f"note: {self.root} was started with other versions ({'; '.join(others)}): its "
                            f"journalled queries keep their results; use another --out to evaluate them anew")
-            self.load(repair=True)
+            self.load(repair=True, run=old)
             return old
         write_json(run_path, doc, indent=1)
-        self.load(repair=True)
+        self.load(repair=True, run=doc)
         return doc
 
     # ------------------------------------------------------------------ queries.jsonl
-    def load(self, repair: bool = False) -> list[dict]:
+    def load(self, repair: bool = False, run: dict | None = None) -> list[dict]:
         """Read the journal and the pending file; a truncated or corrupt *last* line is dropped
         (and cut from the file when ``repair``). A corrupt line elsewhere is a FileFormatError;
-        every record is validated (:func:`check_record`)."""
-        self.records = _read_lines(self.path, repair)
-        self.pending = {}
-        in_journal = {_key(r) for r in self.records}
-        for rec in _read_lines(self.pending_path, repair):
-            if _key(rec) not in in_journal:  # a kill between the move and the clean-up: journal wins
-                self.pending[_key(rec)] = rec
+        every record is validated (:func:`check_record`) and verified: its checksum, and a
+        (scene, mode, index) not already in its file. With ``run`` (the run's run.json) also the
+        scene, mode and index range against the run, and checksums required where the run says
+        every line has one (:data:`CHECKSUM_RUN_KEY`). Nothing refused is kept: the error names
+        the file and line."""
+        run = run or {}
+        need = run.get(CHECKSUM_RUN_KEY) is True
+        allowed = _run_scope(run)
+        journal = _read_lines(self.path, repair, need)
+        pending = _read_lines(self.pending_path, repair, need)
+        self.records, self.pending, self.lines = [], {}, {}
+        journalled: dict[tuple[str, str, int], dict] = {}
+        for path, rows in ((self.path, journal), (self.pending_path, pending)):
+            first: dict[tuple[str, str, int], int] = {}
+            for line, rec in rows:
+                _check_in_run(rec, allowed, path, line)
+                key = _key(rec)
+                if key in first:
+                    raise FileFormatError(path, f"line {line}: $.index", f"a query not already in this file (line "
+                                          f"{first[key]} holds query {key[2]} of {key[0]}/{key[1]})", key[2])
+                first[key] = line
+                if path == self.path:
+                    self.records.append(rec)
+                    journalled[key] = rec
+                elif key in self.lines:  # a kill between the move and the clean-up: the same record
+                    if strip_times([rec]) != strip_times([journalled[key]]):
+                        raise FileFormatError(path, f"line {line}", f"the record of {self.path.name} line "
+                                              f"{self.lines[key][1]} (query {key[2]} of {key[0]}/{key[1]}: a query "
+                                              "finishes once)", "another record")
+                    continue
+                else:
+                    self.pending[key] = rec
+                self.lines[key] = (path, line)
+        self._pending_lines = len(pending)
         return self.records
+
+    def where(self, scene: str, mode: str, index: int) -> str:
+        """``FILE line N`` of a loaded or written record (for errors)."""
+        path, line = self.lines.get((scene, mode, int(index)), (self.path, 0))
+        return f"{path}: line {line}" if line else str(path)
 
     def append(self, rec: dict) -> None:
         """Append one record to ``queries.jsonl`` durably (single write, flush, fsync)."""
         line = _line(rec)
         _append(self.path, line)
-        self.records.append(json.loads(line))
-        self.pending.pop(_key(self.records[-1]), None)
+        self.records.append(_parsed(line))
+        key = _key(self.records[-1])
+        self.pending.pop(key, None)
+        self.lines[key] = (self.path, len(self.records))
 
     def append_pending(self, rec: dict) -> None:
         """Record a query that finished before a lower-indexed one of its batch: durably in
         ``queries.pending.jsonl`` until :meth:`append` moves it to the journal."""
         line = _line(rec)
         _append(self.pending_path, line)
-        parsed = json.loads(line)
+        parsed = _parsed(line)
         self.pending[_key(parsed)] = parsed
+        self._pending_lines += 1
+        self.lines[_key(parsed)] = (self.pending_path, self._pending_lines)
 
     def is_pending(self, scene: str, mode: str, index: int) -> bool:
         return (scene, mode, int(index)) in self.pending
@@ -271,6 +336,7 @@ class Journal:
                 fh.truncate(0)
                 fh.flush()
                 os.fsync(fh.fileno())
+            self._pending_lines = 0
 
     def canonicalize(self, order: list[tuple[str, str]]) -> bool:
         """Rewrite ``queries.jsonl`` (atomically) with its lines in the canonical order: the
@@ -293,6 +359,8 @@ class Journal:
         data = b"".join(_line(r).encode("utf-8") for r in ordered)
         atomic_write_bytes(self.path, data)
         self.records = ordered
+        for n, rec in enumerate(ordered, 1):
+            self.lines[_key(rec)] = (self.path, n)
         return True
 
     def finished(self, scene: str, mode: str) -> dict[int, dict]:
@@ -320,7 +388,17 @@ def _key(rec: dict) -> tuple[str, str, int]:
 
 
 def _line(rec: dict) -> str:
-    return json.dumps(_clean(rec), allow_nan=False, separators=(",", ":")) + "\n"
+    """One journal line: the record's fields, then its checksum (:func:`record_checksum`)."""
+    body = _clean({k: v for k, v in rec.items() if k != CHECKSUM_KEY})
+    body[CHECKSUM_KEY] = record_checksum(body)
+    return json.dumps(body, allow_nan=False, separators=(",", ":")) + "\n"
+
+
+def _parsed(line: str) -> dict:
+    """A line just written, as the record kept in memory (without its checksum)."""
+    rec = json.loads(line)
+    rec.pop(CHECKSUM_KEY, None)
+    return rec
 
 
 def _append(path: Path, line: str) -> None:
@@ -330,9 +408,10 @@ def _append(path: Path, line: str) -> None:
         os.fsync(fh.fileno())
 
 
-def _read_lines(path: Path, repair: bool) -> list[dict]:
-    """The validated records of a journal file (see :meth:`Journal.load`)."""
-    records: list[dict] = []
+def _read_lines(path: Path, repair: bool, need_checksum: bool = False) -> list[tuple[int, dict]]:
+    """(line number, record) of each validated, checksum-verified line of a journal file,
+    records without their checksum (see :meth:`Journal.load`)."""
+    records: list[tuple[int, dict]] = []
     if not path.exists():
         return records
     data = read_bytes(path, limit=4 * MAX_JSON_BYTES, what="journal")
@@ -347,7 +426,9 @@ def _read_lines(path: Path, repair: bool) -> list[dict]:
             if i == len(lines) - 2 and not lines[-1]:
                 break  # the last complete line is corrupt (e.g. zero-filled after a crash)
             raise FileFormatError(path, f"line {i + 1}", "one JSON query record per line", exc.got) from None
-        records.append(check_record(Node(doc, f"line {i + 1}: $", path)))
+        rec = check_record(Node(doc, f"line {i + 1}: $", path))
+        _verify_checksum(rec, path, i + 1, need_checksum)
+        records.append((i + 1, rec))
         good_end += len(raw) + 1
     if repair and good_end != len(data):
         with open(path, "r+b") as fh:
@@ -355,6 +436,46 @@ def _read_lines(path: Path, repair: bool) -> list[dict]:
             fh.flush()
             os.fsync(fh.fileno())
     return records
+
+
+def _verify_checksum(rec: dict, path: Path, line: int, required: bool) -> None:
+    """Check and remove a record's ``sha256``; a record without one is refused when
+    ``required`` (a run whose every line has one), else accepted as a line written before
+    checksums."""
+    if CHECKSUM_KEY not in rec:
+        if required:
+            raise FileFormatError(path, f"line {line}: $.{CHECKSUM_KEY}", "the record's checksum (every line of this "
+                                  f"run carries one: run.json {CHECKSUM_RUN_KEY})", "no sha256")
+        return
+    stored = rec.pop(CHECKSUM_KEY)
+    if stored != record_checksum(rec):
+        raise FileFormatError(path, f"line {line}", "a record whose content matches its sha256 (the line was "
+                              "changed after it was written)")
+
+
+def _run_scope(run: dict) -> tuple[list[str] | None, list[str] | None, int | None]:
+    """(scene ids, modes, budget) a run's records must lie in, each None where run.json does not
+    say (a run.json of code before it, or a test's partial config)."""
+    ids = run.get("scene_ids")
+    ids = list(ids) if isinstance(ids, list) and all(isinstance(x, str) for x in ids) else None
+    mode = run.get("mode")
+    modes = ["open", "closed"] if mode == "both" else [mode] if mode in MODES else None
+    budget = run.get("budget")
+    budget = budget if isinstance(budget, int) and not isinstance(budget, bool) and budget >= 1 else None
+    return ids, modes, budget
+
+
+def _check_in_run(rec: dict, allowed: tuple, path: Path, line: int) -> None:
+    """A record's scene, mode and index lie in its run (:func:`_run_scope`)."""
+    ids, modes, budget = allowed
+    if ids is not None and rec["scene"] not in ids:
+        shown = ", ".join(ids[:5]) + (", ..." if len(ids) > 5 else "")
+        raise FileFormatError(path, f"line {line}: $.scene", f"one of the run's scenes ({shown})", rec["scene"])
+    if modes is not None and rec["mode"] not in modes:
+        raise FileFormatError(path, f"line {line}: $.mode", f"one of the run's modes ({', '.join(modes)})", rec["mode"])
+    if budget is not None and not 0 <= rec["index"] < budget:
+        raise FileFormatError(path, f"line {line}: $.index", f"a query index in [0, {budget - 1}] (the run's "
+                              f"budget is {budget})", rec["index"])
 
 
 def _nested_numbers(node: Node, *, lo: float | None = None, hi: float | None = None) -> None:
@@ -386,6 +507,8 @@ def check_record(node: Node) -> dict:
         node.get(key, {}).object()
     node.get("error").string(nullable=True, empty=True)
     node.get("wall_s", 0.0).number(lo=0.0)
+    if CHECKSUM_KEY in node:
+        node[CHECKSUM_KEY].string(pattern=_HEX64, expected="64 hex digits (the record's SHA-256)")
     return node.value
 
 
@@ -450,8 +573,11 @@ def read_run(root: str | Path) -> tuple[dict, list[dict], dict]:
         raise ConfigError(f"{root} is not an attack run folder (no run.json)")
     run = _read_doc(run_path, RUN_FORMAT)
     AttackConfig.from_run_json(run, run_path)  # typed: the report reads these fields
+    if "scene_ids" in run:  # the journal's scenes are checked against them
+        for node in Node(run, "$", run_path)["scene_ids"].items("one scene id per scene", length=len(run["scenes"])):
+            node.string()
     j = Journal(root)
-    j.load(repair=False)
+    j.load(repair=False, run=run)
     return run, j.records + list(j.pending.values()), j.read_summary()
 
 
@@ -461,6 +587,7 @@ def strip_times(records: Iterable[dict]) -> list[dict]:
     for r in records:
         r = dict(r)
         r.pop("wall_s", None)
+        r.pop(CHECKSUM_KEY, None)  # a function of the rest
         m = dict(r.get("metrics") or {})
         for k in ("ms_per_frame", "fps"):
             m.pop(k, None)
