@@ -367,7 +367,7 @@ class EpisodeEvaluator:
             write_mesh(trimesh.Trimesh(vertices=shape.vertices, faces=shape.faces, process=False), out / name)
             meshes[aid] = name
         replay = replay_from_episode(result, autonomy=self.settings.autonomy, scene_file=str(ref), meshes=meshes,
-                                     metadata=metadata)
+                                     metadata={**metadata, "stack": stack_info_of(self.settings.autonomy).as_dict()})
         save_replay(replay, out / "replay.json.gz")
         return BestEvaluation(closed_loop=best.evaluation(), original=first, meshes=meshes, replay="replay.json.gz")
 

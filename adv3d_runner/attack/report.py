@@ -44,6 +44,15 @@ COLUMNS_B = (("Objective", ("_objective", "cost"), 1.0), ("Occ. mAP", ("occupanc
              ("Drive lat.", ("driving_comfort", "lat"), 1.0), ("Drive jerk", ("driving_comfort", "jerk"), 1.0))
 
 
+def stack_label(run: dict) -> str:
+    """``C (0.2, 1a2b...)``: the stack a run attacked (run.json ``versions.stack``; older runs
+    recorded only its name, ``autonomy``)."""
+    stack = (run.get("versions") or {}).get("stack")
+    if not isinstance(stack, dict):
+        return str(run.get("autonomy"))
+    return f"{stack.get('name')} ({stack.get('version')}, {stack.get('fingerprint') or '-'})"
+
+
 def run_label(run: dict) -> str:
     """The run's name in tables: its algorithm, plus its shape model and realism knobs when set
     (``bo``, ``bo, vd 0.5 m``, ``bo, R 3.37, class scales, W 100``)."""
@@ -634,12 +643,12 @@ def write_report(run_dirs: Sequence[str | Path], out: str | Path | None = None) 
     out_path = Path(out) if out else Path(run_dirs[0]) / "report.md"
     out_path.parent.mkdir(parents=True, exist_ok=True)
     lines = ["# Adversarial shape attack report", ""]
-    lines.append("| run | algorithm | mode | budget | seed | objective | autonomy | scenes |")
+    lines.append("| run | algorithm | mode | budget | seed | objective | stack (version, fingerprint) | scenes |")
     lines.append("|---|---|---|---:|---:|---|---|---|")
     for root, run, _, _ in runs:
         seed = f"{run.get('seed')}" + (" (per scene)" if run.get("scene_seeds") else "")
         lines.append(f"| {root} | {run_label(run)} | {run.get('mode')} | {run.get('budget')} | {seed} | "
-                     f"{objective_label(run)} | {run.get('autonomy')} | {', '.join(run.get('scene_ids', []))} |")
+                     f"{objective_label(run)} | {stack_label(run)} | {', '.join(run.get('scene_ids', []))} |")
     groups = [("", [r for r in runs if not is_instance_free(r[1])], COLUMNS),
               ("Autonomy-B (instance-free): ", [r for r in runs if is_instance_free(r[1])], COLUMNS_B)]
     for prefix, group, columns in groups:
