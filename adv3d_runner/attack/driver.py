@@ -402,7 +402,7 @@ def run_attack(config: AttackConfig, out: str | Path, *, workers: int | None = 1
     """
     from tqdm.auto import tqdm
 
-    from ..progress import is_quiet, status
+    from ..progress import is_quiet, note, status
 
     from .config import library_fingerprint_of
 
@@ -434,7 +434,7 @@ def run_attack(config: AttackConfig, out: str | Path, *, workers: int | None = 1
         try:
             targets, dim = ev.targets(ref)
         except ConfigError as exc:  # e.g. no actor in front of the ego: skip, keep going
-            status(f"skipping {sid}: {exc}")
+            note(f"skipping {sid}: {exc}")  # with -q too: the run covers fewer scenes
             summary["scenes"][sid] = {"ref": ref, "skipped": str(exc)}
             continue
         for mode in config.modes:

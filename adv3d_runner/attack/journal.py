@@ -245,17 +245,17 @@ class Journal:
                                   f"use another --out or the same options to resume it")
             changed = _changed_versions(old.get("versions"), doc.get("versions"))
             if changed:  # allowed (a resume checks each reused query), but the user should know
-                from ..progress import status
+                from ..progress import note  # printed with -q too: it changes what the run's results mean
 
                 numerics = [c for c in changed if c.startswith("numerics.")]
                 if any(c.startswith("numerics.key:") for c in numerics):
-                    status(f"note: {self.root} was started on another numerical configuration "
-                           f"({'; '.join(numerics)}): new queries may differ from what that machine would give "
-                           f"in the last bits, and searches may then diverge (docs/reliability.md)")
+                    note(f"note: {self.root} was started on another numerical configuration "
+                         f"({'; '.join(numerics)}): new queries may differ from what that machine would give "
+                         f"in the last bits, and searches may then diverge (docs/reliability.md)")
                 others = [c for c in changed if not c.startswith("numerics.")]
                 if others:
-                    status(f"note: {self.root} was started with other versions ({'; '.join(others)}): its "
-                           f"journalled queries keep their results; use another --out to evaluate them anew")
+                    note(f"note: {self.root} was started with other versions ({'; '.join(others)}): its "
+                         f"journalled queries keep their results; use another --out to evaluate them anew")
             self.load(repair=True, run=old)
             return old
         write_json(run_path, doc, indent=1)
