@@ -116,9 +116,10 @@ def test_resume_with_other_options_refused(tmp_path):
 
 def test_kill_during_a_batch_on_two_workers_then_resume_on_one(tmp_path, monkeypatch):
     """Two worker processes, batches of 4, stopped (as if killed) after 5 results: every
-    result the driver had is journalled (queries.jsonl or the pending file), the resume, with
-    another worker count, evaluates only the queries that were never journalled, and the run
-    ends with the serial run's journal."""
+    result the driver had is journalled (queries.jsonl or the pending file), and so is the query
+    still running at the stop, which its worker wrote to the pending file itself when it finished
+    (driver.durable_query); the resume, with another worker count, evaluates only the queries
+    that were never journalled, and the run ends with the serial run's journal."""
     from attack_synthetic import SyntheticLogged
 
     c = cfg(algo="random", budget=8, batch=4, seed=2)  # query 5 takes 80 ms less than query 4
@@ -128,14 +129,15 @@ def test_kill_during_a_batch_on_two_workers_then_resume_on_one(tmp_path, monkeyp
     j = Journal(tmp_path / "run")
     j.load()
     journalled = j.records + list(j.pending.values())
-    # batch 1 in the journal; of batch 2 (4 and 5 running), 5 finished first: in the pending file
-    assert [r["index"] for r in j.records] == [0, 1, 2, 3] and [k[2] for k in j.pending] == [5]
+    # batch 1 in the journal; of batch 2 (4 and 5 running), 5 finished first: in the pending
+    # file, and 4, finished by its worker after the driver stopped, after it
+    assert [r["index"] for r in j.records] == [0, 1, 2, 3] and [k[2] for k in j.pending] == [5, 4]
     assert json.loads((tmp_path / "run" / "run.json").read_text())["batch"] == 4
     monkeypatch.setenv("ADV3D_TEST_EVAL_LOG", str(tmp_path / "resumed.log"))
     run_attack(c, tmp_path / "run", workers=1, evaluator=SyntheticLogged, show_progress=False)
     redone = [json.loads(x) for x in (tmp_path / "resumed.log").read_text().splitlines()]
     done_units = [np.ravel(r["unit"]).tolist() for r in journalled]
-    assert len(redone) == 8 - 5  # 4, 6, 7
+    assert len(redone) == 8 - 6  # 6, 7
     assert not any(np.allclose(u, d, rtol=0, atol=1e-12) for u in redone for d in done_units)
     assert strip_times(lines(tmp_path / "run")) == strip_times(lines(tmp_path / "serial"))
     assert (tmp_path / "run" / "queries.pending.jsonl").read_bytes() == b""

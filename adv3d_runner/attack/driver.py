@@ -20,7 +20,10 @@ evaluated in parallel, and the results are told in query order, so completion or
 matters. Each query is journalled as soon as it finishes: into ``queries.jsonl`` when every
 lower index of its batch is already there, else into ``queries.pending.jsonl`` until they are
 (see :mod:`.journal`), so a kill loses only the queries in flight and each search's lines stay
-in index order. Searches worked on concurrently interleave their lines; when the run is
+in index order. On local worker processes the worker itself appends its query's record to the
+pending file (fsync) before the result leaves it (:func:`durable_query`): a finished query is
+durable before it travels to the driver, so a kill of the driver and its workers never loses a
+query whose worker had written it (docs/reliability.md, "Crash and resume"). Searches worked on concurrently interleave their lines; when the run is
 complete the journal is rewritten, atomically, in the canonical order (scenes as given, modes,
 query index), so a finished run's ``queries.jsonl`` is the same bytes (up to wall times) for any
 number of workers, and for a run that was killed and resumed. The episode seed is the same
@@ -83,6 +86,9 @@ class SerialExecutor:
     """Evaluates in this process (``--workers 1``)."""
 
     slots = 1
+    #: whether a query's task writes its record to the run's pending file itself
+    #: (:func:`durable_query`): not here, where the driver writes it the moment the task returns
+    writes_pending = False
 
     def submit(self, slot: int, fn: Callable, *args) -> cf.Future:
         future: cf.Future = cf.Future()
@@ -98,7 +104,11 @@ class SerialExecutor:
 
 class ProcessExecutor:
     """``workers`` local worker processes (spawned, so torch and Embree start clean), each its
-    own single-process pool so that a task can go to the worker holding its scene."""
+    own single-process pool so that a task can go to the worker holding its scene. A worker
+    writes each query's record to the run's pending file before returning it
+    (:func:`durable_query`)."""
+
+    writes_pending = True
 
     def __init__(self, workers: int):
         from ..machine import single_thread_env
@@ -140,7 +150,10 @@ class _RayWorker:
 
 class RayExecutor:
     """Ray actors on an existing cluster (``ray.init(address=...)``), one per worker, each
-    holding one CPU; ``workers`` None = one per CPU of the cluster."""
+    holding one CPU; ``workers`` None = one per CPU of the cluster. The actors may run on other
+    machines, without the run folder: the driver writes each record when the result arrives."""
+
+    writes_pending = False
 
     def __init__(self, address: str, workers: int | None = None):
         try:
@@ -195,6 +208,40 @@ def best_task(evaluator: QueryEvaluator, ref: str, targets: list[int], unit: np.
     return best, files
 
 
+@dataclass(frozen=True)
+class PendingLine:
+    """Where and as what a worker journals its query: the run's pending file and the record's
+    scene, mode, index and attacked actors."""
+
+    path: str
+    scene: str
+    mode: str
+    index: int
+    actors: tuple[int, ...]
+
+
+def query_line(scene: str, mode: str, index: int, actors: Sequence[int], unit: np.ndarray, out: QueryResult) -> dict:
+    """The journal record of a query's result (:func:`~.journal.query_record`)."""
+    return query_record(scene, mode, index, list(actors), unit, latent=out.latent, scales=out.scales,
+                        dimensions=out.dimensions, cost=out.cost, components=out.components, metrics=out.metrics,
+                        status=out.status, error=out.error, wall_s=out.wall_s, realism=out.realism)
+
+
+def durable_query(evaluator: QueryEvaluator, query: Query, line: PendingLine) -> QueryResult:
+    """:func:`run_query` on a local worker process, then the query's record appended to the
+    run's pending file (one write, fsync) before the result is returned: the result is durable
+    before it leaves the worker, so it is never only in memory on its way to the driver (pickled,
+    piped, waiting for the driver's turn on a loaded machine). The driver then moves it to
+    ``queries.jsonl`` in index order as before (:meth:`_Search.result`); a kill leaves it in the
+    pending file, which a resume reads."""
+    from . import journal
+
+    out = run_query(evaluator, query)
+    rec = query_line(line.scene, line.mode, line.index, line.actors, query.unit, out)
+    journal._append(Path(line.path), journal._line(rec))
+    return out
+
+
 # ============================================================================ driver
 
 @dataclass
@@ -228,6 +275,10 @@ class _Search:
         self.waiting = 0  # queries of the current batch not back yet
         self.order: list[int] = []  # indices of the current batch not yet in queries.jsonl
         self.bar = None
+        #: whether a worker may still append to the pending file (a query task running on a
+        #: worker that writes its own record: :func:`durable_query`); the file is emptied only
+        #: when none can, so no durable line is cut away (set by :func:`run_attack`)
+        self.workers_writing: Callable[[], bool] = lambda: False
 
     def start(self) -> None:
         """Build the searcher and read what the journal already holds (when the search opens)."""
@@ -274,7 +325,7 @@ class _Search:
             if todo:
                 self.waiting = len(todo)
                 return todo
-            self.journal.clear_pending()
+            self.clear_pending()
             self.tell()
         unasked = sorted(i for i in self.done if i >= self.searcher.n_told)
         if unasked:  # the search ended before these indices: records it never asked for
@@ -284,26 +335,33 @@ class _Search:
                               f"{self.searcher.n_told} queries; use a new --out")
         return []
 
-    def result(self, i: int, x: np.ndarray, out: QueryResult) -> bool:
+    def result(self, i: int, x: np.ndarray, out: QueryResult, written: bool = False) -> bool:
         """Journal query ``i`` now: into ``queries.jsonl`` when it is the batch's next index not
-        yet there (with the finished ones after it), else into the pending file until its turn.
-        True when its batch is complete (and told)."""
-        rec = query_record(self.scene_id, self.mode, i, self.run.targets, x, latent=out.latent, scales=out.scales,
-                           dimensions=out.dimensions, cost=out.cost, components=out.components, metrics=out.metrics,
-                           status=out.status, error=out.error, wall_s=out.wall_s, realism=out.realism)
+        yet there (with the finished ones after it), else into the pending file until its turn
+        (``written``: its worker has put it there already, :func:`durable_query`). True when its
+        batch is complete (and told)."""
+        rec = query_line(self.scene_id, self.mode, i, self.run.targets, x, out)
         self.results[i] = rec
         self.run.evaluated += 1
         self.waiting -= 1
         if self.order and self.order[0] == i:
             self.commit()
+        elif written:
+            self.journal.note_pending(rec)
         else:
             self.journal.append_pending(rec)
         if self.waiting == 0:
             self.commit()
-            self.journal.clear_pending()  # truncates only once no search has a record waiting there
+            self.clear_pending()
             self.tell()
             return True
         return False
+
+    def clear_pending(self) -> None:
+        """Empty the pending file when no search has a record waiting there and no worker may
+        still append one (:meth:`~.journal.Journal.clear_pending`)."""
+        if not self.workers_writing():
+            self.journal.clear_pending()
 
     def commit(self) -> None:
         """Append the batch's finished queries to ``queries.jsonl`` in index order, up to the
@@ -439,6 +497,8 @@ def run_attack(config: AttackConfig, out: str | Path, *, workers: int | None = 1
             continue
         for mode in config.modes:
             pending.append(_Search(journal, config, ev, ref, sid, mode, targets, dim))
+    for search in pending:
+        search.workers_writing = lambda: writes_pending() and any(item != "best" for _, item, _ in running.values())
     journal.write_summary(_ordered_summary(summary, config, ids))
     original_claimed: set[str] = set()
 
@@ -504,7 +564,16 @@ def run_attack(config: AttackConfig, out: str | Path, *, workers: int | None = 1
                                "seed": config.seed}}
             return best_task, (ev, search.ref, run.targets, np.asarray(run.best_unit, dtype=np.float64).reshape(-1),
                                original, meta)
+        if writes_pending():
+            line = PendingLine(str(journal.pending_path), search.scene_id, search.mode, int(item[0]),
+                               tuple(int(a) for a in search.run.targets))
+            return durable_query, (ev, item[1], line)
         return run_query, (ev, item[1])
+
+    def writes_pending() -> bool:
+        """Whether the executor's workers journal their queries in the pending file themselves."""
+        return bool(getattr(executor, "writes_pending", False))
+
 
     def dispatch() -> None:
         nonlocal executor
@@ -544,7 +613,7 @@ def run_attack(config: AttackConfig, out: str | Path, *, workers: int | None = 1
                     finish(search, best, files)
                     continue
                 i, query = item
-                batch_done = search.result(i, query.unit, fut.result())
+                batch_done = search.result(i, query.unit, fut.result(), written=writes_pending())
                 evaluated += 1
                 if stop_after is not None and evaluated >= stop_after:
                     raise _Stop

@@ -326,6 +326,15 @@ class Journal:
         self._pending_lines += 1
         self.lines[_key(parsed)] = (self.pending_path, self._pending_lines)
 
+    def note_pending(self, rec: dict) -> None:
+        """Record a query whose worker process wrote its line to ``queries.pending.jsonl``
+        itself (durably, before the result left the worker: ``attack.driver.durable_query``), so
+        nothing is written here; it waits there until :meth:`append` moves it to the journal.
+        Its line number is not known here (workers append in any order)."""
+        parsed = _parsed(_line(rec))
+        self.pending[_key(parsed)] = parsed
+        self.lines[_key(parsed)] = (self.pending_path, 0)
+
     def is_pending(self, scene: str, mode: str, index: int) -> bool:
         return (scene, mode, int(index)) in self.pending
 
@@ -402,10 +411,18 @@ def _parsed(line: str) -> dict:
 
 
 def _append(path: Path, line: str) -> None:
-    with open(path, "a", encoding="utf-8") as fh:
-        fh.write(line)
-        fh.flush()
-        os.fsync(fh.fileno())
+    """Append one line durably: one ``write`` on an ``O_APPEND`` descriptor, then fsync. Worker
+    processes append to the pending file beside the driver, and one ``write`` per line keeps
+    their lines whole whatever their length (a buffered file may split a long line in two)."""
+    data = line.encode("utf-8")
+    fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+    try:
+        view = memoryview(data)
+        while view:  # a regular file takes it in one write; a short write (disk full) continues
+            view = view[os.write(fd, view):]
+        os.fsync(fd)
+    finally:
+        os.close(fd)
 
 
 def _read_lines(path: Path, repair: bool, need_checksum: bool = False) -> list[tuple[int, dict]]:
