@@ -42,7 +42,7 @@ def _info(args: argparse.Namespace) -> int:
 
 
 def register(subparsers) -> None:
-    from .plugins import stack_spec
+    from .names import stack_spec
 
     p = subparsers.add_parser("stacks", help="the stacks under test: list, info",
                               description="The autonomy stacks adv3d can test: its own (A, A-fast, A-lanefollow, B, "
