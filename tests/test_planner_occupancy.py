@@ -211,7 +211,17 @@ def test_autonomy_a_plans_are_unchanged_on_a_recorded_scene():
     sys.path.insert(0, str(Path(__file__).parent))
     from planner_regression import a_plans
 
-    expected = np.load(Path(__file__).parent / "data" / "planner_a_plans.npz")["plans"]
+    import json
+
+    from adv3d_runner.machine import numerical_config
+
+    data = Path(__file__).parent / "data"
+    expected = np.load(data / "planner_a_plans.npz")["plans"]
     got = a_plans()
     assert got.shape == expected.shape == (30, 51, 4)
-    assert np.array_equal(got, expected)
+    # Bit for bit on the numerical configuration the file matches (docs/reliability.md); on any
+    # other, to rounding: an unintended change to the planner moves plans by far more.
+    if numerical_config()["key"] == json.loads((data / "planner_a_plans.json").read_text())["numerics_key"]:
+        assert np.array_equal(got, expected)
+    else:
+        np.testing.assert_allclose(got, expected, rtol=1e-9, atol=1e-9)
