@@ -117,7 +117,7 @@ def register(subparsers) -> None:
     r.add_argument("--what", choices=("library", "sweep", "shapes", "scene", "review"), required=True)
     r.add_argument("--panel", action="store_true",
                    help="draw the panel's state (its list, sliders, settings) in a column beside the picture")
-    r.add_argument("--u", default=None, help="shapes: unit vector z1,..,zK,width,length in [0, 1] (default 0.5s)")
+    r.add_argument("--u", default=None, type=_unit_text, help="shapes: unit vector z1,..,zK,width,length in [0, 1] (default 0.5s)")
     r.add_argument("--out", type=Path, required=True, help="PNG file to write")
     r.add_argument("--library", type=Path, default=None, help="library.json (default: the shipped library)")
     r.add_argument("--space", type=Path, default=None, help="shape-space .npz (default: the shipped one)")
@@ -130,7 +130,7 @@ def register(subparsers) -> None:
     r.add_argument("--replay", default=None,
                    help="review: which replay of the bundle, e.g. 'SCENE_ID / closed' or a scene id "
                         "(default: the first)")
-    r.add_argument("--size", default="1280x720", help="image size WxH in pixels")
+    r.add_argument("--size", default="1280x720", type=_size, help="image size WxH in pixels (16 to 8192 each)")
     r.add_argument("--engine", choices=("workbench", "eevee"), default="workbench")
     r.set_defaults(func=cmd_render)
 
@@ -147,13 +147,34 @@ def cmd_build(args) -> int:
     return 0
 
 
-def cmd_render(args) -> int:
+def _unit_text(text: str) -> str:
+    """``--u``: comma-separated numbers in [0, 1] (passed on to the child as typed)."""
+    from .argtypes import numbers
+
+    numbers(0.0, 1.0)(text)
+    return text
+
+
+def _size(text: str) -> str:
+    """``--size WxH``, 16 to 8192 pixels each."""
     try:
-        w, h = (int(v) for v in args.size.lower().split("x"))
+        w, h = (int(v, 10) for v in text.lower().split("x"))
     except ValueError:
         w = h = 0
     if not (16 <= w <= 8192 and 16 <= h <= 8192):
-        raise ConfigError(f"--size: expected WxH such as 1280x720 (16 to 8192 pixels each), got {args.size!r}")
+        raise argparse.ArgumentTypeError(f"expected WxH such as 1280x720 (16 to 8192 pixels each) (got {text!r})")
+    return text
+
+
+def cmd_render(args) -> int:
+    w, h = (int(v, 10) for v in _size(args.size).lower().split("x"))
+    if args.what == "sweep":  # --dim against the shape space's K + 2, before Blender starts
+        from .errors import UsageError
+        from .shapes.shape_space import DEFAULT_SHAPE_SPACE, ShapeSpace
+
+        space = ShapeSpace.load(Path(args.space) if args.space else DEFAULT_SHAPE_SPACE)
+        if args.dim >= space.dim:
+            raise UsageError(f"--dim {args.dim}: expected 0..{space.dim - 1} (K={space.k} latents, then width, length)")
     # Paths mean what they mean where the user typed them: made absolute here, before the child
     # (which runs with the repository on its path) sees them.
     for name in ("out", "library", "space", "scene", "run"):

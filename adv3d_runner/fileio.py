@@ -63,17 +63,50 @@ def atomic_path(target: str | Path, suffix: str = "") -> Iterator[Path]:
         suffix: extension for the temporary file (some writers pick the format from it).
     """
     target = Path(target)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=suffix or target.suffix, dir=target.parent)
+    made = make_parent(target)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=suffix or target.suffix, dir=target.parent)
+    except OSError as exc:  # e.g. a name too long for the file system
+        _remove_empty(made)
+        raise ConfigError(f"{target}: cannot write this file ({exc.strerror or exc})") from None
     os.close(fd)
     tmp_path = Path(tmp)
+    done = False
     try:
         yield tmp_path
         os.chmod(tmp_path, _mode_for(target))  # mkstemp makes 0600; keep the usual file mode
         os.replace(tmp_path, target)
+        done = True
     finally:
         if tmp_path.exists():
             tmp_path.unlink()
+        if not done:
+            _remove_empty(made)  # a failed write leaves no new empty folder behind
+
+
+def make_parent(target: str | Path) -> list[Path]:
+    """Create the folders above ``target``; return those created (deepest first). A path that
+    runs through a file (``FILE/x.glb``) or cannot be made is one ``ConfigError`` naming it."""
+    target = Path(target)
+    missing = [p for p in [target.parent, *target.parent.parents] if not p.exists()]
+    blocker = next((p for p in [target.parent, *target.parent.parents] if p.exists()), None)
+    if blocker is not None and not blocker.is_dir():
+        raise ConfigError(f"{target}: cannot write here: {blocker} is a file, not a folder")
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        _remove_empty([p for p in missing if p.exists()])
+        raise ConfigError(f"{target}: cannot create its folder ({exc.strerror or exc})") from None
+    return missing
+
+
+def _remove_empty(folders: list[Path]) -> None:
+    """Remove the given folders, deepest first, where they are (still) empty."""
+    for folder in folders:
+        try:
+            folder.rmdir()
+        except OSError:
+            pass
 
 
 def _mode_for(target: Path) -> int:

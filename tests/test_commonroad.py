@@ -105,7 +105,8 @@ def test_bad_xml_names_file(tmp_path):
 def test_cli_import(tmp_path, capsys):
     from adv3d_runner.cli import main
     out = tmp_path / "real" / "x.json.gz"
-    assert main(["scenes", "import-commonroad", str(XML_33), "--out", str(out), "--seconds", "5"]) == 1
+    # the recording is shorter than --seconds: the command line cannot run as given (exit 2)
+    assert main(["scenes", "import-commonroad", str(XML_33), "--out", str(out), "--seconds", "5"]) == 2
     assert "--extend" in capsys.readouterr().err and not out.exists()
     assert main(["-q", "scenes", "import-commonroad", str(XML_33), "--out", str(out), "--seconds", "5", "--extend"]) == 0
     scene = load_scene(out)

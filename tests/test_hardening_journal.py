@@ -236,3 +236,185 @@ def test_cli_resume_of_a_tampered_journal_is_one_error_line(tmp_path, capsys):
     assert len(err) == 1 and err[0].startswith("adv3d: error: ") and "queries.jsonl: line 3: $.index" in err[0]
     assert main(["-q", "report", str(out)]) == 1
     assert path.read_text() == lines[0] + lines[1] + lines[1] + lines[2]
+
+
+# ------------------------------------------------------------------ one exit-code rule
+
+def _cli(capsys, *argv) -> tuple[int, str]:
+    try:
+        rc = main(["-q", *map(str, argv)])
+    except SystemExit as exc:
+        rc = exc.code
+    return rc, capsys.readouterr().err
+
+
+def _one_line(err: str) -> str:
+    lines = [x for x in err.splitlines() if x.strip()]
+    assert len(lines) == 1 and "Traceback" not in err, err
+    return lines[0]
+
+
+_A = ["attack", str(SCENE), "--autonomy", "oracle", "--seconds", "0.2", "--budget", "1", "--out", "unused-run"]
+
+
+@pytest.mark.parametrize("argv, option", [
+    # a value wrong by itself: refused by its argument type
+    (_A + ["--shape-model", "vd", "--vd-bound", "1e9"], "--vd-bound"),
+    (_A + ["--shape-model", "vd", "--vd-bound", "-1"], "--vd-bound"),
+    (_A + ["--shape-model", "vd", "--vd-bound", "nan"], "--vd-bound"),
+    (_A + ["--shape-model", "vd", "--vd-lattice", "abc"], "--vd-lattice"),
+    (_A + ["--shape-model", "vd", "--vd-lattice", "1,3,3"], "--vd-lattice"),
+    (_A + ["--max-mahalanobis", "-1"], "--max-mahalanobis"),
+    (_A + ["--max-mahalanobis", "nan"], "--max-mahalanobis"),
+    (_A + ["--realism-weight", "-1"], "--realism-weight"),
+    (_A + ["--realism-weight", "inf"], "--realism-weight"),
+    (_A + ["--objective", "M9"], "--objective"),
+    (_A + ["--objective", "pred=abc"], "--objective"),
+    (_A + ["--objective", "pred=nan"], "--objective"),
+    (["shapes", "build", "--method", "bogus"], "--method"),
+    (["shapes", "realism", "--u", "0.5,0.5,0.5,0.5,0.5", "--class", "bogus"], "--class"),
+    (["shapes", "decode", "--u", "0.5,0.5,0.5,0.5,0.5", "-o", "x.txt"], "-o"),
+    (["lidar", "render", str(SCENE), "-o", "p.ply", "--sensor", "bogus"], "--sensor"),
+    (["train", "detector", "--scenes", "99999999"], "--scenes"),
+    (["train", "occupancy", "--scenes", "99999999"], "--scenes"),
+    (["train", "predictor", "--real-weight", "0"], "--real-weight"),
+    (["blender", "render", "--what", "shapes", "--u", "abc", "--out", "x.png"], "--u"),
+    (["blender", "render", "--what", "shapes", "--size", "abc", "--out", "x.png"], "--size"),
+    (["assets", "import", "x.obj", "--class", "Bad Class"], "--class"),
+    (["assets", "import", "x.obj", "--class", "sedan", "--id", "a" * 300], "--id"),
+    # a value wrong for the other options or for the files it names: UsageError
+    (_A + ["--vd-bound", "0.5"], "--vd-bound"),
+    (_A + ["--shape-model", "vd", "--algo", "grid"], "--algo grid"),
+    (_A + ["--shape-model", "vd", "--max-mahalanobis", "2"], "--max-mahalanobis"),
+    (["shapes", "decode", "--u", "0.5,0.5", "-o", "x.glb"], "--u"),
+    (["lidar", "render", str(SCENE), "-o", "p.ply", "--frame", "999999"], "--frame"),
+    (["simulate", str(SCENE), "--start-frame", "999999", "--out", "unused-out"], "--start-frame"),
+    (["scenes", "generate", "--out", "unused-out", "--seed", "4294967295", "--count", "5"], "--seed"),
+    (["train", "detector", "--holdout-assets", "no.such.asset"], "--holdout-assets"),
+    (["train", "predictor", "--seed", "1"], "--seed"),
+    (["blender", "render", "--what", "sweep", "--dim", "99", "--out", "x.png"], "--dim"),
+    (["assets", "import", "x.obj", "--class", "sedan", "--up", "+z", "--forward", "+z"], "--up"),
+])
+def test_bad_option_values_are_one_usage_line_and_exit_2(tmp_path, monkeypatch, capsys, argv, option):
+    monkeypatch.chdir(tmp_path)
+    rc, err = _cli(capsys, *argv)
+    line = _one_line(err)
+    cmd = " ".join(w for w in argv[:2] if not w.startswith("-") and "/" not in w)
+    assert rc == 2 and line.startswith(f"adv3d {cmd}: error: ") and option in line, line
+    assert line.endswith("--help)") and not list(tmp_path.iterdir())  # nothing written
+
+
+def test_commonroad_seconds_shorter_than_a_frame_is_a_usage_error(tmp_path, capsys):
+    from fuzz_contracts import commonroad_xml
+
+    xml = tmp_path / "s.xml"
+    xml.write_text(commonroad_xml())
+    rc, err = _cli(capsys, "scenes", "import-commonroad", xml, "--out", tmp_path / "s.json", "--seconds", "0.01")
+    assert rc == 2 and "--seconds must be at least one frame" in _one_line(err)
+    rc, err = _cli(capsys, "scenes", "import-commonroad", xml, "--out", tmp_path / "s.json", "--ego", "999")
+    assert rc == 2 and "--ego 999: no such dynamic obstacle" in _one_line(err)
+    assert not (tmp_path / "s.json").exists()
+
+
+def test_resume_notes_are_printed_with_quiet(tmp_path, capsys, monkeypatch):
+    """A resume under other versions (planner, weights, code) changes what the run's results
+    mean: the note is printed even with -q."""
+    from adv3d_runner import progress
+
+    run = _run(tmp_path)
+    doc = json.loads((run / "run.json").read_text())
+    doc["versions"] = {**doc["versions"], "planner": "0000000000000000", "models": {"detector": "sha256:old"}}
+    (run / "run.json").write_text(json.dumps(doc))
+    monkeypatch.setattr(progress, "_QUIET", True)
+    capsys.readouterr()
+    run_attack(CFG, run, evaluator=SyntheticEvaluator, show_progress=False)
+    said = capsys.readouterr().out
+    assert "other versions" in said and "planner: 0000000000000000 ->" in said and "models: {'detector'" in said
+
+
+# ------------------------------------------------------------------ silent accepts that were
+
+@pytest.mark.parametrize("where, value, match", [
+    ("actor", [-4.5, 1.8, 1.5], r"\$\.actors\[0\]\.dimensions\[0\]: expected a positive size in m"),
+    ("actor", [4.5, 1.8, 1.4e9], r"\$\.actors\[0\]\.dimensions\[2\]: expected a positive size in m \(at most 100\)"),
+    ("ego", [0.0, 0.0, 0.0], r"\$\.ego\.dimensions\[0\]: expected a positive size in m"),
+])
+def test_replay_with_impossible_dimensions_is_refused(tmp_path, where, value, match):
+    from fuzz_contracts import _make_replay
+
+    from adv3d_runner.fileio import read_json, write_json
+    from adv3d_runner.sim.replay import load_replay
+
+    path = _make_replay(tmp_path)
+    doc = read_json(path)
+    (doc["actors"][0] if where == "actor" else doc["ego"])["dimensions"] = value
+    write_json(path, doc)
+    with pytest.raises(FileFormatError, match=match):
+        load_replay(path)
+
+
+def test_lane_whose_centre_line_is_one_repeated_point_is_refused(tmp_path, capsys):
+    from fuzz_contracts import SIGN_OBJ, small_scene_doc
+
+    from adv3d_runner.fileio import write_json
+    from adv3d_runner.scene.schema import load_scene
+
+    doc = small_scene_doc()
+    (tmp_path / "sign.obj").write_text(SIGN_OBJ)
+    lane = doc["map"]["lanes"][1]
+    lane["centerline"] = [list(lane["centerline"][0])] * len(lane["centerline"])
+    write_json(tmp_path / "s.json", doc)
+    with pytest.raises(FileFormatError, match=r"\$\.map\.lanes\[1\]\.centerline: expected at least two distinct points"):
+        load_scene(tmp_path / "s.json")
+    rc, err = _cli(capsys, "simulate", tmp_path / "s.json", "--autonomy", "oracle", "--seconds", "0.2",
+                   "--out", tmp_path / "out")
+    assert rc == 1 and "centerline" in _one_line(err) and not (tmp_path / "out").exists()
+
+
+# ------------------------------------------------------------------ tracebacks that were
+
+def test_output_below_a_file_is_one_error_line(tmp_path, capsys):
+    (tmp_path / "FILE").write_text("mine")
+    for out in ("FILE/x.glb", "FILE/a/b/x.glb"):
+        rc, err = _cli(capsys, "shapes", "decode", "--u", "0.5,0.5,0.5,0.5,0.5", "-o", tmp_path / out)
+        assert rc == 1 and "FILE is a file, not a folder" in _one_line(err)
+    assert (tmp_path / "FILE").read_text() == "mine"
+
+
+def test_names_too_long_for_the_file_system_leave_nothing_behind(tmp_path, capsys):
+    from adv3d_runner.fileio import atomic_path
+
+    with pytest.raises(ConfigError, match="cannot write this file"):
+        with atomic_path(tmp_path / "new" / "deeper" / ("x" * 300 + ".glb")):
+            pass
+    assert not (tmp_path / "new").exists()  # the folders made for it are gone again
+    src = tmp_path / "src"
+    src.mkdir()
+    (src / "car.obj").write_text("v 0 0 0\nv 4 0 0\nv 0 2 0\nv 0 0 1.5\nf 1 2 3\nf 1 2 4\nf 1 3 4\nf 2 3 4\n")
+    (src / ("c" * 200 + ".obj")).write_text((src / "car.obj").read_text())
+    (src / "License.txt").write_text("CC0 1.0 creativecommons.org/publicdomain/zero/1.0/")
+    lib = tmp_path / "lib" / "library.json"
+    cases = [(["--id", "a" * 300], 2, "--id"), (["--source-pack", "p" * 300], 1, "source pack"),
+             ([], 1, "asset id")]
+    for extra, code, said in cases:
+        path = src / ("c" * 200 + ".obj") if not extra else src / "car.obj"
+        rc, err = _cli(capsys, "assets", "import", path, "--class", "sedan", "--library", lib, *extra)
+        assert rc == code and said in _one_line(err)
+    assert not (tmp_path / "lib").exists()
+
+
+def test_run_lock_that_is_a_folder_is_one_error_line(tmp_path, capsys):
+    run = _run(tmp_path)
+    lock = run / ".adv3d-run.lock"
+    lock.unlink()
+    lock.mkdir()
+    with pytest.raises(ConfigError, match=r"\.adv3d-run\.lock: cannot open the run's lock file .*plain file"):
+        run_attack(CFG, run, evaluator=SyntheticEvaluator, show_progress=False)
+    rc, err = _cli(capsys, "attack", SCENE, "--autonomy", "oracle", "--seconds", "0.2", "--budget", "1",
+                   "--out", tmp_path / "other")
+    assert rc == 0
+    (tmp_path / "other" / ".adv3d-run.lock").unlink()
+    (tmp_path / "other" / ".adv3d-run.lock").mkdir()
+    rc, err = _cli(capsys, "attack", SCENE, "--autonomy", "oracle", "--seconds", "0.2", "--budget", "1",
+                   "--out", tmp_path / "other")
+    assert rc == 1 and "lock file" in _one_line(err)

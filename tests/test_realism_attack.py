@@ -256,8 +256,12 @@ def test_journal_without_realism_still_resumes(tmp_path):
     run_attack(cfg, tmp_path / "r", show_progress=False, evaluator=SyntheticEvaluator)
     recs = lines(tmp_path / "r")
     assert all("realism" in r and r["realism"] is None for r in recs)
-    old = [{k: v for k, v in r.items() if k != "realism"} for r in recs]  # a journal of before issue 14
+    # a journal of before issue 14 (so also before checksums: run.json without journal_sha256)
+    old = [{k: v for k, v in r.items() if k not in ("realism", "sha256")} for r in recs]
     (tmp_path / "r" / "queries.jsonl").write_text("".join(json.dumps(r) + "\n" for r in old))
+    run = json.loads((tmp_path / "r" / "run.json").read_text())
+    del run["journal_sha256"]
+    (tmp_path / "r" / "run.json").write_text(json.dumps(run))
     calls = []
 
     class Counting(SyntheticEvaluator):

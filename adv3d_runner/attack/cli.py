@@ -8,12 +8,39 @@ import argparse
 DEFAULT_BATCH = 1
 
 
+def _lattice(text: str) -> tuple[int, int, int]:
+    """``--vd-lattice NX,NY,NZ``: three integers >= 2 (``vertex_deform.check_lattice``)."""
+    from ..errors import ConfigError
+    from .vertex_deform import check_lattice
+
+    try:
+        return check_lattice(tuple(int(x, 10) for x in text.split(",")))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected NX,NY,NZ: three integers >= 2 (got {text!r})") from None
+    except ConfigError as exc:
+        raise argparse.ArgumentTypeError(str(exc).removeprefix("--vd-lattice ")) from None
+
+
+def _objective(text: str) -> str:
+    """``--objective``: a preset M0..M5 and/or key=value weights (``objective.parse_objective``;
+    checked again against the stack's own presets once --autonomy is known)."""
+    from ..errors import ConfigError
+    from .objective import parse_objective
+
+    try:
+        parse_objective(text)
+    except ConfigError as exc:
+        raise argparse.ArgumentTypeError(str(exc).removeprefix("--objective: ")) from None
+    return text
+
+
 def register(subparsers) -> None:
     from .. import argtypes as at
     from ..autonomy.plugins import stack_spec
-    from .config import MODES, SHAPE_MODELS
+    from .config import MAX_MAHALANOBIS, MAX_REALISM_WEIGHT, MODES, SHAPE_MODELS
     from .realism_constraints import PRESETS
     from .search import ALGORITHMS
+    from .vertex_deform import MAX_VD_BOUND
 
     p = subparsers.add_parser(
         "attack", help="search adversarial actor shapes on scenes (paper section 3.3)",
@@ -42,7 +69,7 @@ def register(subparsers) -> None:
     p.add_argument("--out", required=True, help="run folder, e.g. runs/NAME")
     p.add_argument("--ray-address", default=None, metavar="ADDR",
                    help="evaluate queries on an existing Ray cluster (e.g. 127.0.0.1:6379 or auto)")
-    p.add_argument("--objective", default="M0",
+    p.add_argument("--objective", type=_objective, default="M0",
                    help="M0 (all terms, default) .. M5 (paper ablations), or key=value list "
                         "(det, pred, plan, alpha, beta), e.g. 'M1,beta=2' or 'pred=0.2'; with --autonomy B the "
                         "presets are Autonomy-B's (det = -Soft-IoU of occupancy, pred = flow EPE, lambda_pred 1.0)")
@@ -71,15 +98,16 @@ def register(subparsers) -> None:
     g.add_argument("--shape-model", choices=SHAPE_MODELS, default="latent",
                    help="latent: the shape space (default); vd: vertex deformation of the actor's own mesh "
                         "(the paper's baseline)")
-    g.add_argument("--vd-bound", type=float, default=None, metavar="M",
-                   help="vd: l-infinity bound of every vertex displacement in m (paper: 0.1, 0.2, 0.5, 1.0; default 0.5)")
-    g.add_argument("--vd-lattice", default=None, metavar="NX,NY,NZ",
+    g.add_argument("--vd-bound", type=at.number(0.0, MAX_VD_BOUND, lo_open=True), default=None, metavar="M",
+                   help=f"vd: l-infinity bound of every vertex displacement in m, at most {MAX_VD_BOUND:g} "
+                        "(paper: 0.1, 0.2, 0.5, 1.0; default 0.5)")
+    g.add_argument("--vd-lattice", type=_lattice, default=None, metavar="NX,NY,NZ",
                    help="vd: control lattice nodes along length, width, height (default 6,3,3: 162 dimensions)")
-    g.add_argument("--max-mahalanobis", type=float, default=None, metavar="R",
+    g.add_argument("--max-mahalanobis", type=at.number(0.0, MAX_MAHALANOBIS, lo_open=True), default=None, metavar="R",
                    help="search only latents within Mahalanobis distance R of the library mean (inside the box)")
     g.add_argument("--class-scales", action="store_true", default=None,
                    help="search only width/length scales that keep the actor's class within real dimensions")
-    g.add_argument("--realism-weight", type=float, default=None, metavar="W",
+    g.add_argument("--realism-weight", type=at.number(0.0, MAX_REALISM_WEIGHT), default=None, metavar="W",
                    help="maximise objective - W x (JSD excess over the library's leave-one-out maximum); default 0")
     g.add_argument("--realism-preset", choices=sorted(PRESETS), default=None,
                    help="named setting of the three realism knobs (explicit knobs override it)")
@@ -94,6 +122,7 @@ def register(subparsers) -> None:
 
 
 def _attack(args: argparse.Namespace) -> int:
+    from ..errors import ConfigError, UsageError
     from ..progress import is_quiet, status
     from .config import AttackConfig
     from .driver import check_outcome, run_attack, stored_batch
@@ -101,12 +130,17 @@ def _attack(args: argparse.Namespace) -> int:
 
     workers = args.workers if args.workers is not None or args.ray_address else 1
     batch = args.batch if args.batch is not None else (stored_batch(args.out) or DEFAULT_BATCH)
-    cfg = AttackConfig(scenes=tuple(args.scenes), algo=args.algo, budget=args.budget, actors=args.actors,
-                       mode=args.mode, seconds=args.seconds, seed=args.seed, objective=args.objective,
-                       autonomy=args.autonomy, reactive=args.reactive, batch=batch,
-                       n_initial=args.n_initial, shape_space=args.shape_space, library=args.library,
-                       pred_reduction=args.pred_reduction, scene_seeds=args.scene_seeds,
-                       target_rank=args.target_rank, **_shape_options(args))
+    try:  # options that do not go together (--algo grid with --shape-model vd, ...): a usage error
+        cfg = AttackConfig(scenes=tuple(args.scenes), algo=args.algo, budget=args.budget, actors=args.actors,
+                           mode=args.mode, seconds=args.seconds, seed=args.seed, objective=args.objective,
+                           autonomy=args.autonomy, reactive=args.reactive, batch=batch,
+                           n_initial=args.n_initial, shape_space=args.shape_space, library=args.library,
+                           pred_reduction=args.pred_reduction, scene_seeds=args.scene_seeds,
+                           target_rank=args.target_rank, **_shape_options(args))
+    except UsageError:
+        raise
+    except ConfigError as exc:
+        raise UsageError(str(exc)) from None
     summary = run_attack(cfg, args.out, workers=workers, ray_address=args.ray_address,
                          show_progress=not is_quiet(), incremental=not args.no_incremental)
     for sid, entry in summary.get("scenes", {}).items():
@@ -121,22 +155,17 @@ def _attack(args: argparse.Namespace) -> int:
 def _shape_options(args: argparse.Namespace) -> dict:
     """The AttackConfig fields of the shape-model and realism options: a preset first, then the
     knobs given explicitly; options left out keep their defaults."""
-    from ..errors import ConfigError
+    from ..errors import UsageError
     from .realism_constraints import preset_knobs
 
     out: dict = {"shape_model": args.shape_model}
     if args.realism_preset:
         out.update(preset_knobs(args.realism_preset))
-    for key in ("max_mahalanobis", "class_scales", "realism_weight", "vd_bound"):
+    for key in ("max_mahalanobis", "class_scales", "realism_weight", "vd_bound", "vd_lattice"):
         if getattr(args, key) is not None:
             out[key] = getattr(args, key)
-    if args.vd_lattice is not None:
-        try:
-            out["vd_lattice"] = tuple(int(x) for x in args.vd_lattice.split(","))
-        except ValueError:
-            raise ConfigError(f"--vd-lattice must be NX,NY,NZ integers, got {args.vd_lattice!r}") from None
     if args.shape_model != "vd" and ("vd_bound" in out or "vd_lattice" in out):
-        raise ConfigError("--vd-bound and --vd-lattice need --shape-model vd")
+        raise UsageError("--vd-bound and --vd-lattice need --shape-model vd")
     return out
 
 

@@ -36,7 +36,7 @@ from ..argtypes import SEED_MAX
 from ..errors import ConfigError
 from ..validate import Node
 from .objective import DEFAULT_PRED_REDUCTION, LEGACY_PRED_REDUCTION, PRED_REDUCTIONS, ObjectiveWeights, parse_objective
-from .vertex_deform import DEFAULT_LATTICE, check_lattice
+from .vertex_deform import DEFAULT_LATTICE, MAX_VD_BOUND, check_lattice
 
 MODES = ("closed", "open", "both")
 #: How a query becomes shapes: the shape space's latents (the paper's attack) or vertex
@@ -51,6 +51,11 @@ AUTONOMY = ("A", "oracle", "B", "A-fast")
 MAX_ACTORS = 64
 MAX_SECONDS = 3600.0
 MAX_BUDGET = 1_000_000
+#: Largest --realism-weight and --max-mahalanobis: far above any use (costs are O(1e3), the
+#: latent box lies within a Mahalanobis distance of a few units), low enough that a cost minus
+#: W times a penalty stays finite.
+MAX_REALISM_WEIGHT = 1e6
+MAX_MAHALANOBIS = 1e6
 
 
 @dataclass(frozen=True)
@@ -238,14 +243,15 @@ class AttackConfig:
     def _check_shape_options(self) -> None:
         if self.shape_model not in SHAPE_MODELS:
             raise ConfigError(f"--shape-model must be one of {', '.join(SHAPE_MODELS)}, got {self.shape_model!r}")
-        if not (np.isfinite(self.realism_weight) and self.realism_weight >= 0):
-            raise ConfigError(f"--realism-weight must be a finite number >= 0, got {self.realism_weight}")
-        if self.max_mahalanobis is not None and not (np.isfinite(self.max_mahalanobis) and self.max_mahalanobis > 0):
-            raise ConfigError(f"--max-mahalanobis must be a finite number > 0, got {self.max_mahalanobis}")
+        if not (np.isfinite(self.realism_weight) and 0 <= self.realism_weight <= MAX_REALISM_WEIGHT):
+            raise ConfigError(f"--realism-weight must be a number in [0, {MAX_REALISM_WEIGHT:g}], got {self.realism_weight}")
+        if self.max_mahalanobis is not None and not (np.isfinite(self.max_mahalanobis)
+                                                     and 0 < self.max_mahalanobis <= MAX_MAHALANOBIS):
+            raise ConfigError(f"--max-mahalanobis must be a number in (0, {MAX_MAHALANOBIS:g}], got {self.max_mahalanobis}")
         region = self.max_mahalanobis is not None or self.class_scales
         if self.shape_model == "vd":
-            if not (np.isfinite(self.vd_bound) and self.vd_bound > 0):
-                raise ConfigError(f"--vd-bound must be a finite number of metres > 0, got {self.vd_bound}")
+            if not (np.isfinite(self.vd_bound) and 0 < self.vd_bound <= MAX_VD_BOUND):
+                raise ConfigError(f"--vd-bound must be a number of metres in (0, {MAX_VD_BOUND:g}], got {self.vd_bound}")
             if self.algo in ("grid", "bruteforce"):
                 raise ConfigError(f"--algo {self.algo} does not apply to vertex deformation (a grid of 3^D points "
                                   f"in D = 3 x lattice nodes, or the library's latents); use bo, random or blendsearch")

@@ -48,6 +48,7 @@ import hashlib
 import json
 import os
 import re
+import stat
 from pathlib import Path
 from typing import Any, Iterable
 
@@ -171,7 +172,14 @@ class Journal:
             import fcntl
         except ImportError:  # no flock (Windows): one writer per folder is then the user's care
             return
-        fd = os.open(self.root / LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fd = os.open(self.root / LOCK_NAME, os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0), 0o644)
+        except OSError as exc:  # a folder (or a symlink, a FIFO...) where the lock file belongs
+            raise ConfigError(f"{self.root / LOCK_NAME}: cannot open the run's lock file ({exc.strerror or exc}); "
+                              "it must be a plain file: remove what is there") from None
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            os.close(fd)
+            raise ConfigError(f"{self.root / LOCK_NAME}: the run's lock file is not a plain file; remove it")
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError:

@@ -33,6 +33,10 @@ from ..errors import ConfigError
 
 #: The paper's l-infinity bounds (metres).
 VD_BOUNDS = (0.1, 0.2, 0.5, 1.0)
+#: Largest bound accepted (metres): twice the paper's largest. A bound b can change each
+#: dimension of the vehicle by up to 2 b, so at 2 m a 4.5 m car may become 8.5 m long and 5.8 m
+#: wide: past that a query is no longer a deformed vehicle (docs/realism.md).
+MAX_VD_BOUND = 2.0
 #: Default control lattice (nodes along length, width, height): 54 nodes = 162 coordinates.
 DEFAULT_LATTICE = (6, 3, 3)
 
@@ -117,8 +121,8 @@ class VertexDeformation:
         self.vertices = np.asarray(self.vertices, dtype=np.float64).reshape(-1, 3)
         self.faces = np.asarray(self.faces, dtype=np.int64).reshape(-1, 3)
         self.lattice = check_lattice(self.lattice)
-        if not np.isfinite(self.bound) or self.bound <= 0:
-            raise ConfigError(f"--vd-bound must be a finite number of metres > 0, got {self.bound}")
+        if not np.isfinite(self.bound) or not 0 < self.bound <= MAX_VD_BOUND:
+            raise ConfigError(f"--vd-bound must be a number of metres in (0, {MAX_VD_BOUND:g}], got {self.bound}")
         if len(self.vertices) == 0 or len(self.faces) == 0:
             raise ConfigError("vertex deformation needs a template mesh with faces")
         lo, hi = self.vertices.min(axis=0), self.vertices.max(axis=0)

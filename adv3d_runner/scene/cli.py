@@ -77,15 +77,20 @@ def _scene_files(paths: list[str]) -> list[Path]:
 
 
 def _generate(args: argparse.Namespace) -> int:
-    from ..errors import ConfigError
+    from ..errors import ConfigError, UsageError
     from ..progress import status
-    from .generate import SPLITS, generate_scenes
+    from .generate import SPLITS, check_split, generate_scenes
 
     if args.count < 1:
         raise ConfigError("--count must be >= 1")
     from ..shapes.library import resolve_library
 
     seed = SPLITS[args.split][1] if args.seed is None else args.seed
+    for s in (seed, seed + args.count - 1):  # --seed, --count and --split that do not go together
+        try:
+            check_split(args.split, s)
+        except ConfigError as exc:
+            raise UsageError(f"--seed {seed} --count {args.count}: {exc}") from None
     library = resolve_library(args.library)
     paths = generate_scenes(args.out, args.count, seed, args.split, args.layout, args.density,
                             profile=args.profile, library=library)

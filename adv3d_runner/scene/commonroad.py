@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import ConfigError, FileFormatError
+from ..errors import ConfigError, FileFormatError, UsageError
 from ..dynamics.traffic import IDMParams, Traffic
 from ..geometry.angles import wrap_angle
 from . import lanes as lg
@@ -287,9 +287,9 @@ def import_commonroad(path: str | Path, seconds: float | None = None, extend: bo
     recorded = int(np.floor(t_end / DT + 1e-6)) + 1
     frames = recorded if seconds is None else int(round(seconds / DT))
     if frames < 1:
-        raise ConfigError("--seconds must be at least one frame (0.1 s)")
+        raise UsageError("--seconds must be at least one frame (0.1 s)")
     if frames > recorded and not extend:
-        raise ConfigError(f"{path.name} records {recorded} frames ({recorded * DT:.1f} s) but {frames} were asked; "
+        raise UsageError(f"{path.name} records {recorded} frames ({recorded * DT:.1f} s) but {frames} were asked; "
                           "pass --extend to extrapolate (the added frames are marked synthetic)")
     n_rec = min(frames, recorded)
     # per obstacle: (recorded frames, 4) with NaN where not present
@@ -433,11 +433,11 @@ def _pick_ego(tracks: dict[int, np.ndarray], info: dict, lanes: list[Lane], ego_
         raise ConfigError(f"--ego-rank must be >= 0 (got {rank})")
     if ego_id is not None:
         if rank:
-            raise ConfigError("--ego and --ego-rank exclude each other")
+            raise UsageError("--ego and --ego-rank exclude each other")
         if ego_id not in tracks:
-            raise ConfigError(f"--ego {ego_id}: no such dynamic obstacle in {path.name}")
+            raise UsageError(f"--ego {ego_id}: no such dynamic obstacle in {path.name}")
         if not np.isfinite(tracks[ego_id][:, 0]).all():
-            raise ConfigError(f"--ego {ego_id}: its track does not cover the whole recording")
+            raise UsageError(f"--ego {ego_id}: its track does not cover the whole recording")
         return ego_id, "chosen by the user (--ego)"
     by_id = {lane.id: lane for lane in lanes}
     keys = []
@@ -460,7 +460,7 @@ def _pick_ego(tracks: dict[int, np.ndarray], info: dict, lanes: list[Lane], ego_
     if not keys:
         raise FileFormatError(path, "$.dynamicObstacle", "a car whose track covers the whole recording (to be the ego)")
     if rank >= len(keys):
-        raise ConfigError(f"--ego-rank {rank}: {path.name} has only {len(keys)} car(s) that can be the ego")
+        raise UsageError(f"--ego-rank {rank}: {path.name} has only {len(keys)} car(s) that can be the ego")
     rule = ("car with a track over the whole recording and the most vehicles ahead (same/adjacent lane, "
             "within 50 m) in the first frame; middle lanes preferred; ties -> smallest id")
     if rank:

@@ -577,13 +577,17 @@ def _load_lane(ld: Node) -> Lane:
     right = ld.get("right")
     succ = ld.get("successors", [])
     limit = ld.get("speed_limit")
-    return Lane(
+    lane = Lane(
         ld["id"].integer(lo=0), centerline, width,
         None if left.value is None else left.integer(lo=0),
         None if right.value is None else right.integer(lo=0),
         [s.integer(lo=0) for s in succ.items("a list of lane ids")],
         None if limit.value is None else limit.number(lo=0.0, lo_open=True, hi=MAX_SPEED),
     )
+    if not np.any(lane.centerline[1:] != lane.centerline[:-1]):  # one point repeated: no direction, no length
+        ld["centerline"].fail("at least two distinct points (a centre line of positive length)",
+                              f"{len(lane.centerline)} copies of {ld['centerline'].value[0]}")
+    return lane
 
 
 def _load_map(doc: Node) -> list[Lane]:

@@ -5,6 +5,18 @@ import argparse
 from pathlib import Path
 
 
+def _sensor(text: str) -> str:
+    """``--sensor``: a LiDAR model name (``beams.get_model``)."""
+    from ..errors import ConfigError
+    from .beams import get_model
+
+    try:
+        get_model(text)
+    except ConfigError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return text
+
+
 def register(subparsers) -> None:
     """Add ``lidar render`` and ``lidar models``."""
     from .. import argtypes as at
@@ -19,7 +31,7 @@ def register(subparsers) -> None:
     render.add_argument("--frame", type=at.count, default=0, help="frame index (default 0)")
     render.add_argument("-o", "--output", required=True, help="output PLY (x, y, z, intensity, ring, label, sensor)")
     render.add_argument("--bev", help="also write a bird's-eye PNG here")
-    render.add_argument("--sensor", help="replace the rig's LiDAR model(s): hdl64, vlp32c, os1-128, generic-N")
+    render.add_argument("--sensor", type=_sensor, help="replace the rig's LiDAR model(s): hdl64, vlp32c, os1-128, generic-N")
     render.add_argument("--seed", type=at.seed, default=0, help="seed of range noise and ray drop (default 0)")
     render.add_argument("--ideal", action="store_true", help="no range noise, no ray drop")
     render.add_argument("--library", default=None,
@@ -51,7 +63,7 @@ def _load_library(arg: str | None):
 def _render(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from ..errors import ConfigError
+    from ..errors import UsageError
     from ..progress import status
     from ..scene.schema import load_scene
     from .lidar import simulate_frame
@@ -61,7 +73,7 @@ def _render(args: argparse.Namespace) -> int:
     scene_path = Path(args.scene)
     scene = load_scene(scene_path)
     if not 0 <= args.frame < scene.frames:
-        raise ConfigError(f"--frame {args.frame}: scene {scene.id} has frames 0..{scene.frames - 1}")
+        raise UsageError(f"--frame {args.frame}: scene {scene.id} has frames 0..{scene.frames - 1}")
     library = _load_library(args.library)
     world = world_from_scene(scene, library, scene_dir=scene_path.parent)
     overrides = {"range_noise": 0.0, "ray_drop": 0.0} if args.ideal else {}

@@ -6,8 +6,30 @@ import argparse
 from pathlib import Path
 
 
+def _mesh_file(text: str) -> Path:
+    """``-o``: a mesh file name whose suffix says its format (``mesh_io.MESH_SUFFIXES``)."""
+    from .mesh_io import MESH_SUFFIXES
+
+    if Path(text).suffix.lower() not in MESH_SUFFIXES:
+        raise argparse.ArgumentTypeError(f"expected a file ending in one of {', '.join(MESH_SUFFIXES)} (got {text!r})")
+    return Path(text)
+
+
+def _unit_for(space, u):
+    """``--u`` checked against the shape space's K + 2 (known once ``--space`` is loaded): a
+    wrong length is a usage error."""
+    from ..errors import ConfigError, UsageError
+
+    try:
+        return space.check_unit(u)
+    except ConfigError as exc:
+        raise UsageError(f"--u: {exc}") from None
+
+
 def register(subparsers) -> None:
     from .. import argtypes as at
+    from ..vehicle_classes import DIMENSION_RANGES
+    from .sdf import METHODS
 
     p = subparsers.add_parser("shapes", help="build, decode and inspect the PCA vehicle shape space")
     sub = p.add_subparsers(dest="shapes_command", metavar="SUBCOMMAND")
@@ -16,7 +38,8 @@ def register(subparsers) -> None:
     b.add_argument("--library", type=Path, default=None, help="library.json (default: the bundled library)")
     b.add_argument("--resolution", type=at.integer(8, 512), default=None, help="SDF grid resolution N (default 64)")
     b.add_argument("--k", type=at.integer(1, 64), default=None, help="number of principal components K (default 3)")
-    b.add_argument("--method", default=None, help="SDF inside/outside method: winding (default), floodfill, rayvote")
+    b.add_argument("--method", default=None, choices=METHODS,
+                   help="SDF inside/outside method: winding (default), winding-outward, floodfill, rayvote")
     b.add_argument("--truncation", type=at.number(0.0, 1.0, lo_open=True), default=None, help="SDF truncation in unit-cube units (default 0.1)")
     b.add_argument("--out", type=Path, default=None,
                    help="output .npz (default assets/shape_space/vehicles_<N>.npz)")
@@ -25,7 +48,7 @@ def register(subparsers) -> None:
     d = sub.add_parser("decode", help="decode a unit vector in [0,1]^(K+2) to a metric vehicle mesh")
     d.add_argument("--u", required=True, type=at.numbers(0.0, 1.0),
                    help="comma-separated unit vector: K latents then width and length scale, e.g. 0.5,0.5,0.5,0.5,0.5")
-    d.add_argument("-o", "--out", type=Path, required=True, help="mesh file (.glb, .obj, .ply or .stl)")
+    d.add_argument("-o", "--out", type=_mesh_file, required=True, help="mesh file (.glb, .gltf, .obj, .ply or .stl)")
     d.add_argument("--space", type=Path, default=None, help="shape space .npz (default: the bundled one)")
     d.set_defaults(func=_decode)
 
@@ -36,7 +59,7 @@ def register(subparsers) -> None:
     r = sub.add_parser("realism", help="realism figures of a shape: JSD, nearest vehicle, Mahalanobis, "
                                        "artefacts, dimensions (docs/realism.md)")
     r.add_argument("--u", required=True, type=at.numbers(0.0, 1.0), help="comma-separated unit vector, as for decode")
-    r.add_argument("--class", dest="vehicle_class", default=None,
+    r.add_argument("--class", dest="vehicle_class", default=None, choices=list(DIMENSION_RANGES),
                    help="vehicle class for the dimension check (default: the nearest library model's)")
     r.add_argument("--space", type=Path, default=None, help="shape space .npz (default: the bundled one)")
     r.add_argument("--json", action="store_true", help="print the report as JSON")
@@ -102,6 +125,7 @@ def _decode(args: argparse.Namespace) -> int:
     import trimesh
 
     space = _load_space(args.space)
+    _unit_for(space, u)
     info: dict = {}
     mesh = trimesh.Trimesh(*space.decode_arrays(u, info=info), process=False)
     write_mesh(mesh, args.out)
@@ -129,7 +153,7 @@ def _realism(args: argparse.Namespace) -> int:
         raise ConfigError(f"--class must be one of {', '.join(DIMENSION_RANGES)}, got {args.vehicle_class!r}")
     space = _load_space(args.space)
     u = args.u
-    space.check_unit(u)
+    _unit_for(space, u)
     ref = default_reference(space)
     t0 = time.perf_counter()
     rep = realism_report(space, u, ref, vehicle_class=args.vehicle_class)

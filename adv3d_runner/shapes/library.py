@@ -32,7 +32,9 @@ FORMAT = "adv3d-vehicle-library"
 VERSION = 1
 DEFAULT_LIBRARY: Path = REPO_ROOT / "assets" / "vehicles" / "library.json"
 
-_ID_RE = re.compile(r"^[a-z0-9][a-z0-9_.-]*$")
+#: An asset id: it names the mesh file, so at most 128 characters, as every name of a file.
+_ID_RE = re.compile(r"^[a-z0-9][a-z0-9_.-]{0,127}$")
+ID_EXPECTED = "a lower-case id of [a-z0-9_.-] starting with a letter or digit, at most 128 characters"
 _ASSET_KEYS = ("id", "file", "class", "dimensions", "in_shape_space", "triangle_count",
                "source", "licence", "curation", "cleaning")
 _EXCLUDED_KEYS = ("pack", "file", "reason")
@@ -159,8 +161,7 @@ def asset_from_json(obj: Any, path: Path | None = None, where: str = "$") -> Veh
 def _asset(node: Node) -> VehicleAsset:
     node.object("an asset object")
     node.check_keys(_ASSET_KEYS, required=_ASSET_KEYS)
-    aid = node["id"].string(pattern=_ID_RE,
-                            expected="a lower-case id of [a-z0-9_.-] starting with a letter or digit")
+    aid = node["id"].string(pattern=_ID_RE, expected=ID_EXPECTED)
     file = node["file"].rel_path(inside="the library folder")
     cls = node["class"].string(pattern=CLASS_PATTERN,
                                expected=f"a lower-case class name such as {', '.join(class_examples(8))}")
@@ -355,9 +356,11 @@ def add_asset(library: VehicleLibrary, library_path: str | Path, source: str | P
     if not source.is_file():
         raise MeshImportError(f"{source}: no such file")
     pack = slug(pack or source.parent.name)
+    if not _ID_RE.match(pack):  # the pack is a folder of the library
+        raise ConfigError(f"source pack {pack!r}: expected {ID_EXPECTED}; give a shorter --source-pack")
     asset_id = asset_id or f"{pack}.{slug(source.stem)}"
     if not _ID_RE.match(asset_id):
-        raise ConfigError(f"asset id {asset_id!r}: use lower-case [a-z0-9_.-], starting with a letter or digit")
+        raise ConfigError(f"asset id {asset_id!r}: expected {ID_EXPECTED}")
     licence_src = Path(licence_file) if licence_file else find_licence(source.parent)
     if licence_src is None or not licence_src.is_file():
         raise ConfigError(f"{source}: no licence file beside it; give the licence file (licences travel with meshes)")

@@ -8,8 +8,26 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..errors import ConfigError, MeshImportError
+from ..errors import ConfigError, MeshImportError, UsageError
 from ..vehicle_classes import VEHICLE_CLASSES
+
+
+def _class_name(text: str) -> str:
+    """``--class``: a lower-case class name (``vehicle_classes.is_class_name``)."""
+    from ..vehicle_classes import is_class_name
+
+    if not is_class_name(text):
+        raise argparse.ArgumentTypeError(f"expected a lower-case class name such as sedan or suv (got {text!r})")
+    return text
+
+
+def _asset_id(text: str) -> str:
+    """``--id``: an asset id (``library.ID_EXPECTED``)."""
+    from .library import _ID_RE, ID_EXPECTED
+
+    if not _ID_RE.match(text):
+        raise argparse.ArgumentTypeError(f"expected {ID_EXPECTED} (got {text if len(text) <= 60 else text[:57] + '...'!r})")
+    return text
 
 
 def register(subparsers) -> None:
@@ -22,11 +40,11 @@ def register(subparsers) -> None:
     imp = sub.add_parser("import", help="convert mesh files into the library and record them")
     imp.add_argument("paths", nargs="+", metavar="PATH",
                      help=".glb .gltf .obj .ply .stl .fbx .blend, ApolloCar3D .json")
-    imp.add_argument("--class", dest="vehicle_class", required=True,
+    imp.add_argument("--class", dest="vehicle_class", required=True, type=_class_name,
                      help="vehicle class: " + " ".join(VEHICLE_CLASSES[:8]) + " ... (any lower-case name)")
     imp.add_argument("--dimensions", nargs=3, type=at.number(0.0, 100.0, lo_open=True), metavar=("L", "W", "H"),
                      help="scale (anisotropically) to this real length, width, height in metres")
-    imp.add_argument("--id", dest="asset_id", help="asset id (one PATH only); default PACK.file-stem")
+    imp.add_argument("--id", dest="asset_id", type=_asset_id, help="asset id (one PATH only); default PACK.file-stem")
     imp.add_argument("--up", type=at.axis, help="file axis that is up (+x -x +y -y +z -z); default from the format")
     imp.add_argument("--forward", type=at.axis, help="file axis the vehicle's front points to; default: longest horizontal axis")
     imp.add_argument("--convention", default="auto", choices=("auto", "none", "apollocar3d", "shapenet"),
@@ -86,7 +104,9 @@ def cmd_import(args) -> int:
     library = load_or_new_library(lib_path)
     paths = [Path(p) for p in args.paths]
     if args.asset_id and len(paths) != 1:
-        raise ConfigError("--id needs exactly one PATH")
+        raise UsageError("--id needs exactly one PATH")
+    if args.up and args.forward and args.up[1:] == args.forward[1:]:
+        raise UsageError(f"--up {args.up} and --forward {args.forward} must be different axes")
     dimensions = tuple(args.dimensions) if args.dimensions else None
 
     def read(path: Path):

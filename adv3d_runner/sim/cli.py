@@ -50,6 +50,10 @@ def _simulate(args) -> int:
         raise ConfigError(f"--seconds must be positive, got {args.seconds}")
     scene_path = Path(args.scene)
     scene = load_scene(scene_path)
+    if args.start_frame >= scene.frames:
+        from ..errors import UsageError
+
+        raise UsageError(f"--start-frame {args.start_frame}: scene {scene.id} has frames 0..{scene.frames - 1}")
     stack = make_stack(args.autonomy)
     if args.library is None:
         library = default_library()

@@ -48,6 +48,9 @@ POS, ANG, SPD, SCORE = 3, 4, 3, 4  # decimals
 #: Largest |value| of any number in a replay (m, m/s, rad): far beyond any scene (whose
 #: positions are bounded by 1e7 m), so a hostile 1e308 cannot overflow the quantisation.
 MAX_ABS = 1e7
+#: Largest vehicle dimension (m): the scene contract's bound (``scene.schema.MAX_SIZE``).
+MAX_SIZE = 100.0
+_DIMS_EXPECTED = f"a positive size in m (at most {MAX_SIZE:g})"
 MAX_FRAMES = 100_000
 _KEYS = ("format", "version", "scene", "dt", "start_frame", "frames", "closed_loop", "reactive", "seed", "autonomy",
          "ego", "actors", "outputs", "points", "metadata")
@@ -482,7 +485,7 @@ def replay_from_dict_steps(raw: Any, path: str | Path | None = None,
     ego = doc["ego"]
     ego.object()
     ego.check_keys(("dimensions", "poses", "speed"))
-    ego_dims = ego["dimensions"].array((3,), limit=MAX_ABS)
+    ego_dims = ego["dimensions"].numbers(length=3, lo=0.0, lo_open=True, hi=MAX_SIZE, expected=_DIMS_EXPECTED)
     ego_poses = _poses(ego["poses"], T, nullable=False)
     ego_speed = ego["speed"].array((T,), limit=MAX_ABS)
     actors, seen = [], set()
@@ -490,7 +493,9 @@ def replay_from_dict_steps(raw: Any, path: str | Path | None = None,
         a.check_keys(("id", "class", "dimensions", "adversarial", "mesh", "poses"))
         aid = a["id"].unique(a["id"].integer(lo=0), seen, "actor id")
         mesh = a.get("mesh")
-        actors.append(ReplayActor(aid, a["class"].string(empty=True), a["dimensions"].array((3,), limit=MAX_ABS),
+        actors.append(ReplayActor(aid, a["class"].string(empty=True),
+                                  a["dimensions"].numbers(length=3, lo=0.0, lo_open=True, hi=MAX_SIZE,
+                                                          expected=_DIMS_EXPECTED),
                                   _poses(a["poses"], T, nullable=True),
                                   a.get("adversarial", False).boolean(),
                                   None if mesh.value is None else mesh.rel_path(inside="the replay's folder")))

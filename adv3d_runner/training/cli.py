@@ -36,6 +36,7 @@ def _device_option(p) -> None:
 
 def add_train_detector(train_sub) -> None:
     from .. import argtypes as at
+    from .detector_data import TRAIN_SEED0, VAL_SEED0
 
     p = train_sub.add_parser(
         "detector", help="train the PIXOR-like BEV LiDAR detector",
@@ -43,7 +44,8 @@ def add_train_detector(train_sub) -> None:
                     "detector, evaluate AP/recall at BEV IoU 0.5 on held-out scenes (seeds 900000 + [0, M)), "
                     "and write weights, config.json, training_report.json and loss_curves.png to --out.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    p.add_argument("--scenes", type=at.positive_int, default=140, help="training scenes")
+    p.add_argument("--scenes", type=at.integer(1, VAL_SEED0 - TRAIN_SEED0), default=140,
+                   help="training scenes (seeds 100000 + [0, N): below the held-out seeds)")
     p.add_argument("--val-scenes", type=at.positive_int, default=40, help="held-out evaluation scenes")
     p.add_argument("--frames-per-scene", type=at.positive_int, default=10, help="LiDAR frames per scene")
     p.add_argument("--epochs", type=at.positive_int, default=10)
@@ -111,7 +113,12 @@ def _train_detector(args) -> int:
     from ..shapes.library import library_fingerprint, resolve_library
 
     library = resolve_library(args.library)
-    holdout = resolve_holdout(args.holdout_assets, library)
+    try:
+        holdout = resolve_holdout(args.holdout_assets, library)
+    except ConfigError as exc:  # ids the library lacks, or a class left without assets
+        from ..errors import UsageError
+
+        raise UsageError(str(exc)) from None
     # training scenes draw from the library without the held-out meshes; held-out scenes from all
     train_library = without_assets(library, holdout) if holdout else library
     if holdout:
@@ -264,7 +271,7 @@ def add_train_predictor(train_subparsers) -> None:
                    help="real scenes' split manifest (default scenes/real/split.json): its train part joins the "
                         "training data, its benchmark part is evaluated only")
     p.add_argument("--no-real", action="store_true", help="train on generated scenes only")
-    p.add_argument("--real-weight", type=int, default=10, help="times each real training sample is repeated")
+    p.add_argument("--real-weight", type=at.integer(1, 1000), default=10, help="times each real training sample is repeated")
     _device_option(p)
     p.set_defaults(func=_train_predictor)
 
@@ -281,6 +288,15 @@ def _train_predictor(args: argparse.Namespace) -> int:
         raise ConfigError("--scenes, --val-scenes and --epochs must be >= 1")
     if args.modes < 3:
         raise ConfigError("--modes must be >= 3 (the issue asks for a multi-modal predictor)")
+    from ..errors import UsageError
+    from ..scene.generate import check_split
+    from .predictor_train import HELD_OUT_OFFSET
+
+    for s in (args.seed, args.seed + scenes - 1, args.seed + HELD_OUT_OFFSET, args.seed + HELD_OUT_OFFSET + val - 1):
+        try:  # --seed, --scenes and --val-scenes that leave the training split: before any data is made
+            check_split("train", s)
+        except ConfigError as exc:
+            raise UsageError(f"--seed {args.seed} --scenes {scenes} --val-scenes {val}: {exc}") from None
     command = ("adv3d " + " ".join(shlex.quote(a) for a in sys.argv[1:])) if sys.argv and "adv3d" in sys.argv[0] \
         else ""  # called in-process (tests): train_predictor spells out the arguments
     real_train, real_eval, real_info = [], [], None
@@ -312,7 +328,10 @@ def add_train_occupancy(train_sub) -> None:
                     "evaluate it on held-out scenes (seeds 900000 + [0, M)) and write weights, config.json, "
                     "training_report.json and loss_curves.png to --out.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    p.add_argument("--scenes", type=at.positive_int, default=120, help="training scenes")
+    from .detector_data import TRAIN_SEED0, VAL_SEED0
+
+    p.add_argument("--scenes", type=at.integer(1, VAL_SEED0 - TRAIN_SEED0), default=120,
+                   help="training scenes (seeds 100000 + [0, N): below the held-out seeds)")
     p.add_argument("--val-scenes", type=at.integer(0, 100_000), default=20, help="held-out scenes")
     p.add_argument("--frames-per-scene", type=at.positive_int, default=10, help="samples per scene")
     p.add_argument("--queries", type=at.integer(2, 1_000_000), default=2048, help="query points per sample")
