@@ -5,6 +5,14 @@
     python bench/paper_tables.py table1 --autonomy A --budget 20 --table-only   # rebuild the table from the kept files
     python bench/paper_tables.py --list                                # every table, its settings and status
 
+It follows the ``adv3d`` command's rules (docs/reliability.md): every option is typed and
+bounded (``adv3d_runner.argtypes``), a bad value is one usage line and exit code 2 before
+anything runs, any other error one line and exit code 1; it runs from any folder (scene paths
+are the repository's, ``--work`` and ``--results`` are taken relative to the folder it is run
+from); and a table is rebuilt only from kept files that are whole: a damaged or incomplete
+kept run, or one the table reported before and is now missing, is refused naming the file, so a
+table never silently loses a scene.
+
 For a table it selects the scene set (``protocol.select_scenes``: ``--scenes`` generated scenes
 over every traffic density, ``--real`` real benchmark scenes), and for every run seed
 (0 .. ``--seeds``-1), setting of the table and scene runs the attack (``run_attack``,
@@ -190,6 +198,18 @@ TABLES: dict[str, TableSpec] = {
 
 # ============================================================================ running
 
+def _json_object(path: Path, list_key: str | None = None) -> dict:
+    """A kept JSON file that must be an object (with a list under ``list_key`` when given);
+    FileFormatError naming the file otherwise."""
+    from adv3d_runner.validate import Node
+
+    doc = Node.load(path)
+    doc.object("a JSON object")
+    if list_key is not None:
+        doc[list_key].objects(f"a list of {list_key}")
+    return doc.value
+
+
 def cpu_now() -> float:
     """CPU seconds of this process and of its finished children (worker processes)."""
     own = time.process_time()
@@ -248,7 +268,7 @@ class Compute:
         from adv3d_runner.machine import cpu_model, machine_info
 
         self.path = path
-        self.doc = json.loads(path.read_text()) if path.exists() else {"invocations": []}
+        self.doc = _json_object(path, "invocations") if path.exists() else {"invocations": []}
         info = machine_info(*ENV_PACKAGES)
         self.entry = {"started": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "command": command,
                       "cpu_model": cpu_model(), "cores": os.cpu_count(),
@@ -287,7 +307,7 @@ def load_compute(results: Path) -> dict:
     invocations = []
     for path in [results / "compute.json", *sorted(results.glob("compute-shard*.json"))]:
         if path.exists():
-            invocations += json.loads(path.read_text()).get("invocations", [])
+            invocations += _json_object(path, "invocations")["invocations"]
     if not invocations:
         return {}
     invocations.sort(key=lambda e: e.get("started", ""))
@@ -308,19 +328,52 @@ def campaign_units(seeds, settings: list, scenes: list) -> list[tuple]:
             for q in range(n)]
 
 
+#: Bounds of the options beyond the attack's own (``attack.config``): run seeds and held-out
+#: seeds per table (a campaign is units of seeds x settings x scenes, each an attack), and the
+#: shard count.
+MAX_SEEDS = 1000
+MAX_SHARDS = 4096
+
+
 def parse_shard(text: str | None) -> tuple[int, int] | None:
-    """``"I/N"`` -> (I, N) with 0 <= I < N; None for None."""
+    """``"I/N"`` -> (I, N) with 0 <= I < N <= :data:`MAX_SHARDS`; None for None."""
     from adv3d_runner.errors import ConfigError
 
     if text is None:
         return None
     try:
-        i, n = (int(x) for x in text.split("/"))
+        i, n = (int(x, 10) for x in text.split("/"))
     except ValueError:
         raise ConfigError(f"--shard: expected I/N (e.g. 3/16), got {text!r}") from None
-    if not (n >= 1 and 0 <= i < n):
-        raise ConfigError(f"--shard: need 0 <= I < N, got {text!r}")
+    if not (1 <= n <= MAX_SHARDS and 0 <= i < n):
+        raise ConfigError(f"--shard: need 0 <= I < N <= {MAX_SHARDS}, got {text!r}")
     return i, n
+
+
+def shard_type(text: str) -> tuple[int, int]:
+    """``--shard``'s argparse type: :func:`parse_shard`, its error a usage error."""
+    from adv3d_runner.errors import ConfigError
+
+    try:
+        return parse_shard(text)
+    except ConfigError as exc:
+        raise argparse.ArgumentTypeError(f"expected I/N with 0 <= I < N <= {MAX_SHARDS}, e.g. 3/16 (got {text!r})") \
+            from exc
+
+
+def folder_type(text: str) -> str:
+    """``--work`` / ``--results``: a folder, made absolute against the folder the command runs
+    from; refused when it, or a folder above it, is a file (nothing could be written there)."""
+    if not text or "\0" in text:
+        raise argparse.ArgumentTypeError(f"expected a folder (got {text!r})")
+    path = Path(text).expanduser().absolute()
+    for q in (path, *path.parents):
+        if q.exists() or q.is_symlink():
+            if not q.is_dir():
+                what = "is" if q == path else f"lies under {q}, which is"
+                raise argparse.ArgumentTypeError(f"expected a folder, but {text!r} {what} not a folder")
+            break
+    return str(path)
 
 
 def protocol_doc(spec: TableSpec, args, scenes) -> dict:
@@ -335,6 +388,26 @@ def protocol_doc(spec: TableSpec, args, scenes) -> dict:
                           "seed": 0},
             "test": f"paired sign-flip permutation test of the mean per-scene difference, two-sided, exact up to "
                     f"{EXACT_MAX_N} scenes (Wilcoxon signed-rank and sign test beside it)"}
+
+
+def read_protocol(path: Path) -> dict:
+    """A table's ``protocol.json``, checked where the table reads it: a JSON object whose
+    ``scenes`` are objects with a safe repository-relative ``path``, ``seeds`` distinct run seeds
+    and ``eval_seeds`` a count (FileFormatError naming the file and field)."""
+    from adv3d_runner.argtypes import SEED_MAX
+    from adv3d_runner.validate import Node
+
+    doc = Node.load(path)
+    doc.object("a JSON object (a table's protocol)")
+    for item in doc.get("scenes", []).items("a list of the table's scenes"):
+        item.object("a scene of the protocol")
+        item["path"].rel_path(inside="the repository")
+    seeds = [s.integer(lo=0, hi=SEED_MAX) for s in doc.get("seeds", []).items("a list of run seeds")]
+    if len(set(seeds)) != len(seeds):
+        doc["seeds"].fail("distinct run seeds", str(seeds))
+    if "eval_seeds" in doc:
+        doc["eval_seeds"].integer(lo=1, hi=MAX_SEEDS)
+    return doc.value
 
 
 #: What must match between invocations that grow one table (more scenes or seeds may be added).
@@ -360,7 +433,7 @@ def model_versions(autonomy: str) -> dict:
 def kept_versions(results: Path) -> dict | None:
     """The versions a table's kept runs were made with (their run.json), None without runs."""
     for run_json in sorted((results / "runs").glob("*/seed*/*/run.json")):
-        v = json.loads(run_json.read_text()).get("versions") or {}
+        v = _json_object(run_json).get("versions") or {}
         return {k: v[k] for k in VERSION_KEYS if k in v}
     return None
 
@@ -391,7 +464,7 @@ def run_transfer(spec: TableSpec, args) -> Path:
         raise ConfigError(f"transfer: no kept table1 runs of Autonomy-{src} in {source}; run table1 --autonomy {src} "
                           f"--budget {args.budget} first")
     results = Path(args.results) / spec.folder(args.autonomy, args.budget)
-    proto = json.loads((source / "protocol.json").read_text())
+    proto = read_protocol(source / "protocol.json")
     # the numbers are the target stack's (its weights evaluate); the shapes were found with the source's
     proto.update(table="transfer", autonomy=args.autonomy, transfer_from=src, source_folder=source.name,
                  source_versions=made_with(proto, source), versions=model_versions(args.autonomy))
@@ -428,11 +501,13 @@ def run_table(spec: TableSpec, args) -> Path:
     results = Path(args.results) / folder
     work = Path(args.work) / folder
     scenes = select_scenes(args.scenes, args.real)
+    for setting in spec.settings if scenes else ():  # every setting's attack is valid (bounds, memory)
+        setting_config(spec, setting, scenes[0].path, 0, args)  # before anything is written
     proto = protocol_doc(spec, args, scenes)
     proto["versions"] = model_versions(args.autonomy)
     proto_path = results / "protocol.json"
     if proto_path.exists():
-        old = json.loads(proto_path.read_text())
+        old = read_protocol(proto_path)
         diff = [k for k in PROTOCOL_KEYS if old.get(k) != proto.get(k)]
         if diff:
             raise ConfigError(f"{proto_path} was grown with other protocol values ({', '.join(diff)}: "
@@ -449,7 +524,7 @@ def run_table(spec: TableSpec, args) -> Path:
         proto["seeds"] = list(range(args.seeds))
     results.mkdir(parents=True, exist_ok=True)
     write_json(proto_path, proto)
-    shard = parse_shard(args.shard)
+    shard = args.shard  # (I, N) parsed by shard_type, or None
     compute = Compute(compute_path(results, shard), "python bench/paper_tables.py " + shlex.join(sys.argv[1:]))
     compute.update()
     units = campaign_units(range(args.seeds), list(spec.settings), scenes)
@@ -465,7 +540,7 @@ def run_table(spec: TableSpec, args) -> Path:
             # finished (a run is kept only once its budget is spent): the kept files are the
             # record. Replaying the journal would only rewrite them, and fails where the unit ran
             # on another machine, whose numerical libraries propose other BO points
-            summary = json.loads((keep_dir / "summary.json").read_text())
+            summary = _json_object(keep_dir / "summary.json")
             new_q = kept_q = 0
         else:
             summary = run_attack(cfg, work_dir, workers=args.workers, show_progress=False)
@@ -491,16 +566,57 @@ def run_table(spec: TableSpec, args) -> Path:
 # ============================================================================ the table
 
 def load_kept(results: Path) -> list[dict]:
-    """Every kept run of a table folder: {setting, seed, scene, run, summary, heldout}."""
-    from adv3d_runner.fileio import read_json
+    """Every kept run of a table folder: {setting, seed, scene, run, summary, heldout}.
+
+    Each run folder ``runs/<setting>/seed<k>/<scene>/`` is checked whole before it is used: its
+    ``run.json`` (a valid attack configuration), its ``summary.json`` (the run bundle's contract,
+    an entry for the folder's scene, skipped or with every mode of the run searched) and its
+    ``heldout.json.gz`` when there (``protocol.HeldoutStore``). A folder that is not whole is
+    refused naming the file: a table is never built from fewer scenes because a kept file is
+    damaged or missing (export_run keeps a summary only once the search is finished, so a
+    missing one means a copy or an edit went wrong)."""
+    import re
+
+    from adv3d_runner.attack.config import AttackConfig
+    from adv3d_runner.attack.journal import RUN_FORMAT, RUN_VERSIONS, SUMMARY_FORMAT, VERSION, check_summary
+    from adv3d_runner.attack.protocol import HeldoutStore
+    from adv3d_runner.errors import ConfigError, FileFormatError
+    from adv3d_runner.validate import Node, check_header
 
     out = []
-    for run_json in sorted((results / "runs").glob("*/seed*/*/run.json")):
-        d = run_json.parent
+    runs = results / "runs"
+    for d in sorted(q for q in runs.glob("*/*/*") if q.is_dir()):
+        if not re.fullmatch(r"seed(0|[1-9][0-9]{0,9})", d.parent.name):
+            raise ConfigError(f"{d.parent}: not a kept run seed's folder (expected runs/<setting>/seed<k>/<scene>/, "
+                              f"k a run seed); move it out of {runs}")
+        run_path, summary_path = d / "run.json", d / "summary.json"
+        for path in (run_path, summary_path):
+            if not path.is_file():
+                raise ConfigError(f"{path}: missing: a kept run needs run.json and summary.json (they are kept once "
+                                  f"its search is finished); run the campaign's command again to finish it, or restore "
+                                  f"the file; the table was not rebuilt")
+        run = Node.load(run_path)
+        check_header(run, RUN_FORMAT, RUN_VERSIONS)
+        config = AttackConfig.from_run_json(run.value, run_path)
+        summary = Node.load(summary_path)
+        check_header(summary, SUMMARY_FORMAT, (VERSION,))
+        check_summary(summary)
+        entry = summary.value.get("scenes", {}).get(d.name)  # check_summary: scenes is an object of objects
+        if not isinstance(entry, dict):
+            raise FileFormatError(summary_path, "$.scenes", f"an entry for the scene of its folder ({d.name})",
+                                  "none")
+        if "skipped" not in entry:
+            modes = entry.get("modes") or {}
+            for mode in config.modes:
+                m = modes.get(mode)
+                if not isinstance(m, dict) or not m.get("n_queries"):
+                    raise FileFormatError(summary_path, f"$.scenes.{d.name}.modes",
+                                          f"the finished {mode}-loop search of the run (run.json mode {config.mode!r})",
+                                          "none" if m is None else f"{m.get('n_queries')} queries")
         held = d / "heldout.json.gz"
         out.append({"setting": d.parent.parent.name, "seed": int(d.parent.name[4:]), "scene": d.name,
-                    "run": read_json(run_json), "summary": read_json(d / "summary.json"),
-                    "heldout": read_json(held)["evaluations"] if held.exists() else {}})
+                    "run": run.value, "summary": summary.value,
+                    "heldout": HeldoutStore(held).evaluations if held.exists() else {}})
     return out
 
 
@@ -549,7 +665,8 @@ def reported_block(table_json: Path) -> tuple[list[int], list[str]] | None:
     """The run seeds and scenes a kept ``table.json`` reports (None without one)."""
     if not table_json.exists():
         return None
-    rows = json.loads(table_json.read_text()).get("rows", {}).values()
+    rows = _json_object(table_json).get("rows", {})
+    rows = rows.values() if isinstance(rows, dict) else []
     seeds = sorted({s for r in rows for s in r.get("seeds", [])})
     scenes = sorted({c for r in rows for m in r.get("metrics", {}).values() for c in m.get("per_scene", {})})
     return (seeds, scenes) if seeds and scenes else None
@@ -559,18 +676,20 @@ def journal_compute(results: Path, setting: str, seed: int, scene: str, mode: st
     """(queries, sum of their ``wall_s``) of one kept search's journal, one mode: the episodes
     the search spent and their wall time on the workers (s; the searcher's own ask/tell time,
     in the driver, is not in the journal)."""
-    import gzip
+    from adv3d_runner.attack.journal import check_record
+    from adv3d_runner.fileio import MAX_JSON_BYTES, gunzip, parse_json, read_bytes
+    from adv3d_runner.validate import Node
 
     path = results / "runs" / setting / f"seed{seed}" / scene / "queries.jsonl.gz"
     if not path.exists():
         return 0, 0.0
     n, wall = 0, 0.0
-    with gzip.open(path, "rt") as fh:
-        for line in fh:
-            rec = json.loads(line)
-            if rec.get("mode") == mode:
-                n += 1
-                wall += float(rec.get("wall_s") or 0.0)
+    data = gunzip(read_bytes(path, what="journal"), limit=4 * MAX_JSON_BYTES, path=path)
+    for i, line in enumerate(data.splitlines()):
+        rec = check_record(Node(parse_json(line, path), f"line {i + 1}: $", path))
+        if rec["mode"] == mode:
+            n += 1
+            wall += float(rec.get("wall_s") or 0.0)
     return n, wall
 
 
@@ -631,23 +750,61 @@ def _cell(est: float, lo: float, hi: float) -> str:
     return f"{_fmt(est)} [{_fmt(lo)}, {_fmt(hi)}]"
 
 
-def build_table(spec: TableSpec, autonomy: str, results_root: Path, budget: int = 100) -> Path:
-    """table.json and table.md of a table folder, from its kept files alone."""
+def _missing_from(kept: list[dict], settings: list[str], floor: tuple[list[int], list[str]], eval_seeds: int,
+                  results: Path) -> list[str]:
+    """What keeps the block a table reported before (``floor``) from being reported again: per
+    (run seed, scene, setting) of it without a finished kept run, its folder and why."""
+    by_unit = {(k["seed"], k["scene"], k["setting"]): k for k in kept}
+    out = []
+    for seed in floor[0]:
+        for scene in floor[1]:
+            for setting in settings:
+                d = results / "runs" / setting / f"seed{seed}" / scene
+                k = by_unit.get((seed, scene, setting))
+                if k is None:
+                    out.append(f"{d}: missing")
+                elif not unit_complete(k, eval_seeds):
+                    out.append(f"{d / 'heldout.json.gz'}: fewer than the {eval_seeds} held-out evaluations per "
+                               "evaluated shape it held")
+    return out
+
+
+def build_table(spec: TableSpec, autonomy: str, results_root: Path, budget: int = 100, only: bool = False) -> Path:
+    """table.json and table.md of a table folder, from its kept files alone (:func:`load_kept`
+    checks them). ``only`` (``--table-only``): the folder must hold a table's protocol.json.
+
+    Raises:
+        ConfigError: a kept run is missing or incomplete where the table reported it before
+            (rebuilding would drop it), or nothing is kept (``only``).
+        FileFormatError: a kept file is damaged (naming it)."""
     from adv3d_runner.attack.config import AttackConfig
     from adv3d_runner.attack.objective import TERMS, term_split
     from adv3d_runner.attack.protocol import LOWER_IS_WORSE, metric_value, metrics_for, scene_means
     from adv3d_runner.fileio import atomic_write_text, write_json
     from adv3d_runner.metrics.stats import bootstrap_ci, paired_summary
 
+    from adv3d_runner.errors import ConfigError
+
     results = results_root / spec.folder(autonomy, budget)
     METRICS = metrics_for(autonomy)
+    if only and not (results / "protocol.json").is_file():
+        raise ConfigError(f"{results}: no protocol.json, so no table was run there (--results {results_root}, "
+                          f"{spec.name}, --autonomy {autonomy}, --budget {budget}); nothing to rebuild")
     kept = load_kept(results)
-    proto = json.loads((results / "protocol.json").read_text()) if (results / "protocol.json").exists() else {}
+    proto = read_protocol(results / "protocol.json") if (results / "protocol.json").exists() else {}
     outside = {}
     if proto.get("scenes") and proto.get("seeds"):
         scene_ids = [scene_id_of(s["path"]) for s in proto["scenes"]]
-        seeds, scenes = complete_block(kept, list(spec.settings), list(proto["seeds"]), scene_ids,
-                                       int(proto.get("eval_seeds") or 0), reported_block(results / "table.json"))
+        floor = reported_block(results / "table.json")
+        eval_seeds = int(proto.get("eval_seeds") or 0)
+        seeds, scenes = complete_block(kept, list(spec.settings), list(proto["seeds"]), scene_ids, eval_seeds, floor)
+        if floor is not None and not (set(floor[0]) <= set(seeds) and set(floor[1]) <= set(scenes)):
+            missing = _missing_from(kept, list(spec.settings), floor, eval_seeds, results)
+            shown = "; ".join(missing[:3]) + (f"; and {len(missing) - 3} more" if len(missing) > 3 else "")
+            raise ConfigError(f"{results / 'table.json'} reports run seeds {', '.join(map(str, floor[0]))} x "
+                              f"{len(floor[1])} scenes, but the kept runs no longer make that block ({shown}): "
+                              "rebuilding would drop them from the table; restore the files or run the campaign's "
+                              "command again to finish them (the table was not rewritten)")
         # what is kept beyond the reported block: searches of a seed or scene still growing
         for k in kept:
             if not (k["seed"] in seeds and k["scene"] in scenes):
@@ -1025,7 +1182,7 @@ def list_tables(results_root: Path | None = None) -> str:
     if folders:
         out += ["", f"Kept tables in {results_root} (as last built with --table-only):"]
     for folder in folders:
-        doc = json.loads((folder / "table.json").read_text())
+        doc = _json_object(folder / "table.json")
         proto = doc.get("protocol", {})
         seeds, scenes = reported_block(folder / "table.json") or ([], [])
         line = (f"{folder.name}: run seeds {', '.join(map(str, seeds)) or '-'} x {len(scenes)} scenes reported"
@@ -1037,41 +1194,87 @@ def list_tables(results_root: Path | None = None) -> str:
     return "\n".join(out)
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def build_parser() -> argparse.ArgumentParser:
+    """The command line, typed like ``adv3d``'s (``adv3d_runner.argtypes``; a bad value is one
+    usage line and exit code 2, ``adv3d_runner.cli.Parser``)."""
+    from adv3d_runner import argtypes as at
+    from adv3d_runner.attack.config import AUTONOMY, MAX_BUDGET, MAX_SECONDS
+    from adv3d_runner.cli import Parser
+
+    p = Parser(prog="paper_tables.py", description=__doc__.splitlines()[0])
     p.add_argument("table", nargs="?", choices=sorted(TABLES), help="which table")
     p.add_argument("--list", action="store_true", help="list the tables and what each still needs")
-    p.add_argument("--autonomy", default="A", help="stack under test (default A)")
-    p.add_argument("--scenes", type=int, default=5, help="generated scenes, over every density (default 5)")
-    p.add_argument("--real", type=int, default=2, help="real benchmark scenes (default 2)")
-    p.add_argument("--seeds", type=int, default=3, help="run seeds 0..S-1 (default 3)")
-    p.add_argument("--budget", type=int, default=100, help="queries per search (default 100, the paper's)")
-    p.add_argument("--n-initial", type=int, default=11, help="BO's Latin-hypercube start (default 11)")
-    p.add_argument("--seconds", type=float, default=5.0, help="episode length in s (default 5)")
-    p.add_argument("--eval-seeds", type=int, default=3, help="held-out noise seeds per scene and run seed (default 3)")
+    p.add_argument("--autonomy", default="A", choices=AUTONOMY, help="stack under test (default A)")
+    p.add_argument("--scenes", type=at.integer(0, 10_000), default=5,
+                   help="generated scenes, over every density (default 5)")
+    p.add_argument("--real", type=at.integer(0, 10_000), default=2, help="real benchmark scenes (default 2)")
+    p.add_argument("--seeds", type=at.integer(1, MAX_SEEDS), default=3, help="run seeds 0..S-1 (default 3)")
+    # Table 5 runs random search on 5 x --budget queries: every setting's budget stays within the attack's
+    p.add_argument("--budget", type=at.integer(1, MAX_BUDGET // 5), default=100,
+                   help="queries per search (default 100, the paper's)")
+    p.add_argument("--n-initial", type=at.integer(1, MAX_BUDGET), default=11,
+                   help="BO's Latin-hypercube start (default 11)")
+    p.add_argument("--seconds", type=at.number(0.0, MAX_SECONDS, lo_open=True), default=5.0,
+                   help="episode length in s (default 5)")
+    p.add_argument("--eval-seeds", type=at.integer(1, MAX_SEEDS), default=3,
+                   help="held-out noise seeds per scene and run seed (default 3)")
     p.add_argument("--pred-reduction", default="sum", choices=("sum", "mean"),
                    help="the objective's prediction term over the waypoints (default sum, Eq. 5)")
-    p.add_argument("--workers", type=int, default=1, help="worker processes (default 1)")
-    p.add_argument("--batch", type=int, default=1, help="queries a search asks at once (default 1, the paper's BO)")
-    p.add_argument("--work", default=str(REPO / "runs" / "paper"), help="run folders (default runs/paper)")
-    p.add_argument("--results", default=str(REPO / "docs" / "results"), help="kept files (default docs/results)")
-    p.add_argument("--shard", default=None, metavar="I/N",
+    p.add_argument("--workers", type=at.integer(1, 256), default=1, help="worker processes (default 1)")
+    p.add_argument("--batch", type=at.integer(1, 4096), default=1,
+                   help="queries a search asks at once (default 1, the paper's BO)")
+    p.add_argument("--work", type=folder_type, default=str(REPO / "runs" / "paper"),
+                   help="run folders (default runs/paper in the repository)")
+    p.add_argument("--results", type=folder_type, default=str(REPO / "docs" / "results"),
+                   help="kept files (default docs/results in the repository)")
+    p.add_argument("--shard", type=shard_type, default=None, metavar="I/N",
                    help="run only every N-th unit (seed, setting, scene) from the I-th: N processes side by side "
                         "on one machine, each with its own compute file; then --table-only")
     p.add_argument("--table-only", action="store_true", help="rebuild table.md/json from the kept files, run nothing")
-    p.add_argument("--source-autonomy", default=None,
+    p.add_argument("--source-autonomy", default=None, choices=AUTONOMY,
                    help="transfer: the stack whose table1 shapes are evaluated (default: the other of A and B)")
-    args = p.parse_args(argv)
-    if args.list or not args.table:
-        print(list_tables(Path(args.results)))
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run a table (or rebuild it, or list the tables). Exit codes as ``adv3d``'s: 0 done, 1 an
+    error (one line, naming the file or what to do), 2 a bad option value (one usage line)."""
+    from adv3d_runner.errors import Adv3dError
+
+    p = build_parser()
+    args = p.parse_args(argv)  # a bad value: one usage line, SystemExit(2)
+    if args.table == "transfer" and args.source_autonomy is not None and args.source_autonomy == args.autonomy:
+        p.error("argument --source-autonomy: must differ from --autonomy")
+    # Scene paths (protocol.json, run.json, summaries) are the repository's: run inside it,
+    # whatever folder the command was started from (--work and --results are absolute by now).
+    cwd = os.getcwd()
+    os.chdir(REPO)
+    try:
+        if args.list or not args.table:
+            print(list_tables(Path(args.results)))
+            return 0
+        spec = TABLES[args.table]
+        if not args.table_only and not spec.needs and spec.name != "transfer":
+            from adv3d_runner.attack.protocol import select_scenes
+            from adv3d_runner.errors import ConfigError
+
+            if args.scenes + args.real == 0:
+                p.error("argument --scenes/--real: a table needs at least one scene (got --scenes 0 --real 0)")
+            try:  # more scenes than the benchmark holds: a bad value, refused before anything runs
+                select_scenes(args.scenes, args.real)
+            except ConfigError as exc:
+                p.error(f"argument --scenes/--real: {exc}")
+        if args.table_only:
+            path = build_table(spec, args.autonomy, Path(args.results), args.budget, only=True)
+        else:
+            path = run_table(spec, args)
+        print(f"wrote {path}")
         return 0
-    spec = TABLES[args.table]
-    if args.table_only:
-        path = build_table(spec, args.autonomy, Path(args.results), args.budget)
-    else:
-        path = run_table(spec, args)
-    print(f"wrote {path}")
-    return 0
+    except Adv3dError as exc:
+        print(f"{p.prog}: error: {exc}", file=sys.stderr)
+        return 1
+    finally:
+        os.chdir(cwd)
 
 
 if __name__ == "__main__":

@@ -39,9 +39,8 @@ def test_paper_numbers_are_the_papers():
             assert any(_subsequence(want, _numbers(ln)) for ln in lines if "&" in ln), (name, row)
 
 
-def test_driver_smoke_run_resume_and_rebuild(tmp_path):
+def test_driver_smoke_run_resume_and_rebuild(tmp_path, capsys):
     mod = _driver()
-    from adv3d_runner.errors import ConfigError
 
     args = ["table1", "--scenes", "1", "--real", "0", "--seeds", "1", "--budget", "2", "--n-initial", "2",
             "--seconds", "0.3", "--eval-seeds", "1", "--work", str(tmp_path / "work"), "--results", str(tmp_path / "res")]
@@ -96,12 +95,14 @@ def test_driver_smoke_run_resume_and_rebuild(tmp_path):
     proto = json.loads(proto_path.read_text())
     assert proto["versions"]["models"]["detector"]
     proto_path.write_text(json.dumps({**proto, "versions": {**proto["versions"], "models": {"detector": "0" * 16}}}))
-    with pytest.raises(ConfigError, match="model weights"):
-        mod.main(args)
+    capsys.readouterr()
+    assert mod.main(args) == 1   # one line, exit code 1, as adv3d's errors
+    err = capsys.readouterr().err
+    assert err.startswith("paper_tables.py: error: ") and "model weights" in err and err.count("\n") == 1
     proto_path.write_text(json.dumps(proto))
     # growing the table with other protocol values is refused (another budget is another folder)
-    with pytest.raises(ConfigError, match="seconds"):
-        mod.main([*args[:11], "--seconds", "0.4", *args[13:]])
+    assert mod.main([*args[:11], "--seconds", "0.4", *args[13:]]) == 1
+    assert "seconds" in capsys.readouterr().err
 
 
 def test_shards_split_the_units_and_merge_their_compute(tmp_path):
@@ -380,3 +381,153 @@ def test_list_names_each_kept_tables_block_and_what_grows_beyond_it(tmp_path):
     assert ("table2_A_b20: run seeds 0 x 2 scenes reported (protocol: seeds 0, 1, 2, 2 scenes, budget 20); "
             "run seed 1: 7 of 36 searches kept") in text
     assert "table2: Table 2" in text
+
+
+# ------------------------------------------------------------------ the command line's rules
+
+@pytest.mark.parametrize("bad, option", [
+    (["--scenes", "-1"], "--scenes"), (["--real", "-5"], "--real"), (["--budget", "0"], "--budget"),
+    (["--budget", "-5"], "--budget"), (["--seconds", "-1"], "--seconds"), (["--seconds", "nan"], "--seconds"),
+    (["--n-initial", "-1"], "--n-initial"), (["--batch", "0"], "--batch"), (["--shard", "3/2"], "--shard"),
+    (["--shard", "abc"], "--shard"), (["--shard", "0/0"], "--shard"), (["--autonomy", "Z"], "--autonomy"),
+    (["--eval-seeds", "-1"], "--eval-seeds"), (["--seeds", "-1"], "--seeds"), (["--seeds", "0"], "--seeds"),
+    (["--workers", "0"], "--workers"), (["--budget", "99999999999999999999"], "--budget"),
+    (["--seeds", "1001"], "--seeds"), (["--scenes", "0", "--real", "0"], "--scenes/--real"),
+    (["--scenes", "5000"], "--scenes/--real"), (["--source-autonomy", "Q"], "--source-autonomy"),
+    (["--results", "{file}"], "--results"), (["--work", "{file}/sub"], "--work")])
+def test_a_bad_option_is_one_usage_line_and_exit_2_before_anything_runs(tmp_path, capsys, bad, option):
+    """Every bad value of bench/paper_tables.py is refused by its argparse type (the CLI's
+    adv3d_runner.argtypes) with one usage line naming the option, exit code 2, before any attack
+    runs or anything is written (docs/reliability.md)."""
+    mod = _driver()
+    (tmp_path / "file").write_text("the user's file")
+    bad = [b.format(file=tmp_path / "file") for b in bad]
+    base = {"--scenes": "1", "--real": "0", "--seeds": "1", "--budget": "1", "--n-initial": "1", "--seconds": "0.2",
+            "--eval-seeds": "1", "--work": str(tmp_path / "work"), "--results": str(tmp_path / "res")}
+    for flag in bad[::2]:
+        base.pop(flag, None)
+    argv = ["table1", "--autonomy", "oracle"] if "--autonomy" not in bad else ["table1"]
+    argv += [w for kv in base.items() for w in kv] + bad
+    with pytest.raises(SystemExit) as exc:
+        mod.main(argv)
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("paper_tables.py: error: ") and option in err, err
+    assert "Traceback" not in err
+    assert not (tmp_path / "work").exists() and not (tmp_path / "res").exists()
+    assert (tmp_path / "file").read_text() == "the user's file"
+
+
+def test_the_driver_runs_from_any_folder(tmp_path):
+    """Started from another folder (here the test's own), scene paths are still the
+    repository's, and --work / --results are taken relative to that folder."""
+    import subprocess
+    import sys
+
+    cmd = [sys.executable, str(REPO / "bench" / "paper_tables.py"), "table1", "--autonomy", "oracle", "--scenes", "1",
+           "--real", "0", "--seeds", "1", "--budget", "1", "--n-initial", "1", "--seconds", "0.2", "--eval-seeds", "1",
+           "--work", "work", "--results", "res"]
+    out = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr[-2000:]
+    table = json.loads((tmp_path / "res" / "table1_oracle_b1" / "table.json").read_text())
+    assert table["rows"]["Adv. closed-loop"]["n_scenes"] == 1
+    assert (tmp_path / "work" / "table1_oracle_b1" / "bo" / "seed0").is_dir()
+    run = json.loads((tmp_path / "res" / "table1_oracle_b1" / "runs" / "bo" / "seed0" / "highway-benchmark-000000"
+                      / "run.json").read_text())
+    assert run["scenes"] == ["scenes/highway/highway-benchmark-000000.json.gz"]   # kept relative to the repository
+
+
+@pytest.fixture(scope="module")
+def kept_table(tmp_path_factory):
+    """A tiny kept table (oracle stack, one scene, one seed, budget 1), made once."""
+    mod = _driver()
+    root = tmp_path_factory.mktemp("kept")
+    argv = ["table1", "--autonomy", "oracle", "--scenes", "1", "--real", "0", "--seeds", "1", "--budget", "1",
+            "--n-initial", "1", "--seconds", "0.2", "--eval-seeds", "1", "--work", str(root / "work"),
+            "--results", str(root / "res")]
+    assert mod.main(argv) == 0
+    return root / "res" / "table1_oracle_b1"
+
+
+def _damage(folder: Path, what: str) -> Path:
+    """Damage one kept file of a table folder's only run; returns the file named in the error."""
+    import gzip
+
+    run = folder / "runs" / "bo" / "seed0" / "highway-benchmark-000000"
+    summary = run / "summary.json"
+    doc = json.loads(summary.read_text())
+    entry = doc["scenes"]["highway-benchmark-000000"]
+    if what == "garbled summary":
+        summary.write_bytes(summary.read_bytes()[:200] + b"\x00garbage")
+    elif what == "empty summary":
+        summary.write_text("{}")
+    elif what == "summary without its scene":
+        summary.write_text(json.dumps({**doc, "scenes": {}}))
+    elif what == "summary without a mode":
+        entry["modes"].pop("open")
+        summary.write_text(json.dumps(doc))
+    elif what == "summary missing":
+        summary.unlink()
+    elif what == "run.json missing":
+        (run / "run.json").unlink()
+        return run / "run.json"
+    elif what == "run.json garbled":
+        (run / "run.json").write_text('{"format": "adv3d.attack_run", "version": 2, "scenes": [], "budget": -1}')
+        return run / "run.json"
+    elif what == "heldout missing":
+        (run / "heldout.json.gz").unlink()
+        return run / "heldout.json.gz"
+    elif what == "heldout garbled":
+        held = json.loads(gzip.decompress((run / "heldout.json.gz").read_bytes()))
+        key = next(iter(held["evaluations"]))
+        held["evaluations"]["no-bars"] = held["evaluations"].pop(key)
+        (run / "heldout.json.gz").write_bytes(gzip.compress(json.dumps(held).encode()))
+        return run / "heldout.json.gz"
+    elif what == "protocol garbled":
+        (folder / "protocol.json").write_text('{"scenes": [{"path": "../../etc/passwd"}], "seeds": [0]}')
+        return folder / "protocol.json"
+    elif what == "bad seed folder":
+        (folder / "runs" / "bo" / "seedX" / "s").mkdir(parents=True)
+        return folder / "runs" / "bo" / "seedX"
+    return summary
+
+
+@pytest.mark.parametrize("what", ["garbled summary", "empty summary", "summary without its scene",
+                                  "summary without a mode", "summary missing", "run.json missing", "run.json garbled",
+                                  "heldout missing", "heldout garbled", "protocol garbled", "bad seed folder"])
+def test_table_only_refuses_a_damaged_kept_folder_naming_the_file(kept_table, tmp_path, capsys, what):
+    """--table-only over a kept folder with a garbled or incomplete file: one line naming the
+    file, exit code 1, and the table as it was (never rebuilt with fewer scenes)."""
+    import shutil
+
+    mod = _driver()
+    folder = tmp_path / kept_table.name
+    shutil.copytree(kept_table, folder)
+    before = {p: (folder / p).read_bytes() for p in ("table.md", "table.json")}
+    named = _damage(folder, what)
+    capsys.readouterr()
+    assert mod.main(["table1", "--autonomy", "oracle", "--budget", "1", "--table-only", "--results", str(tmp_path)]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("paper_tables.py: error: ") and str(named) in err, err
+    assert {p: (folder / p).read_bytes() for p in before} == before
+    # the undamaged folder rebuilds
+    assert mod.main(["table1", "--autonomy", "oracle", "--budget", "1", "--table-only", "--results",
+                     str(kept_table.parent)]) == 0
+
+
+def test_table_only_needs_a_table_folder(tmp_path, capsys):
+    mod = _driver()
+    assert mod.main(["table1", "--budget", "1", "--table-only", "--results", str(tmp_path)]) == 1
+    assert "no protocol.json" in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())
+
+
+def test_a_table_whose_search_does_not_fit_in_memory_is_refused_before_anything_is_written(tmp_path, capsys):
+    """A budget whose BO matrices pass the memory budget (docs/reliability.md, "Memory"): one
+    line naming --budget, exit code 1, before the protocol or any run folder is written."""
+    mod = _driver()
+    assert mod.main(["table1", "--autonomy", "oracle", "--scenes", "1", "--real", "0", "--budget", "20000",
+                     "--work", str(tmp_path / "work"), "--results", str(tmp_path / "res")]) == 1
+    err = capsys.readouterr().err
+    assert "--budget 20000" in err and "GiB" in err and err.count("\n") == 1
+    assert not any(tmp_path.iterdir())

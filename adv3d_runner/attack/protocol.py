@@ -204,6 +204,27 @@ def heldout_key(scene_id: str, what: str, seed: int) -> str:
     return f"{scene_id}|{what}|{int(seed)}"
 
 
+def check_heldout_record(node, key: str) -> None:
+    """One stored held-out evaluation: its key ``scene|what|seed`` (:func:`heldout_key`) and
+    record (``seed`` equal to the key's, ``cost`` a number or null, ``components`` and
+    ``metrics`` objects, ``unit`` null or a list of numbers in [0, 1]); FileFormatError naming
+    the file and key."""
+    from ..argtypes import SEED_MAX
+
+    parts = key.split("|")
+    if len(parts) != 3 or not parts[0] or not parts[1] or not parts[2].isdigit() or int(parts[2]) > SEED_MAX:
+        node.fail("a key scene|what|seed (seed an integer)", key)
+    node.object("a held-out evaluation record")
+    if node["seed"].integer(lo=0, hi=SEED_MAX) != int(parts[2]):
+        node["seed"].fail(f"the seed of its key ({parts[2]})", node["seed"].value)
+    if node["cost"].value is not None:
+        node["cost"].number()
+    node.get("components", {}).object()
+    node.get("metrics", {}).object()
+    if node.get("unit").value is not None:
+        node["unit"].numbers(min_length=1, lo=0.0, hi=1.0)
+
+
 class HeldoutStore:
     """Held-out evaluations of one run folder, kept in a ``.json.gz`` file (format
     ``adv3d-heldout``, version 1: ``{"format", "version", "evaluations": {key: record}}``; a
@@ -222,7 +243,10 @@ class HeldoutStore:
         if self.path.exists():
             doc = Node(read_json(self.path), "$", self.path)
             check_header(doc, self.FORMAT, (self.VERSION,))
-            self.evaluations = dict(doc["evaluations"].object())
+            evaluations = doc["evaluations"]
+            for key, rec in evaluations.object().items():
+                check_heldout_record(evaluations.child(key, rec), key)
+            self.evaluations = dict(evaluations.value)
 
     def get(self, key: str, unit: np.ndarray | None) -> dict | None:
         """The stored record of ``key`` when it evaluated the same unit vector (else None: a
