@@ -229,10 +229,13 @@ def _finish(proc: subprocess.Popen, timeout: float = 900) -> None:
 
 
 def _trials(child: list[str], env: dict, n: int, rng: np.random.Generator, work: Path, prefix: str,
-            budget: int, label: str) -> dict:
+            budget: int, label: str, window: str = "run") -> dict:
     """An uninterrupted run of ``child OUT MARKERS``, then ``n`` runs killed (``SIGKILL`` to the
-    process group) at a seeded uniform moment after their first finished query, within 80 % of
-    the rest of the uninterrupted run, each resumed to the end.
+    process group) at a seeded uniform moment after their first finished query: within 80 % of
+    the rest of the uninterrupted run (``window="run"``), or, for the real command, whose best
+    shape's closed-loop evaluation takes a good part of a run, until the uninterrupted run's
+    last query finished (``"queries"``: every kill lands while queries are evaluated); each
+    resumed to the end.
 
     Per kill: the queries finished at the kill (their worker had the result: a marker), those
     durable then (a journal or pending line written and fsynced: ``_time_writes``), those
@@ -242,11 +245,13 @@ def _trials(child: list[str], env: dict, n: int, rng: np.random.Generator, work:
     uninterrupted one (everything but wall times)."""
     ref = work / f"{prefix}reference"
     ref_markers = work / f"{prefix}reference.markers"
-    t0 = time.perf_counter()
+    t0, t0_wall = time.perf_counter(), time.time()
     proc = _start(child + [str(ref), str(ref_markers)], env)
     first_s = _wait_for([ref_markers], proc)
     _finish(proc)
     ref_s = time.perf_counter() - t0
+    last_s = max(t for _, t in _markers(ref_markers)[0]) - t0_wall  # the last query finished
+    span = 0.8 * (ref_s - first_s) if window == "run" else max(0.0, last_s - first_s)
     reference = _strip(_records(ref / "queries.jsonl"))
     assert len(reference) == budget, (len(reference), budget)
     ref_finished, ref_left = _markers(ref_markers)
@@ -259,7 +264,7 @@ def _trials(child: list[str], env: dict, n: int, rng: np.random.Generator, work:
         out, markers = work / f"{prefix}run{k}", work / f"{prefix}run{k}.markers"
         # kills land at a uniform moment of the evaluation phase: after the first query finished
         # (process start-up is not interesting), before the end of the run
-        delay = float(rng.uniform(0.0, 0.8 * (ref_s - first_s)))  # 0.8: runs end a little sooner than the reference
+        delay = float(rng.uniform(0.0, span))  # "run": 0.8, as runs end a little sooner than the reference
         proc = _start(child + [str(out), str(markers)], env)
         waited = _wait_for([markers], proc)
         time.sleep(delay)
@@ -310,6 +315,7 @@ def _trials(child: list[str], env: dict, n: int, rng: np.random.Generator, work:
                 "max": round(max(xs), 1) if xs else None}
 
     return {"reference_wall_s": round(ref_s, 2), "reference_first_query_s": round(first_s, 2),
+            "reference_last_query_s": round(last_s, 2), "kill_window": window, "kill_window_s": round(span, 2),
             "journal_write_ms": stat(write_ms), "finished_to_durable_ms_uninterrupted": stat(to_durable),
             "trials": trials,
             "totals": {"kills": n, "kills_before_the_last_query": sum(t["finished_at_kill"] < budget for t in trials),
@@ -344,7 +350,7 @@ def real_trials(code: Path, n: int, rng: np.random.Generator, work: Path) -> dic
     argv = ["-q", "attack", str(ROOT / REAL_SCENE)] + [w for k, v in REAL_ARGS.items() for w in (f"--{k}", str(v))]
     me = [sys.executable, str(Path(__file__).resolve()), "--real-child", json.dumps(argv)]
     return {"command": "adv3d " + " ".join(argv) + " --out OUT",
-            **_trials(me, env, n, rng, work, "real-", REAL_ARGS["budget"], "real")}
+            **_trials(me, env, n, rng, work, "real-", REAL_ARGS["budget"], "real", window="queries")}
 
 
 def main() -> None:
