@@ -305,7 +305,7 @@ def _run_set(paths: list[Path], autonomy: str, seconds: float, workers: int, rea
 
 
 def main() -> int:
-    from adv3d_runner.autonomy.plugins import stack_spec
+    from adv3d_runner.autonomy.names import stack_spec
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="10 generated scenes instead of 100 (the real set is small)")

@@ -36,7 +36,7 @@ def _objective(text: str) -> str:
 
 def register(subparsers) -> None:
     from .. import argtypes as at
-    from ..autonomy.plugins import stack_spec
+    from ..autonomy.names import stack_spec
     from .config import MAX_MAHALANOBIS, MAX_REALISM_WEIGHT, MODES, SHAPE_MODELS
     from .realism_constraints import PRESETS
     from .search import ALGORITHMS

@@ -14,7 +14,7 @@ from pathlib import Path
 
 def register(subparsers) -> None:
     from .. import argtypes as at
-    from ..autonomy.plugins import stack_spec
+    from ..autonomy.names import stack_spec
 
     p = subparsers.add_parser("simulate", help="run one closed- or open-loop episode on a scene",
                               description=__doc__.splitlines()[0])
