@@ -368,7 +368,7 @@ def test_lidar_render_command(tmp_path, repo_root):
     # Same seed, same file.
     first = out.read_bytes()
     assert main(args) == 0 and out.read_bytes() == first
-    assert main(["-q", "lidar", "render", str(scenes[0]), "--frame", "100000", "-o", str(out)]) == 1
+    assert main(["-q", "lidar", "render", str(scenes[0]), "--frame", "100000", "-o", str(out)]) == 2  # past the scene
 
 
 def test_scene_with_unknown_lidar_model_names_the_field(repo_root):
