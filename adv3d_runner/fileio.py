@@ -47,6 +47,18 @@ MAX_JSON_BYTES = 256 * 2**20
 MAX_JSON_DEPTH = 64
 _CHUNK = 1 << 20
 
+#: The memory budget of one input: the most an array, or the working set of one step, sized by
+#: a number the user or a file gives (a lattice, a frame or actor count, a search budget) may
+#: take. A size that would need more is refused before anything is allocated, naming the option
+#: or field that sets it (docs/reliability.md, "Memory"): a laptop runs a worker process per
+#: core beside the driver, each of which may hold such an input.
+MEMORY_BUDGET = 4 * 2**30
+
+
+def gib(nbytes: float) -> str:
+    """Bytes in GiB for messages (``246 GiB``, ``0.012 GiB``)."""
+    return f"{nbytes / 2**30:.3g} GiB"
+
 #: An id that becomes a file or folder name: letters, digits, ``_ . -``, starting with a letter
 #: or digit (so never ``.`` / ``..``, never a hidden file, never a separator), at most 128 chars.
 SAFE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,127}")
@@ -262,7 +274,15 @@ def gunzip(raw: bytes, *, limit: int = MAX_JSON_BYTES, path: str | Path | None =
     for a corrupt or truncated body or a larger result)."""
     try:
         with gzip.GzipFile(fileobj=io.BytesIO(raw)) as fh:
-            data = fh.read(limit + 1)
+            # in chunks: read(limit + 1) would set aside limit + 1 bytes for a file of any size
+            chunks, total = [], 0
+            while total <= limit:
+                chunk = fh.read(min(_CHUNK, limit + 1 - total))
+                if not chunk:
+                    break
+                chunks.append(chunk)
+                total += len(chunk)
+            data = b"".join(chunks)
     except (OSError, EOFError, zlib.error) as exc:
         raise FileFormatError(path, "$", "gzip-compressed data", f"{type(exc).__name__}: {exc}") from None
     if len(data) > limit:
@@ -285,9 +305,20 @@ def json_depth(raw: bytes) -> int:
     return _depth(_JSON_STRING.sub(b"", raw))
 
 
+#: Bytes of JSON text per block of :func:`_depth` (its temporaries are ~5 times that).
+_DEPTH_BLOCK = 8 << 20
+
+
 def _depth(stripped: bytes) -> int:
+    """Deepest bracket nesting of JSON text without strings, block by block (the running depth
+    carried over), so its temporaries stay small whatever the document's size."""
     codes = np.frombuffer(stripped, np.uint8)
-    return int(np.cumsum(_BRACKETS[codes], dtype=np.int64).max()) if len(codes) else 0
+    deepest = level = 0
+    for i in range(0, len(codes), _DEPTH_BLOCK):
+        run = np.cumsum(_BRACKETS[codes[i:i + _DEPTH_BLOCK]], dtype=np.int32)
+        deepest = max(deepest, level + int(run.max()))
+        level += int(run[-1])
+    return deepest
 
 
 def _first_non_finite(doc: Any) -> str | None:

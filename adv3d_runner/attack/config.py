@@ -239,6 +239,25 @@ class AttackConfig:
         if not isinstance(self.objective, str):
             raise ConfigError(f"--objective must be a string, got {self.objective!r}")
         parse_objective(self.objective, self.autonomy)  # validate early (B has its own presets)
+        self._check_memory()
+
+    def _check_memory(self) -> None:
+        """The search's arrays within ``fileio.MEMORY_BUDGET`` (``search.check_search_memory``):
+        exactly for vertex deformation, whose dimension the options give; for the latent model
+        with one dimension per actor, a lower bound (the shape space gives K + 2), which catches a
+        budget too large for the searcher's own matrices here; the run checks the exact one."""
+        from .search import check_search_memory
+        from .vertex_deform import lattice_dim
+
+        if self.shape_model == "vd":
+            per_actor = lattice_dim(self.vd_lattice)
+            check_search_memory(self.algo, per_actor * self.actors, self.budget, self.n_initial, self.batch,
+                                what=f"--vd-lattice {','.join(map(str, self.vd_lattice))} ({per_actor} dimensions "
+                                     f"per actor, --actors {self.actors})")
+        elif self.algo != "bruteforce":
+            check_search_memory(self.algo, self.actors, self.budget, self.n_initial, self.batch,
+                                what=f"--actors {self.actors}" if self.algo == "grid" else f"--budget {self.budget}")
+
 
     def _check_shape_options(self) -> None:
         if self.shape_model not in SHAPE_MODELS:

@@ -61,7 +61,7 @@ from ..fileio import resolve_inside
 from .config import MODES, AttackConfig, QuerySettings
 from .evaluator import BestEvaluation, EpisodeEvaluator, Query, QueryEvaluator, QueryResult, run_query
 from .journal import Journal, query_record, record_cost, record_unit
-from .search import make_searcher
+from .search import check_search_memory, make_searcher
 
 __all__ = ["MODES", "AttackConfig", "SceneRun", "check_outcome", "make_executor", "run_attack"]
 
@@ -473,6 +473,19 @@ def run_attack(config: AttackConfig, out: str | Path, *, workers: int | None = 1
     for sid in ids:
         resolve_inside(root, f"scenes/{sid}", field="scene id", inside="the run folder")
     digests = [ev.scene_digest(ref) for ref in config.scenes]
+    # each scene's targets and search dimension, and the search's memory (the dimension is the
+    # shape space's or the lattice's per actor): a search too big for memory is refused here
+    plans: list[tuple[list[int], int] | ConfigError] = []
+    for ref, sid in zip(config.scenes, ids):
+        try:
+            targets, dim = ev.targets(ref)
+        except ConfigError as exc:  # e.g. no actor in front of the ego: skipped below, the run goes on
+            plans.append(exc)
+            continue
+        check_search_memory(config.algo, dim, config.budget, config.n_initial, config.batch,
+                            what=f"{sid}: --actors {config.actors} ({len(targets)} attacked, {dim // max(1, len(targets))} "
+                                 "dimensions each)")
+        plans.append((targets, dim))
     journal = Journal(root)
     stored = journal.start({**config.run_json(), "library_fingerprint": library_fingerprint_of(config.library),
                             "scene_ids": ids, "scene_sha256": digests, "versions": versions(ev),
@@ -488,13 +501,12 @@ def run_attack(config: AttackConfig, out: str | Path, *, workers: int | None = 1
 
     # every search of the run, in canonical order (skipped scenes recorded as such)
     pending: list[_Search] = []
-    for ref, sid in zip(config.scenes, ids):
-        try:
-            targets, dim = ev.targets(ref)
-        except ConfigError as exc:  # e.g. no actor in front of the ego: skip, keep going
-            note(f"skipping {sid}: {exc}")  # with -q too: the run covers fewer scenes
-            summary["scenes"][sid] = {"ref": ref, "skipped": str(exc)}
+    for ref, sid, plan in zip(config.scenes, ids, plans):
+        if isinstance(plan, ConfigError):  # e.g. no actor in front of the ego: skip, keep going
+            note(f"skipping {sid}: {plan}")  # with -q too: the run covers fewer scenes
+            summary["scenes"][sid] = {"ref": ref, "skipped": str(plan)}
             continue
+        targets, dim = plan
         for mode in config.modes:
             pending.append(_Search(journal, config, ev, ref, sid, mode, targets, dim))
     for search in pending:

@@ -35,6 +35,7 @@ from scipy.linalg import cho_factor, cho_solve, LinAlgError
 from scipy.optimize import minimize
 
 from ..errors import ConfigError
+from ..fileio import MEMORY_BUDGET, gib
 
 ALGORITHMS = ("bo", "random", "grid", "blendsearch", "bruteforce", "skopt")
 
@@ -204,6 +205,24 @@ def matern32_product(A: np.ndarray, B: np.ndarray, length_scale: float = LENGTH_
     Returns:
         (N, M) float64 in (0, 1], exactly 1 on the diagonal of A vs A.
     """
+    A = np.asarray(A, dtype=np.float64)
+    B = np.asarray(B, dtype=np.float64)
+    # row blocks of A, so the four (rows, M, D) temporaries stay under _KERNEL_BLOCK_BYTES whatever
+    # N, M and D are; each entry is the same sum over d, so the result does not depend on the blocks
+    rows = max(1, _KERNEL_BLOCK_BYTES // max(1, 4 * 8 * B.shape[0] * A.shape[1]))
+    if rows >= len(A):
+        return _matern32_block(A, B, length_scale)
+    out = np.empty((len(A), len(B)))
+    for i in range(0, len(A), rows):
+        out[i:i + rows] = _matern32_block(A[i:i + rows], B, length_scale)
+    return out
+
+
+#: Largest temporaries of one block of :func:`matern32_product` (bytes; four (rows, M, D) arrays).
+_KERNEL_BLOCK_BYTES = 32 * 2**20
+
+
+def _matern32_block(A: np.ndarray, B: np.ndarray, length_scale: float) -> np.ndarray:
     r = np.abs(A[:, None, :] - B[None, :, :]) * (np.sqrt(3.0) / length_scale)
     # log-space product: exp(sum_d log(1 + r_d) - r_d) stays accurate for tiny kernel values
     return np.exp(np.sum(np.log1p(r) - r, axis=-1))
@@ -476,6 +495,59 @@ def _quiet_skopt():
     with warnings.catch_warnings(), threadpool_limits(limits=1):
         warnings.simplefilter("ignore", UserWarning)  # ConvergenceWarning is a UserWarning
         yield
+
+
+# ---------------------------------------------------------------------------- memory
+
+#: Acquisition candidates BO scores per ask: ``n_candidates`` uniform points plus 40 around
+#: each of the 5 best points at 3 scales (:meth:`BayesOpt._maximise_ucb`); skopt's ``n_points``.
+_BO_CANDIDATES = 2048 + 3 * 40 * 5
+#: Grid levels per dimension (:class:`GridSearch`).
+_GRID_LEVELS = 3
+
+
+def search_memory(algo: str, dim: int, budget: int, n_initial: int = N_INITIAL, batch: int = 1,
+                  candidates: int = 0) -> float:
+    """Bytes a searcher's arrays take at their largest, its last ask (float64 throughout):
+
+    * every searcher: the told history (budget x D) and one asked batch;
+    * ``bo`` / ``skopt``: the initial design (n_initial x D), the acquisition candidates
+      (:data:`_BO_CANDIDATES` x D), the GP's covariance, its factor and a working copy
+      (3 x budget^2) and the candidates' cross-covariances and solves (4 x candidates x budget),
+      plus one block of the kernel (:data:`_KERNEL_BLOCK_BYTES`);
+    * ``grid``: every point of the 3^D grid, as numpy rows and as the tuples it is built from;
+    * ``blendsearch``: a Python dict per told point (about 100 bytes per entry);
+    * ``bruteforce``: the ``candidates`` rows.
+    A float: a grid's size overflows any integer type numpy has."""
+    dim, budget, n_initial, batch = int(dim), int(budget), int(n_initial), int(batch)
+    need = 8.0 * (budget + batch) * dim
+    if algo in ("bo", "skopt"):
+        need += 8.0 * (n_initial + _BO_CANDIDATES) * dim + 8.0 * 3 * budget * budget \
+            + 8.0 * 4 * _BO_CANDIDATES * budget + _KERNEL_BLOCK_BYTES
+    elif algo == "grid":
+        need += float(_GRID_LEVELS) ** min(dim, 1024) * (8.0 * 2 * dim + 64)
+    elif algo == "blendsearch":
+        need += 100.0 * budget * dim
+    elif algo == "bruteforce":
+        need += 8.0 * int(candidates) * dim
+    return need
+
+
+def check_search_memory(algo: str, dim: int, budget: int, n_initial: int = N_INITIAL, batch: int = 1,
+                        what: str = "") -> None:
+    """Refuse a search whose arrays would take more than ``fileio.MEMORY_BUDGET``
+    (:func:`search_memory`), before any is allocated.
+
+    Raises:
+        ConfigError: naming the options that set the size, ``what`` first (where the dimension
+            comes from, e.g. ``--vd-lattice 1000,1000,1000 (3000000000 dimensions per actor)``).
+    """
+    need = search_memory(algo, dim, budget, n_initial, batch)
+    if need > MEMORY_BUDGET:
+        raise ConfigError(f"{what + ': ' if what else ''}--algo {algo} with --budget {budget} over {dim} search "
+                          f"dimensions would need about {gib(need)} of memory, more than the {gib(MEMORY_BUDGET)} "
+                          "budget (docs/reliability.md, \"Memory\"); give fewer dimensions (actors, lattice nodes) "
+                          "or a smaller --budget")
 
 
 # ---------------------------------------------------------------------------- factory

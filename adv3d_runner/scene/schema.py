@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from ..fileio import read_json, write_json
+from ..fileio import MEMORY_BUDGET, atomic_write_text, dump_json, gib, read_json
 from ..geometry.angles import wrap_angle
 from ..validate import Node, check_header
 from ..vehicle_classes import CLASS_PATTERN, class_examples
@@ -64,6 +64,20 @@ MAX_MARGIN = 10_000.0  # m, shoulders and ground margin
 MAX_SPEED = 150.0   # m/s, recorded speeds and speed limits
 MAX_FRAMES = 100_000  # frames (2.8 h at 10 Hz)
 MAX_DT = 10.0       # s
+#: s: scenes are sampled at 10 Hz, recordings at 10-100 Hz; an episode of --seconds S takes
+#: S / dt frames (1e-9 s would make a 5 s episode 5e9 frames)
+MIN_DT = 1e-3
+#: actors of one scene: the benchmark's busiest has 80; checked before any actor is read, so a
+#: file listing a million is refused at once instead of validated for minutes
+MAX_ACTORS = 10_000
+#: bytes per actor and scene frame of the arrays sized by both (``Scene.actor_poses``: x, y, yaw
+#: float64, the valid flag, and as much again for the episode's working copies); actors x frames
+#: x this stays within ``fileio.MEMORY_BUDGET``
+ACTOR_FRAME_BYTES = 64
+#: Largest scene (JSON bytes, after gzip): the benchmark's biggest is 0.4 MB; 64 MiB holds about
+#: two million actor-frames and keeps reading and checking any scene to seconds. A scene is
+#: refused when written too (save_scene), so nothing writes a scene it could not read back.
+MAX_SCENE_BYTES = 64 * 2**20
 
 
 def _round(values: np.ndarray | float, decimals: int) -> np.ndarray:
@@ -680,6 +694,19 @@ def _load_asset_id(node: Node) -> str | None:
 _SCENE_KEYS = ("format", "version", "id", "source", "dt", "frames", "map", "background", "ego", "actors")
 
 
+def _check_actor_count(nodes: Node, frames: int) -> None:
+    """At most :data:`MAX_ACTORS` actors, and actors x frames within the memory budget, checked
+    on the list's length before any actor is read (validation stays linear and short)."""
+    n = len(nodes.list("a list of actors"))
+    if n > MAX_ACTORS:
+        nodes.fail(f"at most {MAX_ACTORS} actors", f"{n} actors")
+    if n * frames * ACTOR_FRAME_BYTES > MEMORY_BUDGET:
+        most = MEMORY_BUDGET // (frames * ACTOR_FRAME_BYTES)
+        nodes.fail(f"at most {most} actors for {frames} frames (their poses over the scene's frames would take "
+                   f"{gib(n * frames * ACTOR_FRAME_BYTES)}, more than the {gib(MEMORY_BUDGET)} memory budget)",
+                   f"{n} actors")
+
+
 def _scene_from_dict(raw: Any, path: str | Path | None) -> Scene:
     doc = Node(raw, "$", path)
     check_header(doc, FORMAT, SUPPORTED_VERSIONS)
@@ -694,8 +721,9 @@ def _scene_from_dict(raw: Any, path: str | Path | None) -> Scene:
         licence=src.get("licence").string(nullable=True),
         attribution=src.get("attribution").string(nullable=True),
     )
-    dt = doc["dt"].number(lo=0.0, lo_open=True, hi=MAX_DT)
+    dt = doc["dt"].number(lo=MIN_DT, hi=MAX_DT)
     frames = doc["frames"].integer(lo=1, hi=MAX_FRAMES)
+    _check_actor_count(doc["actors"], frames)
     lanes = _load_map(doc)
     background = _load_background(doc["background"])
     ed = doc["ego"]
@@ -716,7 +744,7 @@ def load_scene(path: str | Path) -> Scene:
     Raises:
         FileFormatError: naming the file and the JSON path of the first bad field.
     """
-    return _scene_from_dict(read_json(path), path)
+    return _scene_from_dict(read_json(path, limit=MAX_SCENE_BYTES), path)
 
 
 def save_scene(scene: Scene, path: str | Path, *, indent: int | None = None) -> None:
@@ -724,7 +752,12 @@ def save_scene(scene: Scene, path: str | Path, *, indent: int | None = None) -> 
     so the same scene always gives the same bytes)."""
     doc = scene.to_dict()
     _scene_from_dict(doc, path)  # never write a file we could not read back
-    write_json(path, doc, indent=indent)
+    text = dump_json(doc, indent=indent)
+    if len(text.encode("utf-8")) > MAX_SCENE_BYTES:
+        Node(doc, "$", path).fail(f"a scene of at most {MAX_SCENE_BYTES >> 20} MiB of JSON (cut a long recording "
+                                   "into shorter scenes, e.g. import-commonroad --seconds)",
+                                   f"{len(text.encode('utf-8')) / 2**20:.0f} MiB")
+    atomic_write_text(path, text)
 
 
 def scene_equal(a: Scene, b: Scene) -> bool:

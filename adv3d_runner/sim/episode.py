@@ -39,6 +39,7 @@ import numpy as np
 from ..autonomy.interface import PREDICTION_STEPS, AutonomyOutputs, EgoState, SceneContext
 from ..errors import ConfigError
 from ..geometry.frames import boxes_to_frame
+from ..scene.schema import MAX_FRAMES
 from .recorders import STAGES, EpisodeFrame, PointRecorder, Recorder, TimingRecorder
 
 __all__ = ["STAGES", "Episode", "EpisodeResult", "ShapeOverride", "default_library", "run_episode"]
@@ -179,6 +180,9 @@ def _episode_frames(scene, seconds: float, closed_loop: bool, start_frame: int) 
     T = int(round(seconds / float(scene.dt)))
     if T < 1:
         raise ConfigError(f"an episode needs at least one frame (seconds={seconds})")
+    if T > MAX_FRAMES:  # the replay contract's bound; also bounds every per-frame array of the episode
+        raise ConfigError(f"--seconds {seconds:g} at the scene's dt of {float(scene.dt):g} s is {T} frames; an "
+                          f"episode has at most {MAX_FRAMES}")
     if not closed_loop and start_frame + T > scene.frames:
         raise ConfigError(f"open loop needs the ego log for frames {start_frame}..{start_frame + T - 1}, "
                           f"the scene has {scene.frames}")
