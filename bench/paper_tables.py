@@ -94,7 +94,7 @@ class TableSpec:
     def folder(self, autonomy: str, budget: int = 100) -> str:
         """``<table>_<autonomy>``, with ``_b<budget>`` for a budget other than the paper's 100 (a
         reduced-budget table is another protocol: it never mixes with the full one)."""
-        return f"{self.name}_{autonomy}" + ("" if budget == 100 else f"_b{budget}")
+        return f"{self.name}_{stack_folder(autonomy)}" + ("" if budget == 100 else f"_b{budget}")
 
 
 def _realistic() -> dict:
@@ -411,12 +411,25 @@ def read_protocol(path: Path) -> dict:
 
 
 #: What must match between invocations that grow one table (more scenes or seeds may be added).
+def stack_folder(autonomy: str) -> str:
+    """A stack's part of a table's folder name: a registered name as it is; any other spec
+    (``package.module:factory``, ``exec:...``) as a safe name with a digest of the spec."""
+    import hashlib
+    import re
+
+    if re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9._-]{0,40}", autonomy):
+        return autonomy
+    tail = re.sub(r"[^A-Za-z0-9._-]+", "_", autonomy.split("/")[-1])[:24].strip("_.-") or "stack"
+    return f"{tail}-{hashlib.sha256(autonomy.encode()).hexdigest()[:8]}"
+
+
 PROTOCOL_KEYS = ("autonomy", "budget", "n_initial", "seconds", "batch", "eval_seeds", "pred_reduction")
 
 
 #: What a table's numbers depend on beyond its options (run.json ``versions``): the shape space,
-#: the stack's weights and the planner's parameters; a table is never grown across two of them.
-VERSION_KEYS = ("shape_space", "models", "planner")
+#: the stack's weights and the planner's parameters, and the stack itself (name, version,
+#: fingerprint; docs/stacks.md); a table is never grown across two of them.
+VERSION_KEYS = ("shape_space", "models", "planner", "stack")
 
 
 def model_versions(autonomy: str) -> dict:
@@ -513,6 +526,8 @@ def run_table(spec: TableSpec, args) -> Path:
             raise ConfigError(f"{proto_path} was grown with other protocol values ({', '.join(diff)}: "
                               f"{[old.get(k) for k in diff]} now {[proto.get(k) for k in diff]}); use another --results")
         made = made_with(old, results)
+        if made and "stack" not in made:  # kept before stacks were recorded: its stack is --autonomy's
+            made = {**made, "stack": proto["versions"].get("stack")}
         if made and made != proto["versions"]:
             raise ConfigError(f"{results} was made with other model weights, another shape space or another "
                               f"planner ({made}, now {proto['versions']}): its numbers would mix two stacks; use "
@@ -1198,13 +1213,16 @@ def build_parser() -> argparse.ArgumentParser:
     """The command line, typed like ``adv3d``'s (``adv3d_runner.argtypes``; a bad value is one
     usage line and exit code 2, ``adv3d_runner.cli.Parser``)."""
     from adv3d_runner import argtypes as at
-    from adv3d_runner.attack.config import AUTONOMY, MAX_BUDGET, MAX_SECONDS
+    from adv3d_runner.attack.config import MAX_BUDGET, MAX_SECONDS
+    from adv3d_runner.autonomy.names import stack_spec
     from adv3d_runner.cli import Parser
 
     p = Parser(prog="paper_tables.py", description=__doc__.splitlines()[0])
     p.add_argument("table", nargs="?", choices=sorted(TABLES), help="which table")
     p.add_argument("--list", action="store_true", help="list the tables and what each still needs")
-    p.add_argument("--autonomy", default="A", choices=AUTONOMY, help="stack under test (default A)")
+    p.add_argument("--autonomy", default="A", type=stack_spec, metavar="STACK",
+                   help="stack under test: any of docs/stacks.md (A, B, oracle, a plugin, package.module:factory, "
+                        "exec:COMMAND; default A)")
     p.add_argument("--scenes", type=at.integer(0, 10_000), default=5,
                    help="generated scenes, over every density (default 5)")
     p.add_argument("--real", type=at.integer(0, 10_000), default=2, help="real benchmark scenes (default 2)")
@@ -1231,7 +1249,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="run only every N-th unit (seed, setting, scene) from the I-th: N processes side by side "
                         "on one machine, each with its own compute file; then --table-only")
     p.add_argument("--table-only", action="store_true", help="rebuild table.md/json from the kept files, run nothing")
-    p.add_argument("--source-autonomy", default=None, choices=AUTONOMY,
+    p.add_argument("--source-autonomy", default=None, type=stack_spec, metavar="STACK",
                    help="transfer: the stack whose table1 shapes are evaluated (default: the other of A and B)")
     return p
 

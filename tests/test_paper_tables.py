@@ -531,3 +531,15 @@ def test_a_table_whose_search_does_not_fit_in_memory_is_refused_before_anything_
     err = capsys.readouterr().err
     assert "--budget 20000" in err and "GiB" in err and err.count("\n") == 1
     assert not any(tmp_path.iterdir())
+
+
+def test_a_plugin_stack_gets_a_safe_table_folder_and_tables_record_the_stack():
+    """Any stack of docs/stacks.md can make a table: a spec that is not a plain name becomes a
+    safe folder name with a digest; the stack (name, version, fingerprint) is among the
+    versions a table is never grown across."""
+    pt = _driver()
+    assert pt.stack_folder("A") == "A" and pt.stack_folder("my-stack") == "my-stack"
+    odd = pt.stack_folder("exec:/opt/venv/bin/python /srv/stack server.py")
+    assert "/" not in odd and " " not in odd and odd != pt.stack_folder("exec:/opt/venv/bin/python other.py")
+    assert "stack" in pt.VERSION_KEYS
+    assert pt.model_versions("oracle")["stack"]["name"] == "oracle"
