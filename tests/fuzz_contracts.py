@@ -837,6 +837,12 @@ CLI_OPTIONS: list[tuple[list[str], str, tuple[float, float]]] = [
     (["train", "detector"], "--resolution", (0.01, 10)),
     (["train", "predictor"], "--modes", (3, 64)),
     (["blender", "render", "--what", "sweep", "--out", "x.png"], "--steps", (1, 100)),
+    (["attack", "s.json", "--out", "r", "--shape-model", "vd"], "--vd-bound", (5e-324, 2)),
+    (["attack", "s.json", "--out", "r"], "--max-mahalanobis", (5e-324, 1e6)),
+    (["attack", "s.json", "--out", "r"], "--realism-weight", (0, 1e6)),
+    (["train", "detector"], "--scenes", (1, 800_000)),
+    (["train", "occupancy"], "--scenes", (1, 800_000)),
+    (["train", "predictor"], "--real-weight", (1, 1000)),
 ]
 CLI_TEXT = st.one_of(
     st.sampled_from(["nan", "NaN", "inf", "-inf", "1e400", "-1", "0", "-0", "1", "2", "1.5", "", " ", "abc",
