@@ -162,3 +162,17 @@ def test_an_attack_goes_on_past_a_crashing_stack(tmp_path):
     assert stack["name"] == "broken-crash-odd" and stack["version"] == "0.1"
     ps = subprocess.run(["ps", "-eo", "args"], capture_output=True, text=True).stdout
     assert str(BROKEN) not in ps
+
+
+def test_a_stack_that_breaks_on_resume_loses_nothing_of_the_run(tmp_path):
+    """An attack made with the toy stack, resumed when its module can no longer be imported:
+    one line naming the stack, exit 1, and the run folder byte for byte as it was."""
+    out = tmp_path / "run"
+    args = ("attack", str(SCENE), "--autonomy", "toy_stack:make", "--algo", "random", "--budget", "2",
+            "--seconds", "0.5", "--out", str(out))
+    assert _adv3d(*args).returncode == 0
+    before = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    res = subprocess.run([sys.executable, "-m", "adv3d_runner.cli", "-q", *args], capture_output=True, text=True,
+                         timeout=600, env={**os.environ, "PYTHONPATH": str(ROOT)}, cwd=ROOT)
+    assert res.returncode == 1 and "cannot import toy_stack" in res.stderr and len(res.stderr.splitlines()) == 1
+    assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
