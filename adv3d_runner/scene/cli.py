@@ -49,6 +49,9 @@ def register(subparsers) -> None:
     c.add_argument("--ego-rank", type=at.count, default=0,
                    help="take the car ranked K by the automatic ego rule (0 = the first); gives variants of one "
                         "recording different egos")
+    c.add_argument("--manifest", default=None,
+                   help="export.json of `adv3d export`: its ego obstacle, and what CommonRoad has no field for "
+                        "(heights, classes, library assets, the ego's wheelbase and LiDARs, the background)")
     c.set_defaults(func=_import_commonroad)
 
     v = sub.add_parser("validate", help="validate scene files (and their actors' asset ids against the library)")
@@ -125,8 +128,16 @@ def _import_commonroad(args: argparse.Namespace) -> int:
     from .commonroad import import_commonroad
     from .schema import save_scene
 
-    scene = import_commonroad(args.file, seconds=args.seconds, extend=args.extend, ego_id=args.ego,
-                             ego_rank=args.ego_rank)
+    hints = None
+    if args.manifest is not None:  # an adv3d export: its ego, and what CommonRoad cannot hold
+        from .commonroad_export import apply_manifest, read_manifest
+
+        hints = read_manifest(args.manifest)
+    scene = import_commonroad(args.file, seconds=args.seconds, extend=args.extend,
+                              ego_id=args.ego if hints is None or args.ego is not None else hints.ego_id,
+                              ego_rank=args.ego_rank)
+    if hints is not None:
+        scene = apply_manifest(scene, hints, args.manifest)
     save_scene(scene, args.out)
     status(f"wrote {args.out}: {len(scene.lanes)} lanes, {len(scene.actors)} actors, {scene.frames} frames")
     return 0
