@@ -30,9 +30,10 @@ def _scene_doc() -> dict:
     return json.loads(gzip.decompress(SCENE.read_bytes()))
 
 
-def _refused_quickly(fn, exc_type, match: str, seconds: float = 2.0, peak_mib: float = 64.0):
-    """``fn`` raises ``exc_type`` matching ``match`` within ``seconds``, having allocated at
-    most ``peak_mib`` MiB (Python's allocations, numpy's included)."""
+def _refused_quickly(fn, exc_type, match: str, seconds: float = 10.0, peak_mib: float = 64.0):
+    """``fn`` raises ``exc_type`` matching ``match`` within ``seconds`` (generous: tracemalloc
+    slows allocation, and the machine may be shared; each takes well under a second idle),
+    having allocated at most ``peak_mib`` MiB (Python's allocations, numpy's included)."""
     tracemalloc.start()
     t0 = time.perf_counter()
     try:
@@ -174,7 +175,7 @@ def test_a_million_one_frame_actors_are_refused_in_seconds(tmp_path):
     path = tmp_path / "many.json.gz"
     path.write_bytes(_many_actors_gz(10**6))
     _refused_quickly(lambda: schema.load_scene(path), FileFormatError, r"many\.json\.gz: \$: expected at most 64 MiB",
-                     seconds=5.0, peak_mib=400)
+                     seconds=15.0, peak_mib=400)
 
 
 def test_the_actor_count_is_checked_before_any_actor_is_read(tmp_path):
@@ -187,11 +188,11 @@ def test_the_actor_count_is_checked_before_any_actor_is_read(tmp_path):
     path.write_bytes(_many_actors_gz(1000, frames=schema.MAX_FRAMES))
     _refused_quickly(lambda: schema.load_scene(path), FileFormatError,
                      r"\$\.actors: expected at most 671 actors for 100000 frames .* memory budget")
-    path.write_bytes(_many_actors_gz(schema.MAX_ACTORS))   # at the bound: validated (ids repeat)
+    path.write_bytes(_many_actors_gz(schema.MAX_ACTORS))   # at the bound: the actors are read (an id repeats)
     t0 = time.perf_counter()
     with pytest.raises(FileFormatError, match=r"\$\.actors\[1\]\.id: .*unique"):
         schema.load_scene(path)
-    assert time.perf_counter() - t0 < 5.0
+    assert time.perf_counter() - t0 < 15.0
 
 
 def test_a_scene_too_big_to_read_back_is_never_written(tmp_path, monkeypatch):
