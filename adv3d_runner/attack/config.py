@@ -215,7 +215,7 @@ class AttackConfig:
         self._check_shape_options()
         if self.mode not in MODES:
             raise ConfigError(f"--mode must be one of {', '.join(MODES)}, got {self.mode!r}")
-        from ..autonomy.plugins import check_spec
+        from ..autonomy.names import check_spec
 
         check_spec(self.autonomy)  # ConfigError naming the stack
         for name, lo, hi in (("budget", 1, MAX_BUDGET), ("actors", 1, MAX_ACTORS), ("seed", 0, SEED_MAX),
@@ -257,7 +257,6 @@ class AttackConfig:
         elif self.algo != "bruteforce":
             check_search_memory(self.algo, self.actors, self.budget, self.n_initial, self.batch,
                                 what=f"--actors {self.actors}" if self.algo == "grid" else f"--budget {self.budget}")
-
 
     def _check_shape_options(self) -> None:
         if self.shape_model not in SHAPE_MODELS:

@@ -56,7 +56,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from ..errors import ConfigError, RunFailedError
+from ..errors import ConfigError, RunFailedError, StackFailure
 from ..fileio import resolve_inside
 from .config import MODES, AttackConfig, QuerySettings
 from .evaluator import BestEvaluation, EpisodeEvaluator, Query, QueryEvaluator, QueryResult, run_query
@@ -586,7 +586,6 @@ def run_attack(config: AttackConfig, out: str | Path, *, workers: int | None = 1
         """Whether the executor's workers journal their queries in the pending file themselves."""
         return bool(getattr(executor, "writes_pending", False))
 
-
     def dispatch() -> None:
         nonlocal executor
         while free or executor is None:
@@ -621,7 +620,12 @@ def run_attack(config: AttackConfig, out: str | Path, *, workers: int | None = 1
                 free.append(w)
                 free.sort()
                 if item == "best":
-                    best, files = fut.result()
+                    try:
+                        best, files = fut.result()
+                    except StackFailure as exc:  # the stack under test broke: the search's results stand
+                        note(f"note: {search.scene_id} [{search.mode}]: the best shape's closed-loop evaluation "
+                             f"failed ({exc}); a resume tries it again")
+                        best, files = None, {}
                     finish(search, best, files)
                     continue
                 i, query = item
