@@ -1,6 +1,8 @@
 """Search algorithms: GP numerics, BO against random search, grid coverage, ask/tell protocol."""
 from __future__ import annotations
 
+import random
+
 import numpy as np
 import pytest
 
@@ -193,29 +195,66 @@ def _skopt_run(seed, batch, budget=10, f=peak, fail_every=0):
 
 
 def test_skopt_same_seed_same_points_and_initial_latin_hypercube():
+    """Same seed, same points: skopt draws everything (the Latin hypercube, the GP fit's restarts,
+    the acquisition candidates, the constant liar's copy) from its seeded ``RandomState``, so the
+    numpy and Python global generators and the BLAS thread count outside the searcher do not
+    matter. (The points are the same on one machine, not across CPUs: the BLAS kernel picked for
+    the CPU changes the GP fit in the last bits, and the later asks with it.)"""
     pytest.importorskip("skopt")
+    from threadpoolctl import threadpool_limits  # scikit-learn's dependency, present with skopt
+
+    np.random.seed(1)
+    random.seed(1)
     a = _skopt_run(seed=3, batch=2, fail_every=5)  # failed queries and batches (constant liar) included
-    b = _skopt_run(seed=3, batch=2, fail_every=5)
+    np.random.seed(2)
+    random.seed(2)
+    with threadpool_limits(limits=2):
+        b = _skopt_run(seed=3, batch=2, fail_every=5)
     assert a.X.shape == (10, 5) and np.all((a.X >= 0) & (a.X <= 1))
-    assert np.array_equal(a.X, b.X)
+    np.testing.assert_array_equal(b.X, a.X, err_msg="same seed, different points")
     assert not np.array_equal(_skopt_run(seed=4, batch=2, fail_every=5).X, a.X)
     # the first n_initial queries are a Latin hypercube: one point per stratum of every dimension
     strata = np.floor(a.X[:6] * 6).astype(int)
     for d in range(5):
-        assert sorted(strata[:, d]) == list(range(6))
+        assert sorted(strata[:, d]) == list(range(6)), (d, strata[:, d])
     # the batch changes the asks after the initial design (constant liar), not before
     c = _skopt_run(seed=3, batch=1, fail_every=5)
-    assert np.array_equal(c.X[:6], a.X[:6]) and not np.array_equal(c.X, a.X)
+    np.testing.assert_array_equal(c.X[:6], a.X[:6])
+    assert not np.array_equal(c.X, a.X)
+
+
+def _bowl(x: np.ndarray) -> float:
+    """A 5-D bowl, maximum 0 at u = 0.4: minus the squared distance to the optimum."""
+    return -float(np.sum((x - 0.4) ** 2))
+
+
+def _queries_to_reach(searcher, radius: float) -> tuple[int, float]:
+    """Ask/tell one point at a time until the best point lies within ``radius`` (Euclidean) of the
+    bowl's optimum or the budget is spent: (queries used, or budget + 1 if never within; best
+    distance)."""
+    while not searcher.exhausted:
+        X = searcher.ask(1)
+        searcher.tell(X, [_bowl(x) for x in X])
+        if np.sqrt(-searcher.best()[1]) < radius:
+            return searcher.n_told, float(np.sqrt(-searcher.best()[1]))
+    return searcher.budget + 1, float(np.sqrt(-searcher.best()[1]))
 
 
 def test_skopt_beats_random_and_finds_the_optimum_region():
-    """On the 5-D bowl (maximum at u = 0.4) skopt's GP gets closer with 20 queries than random
-    search does, for every seed, and its best point lies in the optimum's neighbourhood."""
+    """On the 5-D bowl skopt's fitted GP reaches the optimum's neighbourhood (within 0.1) in
+    about 20-30 queries, which random search essentially never does (a ball of radius 0.1 is
+    5e-5 of the cube). Claimed over seeds, by the median, not seed by seed: which query first
+    lands inside depends on the GP's hyperparameter fit, and that depends on the BLAS kernel the
+    CPU gets in the last bits (the asks of two CPUs part at the first GP ask by 1e-15 to 1e-5 and
+    are unrelated a dozen queries later). Measured on seeds 0-11 under OpenBLAS's SkylakeX,
+    Haswell, Nehalem and Prescott kernels: 20-32 queries (median 24-25); after 20 queries skopt is
+    still only just ahead of random (median distance 0.31-0.35 against 0.38), so no claim is
+    made there."""
     pytest.importorskip("skopt")
-    for seed in range(2):
-        s = _skopt_run(seed=seed, batch=1, budget=20, f=lambda x: -float(np.sum((x - 0.4) ** 2)))
-        r = RandomSearch(5, seed=seed, budget=20)
-        run(r, lambda x: -float(np.sum((x - 0.4) ** 2)))
-        x, v = s.best()
-        assert v > r.best()[1] + 0.02, (seed, v, r.best()[1])
-        assert np.max(np.abs(x - 0.4)) < 0.1, x
+    radius, budget, seeds = 0.1, 40, (0, 1, 2)
+    sk = [_queries_to_reach(make_searcher("skopt", 5, seed=s, budget=budget, n_initial=6), radius) for s in seeds]
+    rs = [_queries_to_reach(RandomSearch(5, seed=s, budget=budget), radius) for s in seeds]
+    n_sk, d_sk = np.median([n for n, _ in sk]), np.median([d for _, d in sk])
+    d_rs = np.median([d for _, d in rs])
+    assert n_sk <= 30, (sk, rs)  # at least two of three seeds within 0.1 in 30 queries
+    assert d_sk < 0.5 * d_rs, (sk, rs)  # with at most the queries random search had
