@@ -348,14 +348,20 @@ class EpisodeEvaluator:
         """Closed-loop episodes of the original scene (when ``original``) and of the best shape;
         writes ``actor<ID>.glb`` per attacked actor and ``replay.json.gz`` (with the LiDAR
         points) of the best shape's episode into ``out``. The best shape's evaluation carries
-        its full realism report per actor (``realism``)."""
+        its full realism report per actor (``realism``); both evaluations carry CommonRoad
+        CriMe's criticality figures of their episode (``criticality``,
+        :func:`~adv3d_runner.sim.criticality.criticality_block`: only here, never per query)."""
         import trimesh
 
         from ..shapes.mesh_io import write_mesh
+        from ..sim.criticality import criticality_block
         from ..sim.replay import replay_from_episode, save_replay
 
         ctx = workspace_for(ref, self.settings)
-        first = ctx.evaluate(None, closed_loop=True)[0].evaluation() if original else None
+        first = None
+        if original:
+            first_result, first_episode = ctx.evaluate(None, closed_loop=True)
+            first = {**first_result.evaluation(), "criticality": criticality_block(first_episode, ctx.scene.lanes)}
         u = np.asarray(unit, dtype=np.float64).reshape(-1)
         best, result = ctx.evaluate(u, closed_loop=True, record_points=True)
         best = replace(best, realism=ctx.shapes.full_reports(u))
@@ -369,7 +375,8 @@ class EpisodeEvaluator:
         replay = replay_from_episode(result, autonomy=self.settings.autonomy, scene_file=str(ref), meshes=meshes,
                                      metadata={**metadata, "stack": stack_info_of(self.settings.autonomy).as_dict()})
         save_replay(replay, out / "replay.json.gz")
-        return BestEvaluation(closed_loop=best.evaluation(), original=first, meshes=meshes, replay="replay.json.gz")
+        closed = {**best.evaluation(), "criticality": criticality_block(result, ctx.scene.lanes)}
+        return BestEvaluation(closed_loop=closed, original=first, meshes=meshes, replay="replay.json.gz")
 
 
 def planner_fingerprint() -> str:

@@ -16,6 +16,10 @@ realism figures existed get them computed from their best unit vectors (:func:`a
 Runs with a restricted search region, a realism penalty or vertex deformation are labelled
 with their knobs (:func:`run_label`), so they get rows of their own.
 
+Criticality (issue 39): beside the objective, CommonRoad CriMe's time to collision, headways,
+required deceleration, BTN, closest encounter, TTC* and TTB of each original and best-shape
+closed-loop episode (:func:`criticality_table`).
+
 Objective (issue 18): every run is listed with its objective and prediction form
 (:func:`objective_label`), and the paired change of each objective term is given unweighted and
 weighted, apart (:func:`objective_split`).
@@ -214,6 +218,66 @@ def per_scene(runs: list[tuple[str, dict, list, dict]]) -> str:
         out += f"| {sid} | " + " | ".join(table[sid].get(c, "-") for c in cols) + " |\n"
     return out + ("\nClosed-loop objective of the original scene and of each run's best shape (for open-loop "
                   "attacks the open-loop search value in parentheses), and the best shape's JSD.\n")
+
+
+#: the criticality table's columns: (header, key of the evaluation's ``criticality`` block)
+CRITICALITY_COLUMNS = (("min TTC s", "ttc"), ("min THW s", "thw"), ("min DHW m", "dhw"),
+                       ("max req. decel. m/s²", "required_deceleration"), ("max BTN", "btn"), ("min DCE m", "dce"),
+                       ("TTC* s", "ttc_star"), ("TTB s", "ttb"))
+
+
+def _criticality_cell(fig: dict | None) -> str:
+    """``value (actor #id, frame k)``; ``never`` for a null value (e.g. no vehicle ever ahead in
+    the ego's lane); ``unavoidable`` for a TTB whose braking cannot avoid the collision."""
+    if not isinstance(fig, dict):
+        return "-"
+    if fig.get("value") is None:
+        return "unavoidable" if fig.get("unavoidable") else "never"
+    where = []
+    if fig.get("actor") is not None:
+        where.append(f"#{fig['actor']}")
+    if fig.get("frame") is not None and "actor" in fig:
+        where.append(f"@{fig['frame']}")
+    return f"{fig['value']:.3g}" + (f" ({' '.join(where)})" if where else "")
+
+
+def criticality_table(runs: list[tuple[str, dict, list, dict]]) -> str:
+    """Markdown table: CommonRoad CriMe's criticality figures (``criticality`` block of the
+    closed-loop evaluations, :mod:`adv3d_runner.sim.criticality`) of each scene's original
+    episode and of every best shape's, beside the objective. Empty when no evaluation has the
+    block (runs made before it)."""
+    rows: list[str] = []
+    seen_original: set[str] = set()
+
+    def row(run_name: str, sid: str, episode: str, ev: dict) -> None:
+        crit = ev.get("criticality")
+        if not isinstance(crit, dict):
+            return
+        cost = ev.get("cost")
+        head = f"| {run_name} | {sid} | {episode} | {'-' if cost is None else f'{cost:.4g}'} | "
+        if "note" in crit:
+            rows.append(head + " | ".join([crit["note"]] + [""] * (len(CRITICALITY_COLUMNS) - 1)) + " |")
+        else:
+            rows.append(head + " | ".join(_criticality_cell(crit.get(k)) for _, k in CRITICALITY_COLUMNS) + " |")
+
+    for root, run, _, summary in runs:
+        for sid, entry in sorted(summary.get("scenes", {}).items()):
+            if "original" in entry and sid not in seen_original:
+                seen_original.add(sid)
+                row("-", sid, "original", entry["original"])
+            for mode, m in entry.get("modes", {}).items():
+                if m.get("closed_loop_eval"):
+                    row(run_label(run), sid, f"best ({mode})", m["closed_loop_eval"])
+    if not rows:
+        return ""
+    return ("| run | scene | episode | objective | " + " | ".join(h for h, _ in CRITICALITY_COLUMNS) + " |\n"
+            "|---|---|---|---:|" + "---:|" * len(CRITICALITY_COLUMNS) + "\n" + "\n".join(rows) + "\n\n"
+            "Closed-loop episodes, computed by CommonRoad CriMe (commonroad-crime; docs/attack.md, \"Criticality "
+            "(CriMe)\"): the most critical value over the episode's frames and actors, with the actor (#id) and the "
+            "frame (@k) where it occurs; TTC* and TTB from the first frame. never: no finite value (no vehicle "
+            "ahead in the ego's lane, not closing, no collision); unavoidable: braking at once does not avoid the "
+            "collision. TTC, THW, DHW, DCE, TTC*, TTB: lower is more critical; required deceleration, BTN: higher "
+            "is (BTN >= 1: braking alone cannot avoid it).\n")
 
 
 # metrics where a lower value is worse for the stack (the others: higher is worse)
@@ -666,6 +730,9 @@ def write_report(run_dirs: Sequence[str | Path], out: str | Path | None = None) 
     ps = per_scene(runs)
     if ps:
         lines += ["### Per scene", "", ps, ""]
+    crit = criticality_table(runs)
+    if crit:
+        lines += ["### Criticality (CommonRoad CriMe)", "", crit, ""]
     curves = convergence(runs)
     lines += ["## Search: best cost against queries and wall time", ""]
     if curves:
