@@ -42,7 +42,7 @@ def test_attack_config_is_frozen_and_round_trips_through_run_json():
         AttackConfig.from_run_json({**doc, "budget": "many"}, "run.json")
     for bad in (dict(mode="sideways"), dict(budget=0), dict(seconds=0.0), dict(batch=0), dict(objective="M9"),
                 dict(actors=0), dict(seed=-1), dict(seconds=float("nan")), dict(n_initial=-3), dict(algo="magic"),
-                dict(budget=True), dict(autonomy="C")):
+                dict(budget=True), dict(autonomy="no-such-stack")):
         with pytest.raises(ConfigError):
             AttackConfig(["a.json.gz"], **bad)
 

@@ -125,7 +125,7 @@ def test_attack_config_uses_the_stacks_presets():
     assert AttackConfig(["s.json"], autonomy="B").settings.weights.pred == 1.0
     assert AttackConfig(["s.json"], autonomy="A").settings.weights.pred == 0.1
     with pytest.raises(ConfigError, match="autonomy"):
-        AttackConfig(["s.json"], autonomy="C")
+        AttackConfig(["s.json"], autonomy="no-such-stack")
 
 
 def test_report_has_the_lower_block_for_b_runs():

@@ -217,7 +217,10 @@ class AttackConfig:
             raise ConfigError(f"--mode must be one of {', '.join(MODES)}, got {self.mode!r}")
         from ..autonomy.names import check_spec
 
-        check_spec(self.autonomy)  # ConfigError naming the stack
+        try:
+            check_spec(self.autonomy)
+        except ConfigError as exc:
+            raise ConfigError(f"--autonomy: {exc}") from None
         for name, lo, hi in (("budget", 1, MAX_BUDGET), ("actors", 1, MAX_ACTORS), ("seed", 0, SEED_MAX),
                              ("batch", 1, 4096), ("n_initial", 1, MAX_BUDGET), ("target_rank", 0, MAX_ACTORS - 1)):
             value = getattr(self, name)
