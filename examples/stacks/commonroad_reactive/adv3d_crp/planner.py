@@ -171,6 +171,18 @@ class PlannerOptions:
     extend_ends: float = 300.0     # m added straight to lanes that stop at the map's edge (0 = off)
     ahead_margin: float = 80.0     # m of reference path beyond the horizon's reach
     extrapolate: float = 40.0      # m of straight extension past a chain's ends (projection domain)
+    max_deceleration_ratio: Optional[float] = None  # the package's sampling.max_deceleration_ratio
+    #                                (None = its default 0.125); per attempt in plan(attempts=...)
+    sampling_levels: Optional[int] = None  # the package's sampling.num_sampling_levels (None = 4:
+    #                                levels 1..3 are tried; the last one alone has ~4300 samples)
+    fallback: str = "brake"        # when the planner finds nothing: "brake" (emergency_decel along
+    #                                the lane) or "idm" (IDM car following along the lane)
+    standstill_is_failure: bool = False  # from standstill, a standstill chosen because no sample
+    #                                was feasible counts as a failure (-> fallback)
+    idm_accel: float = 1.5         # m/s^2, IDM maximum acceleration
+    idm_decel: float = 2.0         # m/s^2, IDM comfortable deceleration (hard limit: emergency_decel)
+    idm_gap: float = 2.0           # m, IDM standstill gap
+    idm_headway: float = 1.0       # s, IDM time headway
 
 
 # ----------------------------------------------------------------------------------------------
@@ -348,6 +360,10 @@ class CRPlanner:
         cfg.planning.planning_horizon = DT * int(self.opt.horizon_steps)
         cfg.debug.multiproc = bool(self.opt.multiproc)
         cfg.planning.safety_margin_dynamic_obstacles = float(self.opt.safety_margin)
+        if self.opt.max_deceleration_ratio is not None:
+            cfg.sampling.max_deceleration_ratio = float(self.opt.max_deceleration_ratio)
+        if self.opt.sampling_levels is not None:
+            cfg.sampling.num_sampling_levels = int(self.opt.sampling_levels)
         cfg.debug.logging_level = self.opt.logging_level
         cfg.debug.show_plots = cfg.debug.save_plots = False
         lane_id = self._locate(ego)
@@ -513,8 +529,21 @@ class CRPlanner:
 
     # ---- per step -----------------------------------------------------------------------------
 
-    def plan(self, ego: EgoInput, obstacles: Sequence[ObstacleInput] = ()) -> PlanResult:
-        """One replanning step (see the module docstring)."""
+    def plan(self, ego: EgoInput, obstacles: Sequence[ObstacleInput] = (),
+             attempts: Optional[Sequence[dict]] = None,
+             fallback_obstacles: Optional[Sequence[ObstacleInput]] = None) -> PlanResult:
+        """One replanning step (see the module docstring).
+
+        ``attempts``: planner runs tried in order until one finds a trajectory, each a dict
+        with ``obstacles`` (a sequence of :class:`ObstacleInput`), optional
+        ``max_deceleration_ratio`` (the package's ``sampling.max_deceleration_ratio``: the
+        lowest velocity sample is ``v - ratio * horizon * a_max``; None = the option's),
+        optional ``sampling_levels`` (at most the option's: levels 1 .. n-1 are tried) and
+        ``label``. None = one attempt with ``obstacles``. When every attempt fails (no feasible
+        collision-free sample, or the package raises), the fallback (``PlannerOptions.fallback``)
+        is returned, flagged ``emergency``; ``fallback_obstacles`` are the obstacles the IDM
+        fallback follows (default: the last attempt's). ``stats["attempt"]`` is the label of the
+        attempt that succeeded."""
         assert self.planner is not None, "call reset() first"
         t0 = time.perf_counter()
         self._step += 1
@@ -525,20 +554,21 @@ class CRPlanner:
             res.time_s = time.perf_counter() - t0
             self.step_times.append(res.time_s)
             return res
-        stats: dict = {}
+        if attempts is None:
+            attempts = [{"obstacles": obstacles, "label": "single"}]
+        stats: dict = {"attempts": []}
         lane_id = self._locate(ego)
         pl = self.lines[lane_id]
         s_lane, _, _ = pl.project((ego.x, ego.y))
         ahead = max(ego.speed, self._desired_speed(lane_id)) * DT * self.opt.horizon_steps + self.opt.ahead_margin
         chain = self._chain(lane_id, s_lane, ahead)
         stats.update(lane=lane_id, chain=list(chain))
+        res, reason = None, "no attempt"
         try:
             co, raw = self._reference(chain)
-            dyn = self._obstacles(obstacles)
-            stats["n_obstacles"] = len(dyn)
-            cc = self._collision_checker(dyn)
-            stats["t_setup"] = time.perf_counter() - t0
-
+        except Exception as exc:  # noqa: BLE001 - the reference path's construction failed
+            co, raw, reason = None, _Polyline(pl.p), f"planner raised {type(exc).__name__}: {exc}"
+        if co is not None:
             kappa = ego.curvature
             if kappa is None:
                 kappa = 0.0 if self._prev_yaw is None or ego.speed < 0.5 else \
@@ -547,32 +577,63 @@ class CRPlanner:
             delta = float(np.clip(math.atan(L * kappa), self.vehicle.delta_min, self.vehicle.delta_max))
             rear = np.array([ego.x, ego.y]) - self.vehicle.wb_rear_axle * np.array([math.cos(ego.yaw),
                                                                                    math.sin(ego.yaw)])
-            x0 = ReactivePlannerState(time_step=0, position=rear, orientation=float(ego.yaw),
-                                      velocity=float(ego.speed), acceleration=float(ego.acceleration),
-                                      steering_angle=delta, yaw_rate=float(ego.speed * math.tan(delta) / L))
-
             self.config.planning_problem = self._planning_problem(ego, lane_id)
-            rp = self.planner
-            # keep the low-velocity flag consistent for the curvilinear conversion in reset()
-            rp._low_vel_mode = ego.speed < self.config.planning.low_vel_mode_threshold
-            rp.reset(initial_state_cart=x0, collision_checker=cc, coordinate_system=co)
             D = self._lateral_range(lane_id, s_lane, ego)
-            rp.set_d_sampling_parameters(-D, D)
             v_des = self._desired_speed(lane_id)
-            rp.set_desired_velocity(desired_velocity=v_des, current_speed=float(ego.speed))
             stats.update(v_des=v_des, d_range=D)
-            t1 = time.perf_counter()
-            result = rp.plan()
-            stats["t_plan"] = time.perf_counter() - t1
-            stats.update(samples=rp.total_count_samples, infeasible_kin=rp.infeasible_count_kinematics,
-                         infeasible_coll=rp.infeasible_count_collision)
-            if result is None:
-                res = self._emergency(ego, raw, "no feasible collision-free sample")
+            default_ratio = self.config.sampling.max_deceleration_ratio
+            for attempt in attempts:
+                ta = time.perf_counter()
+                label = str(attempt.get("label", len(stats["attempts"])))
+                entry = {"label": label}
+                try:
+                    dyn = self._obstacles(attempt.get("obstacles", ()))
+                    cc = self._collision_checker(dyn)
+                    x0 = ReactivePlannerState(time_step=0, position=rear.copy(), orientation=float(ego.yaw),
+                                              velocity=float(ego.speed), acceleration=float(ego.acceleration),
+                                              steering_angle=delta, yaw_rate=float(ego.speed * math.tan(delta) / L))
+                    rp = self.planner
+                    # keep the low-velocity flag consistent for the curvilinear conversion in reset()
+                    rp._low_vel_mode = ego.speed < self.config.planning.low_vel_mode_threshold
+                    rp.reset(initial_state_cart=x0, collision_checker=cc, coordinate_system=co)
+                    rp.set_d_sampling_parameters(-D, D)
+                    ratio = attempt.get("max_deceleration_ratio")
+                    self.config.sampling.max_deceleration_ratio = default_ratio if ratio is None else float(ratio)
+                    try:
+                        rp.set_desired_velocity(desired_velocity=v_des, current_speed=float(ego.speed))
+                    finally:
+                        self.config.sampling.max_deceleration_ratio = default_ratio
+                    levels = attempt.get("sampling_levels")
+                    rp.sampling_level = self.config.sampling.num_sampling_levels if levels is None else \
+                        min(int(levels), self.config.sampling.num_sampling_levels)
+                    t1 = time.perf_counter()
+                    result = rp.plan()
+                    entry.update(t_plan=time.perf_counter() - t1, samples=rp.total_count_samples,
+                                 infeasible_kin=rp.infeasible_count_kinematics,
+                                 infeasible_coll=rp.infeasible_count_collision, n_obstacles=len(dyn))
+                    none_feasible = rp.infeasible_count_kinematics + rp.infeasible_count_collision \
+                        >= rp.total_count_samples
+                    if result is None:
+                        reason = "no feasible collision-free sample"
+                    elif self.opt.standstill_is_failure and ego.speed <= 0.05 and none_feasible:
+                        reason = "standstill: no feasible sample to move off"
+                    else:
+                        res = self._from_states(result[0].state_list)
+                except Exception as exc:  # noqa: BLE001 - projection out of domain, the package's own bugs, ...
+                    reason = f"planner raised {type(exc).__name__}: {exc}"
+                    entry["error"] = reason[:200]
+                entry["t"] = time.perf_counter() - ta
+                stats["attempts"].append(entry)
+                if res is not None:
+                    stats["attempt"] = label
+                    break
+        if res is None:
+            if self.opt.fallback == "idm":
+                follow = fallback_obstacles if fallback_obstacles is not None else \
+                    (attempts[-1].get("obstacles", ()) if attempts else obstacles)
+                res = self._idm(ego, raw, reason, follow, self._desired_speed(lane_id))
             else:
-                res = self._from_states(result[0].state_list)
-        except Exception as exc:  # projection out of domain, negative curvilinear speed, ...
-            raw = self._reference(chain)[1] if chain in self._coords else _Polyline(pl.p)
-            res = self._emergency(ego, raw, f"planner raised {type(exc).__name__}: {exc}")
+                res = self._emergency(ego, raw, reason)
         self._prev_yaw = float(ego.yaw)
         res.time_s = time.perf_counter() - t0
         res.stats = stats
@@ -627,3 +688,55 @@ class CRPlanner:
         v = np.maximum(ego.speed - dec * t, 0.0)
         a = np.where(t < t_stop, -dec, 0.0)
         return PlanResult(np.column_stack([xy, _wrap(yaw)]), v, a, np.zeros(N + 1), True, reason, 0.0)
+
+    def _idm(self, ego: EgoInput, line: _Polyline, reason: str, obstacles: Sequence[ObstacleInput],
+             v_des: float) -> PlanResult:
+        """Fallback: IDM car following along the reference line (keeping the current lateral
+        offset) behind the obstacles that overlap the ego's corridor ahead, each moving at
+        constant velocity; braking capped at ``emergency_decel``."""
+        self.emergency_count += 1
+        self.emergency_reasons.append(reason)
+        o = self.opt
+        N = o.horizon_steps
+        s0, d0, _ = line.project((ego.x, ego.y))
+        lead_s, lead_v, lead_half = [], [], []
+        for ob in obstacles:
+            x, y, L, W, yaw = (float(v) for v in ob.box)
+            so, do, seg = line.project((x, y))
+            if so <= s0 or abs(do - d0) >= (W + ego.width) / 2 + 0.2:
+                continue
+            t = line.t[seg]
+            lead_s.append(so)
+            lead_v.append(float(np.dot(np.asarray(ob.velocity, np.float64), t)))
+            lead_half.append(L / 2)
+        lead_s, lead_v, lead_half = np.array(lead_s), np.array(lead_v), np.array(lead_half)
+        v, s = float(ego.speed), s0
+        vs, ss, acc = [v], [s], []
+        v0 = max(float(v_des), 1.0)
+        root = math.sqrt(o.idm_accel * o.idm_decel)
+        for k in range(N):
+            a = o.idm_accel * (1.0 - (v / v0) ** 4)
+            if len(lead_s):
+                ls = lead_s + lead_v * k * DT
+                gap = ls - lead_half - s - ego.length / 2
+                i = int(np.argmin(gap))
+                dv = v - lead_v[i]
+                s_star = o.idm_gap + max(0.0, v * o.idm_headway + v * dv / (2 * root))
+                a = -o.emergency_decel if gap[i] <= 0.1 else a - o.idm_accel * (s_star / gap[i]) ** 2
+            a = float(np.clip(a, -o.emergency_decel, o.idm_accel))
+            if v + a * DT < 0.0:
+                a = -v / DT
+            s += v * DT + 0.5 * a * DT ** 2
+            v += a * DT
+            vs.append(v)
+            ss.append(s)
+            acc.append(a)
+        pts, head = line.at(np.array(ss))
+        nrm = np.stack([-np.sin(head), np.cos(head)], axis=1)
+        xy = pts + d0 * nrm
+        xy[0] = (ego.x, ego.y)
+        yaw = head.copy()
+        yaw[0] = ego.yaw
+        a_arr = np.array(acc + [acc[-1] if acc else 0.0])
+        return PlanResult(np.column_stack([xy, _wrap(yaw)]), np.array(vs), a_arr, np.zeros(N + 1), True,
+                          "fallback (IDM): " + reason, 0.0)
