@@ -139,7 +139,7 @@ def test_bad_overrides_and_missing_models(free):
     with pytest.raises(ConfigError, match="ShapeOverride"):  # the positional tuple is gone
         run_episode(scene, make_stack("oracle"), seconds=0.1, world=world, rig=rig, actor_overrides={aid: tri})
     with pytest.raises(ConfigError):
-        make_stack("C")  # an unknown stack ("B" is Autonomy-B now)
+        make_stack("no-such-stack")  # an unknown stack
     with pytest.raises(ConfigError):
         run_episode(scene, make_stack("oracle"), seconds=30.0, closed_loop=False, world=world, rig=rig)
 

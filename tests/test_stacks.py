@@ -176,3 +176,20 @@ def test_a_stack_that_breaks_on_resume_loses_nothing_of_the_run(tmp_path):
                          timeout=600, env={**os.environ, "PYTHONPATH": str(ROOT)}, cwd=ROOT)
     assert res.returncode == 1 and "cannot import toy_stack" in res.stderr and len(res.stderr.splitlines()) == 1
     assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
+
+
+def test_the_wire_round_trips_empty_arrays_tracks_and_plan_controls():
+    """Zero-size arrays (no points, no actors), tracks and a plan's controls cross the wire."""
+    from adv3d_runner.autonomy import wire
+    from adv3d_runner.autonomy.api import Plan, StepOutput
+    from adv3d_runner.autonomy.interface import Detections, Tracks
+    from adv3d_runner.autonomy.remote import output_from_wire, output_to_wire
+
+    msg = wire.decode(wire.encode({"type": "x", "points": np.zeros((0, 4), np.float32)})[4:])
+    assert msg["points"].shape == (0, 4) and msg["points"].dtype == np.float32
+    plan = Plan(np.c_[np.arange(4.0), np.zeros(4), np.zeros(4)], np.full(4, 10.0), acceleration=np.full(3, -1.5),
+                curvature=np.zeros(3))
+    out = StepOutput(plan, Detections(), Tracks([7], [[1.0, 2, 4.5, 1.8, 0]], [[10.0, 0]], [0.9], [0], np.zeros((1, 0, 3))))
+    back = output_from_wire(wire.decode(wire.encode({"type": "step", **output_to_wire(out)})[4:]), "t")
+    assert np.array_equal(back.plan.acceleration, plan.acceleration) and back.tracks.ids.tolist() == [7]
+    assert len(back.detections) == 0

@@ -120,8 +120,11 @@ def frame_from_wire(m: dict) -> Frame:
 
 
 def output_to_wire(o: StepOutput) -> dict:
-    out: dict[str, Any] = {"plan": {"trajectory": o.plan.trajectory, "speed": o.plan.speed, "dt": o.plan.dt},
-                           "timings": dict(o.timings)}
+    plan: dict[str, Any] = {"trajectory": o.plan.trajectory, "speed": o.plan.speed, "dt": o.plan.dt}
+    for key in ("acceleration", "curvature"):
+        if getattr(o.plan, key) is not None:
+            plan[key] = np.asarray(getattr(o.plan, key), np.float64)
+    out: dict[str, Any] = {"plan": plan, "timings": dict(o.timings)}
     if o.detections is not None:
         out["detections"] = {"boxes": o.detections.boxes, "scores": o.detections.scores}
     if o.tracks is not None:
@@ -148,7 +151,8 @@ def output_from_wire(m: Any, name: str) -> StepOutput:
     try:
         p = m["plan"]
         traj = _finite(p["trajectory"], f"{where}: plan.trajectory", (3,))
-        plan = Plan(traj, _finite(p["speed"], f"{where}: plan.speed"), dt=float(p.get("dt", 0.1)))
+        extra = {k: _finite(p[k], f"{where}: plan.{k}") for k in ("acceleration", "curvature") if p.get(k) is not None}
+        plan = Plan(traj, _finite(p["speed"], f"{where}: plan.speed"), dt=float(p.get("dt", 0.1)), **extra)
         det = tracks = preds = None
         if m.get("detections") is not None:
             d = m["detections"]
@@ -156,9 +160,12 @@ def output_from_wire(m: Any, name: str) -> StepOutput:
                              _finite(d["scores"], f"{where}: detections.scores"))
         if m.get("tracks") is not None:
             t = m["tracks"]
-            tracks = Tracks(np.asarray(t["ids"], np.int64), _finite(t["boxes"], f"{where}: tracks.boxes", (5,)),
+            ids = np.asarray(t["ids"], np.int64).reshape(-1)
+            tracks = Tracks(ids, _finite(t["boxes"], f"{where}: tracks.boxes", (5,)),
                             _finite(t["velocities"], f"{where}: tracks.velocities", (2,)),
-                            _finite(t["scores"], f"{where}: tracks.scores"))
+                            _finite(t["scores"], f"{where}: tracks.scores"),
+                            np.zeros(len(ids), np.int64),  # not part of the protocol: seen this frame
+                            np.zeros((len(ids), 0, 3)), np.zeros((len(ids), 0), bool))
         if m.get("predictions") is not None:
             q = m["predictions"]
             preds = Predictions(np.asarray(q["track_ids"], np.int64), _finite(q["trajectories"], f"{where}: predictions"),

@@ -34,7 +34,8 @@ def pack_array(a: np.ndarray) -> dict:
     if a.dtype == bool:
         a = a.astype(np.uint8)
     a = np.ascontiguousarray(a.astype(a.dtype.newbyteorder("<")) if a.dtype.byteorder == ">" else a)
-    return {"dtype": a.dtype.str, "shape": list(a.shape), "data": memoryview(a).cast("B")}  # packed without a copy
+    data = memoryview(a).cast("B") if a.size else b""  # packed without a copy (a view of no bytes cannot be cast)
+    return {"dtype": a.dtype.str, "shape": list(a.shape), "data": data}
 
 
 def _default(obj: Any) -> Any:
