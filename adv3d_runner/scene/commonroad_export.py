@@ -68,19 +68,12 @@ class CommonRoadIds:
 
 
 def _bounds(lane: Lane) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(left, centre, right) vertices of a lane: the centre line offset by +-width/2 along each
-    vertex's normal (the mean of its segments' directions)."""
+    """(left, centre, right) vertices of a lane (:func:`~adv3d_runner.scene.lanes.lane_bounds`)."""
+    from .lanes import lane_bounds
+
     c = np.asarray(lane.centerline, dtype=np.float64)
-    w = np.broadcast_to(np.asarray(lane.width, dtype=np.float64), (len(c),))
-    seg = np.diff(c, axis=0)
-    seg /= np.maximum(np.linalg.norm(seg, axis=1, keepdims=True), 1e-12)
-    tangent = np.empty_like(c)
-    tangent[0], tangent[-1] = seg[0], seg[-1]
-    tangent[1:-1] = seg[:-1] + seg[1:]
-    tangent /= np.maximum(np.linalg.norm(tangent, axis=1, keepdims=True), 1e-12)
-    normal = np.c_[-tangent[:, 1], tangent[:, 0]]
-    half = 0.5 * w[:, None]
-    return c + half * normal, c, c - half * normal
+    left, right = lane_bounds(c, lane.width)
+    return left, c, right
 
 
 def lanelet_ids(lanes: list[Lane], vehicle_ids: list[int]) -> dict[int, int]:

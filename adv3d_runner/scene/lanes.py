@@ -249,6 +249,23 @@ def vertex_normals(points: np.ndarray) -> np.ndarray:
     return n
 
 
+def lane_bounds(centerline: np.ndarray, width: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
+    """(left, right) (P, 2) bounds of a lane: its centre line (P, 2), not cleaned, offset by
+    +-width/2 (scalar or (P,) m) along each vertex's normal (the mean of its segments'
+    directions); the CommonRoad lanelets adv3d writes have these as their bounds."""
+    c = np.asarray(centerline, dtype=np.float64)
+    w = np.broadcast_to(np.asarray(width, dtype=np.float64), (len(c),))
+    seg = np.diff(c, axis=0)
+    seg /= np.maximum(np.linalg.norm(seg, axis=1, keepdims=True), 1e-12)
+    tangent = np.empty_like(c)
+    tangent[0], tangent[-1] = seg[0], seg[-1]
+    tangent[1:-1] = seg[:-1] + seg[1:]
+    tangent /= np.maximum(np.linalg.norm(tangent, axis=1, keepdims=True), 1e-12)
+    normal = np.c_[-tangent[:, 1], tangent[:, 0]]
+    half = 0.5 * w[:, None]
+    return c + half * normal, c - half * normal
+
+
 def offset_polyline(points: np.ndarray, d: np.ndarray | float) -> np.ndarray:
     """Offset the cleaned polyline by ``d`` m to the left (negative: right); ``d`` scalar or
     one value per *original* point (values of dropped duplicates are dropped too)."""

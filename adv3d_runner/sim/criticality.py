@@ -132,14 +132,9 @@ def _extend_open_ends(lanes: Sequence) -> dict[int, tuple[np.ndarray, np.ndarray
 
 def _bounds(c: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(left, right) bounds: the centre line offset by +-w/2 along its vertex normals."""
-    seg = np.diff(c, axis=0)
-    seg /= np.maximum(np.linalg.norm(seg, axis=1, keepdims=True), 1e-12)
-    tangent = np.empty_like(c)
-    tangent[0], tangent[-1] = seg[0], seg[-1]
-    tangent[1:-1] = seg[:-1] + seg[1:]
-    tangent /= np.maximum(np.linalg.norm(tangent, axis=1, keepdims=True), 1e-12)
-    normal = np.c_[-tangent[:, 1], tangent[:, 0]]
-    return c + 0.5 * w[:, None] * normal, c - 0.5 * w[:, None] * normal
+    from ..scene.lanes import lane_bounds
+
+    return lane_bounds(c, w)
 
 
 def _speeds_from_poses(poses: np.ndarray, dt: float) -> np.ndarray:
