@@ -263,14 +263,20 @@ def isa() -> str | None:
     return None if lib is None else lib.isa
 
 
+def coherent_packet() -> int:
+    """Rays per coherent call: 16 (``rtcIntersect16``) where Embree runs AVX-512, else 8 (with
+    AVX2 kernels a packet of 16 costs 3x one of 8: 11.3 against 3.6 ms for a background frame)."""
+    return COHERENT_PACKET if isa() == "avx512" else PACKET
+
+
 def coherent_pays() -> bool:
     """Whether coherent casts (:mod:`~adv3d_runner.sensors.coherent`) are faster than plain
-    ones here: only where Embree runs AVX-512. A background frame of the HDL-64E on an AMD
-    EPYC (Zen 4): 4.2 ms coherent against 8.3 ms plain with AVX-512, but 13.3 against 8.2 with
-    AVX2 and 15.8 against 13.3 with SSE4.2 (``ADV3D_EMBREE_ISA=... bench/lidar.py --coherent``;
-    docs/lidar.md).
-    The hits are the same either way."""
-    return isa() == "avx512"
+    ones here: with AVX-512 and AVX2 kernels, not with SSE4.2 ones. HDL-64E background frame of
+    ``highway-benchmark-000000``, certified coherent cast against the reference query, on an AMD
+    EPYC (Zen 4): AVX-512 4.1 against 8.0 ms, AVX2 (packets of 8) 5.3 against 8.0, SSE4.2 15.8
+    against 13.6 (``ADV3D_EMBREE_ISA=... bench/lidar.py --coherent 3``,
+    ``bench/results/lidar_coherent.epyc-*.json``; docs/lidar.md). The hits are the same either way."""
+    return isa() in ("avx512", "avx2")
 
 
 def library_path() -> Path | None:
@@ -352,7 +358,7 @@ class TriangleScene:
         """
         prim = np.empty(len(directions), np.int32)
         _cast(self._scene, origins, directions, tfar, prim, _NO_UV if uv is None else uv,
-              COHERENT if coherent else 0, COHERENT_PACKET if coherent else PACKET)
+              COHERENT if coherent else 0, coherent_packet() if coherent else PACKET)
         return prim
 
     def __reduce__(self):
