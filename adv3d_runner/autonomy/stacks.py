@@ -25,6 +25,7 @@
 """
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 
 from ..errors import ConfigError
@@ -54,12 +55,12 @@ _OWN = {"A": (("detector", "predictor"), ("detections", "tracks", "predictions")
 
 def own_stack(name: str, **options):
     """One of adv3d's own stacks, carrying its ``stack_info`` (:func:`.plugins.builtin_info`)."""
-    from .plugins import builtin_info, with_info
+    from .plugins import with_info
 
-    models, provides = _OWN[name]
-    return with_info(_make_own(name, **options), builtin_info(name, models, provides))
+    return with_info(_make_own(name, **options), own_info(name))
 
 
+@functools.lru_cache(maxsize=None)
 def own_info(name: str):
     """The :class:`~.api.StackInfo` of one of adv3d's own stacks (None for any other name),
     without building it."""
