@@ -57,7 +57,7 @@ class LidarWorld:
                 origin[:2] = 0.5 * (vertices[:, :2].min(axis=0) + vertices[:, :2].max(axis=0))
         self.origin = np.asarray(origin, dtype=np.float64).reshape(3)
         # Coherent: a frame's background rays come in packets of neighbouring azimuths; it pays
-        # only where Embree runs AVX-512 (embree.coherent_pays), and the hits are the same.
+        # with AVX-512 and AVX2 kernels, not SSE4.2 (embree.coherent_pays); the hits are the same.
         self.background = MeshBVH(vertices - self.origin, faces, coherent=embree.coherent_pays())
         refl = np.asarray(reflectivity, dtype=np.float32)
         if refl.ndim == 0:
