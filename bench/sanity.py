@@ -310,8 +310,9 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="10 generated scenes instead of 100 (the real set is small)")
     ap.add_argument("--sets", default="generated,real", help="comma-separated: generated, real")
-    ap.add_argument("--real-part", choices=("benchmark", "train"), default="benchmark",
-                    help="part of scenes/real/ (split.json); tune only on train")
+    ap.add_argument("--real-part", choices=("benchmark", "train", "fresh"), default="benchmark",
+                    help="part of scenes/real/ (split.json; tune only on train), or fresh: scenes/real-fresh/ "
+                         "(recordings 10-18, evaluation only)")
     ap.add_argument("--autonomy", type=stack_spec, default="A", metavar="STACK",
                     help="any stack (docs/stacks.md): A, B, oracle, A-lanefollow, A-fast, a registered plugin, "
                          "package.module:factory or exec:COMMAND (default A)")
@@ -389,6 +390,12 @@ def main() -> int:
             except ConfigError as exc:
                 ap.error(str(exc))
             print(f"real scenes of {args.real_dir}: {len(paths)} (train recordings only)")
+        elif args.real_part == "fresh":
+            from adv3d_runner.scene.real import load_fresh_part
+
+            fresh = load_fresh_part(split=split)
+            paths = fresh.paths()
+            print(f"real fresh part: {len(paths)} scenes (recordings {list(fresh.recordings)})")
         else:
             paths = split.paths(args.real_part)
             print(f"real {args.real_part} part: {len(paths)} scenes (recordings {list(split.recordings[args.real_part])})")
@@ -396,7 +403,8 @@ def main() -> int:
                         seed=args.seed)
         summary = summarise(rows, real=True)
         summary["part"] = args.real_dir or args.real_part
-        summary["recordings"] = list(split.recordings["train" if args.real_dir else args.real_part])
+        summary["recordings"] = (list(fresh.recordings) if args.real_part == "fresh" and not args.real_dir
+                                 else list(split.recordings["train" if args.real_dir else args.real_part]))
         summary["targets"] = check_targets(summary)
         if args.autonomy == "B":  # no trajectories: the prediction targets do not apply
             summary["targets"] = {k: v for k, v in summary["targets"].items() if not k.startswith("min_ade")}

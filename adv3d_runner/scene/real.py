@@ -110,3 +110,90 @@ def load_real_split(path: str | Path | None = None) -> RealSplit:
             names.append(name)
         scenes[part] = tuple(names)
     return RealSplit(path.parent, recordings, scenes, rule)
+
+
+#: The fresh benchmark part (``scenes/real-fresh/``, made by ``bench/real_fresh.py``): NGSIM
+#: recordings that no model, planner setting or generator profile was fitted or tuned on;
+#: evaluation only. Its manifest is ``index.csv`` (one row per scene).
+FRESH_DIR = REPO_ROOT / "scenes" / "real-fresh"
+FRESH_RECORDINGS = (10, 11, 12, 13, 14, 15, 16, 17, 18)
+FRESH_INDEX = "index.csv"
+FRESH_INDEX_HEADER = ("scene", "recording", "commonroad_file", "commonroad_sha256", "ego_obstacle_id",
+                      "speed_min_first_5s", "speed_max_first_5s")
+
+
+@dataclass(frozen=True)
+class FreshPart:
+    """The fresh benchmark part.
+
+    Attributes:
+        folder: where the scene files are (``<scene>.json.gz``).
+        rows: the manifest's rows (column -> text), in file order.
+    """
+
+    folder: Path
+    rows: tuple[dict[str, str], ...]
+
+    @property
+    def recordings(self) -> tuple[int, ...]:
+        """The recordings the part's scenes come from, ascending."""
+        return tuple(sorted({int(r["recording"]) for r in self.rows}))
+
+    def paths(self) -> list[Path]:
+        """Scene files, in manifest order."""
+        return [self.folder / f"{r['scene']}.json.gz" for r in self.rows]
+
+
+def load_fresh_part(folder: str | Path | None = None, split: RealSplit | None = None) -> FreshPart:
+    """Read and check the fresh part's manifest ``<folder>/index.csv`` (default
+    ``scenes/real-fresh``).
+
+    Checks: the header; every row's scene name is ``<CommonRoad id>.ego<obstacle id>`` naming its
+    row's file and ego, listed once, with a file next to the manifest; its recording is one of
+    ``FRESH_RECORDINGS`` and in neither part of ``split`` (default ``scenes/real/split.json``),
+    so no recording is both trained or tuned on and evaluated here.
+
+    Raises:
+        FileFormatError: naming the manifest, the row and the column of the first problem.
+    """
+    import csv
+
+    from ..errors import FileFormatError
+
+    folder = Path(folder) if folder is not None else FRESH_DIR
+    path = folder / FRESH_INDEX
+    split = split if split is not None else load_real_split()
+    used = {r: part for part, recs in split.recordings.items() for r in recs}
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise FileFormatError(path, "$", "a readable CSV manifest", exc.strerror or str(exc)) from None
+    reader = csv.DictReader(text.splitlines())
+    if tuple(reader.fieldnames or ()) != FRESH_INDEX_HEADER:
+        raise FileFormatError(path, "line 1", f"the header {','.join(FRESH_INDEX_HEADER)}", reader.fieldnames)
+    rows, seen = [], set()
+    for n, row in enumerate(reader, start=2):
+        where = f"line {n}"
+        name, rec, ego = row["scene"], row["recording"], row["ego_obstacle_id"]
+        stem = Path(row["commonroad_file"] or "").stem
+        if f"{stem}.ego{ego}" != name:
+            raise FileFormatError(path, f"{where}.scene", f"<commonroad_file stem>.ego<ego_obstacle_id> = {stem}.ego{ego}", name)
+        try:
+            r = recording_of(stem)
+        except ValueError:
+            raise FileFormatError(path, f"{where}.commonroad_file", "a CommonRoad US-101 file name", stem) from None
+        if not rec.isdigit() or int(rec) != r:
+            raise FileFormatError(path, f"{where}.recording", f"the file's recording {r}", rec)
+        if r not in FRESH_RECORDINGS:
+            raise FileFormatError(path, f"{where}.recording", f"a fresh recording {list(FRESH_RECORDINGS)}", r)
+        if r in used:
+            raise FileFormatError(path, f"{where}.recording", f"a recording outside split.json's {used[r]} part", r)
+        if name in seen:
+            raise FileFormatError(path, f"{where}.scene", "a scene listed once", name)
+        seen.add(name)
+        if not (folder / f"{name}.json.gz").is_file():
+            raise FileFormatError(path, f"{where}.scene", f"a scene with a file {name}.json.gz next to {FRESH_INDEX}", name)
+        rows.append(dict(row))
+    if not rows:
+        raise FileFormatError(path, "$", "at least one scene row", "none")
+    return FreshPart(folder, tuple(rows))
