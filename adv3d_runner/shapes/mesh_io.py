@@ -10,6 +10,8 @@ the footprint (the x/y bounding box) on the ground (z = 0 is the lowest point, t
 - ShapeNet OBJ (``model_normalized.obj`` of ShapeNetCore v2: +y up, front -z, normalised to a
   unit diagonal, so real dimensions are required) is an OBJ with its own axis defaults
   (:data:`CONVENTIONS`).
+- AC3D ``.ac`` and TORCS ``.acc`` (y up; TORCS cars at true scale, x along the length) are
+  read by :mod:`.ac3d`, one colour per face from the materials.
 - fbx / blend are read by Blender in a child process (``adv3d_runner.shapes.bpy_export``) so
   this process never imports bpy; the child writes a plain PLY in Blender's Z-up world frame
   (metres, object scales such as FBX centimetres applied).
@@ -34,11 +36,12 @@ from . import fma
 TRIMESH_FORMATS = (".glb", ".gltf", ".obj", ".ply", ".stl")
 BLENDER_FORMATS = (".fbx", ".blend")
 JSON_FORMATS = (".json",)  # ApolloCar3D car models
-SUPPORTED_FORMATS = TRIMESH_FORMATS + BLENDER_FORMATS + JSON_FORMATS
+AC3D_FORMATS = (".ac", ".acc")  # AC3D and TORCS's AC3D (shapes/ac3d.py)
+SUPPORTED_FORMATS = TRIMESH_FORMATS + BLENDER_FORMATS + JSON_FORMATS + AC3D_FORMATS
 
 #: Up axis each format declares (None: the format does not say; we assume +z, CAD style).
 NATIVE_UP = {".glb": "+y", ".gltf": "+y", ".fbx": "+z", ".blend": "+z",
-             ".obj": None, ".ply": None, ".stl": None, ".json": "-y"}
+             ".obj": None, ".ply": None, ".stl": None, ".json": "-y", ".ac": "+y", ".acc": "+y"}
 
 #: Axis conventions of the datasets people hold, beyond what a file format declares:
 #: ``up``/``forward`` defaults (explicit --up/--forward win), whether the files are normalised
@@ -72,7 +75,8 @@ def read_mesh(path: str | Path) -> tuple[Any, dict]:
     """Read any supported file as one triangle mesh in its own file frame.
 
     Args:
-        path: mesh file (.glb .gltf .obj .ply .stl through trimesh; .fbx .blend through bpy).
+        path: mesh file (.glb .gltf .obj .ply .stl through trimesh; .fbx .blend through bpy;
+            ApolloCar3D .json and AC3D .ac / .acc read here).
 
     Returns:
         (mesh, info): a ``trimesh.Trimesh`` (float64 vertices, face colours RGBA uint8) and
@@ -96,6 +100,11 @@ def read_mesh(path: str | Path) -> tuple[Any, dict]:
     elif suffix in JSON_FORMATS:
         mesh = read_apollocar3d_json(path)
         reader = "apollocar3d-json"
+    elif suffix in AC3D_FORMATS:
+        from .ac3d import read_ac3d
+
+        mesh = read_ac3d(path)
+        reader = "ac3d"
     else:
         mesh = _read_with_trimesh(path, suffix)
         reader = "trimesh"
