@@ -15,6 +15,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import re
 import signal
 import subprocess
 from pathlib import Path
@@ -39,10 +40,18 @@ def run_name(scene_bytes: bytes, settings: dict, scene_id: str) -> str:
 
 
 def attack_command(cmd: list[str], scene_file: Path, run_dir: Path, settings: dict) -> list[str]:
-    """The ``adv3d attack`` command line (``cmd``: the runner, ``prefs.runner_command``)."""
-    return cmd + ["--quiet", "attack", str(scene_file), "--out", str(run_dir), "--algo", settings["algo"],
-                  "--budget", str(settings["budget"]), "--seconds", f"{settings['seconds']:g}",
-                  "--autonomy", settings["autonomy"], "--seed", str(settings["seed"])]
+    """The ``adv3d attack`` command line (``cmd``: the runner, ``prefs.runner_command``): the
+    panel's search settings, stack (``--autonomy``) and the Library and Shape space panels' files
+    (``--library``, ``--shape-space``; left out when a panel has none, so the runner uses its
+    bundled ones)."""
+    out = cmd + ["--quiet", "attack", str(scene_file), "--out", str(run_dir), "--algo", settings["algo"],
+                 "--budget", str(settings["budget"]), "--seconds", f"{settings['seconds']:g}",
+                 "--autonomy", settings["autonomy"], "--seed", str(settings["seed"])]
+    if settings.get("library"):
+        out += ["--library", settings["library"]]
+    if settings.get("shape_space"):
+        out += ["--shape-space", settings["shape_space"]]
+    return out
 
 
 def journal_progress(run_dir: Path) -> tuple[int, float]:
@@ -55,8 +64,9 @@ def journal_progress(run_dir: Path) -> tuple[int, float]:
     done, best = 0, float("inf")
     for line in data.split(b"\n")[:-1]:  # the part after the last newline is still being written
         try:
-            cost = float(json.loads(line).get("cost", float("nan")))
-        except (ValueError, AttributeError):
+            cost = json.loads(line).get("cost")
+            cost = float("nan") if cost is None else float(cost)  # null: a failed episode
+        except (ValueError, TypeError, AttributeError):
             continue
         done += 1
         if cost == cost:  # not NaN (failed episodes)
@@ -86,15 +96,32 @@ def side_folder(run_dir: Path) -> Path:
     return run_dir.with_name(run_dir.name + ".blender")
 
 
+def new_log_path(run_dir: Path) -> Path:
+    """A log file of its own for this attempt: ``<run>.blender/attack-NN.log``, NN one above the
+    highest there (so the last attempt's log ends with the last attempt's outcome)."""
+    folder = side_folder(run_dir)
+    folder.mkdir(parents=True, exist_ok=True)
+    taken = [int(m.group(1)) for p in folder.glob("attack-*.log") if (m := re.fullmatch(r"attack-(\d+)\.log", p.name))]
+    return folder / f"attack-{max(taken, default=0) + 1:02d}.log"
+
+
+def runner_error(log_text: str) -> str:
+    """The runner's own one-line error from its log: the last ``...: error: ...`` line
+    (``adv3d: error: ...``, an argument error), else the last non-empty line."""
+    lines = [ln.strip() for ln in log_text.splitlines() if ln.strip()]
+    errors = [ln for ln in lines if ": error: " in ln]
+    return errors[-1] if errors else (lines[-1] if lines else "no output")
+
+
 def attack_steps(cmd: list[str], run_dir: Path, budget: int, env: dict | None = None,
                  started: list | None = None):
     """Steps generator: run the attack command and wait for it, yielding
     ``jobs.Waiting(fraction, message)`` every ``POLL_S``; closing the generator (Esc) terminates
-    the process. Returns ``run_dir``; raises ``Adv3dError`` with the log's last line when the
-    attack fails. ``started``: the ``Popen`` is appended to it (for callers that watch it)."""
-    log_path = side_folder(run_dir) / "blender-attack.log"
-    log_path.parent.mkdir(parents=True, exist_ok=True)
-    with open(log_path, "ab") as log:
+    the process. Returns ``run_dir``; raises ``Adv3dError`` with the runner's error line when
+    the attack fails. Each attempt writes its own log (:func:`new_log_path`). ``started``: the
+    ``Popen`` is appended to it (for callers that watch it)."""
+    log_path = new_log_path(run_dir)
+    with open(log_path, "wb") as log:
         proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env,
                                 start_new_session=hasattr(os, "killpg"))
     if started is not None:
@@ -107,9 +134,8 @@ def attack_steps(cmd: list[str], run_dir: Path, budget: int, env: dict | None = 
     finally:
         _stop(proc)  # cancelled (GeneratorExit) or failed: never leave it running
     if proc.returncode != 0:
-        lines = [ln for ln in log_path.read_text(errors="replace").splitlines() if ln.strip()]
-        raise runner.Adv3dError(f"adv3d attack failed (exit {proc.returncode}): "
-                                f"{lines[-1] if lines else 'no output'} (log: {log_path})")
+        raise runner.Adv3dError(f"{runner_error(log_path.read_text(errors='replace'))} "
+                                f"(exit {proc.returncode}, log: {log_path})")
     return run_dir
 
 
@@ -124,9 +150,18 @@ class ADV3D_OT_scene_attack(jobs.JobOperator, bpy.types.Operator):
     job_label = "Attack"
 
     def start_job(self, context):
-        cmd, run_dir, settings = prepare_attack(context)
+        context.scene.adv3d.scene.attack_error = ""
+        try:
+            cmd, run_dir, settings = prepare_attack(context)
+        except (runner.Adv3dError, OSError, ValueError) as exc:
+            context.scene.adv3d.scene.attack_error = str(exc)
+            raise
         self.job_label = f"Attack {context.scene.adv3d.scene.scene_id}"
         return attack_steps(cmd, run_dir, settings["budget"], env=_runner_env())
+
+    def job_cancelled(self, context, job):
+        """A failed attack's error line stays in the Scenes panel (the log holds the rest)."""
+        context.scene.adv3d.scene.attack_error = job.error if job.state == jobs.FAILED else ""
 
     def finish_job(self, context, job):
         run_dir = job.result
@@ -154,7 +189,7 @@ def prepare_attack(context) -> tuple[list[str], Path, dict]:
     scene, _ = export_scene(context.scene)  # what Export scene would write: edits included
     settings = {"algo": props.attack_algo, "budget": int(props.attack_budget),
                 "seconds": float(props.attack_seconds), "autonomy": props.attack_autonomy,
-                "seed": int(props.attack_seed)}
+                "seed": int(props.attack_seed), **_panel_files(context)}
     runs = prefs.runs_folder(context)
     staging = runs / ".staging"
     staging.mkdir(parents=True, exist_ok=True)
@@ -167,6 +202,23 @@ def prepare_attack(context) -> tuple[list[str], Path, dict]:
         os.replace(tmp, scene_file)
     props.last_run = str(run_dir)
     return attack_command(cmd, scene_file, run_dir, settings), run_dir, settings
+
+
+def _panel_files(context) -> dict:
+    """The Library and Shape space panels' files (else the preferences' defaults) as absolute
+    paths, '' where neither is set (the runner then uses its bundled ones); a set path that does
+    not exist is refused here, naming the panel."""
+    from .ops_library import library_path
+    from .ops_shapes import space_path
+
+    files = {"library": library_path(context.scene.adv3d.library), "shape_space": space_path(context.scene.adv3d.shapes)}
+    for key, panel in (("library", "Library"), ("shape_space", "Shape space")):
+        if files[key]:
+            path = Path(files[key]).expanduser().resolve()
+            if not path.is_file():
+                raise runner.Adv3dError(f"the {panel} panel's file {path} does not exist")
+            files[key] = str(path)
+    return files
 
 
 def _runner_env() -> dict:

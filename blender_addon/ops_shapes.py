@@ -280,9 +280,15 @@ class ADV3D_OT_shapes_export(bpy.types.Operator, uiutil.FormatExportHelper):
         name="Format", default="GLB",
         items=[("GLB", "glTF binary (.glb)", "One file, y up (glTF's frame: opens upright anywhere)"),
                ("GLTF", "glTF (.gltf)", "JSON glTF, y up"),
-               ("OBJ", "Wavefront (.obj)", "z up, +x front (adv3d's frame)"),
-               ("PLY", "Stanford (.ply)", "z up, +x front"),
-               ("STL", "STL (.stl)", "z up, +x front")])
+               ("OBJ", "Wavefront (.obj)", "Up axis as chosen (Auto: y up, as Blender's OBJ importer expects)"),
+               ("PLY", "Stanford (.ply)", "Up axis as chosen (Auto: z up, as Blender's PLY importer expects)"),
+               ("STL", "STL (.stl)", "Up axis as chosen (Auto: z up, as Blender's STL importer expects)")])
+    up_axis: EnumProperty(
+        name="Up", default="AUTO",
+        items=[("AUTO", "Auto", "What Blender's importer of the format expects with its defaults: y up for glTF "
+                                "and OBJ, z up for PLY and STL (the vehicle's front is +x in every case)"),
+               ("Y", "Y up", "y up, +x front (glTF's frame; Blender's OBJ importer defaults)"),
+               ("Z", "Z up", "z up, +x front (adv3d's and Blender's frame; not for glTF)")])
     filter_glob: StringProperty(default="*.glb;*.gltf;*.obj;*.ply;*.stl", options={"HIDDEN"})
 
     @uiutil.reported
@@ -295,9 +301,26 @@ class ADV3D_OT_shapes_export(bpy.types.Operator, uiutil.FormatExportHelper):
         space = runner.load_space(space_path(shapes))
         shapes.k = space.k
         vertices, faces = space.decode_arrays(current_unit(shapes))
-        write_mesh(trimesh.Trimesh(vertices=vertices, faces=faces, process=False), path)
+        write_mesh(trimesh.Trimesh(vertices=vertices, faces=faces, process=False), path,
+                   up=export_up_axis(self.file_format, self.up_axis))
         self.report({"INFO"}, f"Wrote {path} ({len(faces)} triangles)")
         return {"FINISHED"}
+
+
+#: The up axis each of Blender's importers expects with its default settings.
+IMPORTER_UP = {"GLB": "Y", "GLTF": "Y", "OBJ": "Y", "PLY": "Z", "STL": "Z"}
+
+
+def export_up_axis(file_format: str, choice: str) -> str:
+    """The up axis to write (``Y`` or ``Z``) for an export format and the panel's choice.
+
+    Raises:
+        Adv3dError: Z up chosen for glTF (its frame is y up by the specification).
+    """
+    up = IMPORTER_UP[file_format] if choice == "AUTO" else choice
+    if file_format in ("GLB", "GLTF") and up != "Y":
+        raise runner.Adv3dError("glTF is always y up (its specification): choose Auto or Y up")
+    return up
 
 
 def build_steps(library, out: str, options: dict):

@@ -146,7 +146,12 @@ class ADV3D_PT_scenes(_Adv3dPanel, bpy.types.Panel):
             col = box.column(align=True)
             for name in ("attack_algo", "attack_budget", "attack_seconds", "attack_autonomy", "attack_seed"):
                 col.prop(sc, name)
+            _draw_attack_files(box, context)
             _job_button(box, "adv3d.scene_attack", "PLAY")
+            if sc.attack_error:
+                col = box.column(align=True)
+                col.alert = True
+                col.label(text=sc.attack_error, icon="ERROR")
             if not prefs.runner_command():
                 box.label(text="No adv3d runner: set one in the preferences", icon="ERROR")
             if sc.last_run:
@@ -182,6 +187,18 @@ class ADV3D_PT_review(_Adv3dPanel, bpy.types.Panel):
             box.label(text=" / ".join(rv.loaded.replace("\\", "/").split("/")[-3:]), icon="FILE")
             box.label(text="Red: adversarial shapes; green: detections with scores")
             box.label(text="Scrub the timeline to step through the episode")
+
+
+def _draw_attack_files(layout, context) -> None:
+    """Which library and shape space the attack passes to the runner (the panels' files)."""
+    from .ops_library import library_path
+    from .ops_shapes import space_path
+
+    col = layout.column(align=True)
+    col.scale_y = 0.8
+    lib, space = library_path(context.scene.adv3d.library), space_path(context.scene.adv3d.shapes)
+    col.label(text=f"Library: {lib or 'bundled'}")
+    col.label(text=f"Shape space: {space or 'bundled'}")
 
 
 def _job_button(layout, idname: str, icon: str) -> None:

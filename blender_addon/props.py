@@ -109,6 +109,8 @@ class ADV3D_PG_scene(bpy.types.PropertyGroup):
                                   description="Stack under attack (--autonomy): every stack the runner lists "
                                               "(adv3d stacks list: its own and the registered plugins)")
     attack_seed: IntProperty(name="Seed", default=0, min=0, description="Search seed (--seed)")
+    attack_error: StringProperty(options={"HIDDEN"},
+                                 description="The runner's error line of the last failed attack")
     last_run: StringProperty(name="Last run", subtype="DIR_PATH", options={"HIDDEN"})
 
 

@@ -823,3 +823,46 @@ def test_render_resolves_relative_paths_against_the_callers_folder(data, tmp_pat
     assert not (repo_root / "pics").exists()
     bad = subprocess.run(cmd[:-1] + ["out.png", "--u", "0.5"], cwd=tmp_path, env=env, capture_output=True, text=True)
     assert bad.returncode != 0 and "--u needs 5 values" in bad.stderr
+
+
+def _imported_extents(before: set) -> np.ndarray:
+    """Extents (x, y, z) in metres of the mesh objects an importer just added."""
+    new = [o for o in bpy.data.objects if o.name not in before and o.type == "MESH"]
+    assert new
+    pts = np.concatenate([np.array([o.matrix_world @ v.co for v in o.data.vertices]) for o in new])
+    return pts.max(axis=0) - pts.min(axis=0)
+
+
+def test_exports_open_upright_in_blenders_importers_with_their_defaults(ctx, data, tmp_path):
+    """Auto up axis: Blender's OBJ, PLY, STL and glTF importers with their default settings stand
+    the car up (length along x, height along z); two .gltf files in one folder keep their own
+    buffers (both import)."""
+    from adv3d_runner.shapes.shape_space import ShapeSpace
+
+    bpy.ops.adv3d.shapes_load(filepath=str(data["space"]))
+    v, _ = ShapeSpace.load(data["space"]).decode_arrays(
+        __import__("blender_addon").ops_shapes.current_unit(ctx.scene.adv3d.shapes))
+    want = v.max(axis=0) - v.min(axis=0)
+    importers = {"obj": bpy.ops.wm.obj_import, "ply": bpy.ops.wm.ply_import, "stl": bpy.ops.wm.stl_import,
+                 "gltf": bpy.ops.import_scene.gltf}
+    for ext, fmt in (("obj", "OBJ"), ("ply", "PLY"), ("stl", "STL"), ("gltf", "GLTF")):
+        path = tmp_path / f"car.{ext}"
+        assert bpy.ops.adv3d.shapes_export(filepath=str(path), file_format=fmt) == {"FINISHED"}
+        before = set(bpy.data.objects.keys())
+        importers[ext](filepath=str(path))
+        assert np.allclose(_imported_extents(before), want, atol=2e-3), ext
+    # Z up OBJ lies on its side in the OBJ importer's defaults; Z up glTF is refused
+    assert bpy.ops.adv3d.shapes_export(filepath=str(tmp_path / "z.obj"), up_axis="Z") == {"FINISHED"}
+    before = set(bpy.data.objects.keys())
+    bpy.ops.wm.obj_import(filepath=str(tmp_path / "z.obj"))
+    assert not np.allclose(_imported_extents(before), want, atol=2e-3)
+    with pytest.raises(RuntimeError, match="glTF is always y up"):
+        bpy.ops.adv3d.shapes_export(filepath=str(tmp_path / "z.glb"), up_axis="Z")
+    # a second .gltf in the same folder: its own buffer, the first one still imports
+    bpy.context.scene.adv3d.shapes.latent[0] = 0.1
+    assert bpy.ops.adv3d.shapes_export(filepath=str(tmp_path / "second.gltf")) == {"FINISHED"}
+    assert sorted(p.name for p in tmp_path.glob("*.bin")) == ["car.bin", "second.bin"]
+    for name in ("car.gltf", "second.gltf"):
+        before = set(bpy.data.objects.keys())
+        assert bpy.ops.import_scene.gltf(filepath=str(tmp_path / name)) == {"FINISHED"}
+        assert _imported_extents(before)[2] > 0.5

@@ -122,3 +122,58 @@ def test_the_stack_menu_lists_the_runners_stacks_and_plugins(ctx, tmp_path):
     assert runner.runner_stacks([str(tmp_path / "no-such-runner")]) == runner.FALLBACK_STACKS
     sc.attack_autonomy = "oracle"
     assert sc.attack_autonomy == "oracle"
+
+
+@pytest.fixture
+def own_files(tmp_path):
+    """The test suite's own library (fx.* assets, not in the bundled one) and its shape space."""
+    from test_blender_addon import make_library, make_space
+
+    return make_library(tmp_path / "own" / "library"), make_space(tmp_path / "own" / "space.npz")
+
+
+def test_attack_with_your_own_library_and_shape_space(ctx, own_files):
+    """Actors that use assets of the panel's own library: the runner gets the panels' library,
+    shape space and stack (the bundled library lacks these assets, so without them it fails)."""
+    from blender_addon import ops_attack
+
+    lib, space = own_files
+    ctx.scene.adv3d.library.path = str(lib)
+    ctx.scene.adv3d.shapes.space_path = str(space)
+    for obj in bpy.data.objects:
+        if obj.adv3d.role == "ACTOR":
+            obj.adv3d.asset_id = "fx.sedan"
+    cmd, run_dir, settings = ops_attack.prepare_attack(ctx)
+    assert cmd[cmd.index("--library") + 1] == str(lib.resolve())
+    assert cmd[cmd.index("--shape-space") + 1] == str(space.resolve())
+    assert cmd[cmd.index("--autonomy") + 1] == "oracle"
+    sc = ctx.scene.adv3d.scene
+    sc.attack_budget = 1
+    assert bpy.ops.adv3d.scene_attack() == {"FINISHED"}
+    run = Path(sc.last_run)
+    info = json.loads((run / "run.json").read_text())
+    assert str(lib.resolve()) in json.dumps(info) and sc.attack_error == ""
+    assert len(_journal(run)) == 1
+
+
+def test_failed_start_shows_the_runners_error_line_and_each_attempt_has_its_log(ctx, own_files, tmp_path):
+    from blender_addon import ops_attack
+
+    bad = tmp_path / "broken.npz"
+    bad.write_bytes(b"not a zip file")
+    ctx.scene.adv3d.shapes.space_path = str(bad)
+    sc = ctx.scene.adv3d.scene
+    for _ in range(2):
+        with pytest.raises(RuntimeError) as err:
+            bpy.ops.adv3d.scene_attack()
+        assert "Traceback" not in str(err.value) and "TypeError" not in str(err.value)
+        assert sc.attack_error.startswith("adv3d: error: ") and str(bad) in sc.attack_error
+    logs = sorted(p.name for p in ops_attack.side_folder(Path(sc.last_run)).glob("*.log"))
+    assert logs == ["attack-01.log", "attack-02.log"]
+
+
+def test_journal_progress_tolerates_failed_episodes(tmp_path):
+    from blender_addon import ops_attack
+
+    (tmp_path / "queries.jsonl").write_text('{"cost": null}\n{"cost": 2.5}\n{"cost": "x"}\n{"cost": 1.5')
+    assert ops_attack.journal_progress(tmp_path) == (2, 2.5)

@@ -100,7 +100,8 @@ def attach_realism(runs: list[tuple[str, dict, list, dict]]) -> None:
                 try:
                     from ..scene.schema import load_scene
 
-                    shapes = ActorShapes(config.settings, load_scene(entry["ref"]), entry["targets"], space)
+                    shapes = ActorShapes(config.settings, load_scene(entry["ref"]), entry["targets"], space,
+                                         config.settings.load_library())
                     ev["realism"] = shapes.full_reports(unit)
                 except (Adv3dError, OSError, KeyError):
                     if config.shape_model != "latent" or config.max_mahalanobis is not None or config.class_scales:

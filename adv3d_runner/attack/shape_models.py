@@ -73,12 +73,14 @@ class ActorShapes:
             max_mahalanobis, class_scales).
         scene: the scene. targets: the attacked actor ids.
         space: the run's shape space (also the realism reference's asset set for ``vd``).
-        library: the vehicle library for ``vd`` templates (default: the bundled one).
+        library: the vehicle library for ``vd`` templates and the realism reference of a shape
+            space without a known one (default: the bundled one).
     """
 
     def __init__(self, settings, scene, targets: list[int], space, library=None):
         self.settings = settings
         self.space = space
+        self.library = library
         self.targets = list(targets)
         self.classes = actor_classes(scene, self.targets)
         self.region = None
@@ -98,7 +100,7 @@ class ActorShapes:
     def reference(self) -> realism.RealismReference:
         """The realism reference of the run's shape space (loaded on first use)."""
         if self._reference is None:
-            self._reference = realism.default_reference(self.space)
+            self._reference = realism.default_reference(self.space, self.library)
         return self._reference
 
     # ------------------------------------------------------------------ decoding

@@ -613,14 +613,18 @@ def convert_vehicle(mesh, reader: str, file_format: str, *, up: str | None = Non
 MESH_SUFFIXES = (".glb", ".gltf", ".obj", ".ply", ".stl")
 
 
-def write_mesh(mesh, path: str | Path) -> Path:
+def write_mesh(mesh, path: str | Path, up: str | None = None) -> Path:
     """Write a convention-frame ``trimesh.Trimesh`` to ``path`` atomically, format by extension.
 
     glTF is y-up, so .glb/.gltf get the library's glTF frame and open upright in Blender; the
-    other formats keep the convention frame (z up, +x forward).
+    other formats keep the convention frame (z up, +x forward) unless ``up="Y"``: then they get
+    the same y-up frame (x stays front; what Blender's OBJ importer expects with its defaults,
+    forward -Z, up Y). A .gltf's buffer is one file named after it (``car.gltf`` +
+    ``car.bin``), so several .gltf files can share a folder.
 
     Raises:
-        ConfigError: the extension is not one of ``MESH_SUFFIXES``.
+        ConfigError: the extension is not one of ``MESH_SUFFIXES``, or ``up`` is not Y or Z
+            (glTF is always y-up).
     """
     from ..fileio import atomic_path
 
@@ -628,10 +632,37 @@ def write_mesh(mesh, path: str | Path) -> Path:
     suffix = path.suffix.lower()
     if suffix not in MESH_SUFFIXES:
         raise ConfigError(f"{path.name}: mesh files must end in one of {', '.join(MESH_SUFFIXES)}")
+    gltf = suffix in (".glb", ".gltf")
+    if up not in (None, "Y", "Z") or (gltf and up == "Z"):
+        raise ConfigError(f"{path.name}: up axis must be Y or Z (glTF: Y), got {up!r}")
     out = mesh
-    if suffix in (".glb", ".gltf"):
+    if gltf or up == "Y":
         out = mesh.copy()
         out.vertices = np.asarray(mesh.vertices) @ CONVENTION_TO_GLTF.T
+    if suffix == ".gltf":
+        _write_gltf(out, path)
+        return path
     with atomic_path(path, suffix=suffix) as tmp:
         out.export(tmp, file_type=suffix.lstrip("."))
     return path
+
+
+def _write_gltf(mesh, path: Path) -> None:
+    """A .gltf whose single buffer is ``<stem>.bin`` beside it (trimesh's default names,
+    ``gltf_buffer_N.bin``, would collide between files of one folder); buffer first, then the
+    JSON, each atomically."""
+    import json
+
+    import trimesh
+    from trimesh.exchange.gltf import export_gltf
+
+    from ..fileio import atomic_write_bytes
+
+    files = export_gltf(trimesh.Scene(mesh), merge_buffers=True)
+    doc = json.loads(files.pop("model.gltf"))
+    bin_name = f"{path.stem}.bin"
+    for buf in doc.get("buffers", []):
+        data = files.pop(buf["uri"])
+        buf["uri"] = bin_name
+        atomic_write_bytes(path.with_name(bin_name), data)
+    atomic_write_bytes(path, json.dumps(doc, separators=(",", ":")).encode())

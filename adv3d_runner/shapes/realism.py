@@ -715,25 +715,72 @@ def load_reference(path: str | Path = DEFAULT_REFERENCE) -> RealismReference:
 _CACHE: dict[str, RealismReference] = {}
 
 
-def default_reference(space) -> RealismReference:
-    """The reference for ``space``: the shipped file when it was built for this space, else one
-    computed from the bundled library (once per process).
+def reference_cache_dir() -> Path:
+    """Where references built for shape spaces other than the shipped one are kept, one
+    ``.npz`` per shape-space content hash: ``$ADV3D_CACHE/realism``, else
+    ``$XDG_CACHE_HOME/adv3d/realism`` (``~/.cache/adv3d/realism``)."""
+    import os
+
+    base = os.environ.get("ADV3D_CACHE") or str(Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
+                                                / "adv3d")
+    return Path(base) / "realism"
+
+
+def cached_reference_path(space) -> Path:
+    """The cache file of ``space``'s reference (named by its content hash)."""
+    return reference_cache_dir() / f"{space.content_hash.split(':')[-1][:32]}.npz"
+
+
+def known_reference(space) -> RealismReference | None:
+    """``space``'s reference when one exists without building: this process's, the shipped file
+    (built for the shipped space) or the content-keyed cache file (:func:`cached_reference_path`,
+    written by :func:`cache_reference`); None otherwise. A cache file that is unreadable or was
+    built for another space is ignored (it is rebuilt)."""
+    key = space.content_hash
+    if key in _CACHE:
+        return _CACHE[key]
+    for path in (DEFAULT_REFERENCE, cached_reference_path(space)):
+        if path.exists():
+            try:
+                ref = load_reference(path)
+            except ConfigError:
+                continue
+            if ref.matches(space):
+                _CACHE[key] = ref
+                return ref
+    return None
+
+
+def cache_reference(space, reference: RealismReference) -> Path | None:
+    """Keep ``reference`` for ``space`` in this process and in the cache folder (atomic write;
+    None when the folder cannot be written: the reference is then rebuilt next session)."""
+    _CACHE[space.content_hash] = reference
+    path = cached_reference_path(space)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        return reference.save(path)
+    except OSError:
+        return None
+
+
+def default_reference(space, library=None) -> RealismReference:
+    """The reference for ``space``: a known one (:func:`known_reference`: the shipped file for
+    the shipped space, else the content-keyed cache), else built from ``library`` (the
+    ``VehicleLibrary`` the space was built from; default the bundled one) and cached.
 
     Raises:
-        ConfigError: the space is not the shipped one and its assets are not in the bundled library.
+        ConfigError: no known reference and the library lacks the space's assets.
     """
-    key = space.content_hash
-    if key not in _CACHE:
-        ref = load_reference(DEFAULT_REFERENCE) if DEFAULT_REFERENCE.exists() else None
-        if ref is None or not ref.matches(space):
-            from .library import load_library
+    ref = known_reference(space)
+    if ref is None:
+        from .library import load_library
 
-            try:
-                ref = build_reference(load_library(), space)
-            except KeyError as exc:
-                raise ConfigError(f"no realism reference for this shape space: {exc}") from None
-        _CACHE[key] = ref
-    return _CACHE[key]
+        try:
+            ref = build_reference(library if library is not None else load_library(), space)
+        except KeyError as exc:
+            raise ConfigError(f"no realism reference for this shape space: {exc}") from None
+        cache_reference(space, ref)
+    return ref
 
 
 # ----------------------------------------------------------------------------- report
