@@ -7,9 +7,10 @@ Used to compare the predictor shipped before issue 17 (generated traffic only; i
 traffic. On the train part the second one has seen the very samples (a memorisation check, not
 a result); the benchmark part is held out from both.
 
-    .venv/bin/python bench/predictor_real.py NAME=DIR [NAME=DIR ...]
+    .venv/bin/python bench/predictor_real.py [--parts benchmark,train,fresh] [--out NAME] NAME=DIR [NAME=DIR ...]
 
-Writes ``bench/results/predictor_real.json``.
+``fresh`` is ``scenes/real-fresh/`` (recordings 10-18, docs/benchmark.md), held out from every
+model. Writes ``bench/results/predictor_real.json`` (``--out NAME``: ``bench/results/NAME.json``).
 """
 from __future__ import annotations
 
@@ -27,19 +28,32 @@ sys.path.insert(0, str(ROOT))
 
 
 def main() -> int:
-    models = dict(arg.split("=", 1) for arg in sys.argv[1:]) or {"shipped": str(ROOT / "assets" / "models" / "predictor")}
+    import argparse
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("models", nargs="*", metavar="NAME=DIR", help="model folders (default shipped=assets/models/predictor)")
+    ap.add_argument("--parts", default="benchmark,train", help="comma-separated: benchmark, train, fresh")
+    ap.add_argument("--out", default="predictor_real", help="result file stem under bench/results/")
+    args = ap.parse_args()
+    if any("=" not in m for m in args.models):
+        ap.error("models are given as NAME=DIR")
+    parts = [p.strip() for p in args.parts.split(",") if p.strip()]
+    if not parts or set(parts) - {"benchmark", "train", "fresh"}:
+        ap.error("--parts takes benchmark, train and/or fresh")
+    models = dict(arg.split("=", 1) for arg in args.models) or {"shipped": str(ROOT / "assets" / "models" / "predictor")}
     import torch
 
     torch.set_num_threads(1)
     from adv3d_runner.autonomy.predictor import load_predictor, no_reversing
     from adv3d_runner.fileio import write_json
-    from adv3d_runner.scene.real import load_real_split
+    from adv3d_runner.scene.real import load_fresh_part, load_real_split
     from adv3d_runner.training.predictor_data import BASELINES, build_real_dataset, per_sample_metrics
 
     split = load_real_split()
     out = {}
-    for part in ("benchmark", "train"):
-        held = build_real_dataset(split.paths(part), desc=f"real {part}")
+    for part in parts:
+        paths = load_fresh_part(split=split).paths() if part == "fresh" else split.paths(part)
+        held = build_real_dataset(paths, desc=f"real {part}")
         full = held["future_valid"].all(axis=1)
         rows = {}
         for name, folder in models.items():
@@ -61,7 +75,7 @@ def main() -> int:
         for k in rows:
             print(f"| {k} | {out[part]['min_ade'][k]['full_6s']:.3f} | {out[part]['mean_ade'][k]['full_6s']:.3f} | "
                   f"{out[part]['min_ade'][k]['all']:.3f} |")
-    path = ROOT / "bench" / "results" / "predictor_real.json"
+    path = ROOT / "bench" / "results" / f"{args.out}.json"
     write_json(path, {"format": "adv3d-bench", "version": 1, "topic": "predictor_real",
                       "command": " ".join(["bench/predictor_real.py"] + sys.argv[1:]), "models": models,
                       "machine": {"python": platform.python_version(), "platform": platform.platform()},

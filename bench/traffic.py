@@ -7,6 +7,8 @@ distance (0 = same distribution, 1 = disjoint). Samples:
 * **real train / real benchmark**: the recorded scenes of ``scenes/real/`` (``split.json``
   parts), one file per distinct traffic (the rank-0 ego file of each set of variants: the
   ego and the actors together are the same vehicles in every variant); recorded frames only;
+* **real fresh**: ``scenes/real-fresh/`` (recordings 10-18, docs/benchmark.md), one scene per
+  recording (its egos share the traffic); never used by the fit;
 * **default**: the 100 bundled benchmark scenes (``scenes/highway/``, the default profile);
 * **us101**: scenes of the ``us101`` generator profile (``adv3d scenes generate --profile
   us101``), seeds 0.. of its benchmark split (never used by the fit).
@@ -54,6 +56,21 @@ def real_pool(part: str):
     scenes = [load_scene(p) for p in load_real_split().paths(part)]
     distinct = [s for s in scenes if "--ego-rank" not in s.source.details.get("ego_rule", "")]
     return pool(traffic_samples(s) for s in distinct), [s.id for s in distinct]
+
+
+def fresh_pool():
+    """Traffic of the fresh part: the first scene of each recording in its manifest (the other
+    egos of a recording drive in the same traffic)."""
+    from adv3d_runner.scene import load_scene
+    from adv3d_runner.scene.real import load_fresh_part
+    from adv3d_runner.scene.traffic_stats import pool, traffic_samples
+
+    fresh = load_fresh_part()
+    first: dict = {}
+    for row, path in zip(fresh.rows, fresh.paths()):
+        first.setdefault(row["recording"], path)
+    scenes = [load_scene(p) for p in first.values()]
+    return pool(traffic_samples(s) for s in scenes), [s.id for s in scenes]
 
 
 def generated_pool(profile, seeds, split: str):
@@ -123,6 +140,7 @@ def main() -> int:
     ids = {}
     for part in ("train", "benchmark"):
         real[part], ids[part] = real_pool(part)
+    real["fresh"], ids["fresh"] = fresh_pool()
     doc = {"format": "adv3d-bench", "version": 1, "topic": "traffic",
            "command": " ".join(["bench/traffic.py"] + sys.argv[1:]),
            "machine": {"python": platform.python_version(), "platform": platform.platform(), "cpus": os.cpu_count()},
@@ -142,19 +160,21 @@ def main() -> int:
     for name, sample in rows.items():
         table[name] = {part: compare(sample, real[part]) for part in real}
     table["real train vs real benchmark"] = {"benchmark": compare(real["train"], real["benchmark"])}
+    table["real train vs real fresh"] = {"fresh": compare(real["train"], real["fresh"])}
     doc["profile"] = {k: (asdict(v) if hasattr(v, "__dataclass_fields__") else v) for k, v in asdict(prof).items()}
     doc["summaries"] = {"real train": summary(real["train"]), "real benchmark": summary(real["benchmark"]),
+                        "real fresh": summary(real["fresh"]),
                         **{name: summary(sample) for name, sample in rows.items()}}
     doc["ks"] = table
     doc["cpu_s"] = time.process_time() - t0
-    print("\nKolmogorov-Smirnov distance to the real recordings (train part = fitted on; benchmark part = held out)\n")
-    print("| generated | " + " | ".join(f"{k} (train)" for k in STATS) + " | " +
-          " | ".join(f"{k} (benchmark)" for k in STATS) + " |")
-    print("|---|" + "---|" * (2 * len(STATS)))
+    print("\nKolmogorov-Smirnov distance to the real recordings (train part = fitted on; benchmark and fresh parts = "
+          "held out from the fit)\n")
+    parts = list(real)
+    print("| generated | " + " | ".join(f"{k} ({part})" for part in parts for k in STATS) + " |")
+    print("|---|" + "---|" * (len(parts) * len(STATS)))
     for name in rows:
         t = table[name]
-        print(f"| {name} | " + " | ".join(f"{t['train'][k]:.3f}" for k in STATS) + " | " +
-              " | ".join(f"{t['benchmark'][k]:.3f}" for k in STATS) + " |")
+        print(f"| {name} | " + " | ".join(f"{t[part][k]:.3f}" for part in parts for k in STATS) + " |")
     print("\n| sample | speed mean (quartiles) m/s | headway median (quartiles) s | lane changes / vehicle / min |")
     print("|---|---|---|---|")
     for name, s in doc["summaries"].items():
