@@ -24,7 +24,9 @@ DEBOUNCE_S = 0.03
 PREVIEW_NAME = "Adv3D preview"
 PREVIEW_COLLECTION = "Adv3D Shape preview"
 
-_state = {"scene": None, "suspend": False, "error": ""}
+REFERENCE_POLL_S = 0.5  # how often the panel looks whether a background reference build is done
+
+_state = {"scene": None, "suspend": False, "error": "", "pending": None}
 
 
 # --------------------------------------------------------------------------- preview updates
@@ -69,14 +71,47 @@ def update_preview(scene: "bpy.types.Scene") -> float:
     shapes.last_update_ms = ms
     shapes.realism_full = ""  # the full report described the previous shape
     if shapes.show_realism:
-        t1 = time.perf_counter()
-        try:
-            lines = runner.live_realism(space, u, vertices, faces, realism_class(shapes), _library_path(scene))
-        except runner.Adv3dError as exc:
-            lines = [f"Realism: {exc}"]
-        shapes.realism_live = "\n".join(lines)
-        shapes.realism_ms = (time.perf_counter() - t1) * 1000.0
+        update_realism(scene, space, u, vertices, faces)
     return ms
+
+
+def update_realism(scene, space, u: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> None:
+    """The live realism lines of the preview shape; while the space's reference is built in the
+    background they say so, and (interactively) a timer fills them in once it is there."""
+    shapes = scene.adv3d.shapes
+    t1 = time.perf_counter()
+    try:
+        lines = runner.live_realism(space, u, vertices, faces, realism_class(shapes), _library_path(scene))
+    except runner.ReferencePending as exc:
+        lines = [f"Realism: {exc}"]
+        _state["pending"] = scene.name
+        if not bpy.app.background and not bpy.app.timers.is_registered(_poll_reference):
+            bpy.app.timers.register(_poll_reference, first_interval=REFERENCE_POLL_S)
+    except runner.Adv3dError as exc:
+        lines = [f"Realism: {exc}"]
+    shapes.realism_live = "\n".join(lines)
+    shapes.realism_ms = (time.perf_counter() - t1) * 1000.0
+
+
+def _poll_reference():
+    """Timer: once the background reference build is done, measure the preview shape again."""
+    if runner.reference_building():
+        return REFERENCE_POLL_S
+    name, _state["pending"] = _state["pending"], None
+    scene = bpy.data.scenes.get(name) if name else None
+    if scene is not None and scene.adv3d.shapes.show_realism and space_path(scene.adv3d.shapes):
+        obj = preview_object(scene, create=False)
+        if obj is not None:
+            try:
+                space = runner.load_space(space_path(scene.adv3d.shapes))
+                v, f = meshdata.mesh_arrays(obj.data)
+                update_realism(scene, space, current_unit(scene.adv3d.shapes), v, f)
+            except runner.Adv3dError as exc:
+                scene.adv3d.shapes.realism_live = f"Realism: {exc}"
+        for window in bpy.context.window_manager.windows:
+            for area in window.screen.areas:
+                area.tag_redraw()
+    return None
 
 
 def realism_class(shapes) -> str | None:
@@ -85,8 +120,10 @@ def realism_class(shapes) -> str | None:
 
 
 def _library_path(scene) -> str | None:
-    path = scene.adv3d.library.path
-    return bpy.path.abspath(path) if path else None
+    """The Library panel's library.json, else the preferences' default (None when neither)."""
+    from .ops_library import library_path
+
+    return library_path(scene.adv3d.library) or None
 
 
 def _run_pending() -> None:
@@ -122,8 +159,9 @@ def space_path(shapes) -> str:
 
 
 def cancel_timers() -> None:
-    if bpy.app.timers.is_registered(_run_pending):
-        bpy.app.timers.unregister(_run_pending)
+    for fn in (_run_pending, _poll_reference):
+        if bpy.app.timers.is_registered(fn):
+            bpy.app.timers.unregister(fn)
     _state["scene"] = None
 
 
@@ -252,8 +290,12 @@ class ADV3D_OT_shapes_realism(bpy.types.Operator):
 
     def execute(self, context):
         shapes = context.scene.adv3d.shapes
+        if not bpy.app.background and runner.reference_building():  # never freeze the window for it
+            self.report({"WARNING"}, "the realism reference is being built in the background: try again "
+                                     "when the live figures show")
+            return {"CANCELLED"}
         try:
-            space = runner.load_space(bpy.path.abspath(shapes.space_path))
+            space = runner.load_space(space_path(shapes))
             shapes.k = space.k
             rep, lines = runner.full_realism(space, current_unit(shapes), realism_class(shapes),
                                              _library_path(context.scene))

@@ -33,11 +33,24 @@ def rng() -> np.random.Generator:
 
 
 @pytest.fixture(scope="module")
-def addon():
-    """The adv3d add-on registered in the ``bpy`` module for one test module (skipped without bpy)."""
+def addon(tmp_path_factory):
+    """The adv3d add-on registered in the ``bpy`` module for one test module (skipped without bpy),
+    with a cache folder of its own (``ADV3D_CACHE``: realism references built for test spaces
+    start absent, and the user's cache is not touched)."""
+    import os
+
     pytest.importorskip("bpy")
     import blender_addon
+    from blender_addon import runner
 
+    old = os.environ.get("ADV3D_CACHE")
+    os.environ["ADV3D_CACHE"] = str(tmp_path_factory.mktemp("adv3d_cache"))
+    runner.clear_reference_state()
     blender_addon.register()
     yield blender_addon
     blender_addon.unregister()
+    runner.clear_reference_state()
+    if old is None:
+        os.environ.pop("ADV3D_CACHE", None)
+    else:
+        os.environ["ADV3D_CACHE"] = old

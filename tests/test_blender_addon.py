@@ -492,11 +492,14 @@ def test_live_realism_of_the_slider_shape(ctx, data):
     from adv3d_runner.shapes.shape_space import ShapeSpace
     from blender_addon import ops_shapes
 
+    from blender_addon import runner
+
     ctx.scene.adv3d.library.path = str(data["library"])
     assert bpy.ops.adv3d.shapes_load(filepath=str(data["space"])) == {"FINISHED"}
     shapes = ctx.scene.adv3d.shapes
     space = ShapeSpace.load(data["space"])
     ref = realism.build_reference(load_library(data["library"]), space)
+    runner.realism_reference(runner.load_space(data["space"]), data["library"], wait=True)
     ops_shapes.set_unit(shapes, space.asset_unit("fx.van"))
     shapes.realism_class = "van"                      # the update runs at once in background mode
     u = ops_shapes.current_unit(shapes)
@@ -866,3 +869,48 @@ def test_exports_open_upright_in_blenders_importers_with_their_defaults(ctx, dat
         before = set(bpy.data.objects.keys())
         assert bpy.ops.import_scene.gltf(filepath=str(tmp_path / name)) == {"FINISHED"}
         assert _imported_extents(before)[2] > 0.5
+
+
+def test_first_slider_move_never_waits_for_the_realism_reference(ctx, tmp_path):
+    """Your own library and a space built from it (no shipped reference): the first slider move
+    is fast, the reference is built in the background from the Library panel's library and kept
+    by content in the cache folder, so the next session has it at its first move."""
+    import time
+
+    from adv3d_runner.shapes import realism
+    from blender_addon import runner
+
+    lib = make_library(tmp_path / "own")
+    space_file = make_space(tmp_path / "own.npz")
+    runner.clear_space_cache()
+    runner.clear_reference_state()
+    ctx.scene.adv3d.library.path = str(lib)
+    assert bpy.ops.adv3d.shapes_load(filepath=str(space_file)) == {"FINISHED"}
+    shapes = ctx.scene.adv3d.shapes
+    space = runner.load_space(space_file)
+    cache_file = realism.cached_reference_path(space)
+    cache_file.unlink(missing_ok=True)                      # (an earlier test's build of this space)
+    runner.clear_reference_state()
+    t0 = time.perf_counter()
+    shapes.latent[0] = 0.2                                 # background mode: the update runs at once
+    assert time.perf_counter() - t0 < 0.1
+    assert "in the background" in shapes.realism_live
+    runner.realism_reference(space, wait=True)              # the build finishes
+    assert cache_file.is_file()
+    shapes.latent[0] = 0.3
+    assert shapes.realism_live.startswith("JSD ") and "lacks" not in shapes.realism_live
+    runner.clear_space_cache()                              # a new session: the cache file has it
+    runner.clear_reference_state()
+    assert bpy.ops.adv3d.shapes_load(filepath=str(space_file)) == {"FINISHED"}
+    t0 = time.perf_counter()
+    shapes.latent[0] = 0.4
+    assert time.perf_counter() - t0 < 0.1 and shapes.realism_live.startswith("JSD ")
+    # a space whose assets no library holds: one clear line, no traceback
+    runner.clear_reference_state()
+    cache_file.unlink()
+    ctx.scene.adv3d.library.path = ""
+    shapes.latent[0] = 0.5
+    with pytest.raises(runner.Adv3dError, match="no library holds its assets"):
+        runner.realism_reference(space, wait=True)
+    shapes.latent[0] = 0.6
+    assert "no library holds its assets" in shapes.realism_live
