@@ -348,16 +348,18 @@ def _apply_edits(track, x, y, yaw, edited, recompute_speed: bool, dt: float) -> 
     if not edited.any():
         return 0
     idx = np.flatnonzero(track.valid)[edited]
-    track.x[idx] = np.round(x[edited], 3) + 0.0
-    track.y[idx] = np.round(y[edited], 3) + 0.0
+    new_x, new_y = np.round(x[edited], 3) + 0.0, np.round(y[edited], 3) + 0.0
+    moved = idx[(new_x != track.x[idx]) | (new_y != track.y[idx])]  # a turned heading moves nothing
+    track.x[idx] = new_x
+    track.y[idx] = new_y
     track.yaw[idx] = np.round(yaw[edited], 3) + 0.0
-    if recompute_speed and track.speed is not None:
-        # The ego log carries speeds: re-derive them around edited frames from positions.
+    if recompute_speed and track.speed is not None and len(moved):
+        # The ego log carries speeds: re-derive them from positions around frames that moved.
         vx = np.gradient(track.x, dt)
         vy = np.gradient(track.y, dt)
         speed = np.hypot(vx, vy)
         touch = np.zeros(len(track), dtype=bool)
-        for i in idx:
+        for i in moved:
             touch[max(i - 1, 0): i + 2] = True
         track.speed[touch] = np.round(speed[touch], 3) + 0.0
     return int(edited.sum())
@@ -397,6 +399,7 @@ def export_scene(bscene):
                 summary["frames"] += _apply_edits(actor.track, *edits, recompute_speed=False, dt=scene.dt)
             asset = obj.adv3d.asset_id or None
             if asset != actor.asset:
+                _check_asset(asset, actor.id, bscene)
                 actor.asset = asset
                 summary["assets"] += 1
         elif role == "SENSOR":
@@ -501,6 +504,25 @@ class ADV3D_OT_scene_apply_asset(bpy.types.Operator):
         dims = obj.get("adv3d_dimensions", [4.5, 1.8, 1.5])
         obj.data = _vehicle_mesh(obj.name, dims, asset_id or None, library)
         return {"FINISHED"}
+
+
+def _check_asset(asset_id: str | None, actor_id: int, bscene) -> None:
+    """Refuse an actor asset id that the library the runner will use lacks (the Library panel's,
+    else the bundled one): typed into the field without Apply, it would only fail in the runner.
+
+    Raises:
+        Adv3dError: naming the actor, the id and the library.
+    """
+    if asset_id is None:
+        return
+    from adv3d_runner.shapes.library import DEFAULT_LIBRARY, load_library
+
+    from .ops_library import library_path
+
+    path = library_path(bscene.adv3d.library) or str(DEFAULT_LIBRARY)
+    if not Path(path).is_file() or asset_id not in load_library(path).ids():
+        raise runner.Adv3dError(f"actor {actor_id}: asset {asset_id!r} is not in the library {path} "
+                                "(load the library that has it, or clear the field)")
 
 
 def _library_or_none(context):

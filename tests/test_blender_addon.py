@@ -609,6 +609,7 @@ def test_scene_edits_are_exported_and_nothing_else(ctx, data, tmp_path):
     from adv3d_runner.scene.schema import load_scene
     from blender_addon import ops_scene
 
+    ctx.scene.adv3d.library.path = str(data["library"])  # the library fx.van is in
     bpy.ops.adv3d.scene_load(filepath=str(data["scene"]))
     original = load_scene(data["scene"])
     actor = bpy.data.objects["actor 7"]
@@ -635,6 +636,36 @@ def test_scene_edits_are_exported_and_nothing_else(ctx, data, tmp_path):
     # Speeds re-derived only around the edit.
     np.testing.assert_array_equal(edited.ego.track.speed[:28], original.ego.track.speed[:28])
     assert edited.ego.track.speed[30] > original.ego.track.speed[30]
+
+
+def test_scene_export_refuses_an_unknown_asset_and_keeps_speeds_of_unmoved_frames(ctx, data, tmp_path):
+    """An asset id typed without Apply that the library lacks is refused on export (naming the
+    actor and the library); turning the ego's heading moves no position, so its logged speeds
+    stay as they are."""
+    from adv3d_runner.scene.schema import load_scene, save_scene
+    from blender_addon import ops_scene
+
+    logged = load_scene(data["scene"])
+    logged.ego.track.speed[:] = 10.5  # a logged speed that positions would not give (10 m/s)
+    scene_file = save_scene(logged, tmp_path / "logged.json") or tmp_path / "logged.json"
+    bpy.ops.adv3d.scene_load(filepath=str(scene_file))
+    actor = bpy.data.objects["actor 7"]
+    actor.adv3d.asset_id = "no-such.car"
+    with pytest.raises(RuntimeError, match=r"actor 7: asset 'no-such.car' is not in the library"):
+        bpy.ops.adv3d.scene_export(filepath=str(tmp_path / "bad.json"))
+    assert not (tmp_path / "bad.json").exists()
+    actor.adv3d.asset_id = ""
+    ego = bpy.data.objects["ego"]
+    original = load_scene(scene_file)
+    frames = np.arange(original.frames)
+    yaw = ops_scene.eval_curve(ego, "rotation_euler", 2, frames)
+    yaw[30:32] += 0.2
+    ops_scene.set_keys(ego, "rotation_euler", 2, frames, yaw)
+    assert bpy.ops.adv3d.scene_export(filepath=str(tmp_path / "turned.json")) == {"FINISHED"}
+    edited = load_scene(tmp_path / "turned.json")
+    np.testing.assert_allclose(edited.ego.track.yaw[30:32], original.ego.track.yaw[30:32] + 0.2, atol=1.5e-3)
+    np.testing.assert_array_equal(edited.ego.track.speed, original.ego.track.speed)
+    np.testing.assert_array_equal(edited.ego.track.x, original.ego.track.x)
 
 
 def test_scene_apply_asset_swaps_mesh(ctx, data, lib_copy):
