@@ -10,8 +10,6 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-import numpy as np
-
 from .fileio import REPO_ROOT
 
 DEMO_SCENE = REPO_ROOT / "scenes" / "highway" / "highway-benchmark-000000.json.gz"
@@ -33,6 +31,8 @@ def register(subparsers) -> None:
 
 
 def run_demo(args: argparse.Namespace) -> int:
+    import numpy as np
+
     from .progress import status
     from .shapes.library import load_library, resolve_library
     from .shapes.mesh_io import write_mesh

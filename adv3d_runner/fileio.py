@@ -26,9 +26,10 @@ import zipfile
 import zlib
 from contextlib import contextmanager
 from pathlib import Path, PurePosixPath
-from typing import Any, Generator, Iterator, Mapping
+from typing import TYPE_CHECKING, Any, Generator, Iterator, Mapping
 
-import numpy as np
+if TYPE_CHECKING:  # numpy is imported where used: ``adv3d --help`` loads this module, not numpy
+    import numpy as np
 
 
 from .errors import ConfigError, FileFormatError
@@ -53,6 +54,16 @@ _CHUNK = 1 << 20
 #: or field that sets it (docs/reliability.md, "Memory"): a laptop runs a worker process per
 #: core beside the driver, each of which may hold such an input.
 MEMORY_BUDGET = 4 * 2**30
+
+
+def user_cache_dir() -> Path:
+    """The user's cache folder of adv3d: ``$ADV3D_CACHE``, else ``$XDG_CACHE_HOME/adv3d``, else
+    ``~/.cache/adv3d``. What is kept there is derived data keyed by its inputs' content: deleting
+    it costs time only."""
+    base = os.environ.get("ADV3D_CACHE")
+    if base:
+        return Path(base)
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "adv3d"
 
 
 def gib(nbytes: float) -> str:
@@ -291,9 +302,8 @@ def gunzip(raw: bytes, *, limit: int = MAX_JSON_BYTES, path: str | Path | None =
 
 
 _JSON_STRING = re.compile(rb'"(?:[^"\\]|\\.)*"')
-_BRACKETS = np.zeros(256, np.int8)
-_BRACKETS[[ord("["), ord("{")]] = 1
-_BRACKETS[[ord("]"), ord("}")]] = -1
+#: ``[`` / ``{`` -> 1, ``]`` / ``}`` -> -1, other bytes 0 (as bytes: a table numpy reads as int8).
+_BRACKETS = bytes(1 if c in b"[{" else 255 if c in b"]}" else 0 for c in range(256))
 
 
 _NON_FINITE = re.compile(rb"NaN|Infinity")
@@ -312,10 +322,13 @@ _DEPTH_BLOCK = 8 << 20
 def _depth(stripped: bytes) -> int:
     """Deepest bracket nesting of JSON text without strings, block by block (the running depth
     carried over), so its temporaries stay small whatever the document's size."""
+    import numpy as np
+
     codes = np.frombuffer(stripped, np.uint8)
+    table = np.frombuffer(_BRACKETS, np.int8)
     deepest = level = 0
     for i in range(0, len(codes), _DEPTH_BLOCK):
-        run = np.cumsum(_BRACKETS[codes[i:i + _DEPTH_BLOCK]], dtype=np.int32)
+        run = np.cumsum(table[codes[i:i + _DEPTH_BLOCK]], dtype=np.int32)
         deepest = max(deepest, level + int(run.max()))
         level += int(run[-1])
     return deepest
@@ -371,6 +384,8 @@ def npz_bytes(members: Mapping[str, np.ndarray]) -> bytes:
     fixed timestamps, permissions and creator system, deflate level 6, no pickled objects, so
     the same arrays give the same file on every machine (files that carry a content hash or are
     compared byte for byte rely on it)."""
+    import numpy as np
+
     buf = io.BytesIO()
     with zipfile.ZipFile(buf, "w") as zf:
         for name, array in members.items():

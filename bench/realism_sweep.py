@@ -266,7 +266,7 @@ def main() -> int:
 
         knobs = {"max_mahalanobis": None, "class_scales": False, "realism_weight": 0.0, **per[chosen]["knobs"]}
         if knobs != PRESETS["realistic"]:
-            print(f"update PRESETS['realistic'] in adv3d_runner/attack/realism_constraints.py to {knobs}")
+            print(f"update PRESETS['realistic'] in adv3d_runner/attack/names.py to {knobs}")
     return 0
 
 

@@ -37,10 +37,7 @@ def _objective(text: str) -> str:
 def register(subparsers) -> None:
     from .. import argtypes as at
     from ..autonomy.names import stack_spec
-    from .config import MAX_MAHALANOBIS, MAX_REALISM_WEIGHT, MODES, SHAPE_MODELS
-    from .realism_constraints import PRESETS
-    from .search import ALGORITHMS
-    from .vertex_deform import MAX_VD_BOUND
+    from .names import ALGORITHMS, MAX_MAHALANOBIS, MAX_REALISM_WEIGHT, MAX_VD_BOUND, MODES, PRESETS, SHAPE_MODELS
 
     p = subparsers.add_parser(
         "attack", help="search adversarial actor shapes on scenes (paper section 3.3)",

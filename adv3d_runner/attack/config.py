@@ -36,12 +36,9 @@ from ..argtypes import SEED_MAX
 from ..errors import ConfigError
 from ..validate import Node
 from .objective import DEFAULT_PRED_REDUCTION, LEGACY_PRED_REDUCTION, PRED_REDUCTIONS, ObjectiveWeights, parse_objective
+from .names import MAX_MAHALANOBIS, MAX_REALISM_WEIGHT, MODES, SHAPE_MODELS  # noqa: F401  (re-exported)
 from .vertex_deform import DEFAULT_LATTICE, MAX_VD_BOUND, check_lattice
 
-MODES = ("closed", "open", "both")
-#: How a query becomes shapes: the shape space's latents (the paper's attack) or vertex
-#: deformation of the actor's own mesh (the paper's baseline); see attack/shape_models.py.
-SHAPE_MODELS = ("latent", "vd")
 #: Knobs added after run.json version 1, with the value that leaves them out of run.json.
 _OPTIONAL_KEYS = {"shape_model": "latent", "max_mahalanobis": None, "class_scales": False, "realism_weight": 0.0,
                   "pred_reduction": LEGACY_PRED_REDUCTION, "scene_seeds": False, "target_rank": 0}
@@ -51,11 +48,6 @@ AUTONOMY = ("A", "oracle", "B", "A-fast")
 MAX_ACTORS = 64
 MAX_SECONDS = 3600.0
 MAX_BUDGET = 1_000_000
-#: Largest --realism-weight and --max-mahalanobis: far above any use (costs are O(1e3), the
-#: latent box lies within a Mahalanobis distance of a few units), low enough that a cost minus
-#: W times a penalty stays finite.
-MAX_REALISM_WEIGHT = 1e6
-MAX_MAHALANOBIS = 1e6
 
 
 @dataclass(frozen=True)

@@ -28,14 +28,7 @@ import numpy as np
 
 from ..errors import ConfigError
 from ..shapes.realism import regularised_covariance
-
-#: Named settings of the realism knobs (``--realism-preset NAME``); each maps to the
-#: AttackConfig fields it sets. ``realistic`` is the setting that bench/realism_sweep.py selects
-#: (keep >= 75 % of the unconstrained gain with the best shapes' JSD inside the library's
-#: leave-one-out range); see docs/realism.md for the evidence behind its values and their status.
-PRESETS: dict[str, dict[str, Any]] = {
-    "realistic": {"max_mahalanobis": None, "class_scales": True, "realism_weight": 300.0},
-}
+from .names import PRESETS  # noqa: F401  (named settings of the realism knobs; re-exported)
 
 
 def preset_knobs(name: str) -> dict[str, Any]:

@@ -30,13 +30,10 @@ from typing import Sequence
 import numpy as np
 
 from ..errors import ConfigError
+from .names import MAX_VD_BOUND  # noqa: F401  (largest bound accepted, metres; re-exported)
 
 #: The paper's l-infinity bounds (metres).
 VD_BOUNDS = (0.1, 0.2, 0.5, 1.0)
-#: Largest bound accepted (metres): twice the paper's largest. A bound b can change each
-#: dimension of the vehicle by up to 2 b, so at 2 m a 4.5 m car may become 8.5 m long and 5.8 m
-#: wide: past that a query is no longer a deformed vehicle (docs/realism.md).
-MAX_VD_BOUND = 2.0
 #: Default control lattice (nodes along length, width, height): 54 nodes = 162 coordinates.
 DEFAULT_LATTICE = (6, 3, 3)
 

@@ -7,8 +7,11 @@ import re
 from dataclasses import dataclass
 
 from ..errors import ConfigError
+from ..fileio import REPO_ROOT
 
 ENTRY_POINT_GROUP = "adv3d.stacks"
+#: Folders of the shipped learned models (weights + config.json), by model.
+MODEL_DIRS = {name: REPO_ROOT / "assets" / "models" / name for name in ("detector", "predictor", "occupancy")}
 
 #: adv3d's own stacks (also in pyproject.toml's entry points: listed here so that a checkout
 #: run without installing finds them too).

@@ -46,13 +46,13 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import FileFormatError
-from ..fileio import REPO_ROOT
 from ..jit import kernel
 from ..scene.lanemap import LaneIndex, LaneMap
 from ..validate import Node, check_header
 from .interface import DT, PREDICTION_STEPS, Predictions, Tracks
+from .names import MODEL_DIRS
 
-DEFAULT_MODEL_DIR = REPO_ROOT / "assets" / "models" / "predictor"
+DEFAULT_MODEL_DIR = MODEL_DIRS["predictor"]
 WEIGHTS_NAME = "weights.pt"
 CONFIG_NAME = "config.json"
 MODEL_FORMAT = "adv3d-predictor"

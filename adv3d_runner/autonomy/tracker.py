@@ -22,10 +22,45 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
 
 from ..geometry.angles import wrap_angle
 from .interface import DT, Detections, Tracks
+
+
+def _load_linear_sum_assignment():
+    """``scipy.optimize.linear_sum_assignment``, loaded from its own extension module.
+
+    ``scipy.optimize`` re-exports this C function from ``scipy/optimize/_lsap*.so``; importing
+    the package costs ~0.26 CPU-s of linear-programming and FFT modules every process (the
+    tracker's share of ``adv3d simulate``'s start-up, docs/performance.md), loading the one
+    extension 1.5 ms. The same function object, so the same assignments; if the layout of
+    scipy changes, the package import is the fallback."""
+    import importlib.machinery
+    import importlib.util
+
+    try:
+        spec = importlib.util.find_spec("scipy")
+        folder = next(iter(spec.submodule_search_locations)) if spec and spec.submodule_search_locations else None
+        for suffix in importlib.machinery.EXTENSION_SUFFIXES if folder else ():
+            path = f"{folder}/optimize/_lsap{suffix}"
+            try:
+                loader = importlib.machinery.ExtensionFileLoader("scipy.optimize._lsap", path)
+                ext_spec = importlib.util.spec_from_loader("scipy.optimize._lsap", loader, origin=path)
+                module = importlib.util.module_from_spec(ext_spec)
+                loader.exec_module(module)
+            except (ImportError, OSError):
+                continue
+            fn = getattr(module, "linear_sum_assignment", None)
+            if callable(fn):
+                return fn
+    except (ImportError, ValueError, StopIteration):
+        pass
+    from scipy.optimize import linear_sum_assignment
+
+    return linear_sum_assignment
+
+
+linear_sum_assignment = _load_linear_sum_assignment()
 
 
 @dataclass(frozen=True)

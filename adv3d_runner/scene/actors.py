@@ -28,6 +28,7 @@ from .schema import Scene
 
 if TYPE_CHECKING:  # the library module is optional at import time (numpy-only users)
     from ..shapes.library import VehicleLibrary
+    from ..shapes.mesh_cache import MeshArrays
 
 CLASS_FALLBACK = {
     "sedan": ("hatchback", "sports", "suv"),
@@ -133,25 +134,30 @@ def assign_assets(scene: Scene, library: "VehicleLibrary", overwrite: bool = Fal
     return out
 
 
-_MESH_CACHE: dict[tuple[str, str], object] = {}
+_MESH_CACHE: dict[tuple[str, str], "MeshArrays"] = {}
 
 
-def actor_mesh(library: "VehicleLibrary", asset_id: str, dimensions: np.ndarray):
+def actor_mesh(library: "VehicleLibrary", asset_id: str, dimensions: np.ndarray) -> "MeshArrays":
     """The asset's mesh scaled per axis to ``dimensions`` (L, W, H) m: its bounding box becomes
     exactly the actor's box, origin at the footprint centre on the ground, +x forward.
 
+    The library mesh comes from the content-keyed mesh cache (:mod:`adv3d_runner.shapes.mesh_cache`:
+    the same arrays as reading the glb with trimesh, without importing trimesh).
+
     Returns:
-        a new ``trimesh.Trimesh`` (the caller may modify it).
+        a new :class:`~adv3d_runner.shapes.mesh_cache.MeshArrays` (vertices (n, 3) float64,
+        faces (m, 3) int64, bounds; the caller may modify it).
     """
-    from ..shapes.library import load_asset_mesh
+    from ..shapes.mesh_cache import library_mesh_arrays
 
     key = (str(library.path_of(asset_id)), asset_id)
     if key not in _MESH_CACHE:
-        _MESH_CACHE[key] = load_asset_mesh(library, asset_id)
+        _MESH_CACHE[key] = library_mesh_arrays(library.path_of(asset_id))
     mesh = _MESH_CACHE[key].copy()
     lo, hi = mesh.bounds
     extent = np.maximum(hi - lo, 1e-9)
     scale = np.asarray(dimensions, dtype=np.float64).reshape(3) / extent
     centre = np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, lo[2]])
-    mesh.vertices = (np.asarray(mesh.vertices) - centre) * scale
+    mesh.vertices = (mesh.vertices - centre) * scale
+    mesh.bounds = np.array([(lo - centre) * scale, (hi - centre) * scale])
     return mesh

@@ -29,7 +29,7 @@ def _unit_for(space, u):
 def register(subparsers) -> None:
     from .. import argtypes as at
     from ..vehicle_classes import DIMENSION_RANGES
-    from .sdf import METHODS
+    from .names import METHODS
 
     p = subparsers.add_parser("shapes", help="build, decode and inspect the PCA vehicle shape space")
     sub = p.add_subparsers(dest="shapes_command", metavar="SUBCOMMAND")

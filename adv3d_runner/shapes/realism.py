@@ -719,11 +719,9 @@ def reference_cache_dir() -> Path:
     """Where references built for shape spaces other than the shipped one are kept, one
     ``.npz`` per shape-space content hash: ``$ADV3D_CACHE/realism``, else
     ``$XDG_CACHE_HOME/adv3d/realism`` (``~/.cache/adv3d/realism``)."""
-    import os
+    from ..fileio import user_cache_dir
 
-    base = os.environ.get("ADV3D_CACHE") or str(Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
-                                                / "adv3d")
-    return Path(base) / "realism"
+    return user_cache_dir() / "realism"
 
 
 def cached_reference_path(space) -> Path:

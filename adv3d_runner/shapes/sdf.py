@@ -63,8 +63,8 @@ import numpy as np
 from ..errors import Adv3dError, ConfigError
 from ..progress import Steps, run_steps
 from .cleaning import orient_faces
+from .names import METHODS  # noqa: F401  (re-exported)
 
-METHODS = ("winding", "winding-outward", "floodfill", "rayvote")
 #: Grid points per piece in the stepwise SDF (:func:`sdf_volume_steps`): one piece of libigl
 #: work takes well under 0.1 s at 64^3, so the add-on's UI never waits long.
 STEP_POINTS = 32768

@@ -36,7 +36,7 @@ def _device_option(p) -> None:
 
 def add_train_detector(train_sub) -> None:
     from .. import argtypes as at
-    from .detector_data import TRAIN_SEED0, VAL_SEED0
+    from .seeds import TRAIN_SEED0, VAL_SEED0
 
     p = train_sub.add_parser(
         "detector", help="train the PIXOR-like BEV LiDAR detector",
@@ -245,7 +245,7 @@ def _finite(obj):
 def add_train_predictor(train_subparsers) -> None:
     """Add ``predictor`` to the ``adv3d train`` subcommand group."""
     from .. import argtypes as at
-    from ..autonomy.predictor import DEFAULT_MODEL_DIR
+    from ..autonomy.names import MODEL_DIRS
 
     p = train_subparsers.add_parser(
         "predictor", help="train the learned multi-modal trajectory predictor",
@@ -265,7 +265,7 @@ def add_train_predictor(train_subparsers) -> None:
                    help="minutes: stop after the epoch that passes this (data included)")
     p.add_argument("--cache", default=None, help="data cache root (default $ADV3D_CACHE or ~/.cache/adv3d)")
     p.add_argument("--no-cache", action="store_true", help="do not read or write the sample cache")
-    p.add_argument("--out", default=str(DEFAULT_MODEL_DIR), help="output folder")
+    p.add_argument("--out", default=str(MODEL_DIRS["predictor"]), help="output folder")
     p.add_argument("--quick", action="store_true", help="tiny run for smoke tests (few scenes, 2 epochs)")
     p.add_argument("--real", default=None,
                    help="real scenes' split manifest (default scenes/real/split.json): its train part joins the "
@@ -328,7 +328,7 @@ def add_train_occupancy(train_sub) -> None:
                     "evaluate it on held-out scenes (seeds 900000 + [0, M)) and write weights, config.json, "
                     "training_report.json and loss_curves.png to --out.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    from .detector_data import TRAIN_SEED0, VAL_SEED0
+    from .seeds import TRAIN_SEED0, VAL_SEED0
 
     p.add_argument("--scenes", type=at.integer(1, VAL_SEED0 - TRAIN_SEED0), default=120,
                    help="training scenes (seeds 100000 + [0, N): below the held-out seeds)")

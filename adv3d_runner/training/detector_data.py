@@ -43,10 +43,9 @@ from typing import Iterable, Sequence
 import numpy as np
 
 from ..geometry.frames import boxes_to_frame
+from .seeds import TRAIN_SEED0, VAL_SEED0  # noqa: F401  (re-exported)
 
 DATA_VERSION = 1
-TRAIN_SEED0 = 100_000     # training scenes: TRAIN_SEED0 + [0, N)
-VAL_SEED0 = 900_000       # held-out scenes (same split, disjoint seed range): VAL_SEED0 + [0, M)
 CROP = {"x": (-20.0, 80.0), "y": (-35.0, 35.0), "z": (0.15, 5.0)}
 DEFAULT_MIN_POINTS = 5
 HOLDOUT_FRACTION = 0.2            # share of each class's assets left out of training by default
