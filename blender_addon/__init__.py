@@ -19,7 +19,7 @@ classes = (prefs.classes + props.classes + ops_library.classes + ops_shapes.clas
 
 
 def menu_import(self, context):
-    self.layout.operator("adv3d.library_import", text="Adv3D vehicle to library (.glb/.obj/.fbx/...)")
+    self.layout.operator("adv3d.library_import", text="Adv3D vehicles to library (.glb/.obj/.fbx/.json/...)")
     self.layout.operator("adv3d.scene_load", text="Adv3D scene (.json/.json.gz)").browse = True
 
 

@@ -13,9 +13,10 @@ from pathlib import Path
 
 import bpy
 import numpy as np
-from bpy.props import EnumProperty, FloatProperty, StringProperty
+from bpy.props import BoolProperty, CollectionProperty, EnumProperty, FloatProperty, StringProperty
 from bpy_extras.io_utils import ImportHelper
 
+from adv3d_runner.shapes.mesh_io import SUPPORTED_FORMATS
 from adv3d_runner.vehicle_classes import VEHICLE_CLASSES, plausibility_warning
 
 from . import meshdata, places, prefs, runner, uiutil
@@ -231,7 +232,8 @@ _AXIS_VECTORS = {"X": (1, 0, 0), "Y": (0, 1, 0), "Z": (0, 0, 1),
 _IDENTITY = np.eye(3)
 _GLTF_TO_BLENDER = np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])
 _AUTO_UP = {".obj": "Y", ".fbx": "Y", ".ply": "Z", ".stl": "Z", ".glb": "Y", ".gltf": "Y", ".blend": "Z"}
-IMPORT_SUFFIXES = (".glb", ".gltf", ".obj", ".fbx", ".ply", ".stl", ".blend")
+#: What Import vehicle takes: the CLI importer's formats (``mesh_io.SUPPORTED_FORMATS``).
+IMPORT_SUFFIXES = tuple(SUPPORTED_FORMATS)
 
 
 def _importer(path: Path, manual_axes: bool):
@@ -301,10 +303,14 @@ def _mesh_error(message: str):
     return MeshImportError(message)
 
 
-def objects_arrays(objects) -> tuple[np.ndarray, np.ndarray]:
-    """World-space triangles of the mesh objects (modifiers applied), concatenated (Z up, m)."""
+def objects_arrays(objects) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """World-space triangles of the mesh objects (modifiers applied), concatenated (Z up, m),
+    with one RGBA colour per triangle from its material's base colour (the colours the CLI's
+    Blender reader keeps: ``bpy_export``)."""
+    from adv3d_runner.shapes.bpy_export import _material_rgba
+
     depsgraph = bpy.context.evaluated_depsgraph_get()
-    verts, faces, offset = [], [], 0
+    verts, faces, colours, offset = [], [], [], 0
     for obj in objects:
         if obj.type != "MESH":
             continue
@@ -312,17 +318,24 @@ def objects_arrays(objects) -> tuple[np.ndarray, np.ndarray]:
         mesh = evaluated.to_mesh()
         try:
             v, f = meshdata.mesh_arrays(mesh)
+            mat_index = np.zeros(len(mesh.loop_triangles), dtype=np.int32)
+            mesh.loop_triangles.foreach_get("material_index", mat_index)
         finally:
             evaluated.to_mesh_clear()
         if not len(f):
             continue
+        palette = np.array([_material_rgba(slot.material) for slot in obj.material_slots]
+                           or [_material_rgba(None)], dtype=np.uint8)
         m = np.array(obj.matrix_world, dtype=np.float64)
+        if np.linalg.det(m[:3, :3]) < 0:  # a mirroring transform: keep the normals outward
+            f = f[:, ::-1]
         verts.append(v @ m[:3, :3].T + m[:3, 3])
         faces.append(f + offset)
+        colours.append(palette[np.minimum(mat_index, len(palette) - 1)])
         offset += len(v)
     if not faces:
         raise _mesh_error("the file holds no mesh with faces")
-    return np.concatenate(verts), np.concatenate(faces)
+    return np.concatenate(verts), np.concatenate(faces), np.concatenate(colours)
 
 
 def _remove_objects(objects) -> None:
@@ -333,10 +346,16 @@ def _remove_objects(objects) -> None:
             bpy.data.meshes.remove(data)
 
 
+#: The axis names of the CLI (``adv3d assets import --up/--forward``) for the operator's.
+_CLI_AXES = {"X": "+x", "Y": "+y", "Z": "+z", "NEGATIVE_X": "-x", "NEGATIVE_Y": "-y", "NEGATIVE_Z": "-z"}
+
+
 def blender_reader(up: str = "AUTO", front: str = "AUTO", length: float = 0.0):
-    """A ``MeshReader`` for ``add_asset``: the file through Blender's own importer, then the
-    runner's conversion and cleaning (``mesh_io.convert_vehicle``), so an asset added here is
-    stored exactly like one added by ``adv3d assets import``.
+    """A ``MeshReader`` for ``add_asset``: an asset added here is stored exactly like one added
+    by ``adv3d assets import``. Formats the CLI reads itself (glTF, OBJ, PLY, STL, ApolloCar3D
+    .json, AC3D...: ``mesh_io.read_mesh``'s dispatch) go through the CLI's own reader (materials
+    and textures kept as face colours, its dataset conventions); FBX and .blend, which the CLI
+    reads through Blender, through Blender's importer here, with the material colours.
 
     Args:
         up, front: the file's up axis and the axis the vehicle's front points along, named as
@@ -344,21 +363,33 @@ def blender_reader(up: str = "AUTO", front: str = "AUTO", length: float = 0.0):
         length: real length in m to scale to (uniformly); 0 keeps the file's size.
     """
     import trimesh
-    from adv3d_runner.shapes.mesh_io import convert_vehicle
+    from adv3d_runner.shapes.mesh_io import BLENDER_FORMATS, convert_vehicle, detect_convention, import_vehicle
 
     def read(path: Path):
+        if path.suffix.lower() not in BLENDER_FORMATS:
+            up_file = _CLI_AXES.get(up)
+            if up_file is None and path.suffix.lower() == ".obj" and detect_convention(path) is None:
+                up_file = "+y"  # Auto: y up, as Blender's OBJ importer takes an OBJ (UP_ITEMS)
+            return import_vehicle(path, up=up_file, forward=_CLI_AXES.get(front),
+                                  length=length if length > 0 else None)
         up_b, front_b = blender_axes(path, up, front)
         objects = _import_objects(path, manual_axes=up != "AUTO" or front != "AUTO")
         try:
-            vertices, faces = objects_arrays(objects)
+            vertices, faces, colours = objects_arrays(objects)
         finally:
             _remove_objects(objects)
-        raw = trimesh.Trimesh(vertices=vertices, faces=faces, process=False)
+        raw = trimesh.Trimesh(vertices=vertices, faces=faces, face_colors=colours, process=False)
         # Blender's importers brought the model to metres; the axes are mapped above
         return convert_vehicle(raw, "blender", path.suffix.lower()[1:], up=up_b, forward=front_b,
                                unit="m", length=length if length > 0 else None)
 
     return read
+
+
+def import_suffixes() -> tuple[str, ...]:
+    """Every file type the CLI's importer reads (``mesh_io.SUPPORTED_FORMATS``): new formats
+    there are importable here too."""
+    return IMPORT_SUFFIXES
 
 
 def library_path(lib_props) -> str:
@@ -367,9 +398,11 @@ def library_path(lib_props) -> str:
 
 
 def import_vehicle_file(lib_props, path: Path, vehicle_class: str, up: str, front: str, length: float,
-                        licence_name: str = "", licence_file: str = "", asset_id: str = "", pack: str = ""):
-    """Import one vehicle file through Blender into the library (``add_asset``: mesh written,
-    library saved) and show the library with the new asset active.
+                        licence_name: str = "", licence_file: str = "", asset_id: str = "", pack: str = "",
+                        replace: bool = False):
+    """Import one vehicle file into the library (``add_asset``: mesh written, library saved) and
+    show the library with the new asset active. An asset id already in the library is refused
+    unless ``replace``.
 
     Returns:
         the new ``VehicleAsset``.
@@ -378,15 +411,16 @@ def import_vehicle_file(lib_props, path: Path, vehicle_class: str, up: str, fron
     from adv3d_runner.shapes.library import add_asset, load_or_new_library
 
     if not library_path(lib_props):
-        raise ConfigError("set the library file (library.json) first, or a default in the add-on preferences")
+        raise ConfigError("set the library file (library.json) first, or a default in the add-on preferences "
+                          "(New library makes one)")
     lib_path = Path(library_path(lib_props))
     lib_props.path = str(lib_path)
     library = load_or_new_library(lib_path)
-    if path.suffix.lower() not in IMPORT_SUFFIXES:
-        raise _mesh_error(f"{path}: unsupported file type (use {', '.join(IMPORT_SUFFIXES)})")
+    if path.suffix.lower() not in import_suffixes():
+        raise _mesh_error(f"{path}: unsupported file type (use {', '.join(import_suffixes())})")
     asset = add_asset(library, lib_path, path, vehicle_class, blender_reader(up, front, length),
                       asset_id=asset_id or None, pack=pack or None, licence_file=licence_file or None,
-                      licence_name=licence_name or None)
+                      licence_name=licence_name or None, replace=replace)
     fill_props(lib_props, library)
     lib_props.active_index = library.ids().index(asset.id)
     return asset
@@ -418,43 +452,117 @@ def _edit_asset_mesh(lib_props, asset_id: str, edit, note: dict):
 
 
 class ADV3D_OT_library_import(bpy.types.Operator, ImportHelper):
-    """Import a vehicle file (glb/gltf/obj/fbx/ply/stl/.blend) through Blender's importers into the library"""
+    """Import vehicle files (every format `adv3d assets import` reads, plus FBX and .blend
+    through Blender's importers) into the library; several at once, or dropped onto the viewport"""
 
     bl_idname = "adv3d.library_import"
     bl_label = "Import vehicle"
     bl_options = {"REGISTER"}  # writes files: Blender undo cannot take that back
 
-    filter_glob: StringProperty(default="*.glb;*.gltf;*.obj;*.fbx;*.ply;*.stl;*.blend", options={"HIDDEN"})
+    filter_glob: StringProperty(default=";".join("*" + x for x in SUPPORTED_FORMATS), options={"HIDDEN"})
+    files: CollectionProperty(type=bpy.types.OperatorFileListElement, options={"HIDDEN", "SKIP_SAVE"})
+    directory: StringProperty(subtype="DIR_PATH", options={"HIDDEN", "SKIP_SAVE"})
     vehicle_class: EnumProperty(name="Class", items=[(c, c, "") for c in VEHICLE_CLASSES], default="sedan")
     axis_up: EnumProperty(name="Up", items=UP_ITEMS, default="AUTO", description="The file's up axis")
     axis_forward: EnumProperty(name="Front", items=FRONT_ITEMS, default="AUTO",
                                description="The file axis the vehicle's front points along")
     length: FloatProperty(name="Real length", min=0.0, soft_max=20.0, unit="LENGTH", default=0.0,
                           description="Scale the model to this length (0: keep the file's size)")
-    asset_id: StringProperty(name="Id", description="Asset id (default: <folder>.<file name>)")
-    licence_name: StringProperty(name="Licence", description="SPDX name such as CC0-1.0 (default: from the licence text)")
+    asset_id: StringProperty(name="Id", description="Asset id (default: <folder>.<file name>; one file only)")
+    licence_name: StringProperty(name="Licence",
+                                 description="SPDX name such as CC0-1.0 (default: from the licence text); "
+                                             "named, a pack without a licence file can be imported")
     licence_file: StringProperty(name="Licence file", subtype="FILE_PATH",
                                  description="Licence text (default: License.txt or similar beside the file)")
+    replace: BoolProperty(name="Replace existing", default=False,
+                          description="Replace an asset with the same id (otherwise such an import is refused)")
 
     def draw(self, context):
         layout = self.layout
         layout.use_property_split = True
         for name in ("vehicle_class", "axis_forward", "axis_up", "length", "asset_id", "licence_name",
-                     "licence_file"):
+                     "licence_file", "replace"):
             layout.prop(self, name)
+
+    def invoke(self, context, event):
+        if self.directory and self.files:  # dropped onto the viewport (FileHandler): options, then import
+            return self.invoke_popup(context) if hasattr(self, "invoke_popup") else self.execute(context)
+        return ImportHelper.invoke(self, context, event)
+
+    def paths(self) -> list[Path]:
+        """The chosen files: several (``directory`` + ``files``) or one (``filepath``)."""
+        if self.directory and self.files:
+            return [Path(bpy.path.abspath(self.directory)) / f.name for f in self.files if f.name]
+        return [Path(bpy.path.abspath(self.filepath))] if self.filepath else []
 
     @uiutil.reported
     def execute(self, context):
         lib_props = context.scene.adv3d.library
-        asset = import_vehicle_file(lib_props, Path(self.filepath), self.vehicle_class, self.axis_up,
-                                    self.axis_forward, self.length, self.licence_name,
-                                    bpy.path.abspath(self.licence_file) if self.licence_file else "", self.asset_id)
-        L, W, H = asset.dimensions
-        self.report({"INFO"}, f"{asset.id}: {L:.2f} x {W:.2f} x {H:.2f} m, {asset.triangle_count} triangles")
-        warning = plausibility_warning(asset.vehicle_class, asset.dimensions,
-                                       hint="consider Real length or Set real size")
-        if warning:
-            self.report({"WARNING"}, warning)
+        paths = self.paths()
+        if not paths:
+            raise runner.Adv3dError("choose one or more vehicle files")
+        if self.asset_id and len(paths) > 1:
+            raise runner.Adv3dError("an asset id names one file: leave Id empty to import several")
+        done = []
+        for path in paths:
+            asset = import_vehicle_file(lib_props, path, self.vehicle_class, self.axis_up, self.axis_forward,
+                                        self.length, self.licence_name,
+                                        bpy.path.abspath(self.licence_file) if self.licence_file else "",
+                                        self.asset_id, replace=self.replace)
+            done.append(asset)
+            L, W, H = asset.dimensions
+            self.report({"INFO"}, f"{asset.id}: {L:.2f} x {W:.2f} x {H:.2f} m, {asset.triangle_count} triangles")
+            warning = plausibility_warning(asset.vehicle_class, asset.dimensions,
+                                           hint="consider Real length or Set real size")
+            if warning:
+                self.report({"WARNING"}, warning)
+        if len(done) > 1:
+            self.report({"INFO"}, f"Imported {len(done)} vehicles: {', '.join(a.id for a in done)}")
+        return {"FINISHED"}
+
+
+class ADV3D_FH_vehicle(bpy.types.FileHandler):
+    """Vehicle files dropped onto the 3D viewport go to Import vehicle (Blender >= 4.1)."""
+
+    bl_idname = "ADV3D_FH_vehicle"
+    bl_label = "Adv3D vehicle to library"
+    bl_import_operator = "adv3d.library_import"
+    bl_file_extensions = ";".join(SUPPORTED_FORMATS)
+
+    @classmethod
+    def poll_drop(cls, context):
+        return context.area is not None and context.area.type == "VIEW_3D"
+
+
+class ADV3D_OT_library_new(bpy.types.Operator):
+    """Make a new, empty vehicle library (library.json in a folder of its own) and open it"""
+
+    bl_idname = "adv3d.library_new"
+    bl_label = "New library"
+    bl_options = {"REGISTER"}
+
+    directory: StringProperty(subtype="DIR_PATH", description="Folder of the new library")
+
+    def invoke(self, context, event):
+        context.window_manager.fileselect_add(self)
+        return {"RUNNING_MODAL"}
+
+    @uiutil.reported
+    def execute(self, context):
+        from adv3d_runner.shapes.library import VehicleLibrary, save_library
+
+        if not self.directory:
+            raise runner.Adv3dError("choose a folder for the new library")
+        folder = Path(bpy.path.abspath(self.directory))
+        path = folder / "library.json"
+        if path.exists():
+            raise runner.Adv3dError(f"{path} exists already: open it with the Library field instead")
+        folder.mkdir(parents=True, exist_ok=True)
+        save_library(VehicleLibrary(root=folder), path)
+        lib_props = context.scene.adv3d.library
+        lib_props.path = str(path)
+        fill_props(lib_props, VehicleLibrary(root=folder))
+        self.report({"INFO"}, f"New library {path}: import vehicles into it")
         return {"FINISHED"}
 
 
@@ -520,6 +628,8 @@ classes = (
     ADV3D_OT_library_save,
     ADV3D_OT_library_show,
     ADV3D_OT_library_import,
+    ADV3D_OT_library_new,
+    ADV3D_FH_vehicle,
     ADV3D_OT_library_rescale,
     ADV3D_OT_library_turn,
 )

@@ -60,7 +60,9 @@ class ADV3D_PT_library(_Adv3dPanel, bpy.types.Panel):
             col.scale_y = 0.8
             for line in cleaning_lines(item.cleaning_report):
                 col.label(text=line)
-        layout.operator("adv3d.library_import", text="Import vehicle file...", icon="IMPORT")
+        row = layout.row(align=True)
+        row.operator("adv3d.library_import", text="Import vehicle files...", icon="IMPORT")
+        row.operator("adv3d.library_new", text="", icon="FILE_NEW")
 
 
 class ADV3D_PT_shapes(_Adv3dPanel, bpy.types.Panel):

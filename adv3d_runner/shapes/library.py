@@ -315,7 +315,7 @@ def licence_name_from_text(text: str) -> str | None:
 def add_asset(library: VehicleLibrary, library_path: str | Path, source: str | Path, vehicle_class: str,
               read: MeshReader, *, asset_id: str | None = None, pack: str | None = None,
               licence_file: str | Path | None = None, licence_name: str | None = None, author: str = "",
-              url: str = "", note: str = "", in_shape_space: bool = True) -> VehicleAsset:
+              url: str = "", note: str = "", in_shape_space: bool = True, replace: bool = True) -> VehicleAsset:
     """Add one vehicle file to ``library`` (or replace the asset with the same id) and save it.
 
     The one import pipeline behind ``adv3d assets import`` and the add-on's *Import vehicle*:
@@ -335,7 +335,10 @@ def add_asset(library: VehicleLibrary, library_path: str | Path, source: str | P
         asset_id: default ``<pack>.<file stem>`` (slugged).
         pack: source pack folder name; default the source file's folder name.
         licence_file: licence text; default one of :data:`LICENCE_NAMES` beside ``source``.
-        licence_name: SPDX name; default read from the licence text.
+        licence_name: SPDX name; default read from the licence text. Named without a licence
+            text anywhere, a note naming the licence and the source file is stored as the
+            asset's licence file (``<pack>/LICENCE-<name>.txt``).
+        replace: replace an asset with the same id (False: refuse it).
         author, url: credited in the ``source`` record.
         note: why the asset was curated this way (``curation.note``).
         in_shape_space: include the asset in the PCA shape space.
@@ -361,9 +364,22 @@ def add_asset(library: VehicleLibrary, library_path: str | Path, source: str | P
     asset_id = asset_id or f"{pack}.{slug(source.stem)}"
     if not _ID_RE.match(asset_id):
         raise ConfigError(f"asset id {asset_id!r}: expected {ID_EXPECTED}")
+    if not replace and asset_id in library.ids():
+        raise ConfigError(f"asset id {asset_id!r} is already in the library; replace it explicitly or give "
+                          "another id")
     licence_src = Path(licence_file) if licence_file else find_licence(source.parent)
-    if licence_src is None or not licence_src.is_file():
-        raise ConfigError(f"{source}: no licence file beside it; give the licence file (licences travel with meshes)")
+    licence_note = None
+    if licence_file and not licence_src.is_file():
+        raise ConfigError(f"{licence_src}: no such licence file")
+    if licence_src is None:
+        if not licence_name:
+            raise ConfigError(f"{source}: no licence file beside it; give the licence file or name the licence "
+                              "(licences travel with meshes)")
+        if not re.fullmatch(r"[A-Za-z0-9.+-]{1,64}", licence_name):
+            raise ConfigError(f"licence name {licence_name!r}: expected an SPDX identifier such as CC0-1.0")
+        licence_note = (f"{source.name} (source pack {pack}) is used under the licence {licence_name} (SPDX),\n"
+                        f"as named when it was imported; no licence text was beside the file.\n"
+                        f"https://spdx.org/licenses/{licence_name}.html\n")
     licence_name = licence_name or licence_name_from_text(licence_src.read_text(errors="replace"))
     if not licence_name:
         raise ConfigError(f"{licence_src}: cannot tell the licence from its text; give its name (e.g. CC0-1.0)")
@@ -373,7 +389,7 @@ def add_asset(library: VehicleLibrary, library_path: str | Path, source: str | P
         raise MeshImportError(f"{source}: no triangles left after conversion and cleaning; nothing was changed")
     rel_file = f"{pack}/{asset_id.split('.', 1)[-1] if asset_id.startswith(pack + '.') else asset_id}.glb"
     target = resolve_inside(library.root, rel_file, field="asset file", inside="the library folder")
-    lic_rel = f"{pack}/{licence_src.name}"
+    lic_rel = f"{pack}/{licence_src.name}" if licence_src is not None else f"{pack}/LICENCE-{licence_name}.txt"
     if note:
         curation["note"] = note
     # Nothing the library had is touched until the new mesh has been written beside it, read
@@ -396,7 +412,10 @@ def add_asset(library: VehicleLibrary, library_path: str | Path, source: str | P
         trial = VehicleLibrary(root=library.root, assets=list(library.assets), excluded=library.excluded)
         trial.put(asset)
         library_from_json(trial.to_json(), Path(library_path).parent, Path(library_path))
-    if (library.root / lic_rel).resolve() != licence_src.resolve():
+    if licence_note is not None:
+        (library.root / pack).mkdir(parents=True, exist_ok=True)
+        (library.root / lic_rel).write_text(licence_note)
+    elif (library.root / lic_rel).resolve() != licence_src.resolve():
         (library.root / pack).mkdir(parents=True, exist_ok=True)
         shutil.copyfile(licence_src, library.root / lic_rel)
     library.put(asset)

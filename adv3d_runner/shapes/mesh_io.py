@@ -496,13 +496,15 @@ def read_library_mesh(path: str | Path):
 
 def import_vehicle(path: str | Path, up: str | None = None, forward: str | None = None,
                    unit: str = "auto", dimensions: tuple[float, float, float] | None = None,
-                   clean: bool = True, convention: str = "auto") -> tuple[Any, dict, dict]:
+                   clean: bool = True, convention: str = "auto",
+                   length: float | None = None) -> tuple[Any, dict, dict]:
     """Read, convert, clean and (optionally) scale one vehicle file.
 
     Args:
         convention: ``"auto"`` (:func:`detect_convention`), ``"none"`` (the format's own axes)
             or a key of :data:`CONVENTIONS` (``apollocar3d``, ``shapenet``): the default up and
             forward axes; explicit ``up``/``forward`` win.
+        length: real length in m to scale to uniformly (``convert_vehicle``), or None.
 
     Returns:
         (mesh in the convention frame, curation record, cleaning report).
@@ -533,7 +535,7 @@ def import_vehicle(path: str | Path, up: str | None = None, forward: str | None 
         extra["car_type"] = str(mesh.metadata["car_type"])
     converted, curation, report = convert_vehicle(
         mesh, info["reader"], info["format"][1:], up=up, forward=forward, unit=unit, native_up=native_up,
-        dimensions=dimensions, clean=clean, source=str(path))
+        dimensions=dimensions, length=length, clean=clean, source=str(path))
     curation.update(extra)
     return converted, curation, report
 
