@@ -245,9 +245,12 @@ def cancel_all() -> None:
     JobOperator._active.clear()
 
 
-#: Heavy modules imported one per step before work that needs them (importing trimesh pulls in
-#: scipy.spatial: ~0.4 s + 0.15 s of CPU the first time, too much for one step).
-HEAVY_MODULES = ("scipy.spatial", "trimesh", "igl", "skimage.measure")
+#: Heavy modules imported one per step before work that needs them, in pieces each well under
+#: ``MAX_STEP_S`` of CPU: trimesh alone pulls in scipy.spatial, scipy.ndimage and networkx
+#: (~1 s of CPU together the first time on a loaded machine).
+HEAVY_MODULES = ("scipy.sparse", "scipy.spatial", "scipy.ndimage", "networkx.utils", "networkx.classes",
+                 "networkx.algorithms", "networkx", "trimesh.util", "trimesh.graph", "trimesh.creation",
+                 "trimesh", "igl", "skimage.measure")
 
 
 def import_steps(modules=HEAVY_MODULES, fraction: float = 0.0) -> Generator[Any, None, None]:
@@ -258,7 +261,7 @@ def import_steps(modules=HEAVY_MODULES, fraction: float = 0.0) -> Generator[Any,
 
     for name in modules:
         if name not in sys.modules:
-            yield fraction, f"loading {name.split('.')[0]}"
+            yield fraction, f"loading {name}"
             try:
                 importlib.import_module(name)
             except ImportError:  # optional here: the work itself reports what it lacks

@@ -365,6 +365,21 @@ def export_up_axis(file_format: str, choice: str) -> str:
     return up
 
 
+def check_components(k: int, n_assets: int) -> None:
+    """Refuse a K the included assets cannot fill: the principal components of n shapes span at
+    most n - 1 directions, so further sliders would change nothing (0 % variance).
+
+    Raises:
+        Adv3dError: naming K and the number of included assets.
+    """
+    if n_assets < 2:
+        raise runner.Adv3dError(f"the shape space needs at least 2 included assets (the library has {n_assets})")
+    if k > n_assets - 1:
+        raise runner.Adv3dError(f"Components K={k} is more than {n_assets} included assets can give "
+                                f"(at most {n_assets - 1}: n shapes span n - 1 directions); lower K or "
+                                "include more assets")
+
+
 def build_steps(library, out: str, options: dict):
     """Steps of Build: the runner's stepwise build (SDF per asset in pieces, PCA), then the
     atomic write. Cancelling before the write leaves the old file untouched."""
@@ -401,6 +416,7 @@ class ADV3D_OT_shapes_build(jobs.JobOperator, bpy.types.Operator):
         if settings.library.dirty:  # build from what the panel shows
             save_library_props(settings.library)
         library = library_from_props(settings.library)
+        check_components(shapes.build_k, sum(1 for a in library.assets if a.in_shape_space))
         options = {"k": shapes.build_k}
         if shapes.build_resolution:
             options["resolution"] = shapes.build_resolution

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import json
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -1046,3 +1048,40 @@ def test_import_several_files_named_licence_replace_and_new_library(ctx, tmp_pat
     assert bpy.ops.adv3d.library_import(filepath=str(src / "a.glb"), licence_name="CC-BY-4.0", length=3.0,
                                         replace=True) == {"FINISHED"}
     assert load_library(lib_file).get("nolicence.a").dimensions[0] == pytest.approx(3.0, abs=2e-3)
+
+
+def test_build_steps_stay_short_from_a_fresh_session(lib_copy, repo_root):
+    """In a session that has not imported trimesh, scipy or networkx yet (a fresh Blender), no
+    step of the modal Build comes near half a second of CPU: the heavy imports are split up."""
+    code = (
+        "import json, sys, time\n"
+        "import bpy\n"
+        "import blender_addon\n"
+        "from blender_addon import jobs, ops_shapes\n"
+        "from adv3d_runner.shapes.library import load_library\n"
+        "blender_addon.register()\n"
+        "fresh = not any(m in sys.modules for m in ('trimesh', 'networkx', 'scipy.spatial'))\n"
+        "job = jobs.Job('Build', ops_shapes.build_steps(load_library(sys.argv[1]), sys.argv[2],"
+        " {'k': 2, 'resolution': 16}))\n"
+        "while job.run_slice(0.0) == jobs.RUNNING:\n"
+        "    pass\n"
+        "print(json.dumps({'fresh': fresh, 'state': job.state, 'cpu': job.max_step_cpu_s, 'slowest': job.slowest}))\n")
+    out = subprocess.run([sys.executable, "-c", code, str(lib_copy), str(lib_copy.parent / "fresh.npz")],
+                         capture_output=True, text=True, cwd=repo_root, timeout=600)
+    assert out.returncode == 0, out.stderr[-2000:]
+    res = json.loads(out.stdout.strip().splitlines()[-1])
+    assert res["fresh"] and res["state"] == "done"
+    from blender_addon import jobs
+
+    # half the limit here: a reviewer's machine measured ~3x this one's CPU time for the imports
+    assert res["cpu"] < jobs.MAX_STEP_S / 2, res
+
+
+def test_build_refuses_more_components_than_the_assets_give(ctx, lib_copy, tmp_path):
+    bpy.ops.adv3d.library_load(filepath=str(lib_copy))
+    shapes = ctx.scene.adv3d.shapes
+    shapes.space_path = str(tmp_path / "k.npz")
+    shapes.build_k = len(FIXTURE_CARS)  # 4 assets span 3 directions
+    with pytest.raises(RuntimeError, match=r"K=4 is more than 4 included assets can give \(at most 3"):
+        bpy.ops.adv3d.shapes_build()
+    assert not (tmp_path / "k.npz").exists()
