@@ -40,7 +40,7 @@ EXTENSION_ID = "adv3d"
 #: in-process: meshes need trimesh; decoding needs scikit-image's marching cubes (which imports
 #: lazy_loader and packaging, not scikit-image's other dependencies); Build shape space needs
 #: libigl (winding numbers, distances), scipy (ndimage: cavity fill) and embreex (the SDF's
-#: visibility orientation of CAD panels casts rays, issue 13). tqdm is not shipped: progress
+#: visibility orientation of CAD panels casts rays, docs/shape_space.md). tqdm is not shipped: progress
 #: bars are optional (``adv3d_runner.progress``).
 EXTENSION_DEPENDENCIES = (
     ("trimesh", "trimesh"),

@@ -1,6 +1,6 @@
 """Compiled loops: the one place that says how numba compiles adv3d's kernels.
 
-Why numba (issue 16): the per-frame hot loops (the planner's rollout of ~25 candidates over 50
+Why numba: the per-frame hot loops (the planner's rollout of ~25 candidates over 50
 steps, the LiDAR effects over ~110k returns, rotated NMS over a few dozen boxes) are short
 sequences of operations on small arrays, or one pass that numpy can only express as dozens of
 passes. numpy's per-call overhead (~1 us) and its temporaries then cost more than the

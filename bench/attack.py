@@ -163,7 +163,7 @@ def query_stages(scenes: list[str], autonomy: str, queries: int, seconds: float 
     configs = [(loop, name, flag) for loop in ("closed", "open") for name, flag in variants]
     clock = _StageClock()
     clock.wrap(lidar_mod, "simulate_frame", "lidar")
-    try:  # the query's shapes: attack.shape_models (issue 14 on), attack.targets before
+    try:  # the query's shapes: attack.shape_models, attack.targets in older commits
         from adv3d_runner.attack.shape_models import ActorShapes
 
         clock.wrap(ActorShapes, "decode_query", "decode")

@@ -1,4 +1,4 @@
-"""The detector's and the metrics' compiled loops (issue 16) against another commit, per frame.
+"""The detector's and the metrics' compiled loops (docs/detector.md) against another commit, per frame.
 
     .venv/bin/python bench/detector_kernels.py --base COMMIT [--seconds 5] [--repeats 3]
 

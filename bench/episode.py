@@ -14,7 +14,7 @@
     (the implicit model: voxelising the stacked sweeps, encoding, and every query the planner
     makes, measured with the model's own clock) and the rest of its planner, next to Autonomy-A's
     detector + tracker + predictor measured on the same scenes in the same process (the
-    acceptance bar of issue 15: B's model is no slower than A's three stages together).
+    bar docs/occupancy.md sets: B's model is no slower than A's three stages together).
 
     .venv/bin/python bench/episode.py [--quick] [--autonomy A|B|oracle|A-fast] [--out FILE]
 
@@ -261,8 +261,8 @@ def main() -> int:
         f = lambda x, p=3: "n/a" if x is None else f"{x:.{p}f}"  # noqa: E731
         print(f"| {d['resolution']} | {d.get('grid')} | {d['model']} | {f(d.get('ms_cpu_median'), 1)} | "
               f"{f(d.get('ap'))} | {f(d.get('recall'))} |")
-    # AP against resolution needs one trained model per resolution: bench/detector.py (issue 4,
-    # detector owner) trains them with a quick recipe; show its table next to ours.
+    # AP against resolution needs one trained model per resolution: bench/detector.py
+    # (docs/detector.md) trains them with a quick recipe; show its table next to ours.
     h7 = ROOT / "bench" / "results" / "detector.json"
     h7_rows = []
     if h7.exists():

@@ -485,7 +485,7 @@ def _breakdown(mod, world, rig, ego, poses, repeats: int = 41) -> dict:
         raycast.MeshBVH.intersect, mod._effects = intersect, effects
     model = rig.sensors[0].model
     valid = int(sizes[-1] / (1.0 - model.ray_drop))  # about the returns before the drop
-    try:  # the effects' own draws (issue 16: a compiled loop giving numpy's values), numpy's before
+    try:  # the effects' own draws (a compiled loop giving numpy's values, docs/lidar.md), numpy's before
         from adv3d_runner.sensors.draws import draw_f32
     except ImportError:
         def draw_f32(rng, n_gauss, n_uniform):

@@ -2,7 +2,7 @@
 folders, on the real scenes' samples (``adv3d_runner.training.predictor_data.real_scene_samples``:
 noisy boxes -> tracker -> features, recorded frames only), per part of ``scenes/real/``.
 
-Used to compare the predictor shipped before issue 17 (generated traffic only; its folder is
+Used to compare the predictor shipped before the real-traffic tuning (generated traffic only; its folder is
 ``git show fa10c6e:assets/models/predictor/...``) with the one trained on generated + real
 traffic. On the train part the second one has seen the very samples (a memorisation check, not
 a result); the benchmark part is held out from both.

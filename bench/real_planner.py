@@ -1,4 +1,4 @@
-"""The planner on real traffic without the LiDAR (issue 17): the harness its comfort limits were
+"""The planner on real traffic without the LiDAR (docs/autonomy.md, real traffic): the harness its comfort limits were
 tuned with, on the *train* part of ``scenes/real/`` only.
 
 Per scene, 5 s in closed loop (actors replay their logs, perfect control): ground-truth boxes of
@@ -12,7 +12,7 @@ progress against the logged driver, slowest speed and hardest braking.
     .venv/bin/python bench/real_planner.py [--part train] [--predictor DIR] [--config JSON] [--name NAME]
 
 ``--config`` overrides fields: ``{"proposals": {...}, "weights": {...}, "planner": {...}}``
-(e.g. the limits before issue 17: ``{"proposals": {"max_jerk": 4, "max_release_jerk": 10,
+(e.g. the limits before the real-traffic tuning: ``{"proposals": {"max_jerk": 4, "max_release_jerk": 10,
 "max_brake_jerk": 4, "leader_speed_window": 0.1}}``). Writes
 ``bench/results/real_planner.<NAME>.json``.
 """

@@ -1,10 +1,10 @@
 """Picture of the real benchmark's drive jerk over LiDAR-noise seeds, per scene, for two planners
-(issue 17): which scenes carry the mean, and how much of it is the sensor's noise.
+(docs/autonomy.md, real traffic): which scenes carry the mean, and how much of it is the sensor's noise.
 
     .venv/bin/python bench/real_seeds_plot.py [--out docs/img/real_benchmark_seeds.png]
 
-Reads only kept files (``bench/results/``): the eighth round's planner (``sanity.planner-53d3561.json``
-for seed 0, ``sanity.real-benchmark.seed{1..19}.json``) and the tenth round's (``sanity.json``,
+Reads only kept files (``bench/results/``): the planner before (``sanity.planner-53d3561.json``
+for seed 0, ``sanity.real-benchmark.seed{1..19}.json``) and the shipped one (``sanity.json``,
 ``sanity.round10.real-benchmark.seed{1..19}.json``).
 """
 from __future__ import annotations
@@ -21,7 +21,7 @@ PLANNERS = {
     "eighth round (before)": ["sanity.planner-53d3561.json"] + [f"sanity.real-benchmark.seed{s}.json" for s in range(1, 20)],
     "tenth round (shipped)": ["sanity.json"] + [f"sanity.round10.real-benchmark.seed{s}.json" for s in range(1, 20)],
 }
-TARGET = 1.0  # issue 17: mean driving jerk at most 1.0 m/s^3
+TARGET = 1.0  # docs/autonomy.md: mean driving jerk at most 1.0 m/s^3
 
 
 def drive_jerks(files: list[str]) -> tuple[list[str], np.ndarray]:

@@ -1,4 +1,4 @@
-"""More tuning scenes from the *train* recordings: every other car of them as the ego (issue 17).
+"""More tuning scenes from the *train* recordings: every other car of them as the ego (docs/scenes.md).
 
 The train part of ``scenes/real/`` has 14 scenes, one ego each; its recordings hold more cars
 whose tracks cover the whole recording, among them crawls at 0-4 m/s (recording 5) that none of

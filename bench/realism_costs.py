@@ -1,4 +1,4 @@
-"""What realism costs per attack query and per Blender slider change (issue 14, point 2).
+"""What realism costs per attack query and per Blender slider change (docs/realism.md).
 
     .venv/bin/python bench/realism_costs.py [--shapes 60] [--queries 4] [--quick]
 

@@ -1,5 +1,5 @@
-"""Sweep the realism knobs of the attack and plot attack strength against realism (issue 14,
-points 4 and 5).
+"""Sweep the realism knobs of the attack and plot attack strength against realism
+(docs/realism.md).
 
     .venv/bin/python bench/realism_sweep.py --scenes 10 --budget 100 --seconds 5 --workers 2   # the campaign
     .venv/bin/python bench/realism_sweep.py --smoke                                           # 2 scenes, budget 8, 3 s

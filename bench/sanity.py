@@ -1,5 +1,5 @@
 """Sanity of the closed loop on the bundled benchmarks: the generated highways and the real
-NGSIM US-101 recordings (issue 4 acceptance 5, issue 17 acceptance 3-4).
+NGSIM US-101 recordings (docs/episode.md, docs/autonomy.md).
 
 Every scene: a 5 s closed-loop episode (actors replay their logs), the full LiDAR simulation
 (the scene's 64-beam rig, library meshes) and the chosen stack. Two sets:
@@ -33,7 +33,7 @@ run (the generated set under ``summary`` / ``rows`` as before, the real one unde
 ``bench/results/sanity.real-<part>[.<autonomy>].json`` for ``--sets real``; ``--tag NAME`` appends
 ``.NAME`` to the file name (before/after pairs, e.g. an old detector).
 
-Tuning the planner without editing code (issue 17: on ``--real-part train`` only):
+Tuning the planner without editing code (on ``--real-part train`` only, docs/autonomy.md):
 ``--planner-config '{"proposals": {"max_brake_jerk": 4}}'`` (or a .json file) runs every scene
 with those fields of ``PlannerConfig`` / ``ProposalConfig`` / ``CostWeights`` replaced; unknown
 fields are refused by name, and the result needs ``--name`` or ``--tag``. The overrides are kept
@@ -63,15 +63,15 @@ PAPER_ORIGINAL_A = {"ap": 0.882, "recall": 0.894, "min_ade": 2.14, "mean_ade": 4
                     "plan_jerk": 0.336, "drive_lat": 0.194, "drive_jerk": 0.331}
 PAPER_ORIGINAL_B = {"map": 0.831, "soft_iou": 0.504, "fg_map": 0.946, "fg_soft_iou": 0.612, "plan_lat": 0.256,
                     "plan_jerk": 0.319, "drive_lat": 0.263, "drive_jerk": 0.315}
-# issue 17, acceptance 4: on the real benchmark part
+# the real benchmark part's targets (docs/autonomy.md, real traffic)
 REAL_TARGETS = {"min_ade_max": 2.0, "drive_jerk_max": 1.0, "at_fault_collisions_max": 0, "progress_ratio_min": 0.8}
 
 _STACK = None
 _LIB = None
 
 
-#: ``--planner-limits before-issue17``: the proposals' jerk limits and leader speed window
-#: before issue 17 tuned them on real traffic (what Autonomy-B was developed with); a
+#: ``--planner-limits``: the proposals' jerk limits and leader speed window as they were
+#: before the real-traffic tuning set them on real traffic (what Autonomy-B was developed with); a
 #: diagnosis of how those limits change a stack, not a shipped configuration.
 LIMITS_BEFORE_ISSUE17 = {"max_jerk": 4.0, "max_release_jerk": 10.0, "max_brake_jerk": 4.0, "leader_speed_window": 0.1}
 
@@ -213,7 +213,7 @@ def summarise(rows: list[dict], real: bool) -> dict:
 
 
 def check_targets(s: dict) -> dict:
-    """Issue 17's targets on a real summary: name -> {value, target, met}."""
+    """The real benchmark part's targets on a real summary: name -> {value, target, met}."""
     t = REAL_TARGETS
     rows = {
         "min_ade": (s["min_ade"], f"<= {t['min_ade_max']}", s["min_ade"] is not None and s["min_ade"] <= t["min_ade_max"]),

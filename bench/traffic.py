@@ -1,4 +1,4 @@
-"""Generated traffic against recorded traffic (issue 17, acceptance 5).
+"""Generated traffic against recorded traffic (docs/scenes.md).
 
 Statistics (``adv3d_runner.scene.traffic_stats``): speed, time headway and lane changes per 5 s
 window of every vehicle, pooled over scenes, compared by the two-sample Kolmogorov-Smirnov

@@ -1,6 +1,6 @@
 """The paper's Table 3 on our benchmark: the latent attack against the vertex-deformation (VD)
 baseline at l-infinity bounds 0.1, 0.2, 0.5 and 1.0 m, same searcher, same budget; attack
-strength and JSD side by side (issue 14, point 3).
+strength and JSD side by side (paper Table 3, docs/realism.md).
 
     .venv/bin/python bench/vd_table3.py --scenes 10 --budget 100 --seconds 5 --workers 2   # the campaign
     .venv/bin/python bench/vd_table3.py --smoke                                           # 1 scene, budget 4, 3 s

@@ -1,5 +1,5 @@
-"""Criticality in standard terms by CommonRoad's CriMe (adv3d_runner/sim/criticality.py, issue 39
-point 5): a hand-made car-following episode whose measures are known analytically, the server's
+"""Criticality in standard terms by CommonRoad's CriMe (adv3d_runner/sim/criticality.py,
+docs/attack.md): a hand-made car-following episode whose measures are known analytically, the server's
 shortcuts against plain CriMe, the scenario written for it, the block without CriMe, and the
 attack report's criticality table.
 

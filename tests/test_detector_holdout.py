@@ -1,4 +1,4 @@
-"""Vehicle hold-out of detector training (issue 13, point 6): the default split is deterministic
+"""Vehicle hold-out of detector training (docs/detector.md): the default split is deterministic
 and stratified by class, training scenes never place a held-out mesh, and AP / recall per
 ground-truth group are right on a hand-made set of boxes."""
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""``adv3d export`` (issue 39, point 6): a found failure as CommonRoad, OpenSCENARIO and glb files,
+"""``adv3d export`` (docs/export.md): a found failure as CommonRoad, OpenSCENARIO and glb files,
 re-imported with ``scenes import-commonroad --manifest`` and re-simulated within the tolerance of
 docs/export.md; bad input ends in one line and leaves nothing behind."""
 from __future__ import annotations

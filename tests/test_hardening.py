@@ -1,4 +1,4 @@
-"""Every finding of issue 11 (hostile inputs), reproduced and fixed: nothing escapes its folder,
+"""Every finding of the hostile-input review (docs/reliability.md), reproduced and fixed: nothing escapes its folder,
 nothing the user had is lost, every bad input ends in one line naming the file and field.
 
 The property-based counterpart over every contract is ``tests/test_fuzz.py``."""

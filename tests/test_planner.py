@@ -450,7 +450,7 @@ def test_one_frame_obstacle_does_not_make_the_offset_dither():
     assert offsets(set(range(2, 6))) == ["d+0.0"] * 3 + ["d-0.5"] * 3
 
 
-# ------------------------------------------------------------------ real traffic (issue 17)
+# ------------------------------------------------------------------ real traffic (docs/autonomy.md)
 
 def test_forecast_heading_ignores_jitter_of_slow_actors():
     """A slow actor's predicted path jitters by centimetres from step to step; its heading must
@@ -553,7 +553,7 @@ def test_config_overrides_refuse_unknown_or_mistyped_fields_by_name(bad, names):
     assert "tune.json" in str(info.value)
 
 
-# ------------------------------------------------ real traffic, second round (issue 17)
+# ------------------------------------------------ real traffic, headings and reversing
 
 def _two_mode_leader(slow_prob):
     """One car 25 m ahead in the ego's lane, two predicted modes: 15 m/s (likely) and 11 m/s."""
@@ -991,7 +991,7 @@ def _outcome(f, *args):
     return y.shape, y.tobytes()
 
 
-# ------------------------------------------------------- least-jerk following (issue 17, round 7)
+# ------------------------------------------------------- least-jerk following (docs/autonomy.md)
 
 def test_smooth_profile_keeps_the_gap_without_a_hard_brake_and_holds_on_a_free_road():
     from adv3d_runner.autonomy.planner.smooth import free_road_speeds, smooth_profile
@@ -1035,7 +1035,7 @@ def test_smooth_follow_adds_one_current_lane_candidate_that_plans_its_own_speed(
     assert cands.accel[keep, :10].min() < -1.0 and cands.accel[i, :10].min() > -0.6
 
 
-# ------------------------------------------ stop easing and command resolution (issue 17, round 8)
+# ------------------------------------------ stop easing and command resolution (docs/autonomy.md)
 
 def _with(**proposals):
     from dataclasses import replace
@@ -1115,7 +1115,7 @@ def test_smooth_resolution_shrinks_with_speed_below_the_reference():
     assert first[0.0] != first[10.0]
 
 
-# ------------------------------------------ the cautious least-jerk candidate (issue 17, round 10)
+# ------------------------------------------ the cautious least-jerk candidate (docs/autonomy.md)
 
 def _leader_with_a_rare_stop(stop_prob):
     """A car 25 m (bumper to bumper) ahead of an ego at 14 m/s in lane 0, at 14 m/s itself; two

@@ -204,9 +204,9 @@ def test_autonomy_a_plans_are_unchanged_on_a_recorded_scene():
     """tests/data/planner_a_plans.npz was made by tests/planner_regression.py (first with main's
     planner without Autonomy-B's occupancy terms, main at 23dd95b, to show that they change
     nothing; made again, ``python tests/planner_regression.py tests/data/planner_a_plans.npz``,
-    when issue 17's third round changed the planner on purpose: expected leaders, the ACC
-    model, the emergency-stop gate; and again for its seventh round, the least-jerk following
-    candidate): Autonomy-A's plans on a recorded scene, bit for bit, so that an unintended
+    when the real-traffic tuning changed the planner on purpose: expected leaders, the ACC
+    model, the emergency-stop gate; and again for the least-jerk following candidate;
+    docs/archive.md): Autonomy-A's plans on a recorded scene, bit for bit, so that an unintended
     change to the planner shows."""
     sys.path.insert(0, str(Path(__file__).parent))
     from planner_regression import a_plans

@@ -1,4 +1,4 @@
-"""The real-traffic benchmark (issue 17): every bundled real scene validated, the split by
+"""The real-traffic benchmark (docs/scenes.md, docs/autonomy.md): every bundled real scene validated, the split by
 recording, the importer's ego rank, real training samples, traffic statistics and the
 generator's us101 profile."""
 from __future__ import annotations
@@ -121,7 +121,7 @@ def test_ego_rank_gives_variants_their_own_ego(tmp_path):
     assert main(["-q", "scenes", "import-commonroad", str(SOURCE / "USA_US101-4_3_T-1.xml"), "--out", str(out),
                  "--seconds", "10", "--extend", "--ego-rank", "1"]) == 0
     second = load_scene(out)
-    shipped = load_scene(REAL / "USA_US101-4_3_T-1.json.gz")  # also records its meshes (issue 13)
+    shipped = load_scene(REAL / "USA_US101-4_3_T-1.json.gz")  # also records its meshes (docs/library.md)
     assert scene_equal(second, replace(shipped, actors=[replace(a, asset=None) for a in shipped.actors]))
     assert second.source.details["ego_obstacle_id"] != first.source.details["ego_obstacle_id"]
     assert first.source.details["ego_obstacle_id"] in second.actor_ids  # the rank-0 car is now an actor
@@ -165,7 +165,7 @@ def test_us101_profile_is_its_own_seed_space_and_leaves_default_unchanged(tmp_pa
 
     bundled = load_scene(REPO / "scenes" / "highway" / "highway-benchmark-000003.json.gz")
     d = bundled.source.details
-    # the shipped scene also records its actors' meshes (issue 13); the generator leaves them open
+    # the shipped scene also records its actors' meshes (docs/library.md); the generator leaves them open
     bundled = replace(bundled, actors=[replace(a, asset=None) for a in bundled.actors])
     assert scene_equal(generate_scene(3, "benchmark", d["layout"], d["density"], profile="default"), bundled)
     a = generate_scene(3, "benchmark", profile="us101")

@@ -1,4 +1,4 @@
-"""Realism measures (issue 14): each on hand-made shapes that must score realistic and unrealistic."""
+"""Realism measures (docs/realism.md): each on hand-made shapes that must score realistic and unrealistic."""
 from __future__ import annotations
 
 import json

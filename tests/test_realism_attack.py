@@ -1,4 +1,4 @@
-"""Realism in the attack (issue 14, points 2-4): the cheap per-query figures, the restricted
+"""Realism in the attack (docs/realism.md): the cheap per-query figures, the restricted
 search region (Mahalanobis ball, class-plausible scales), the realism penalty, the
 vertex-deformation baseline, their options in AttackConfig / run.json / the CLI, and the
 journal, summary and report that carry the figures."""
@@ -256,7 +256,7 @@ def test_journal_without_realism_still_resumes(tmp_path):
     run_attack(cfg, tmp_path / "r", show_progress=False, evaluator=SyntheticEvaluator)
     recs = lines(tmp_path / "r")
     assert all("realism" in r and r["realism"] is None for r in recs)
-    # a journal of before issue 14 (so also before checksums: run.json without journal_sha256)
+    # a journal from before the realism figures (so also before checksums: run.json without journal_sha256)
     old = [{k: v for k, v in r.items() if k not in ("realism", "sha256")} for r in recs]
     (tmp_path / "r" / "queries.jsonl").write_text("".join(json.dumps(r) + "\n" for r in old))
     run = json.loads((tmp_path / "r" / "run.json").read_text())

@@ -100,7 +100,7 @@ def test_local_slope_is_exact_on_lines_and_damps_noise():
 def test_ego_accelerations_difference_exact_tracks_and_fit_measured_ones():
     """Generated (exact) tracks: the forward difference, bit for bit as the episode had it;
     measured (CommonRoad/NGSIM) ones: the 1 s local fit, because a one-frame difference of
-    speeds differentiated from video tracks is mostly noise (issue 17, eighth round)."""
+    speeds differentiated from video tracks is mostly noise (docs/autonomy.md, real traffic)."""
     scene = make_scene()
     v = 20.0 + 0.5 * np.sin(np.arange(T))  # jittery speeds
     scene.ego.track.speed = v

@@ -2,7 +2,7 @@
 any way, missing windows, seats and dashboard, mirrors thinner than a voxel, double-walled
 cabins, parts poking through the body.
 
-Pass criteria (issue 13): decoded length, width and height within 5 cm of the source mesh, and
+Pass criteria (docs/shape_space.md): decoded length, width and height within 5 cm of the source mesh, and
 no solid outside the body (no inside node farther than one voxel from the reference solid).
 """
 from __future__ import annotations

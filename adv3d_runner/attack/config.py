@@ -9,12 +9,12 @@ the new one key by key (``attack.journal.Journal.start``).
 The shape space of a run is loaded in one place, :meth:`QuerySettings.load_shape_space` (once
 per process and file).
 
-The shape model and realism knobs (issue 14: ``shape_model``, ``vd_bound``, ``vd_lattice``,
+The shape model and realism knobs (docs/realism.md: ``shape_model``, ``vd_bound``, ``vd_lattice``,
 ``max_mahalanobis``, ``class_scales``, ``realism_weight``) came after run.json version 1; they are
 written only when set (``vd_*`` with ``shape_model`` ``vd``), so a run that uses none of them
 writes the run.json it always wrote, and older runs resume and compare equal.
 
-Issue 18 added two: ``pred_reduction`` (how the objective's prediction term reduces over the H
+The experiment protocol (docs/results.md) added two: ``pred_reduction`` (how the objective's prediction term reduces over the H
 waypoints; default ``"sum"``, paper Eq. 5 as written) is written unless it is ``"mean"``, the
 form every older run used, which a run.json without the key reads as; ``scene_seeds`` (derive
 each scene's search seed and LiDAR-noise seed from ``seed`` and the scene's content,

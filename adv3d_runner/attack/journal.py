@@ -39,7 +39,7 @@ every other check.
 Line fields (fixed order): ``scene``, ``mode``, ``index`` (query number within the scene and
 mode), ``actors``, ``unit`` (m lists of the query's unit entries), ``latent``, ``scales``,
 ``dimensions``, ``realism`` (per actor the cheap realism figures, or null; absent in journals
-written before issue 14), ``cost`` (null when failed), ``components``, ``metrics``, ``status``
+written before the realism figures existed), ``cost`` (null when failed), ``components``, ``metrics``, ``status``
 (``ok`` / ``invalid`` / ``error``), ``error`` (message or null), ``wall_s``.
 """
 from __future__ import annotations
@@ -558,7 +558,7 @@ def check_summary(doc: Node, root: Path | None = None) -> None:
                            "files", "search_seed", "noise_seed"),
                           required=("best_index", "best_cost", "best_unit", "n_queries", "n_failed"))
             mn["best_index"].integer(lo=-1)
-            for key in ("search_seed", "noise_seed"):  # runs with scene_seeds (issue 18)
+            for key in ("search_seed", "noise_seed"):  # runs with scene_seeds (docs/results.md, Protocol)
                 mn.get(key, 0).integer(lo=0, hi=2**32 - 1)
             if mn["best_cost"].value is not None or mn["best_unit"].value is not None:
                 mn["best_cost"].number()  # a best query has a cost

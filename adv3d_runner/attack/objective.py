@@ -8,7 +8,7 @@
   matched to ground-truth actors, **summed over the H waypoints** as Eq. 5 writes it (m), averaged
   over the modes and over those actors (:func:`adv3d_runner.metrics.prediction.prediction_loss`).
   ``pred_reduction="mean"`` averages over the waypoints instead (the multi-modal ADE, the form
-  runs used before issue 18): the same optimum for the term alone, but with lambda_pred = 0.1 it
+  runs made before the protocol of docs/results.md): the same optimum for the term alone, but with lambda_pred = 0.1 it
   weighs prediction about H = 60 times less in the sum of the three terms;
 * ``c_plan^t = c_jerk + c_lat``: mean |jerk| + mean |lateral acceleration| of the frame's plan
   (:func:`adv3d_runner.metrics.comfort.plan_comfort_cost`).
@@ -48,7 +48,7 @@ from ..metrics.prediction import prediction_loss
 LAMBDA_PRED = 0.1
 LAMBDA_PLAN = 0.5
 #: How l_pred reduces the displacement error over the H waypoints: "sum" as paper Eq. 5 writes
-#: it (the default), "mean" the horizon average (the form of the runs made before issue 18).
+#: it (the default), "mean" the horizon average (the form of the runs made before the protocol of docs/results.md).
 PRED_REDUCTIONS = ("sum", "mean")
 DEFAULT_PRED_REDUCTION = "sum"
 #: The form of runs whose run.json predates the choice (they were all made with the mean).

@@ -1,4 +1,4 @@
-"""The experiment protocol of the paper's tables (issue 18), stated once here and in
+"""The experiment protocol of the paper's tables, stated once here and in
 docs/results.md ("Protocol"); ``bench/paper_tables.py`` runs it.
 
 * **Scenes** (:func:`select_scenes`, rule :data:`SCENE_RULE`): generated benchmark scenes from

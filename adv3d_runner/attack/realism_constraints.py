@@ -1,4 +1,4 @@
-"""Realism-aware attacks (issue 14, point 4): a search region restricted to where real vehicles
+"""Realism-aware attacks (docs/realism.md): a search region restricted to where real vehicles
 lie, a realism penalty in the objective, and the named presets of both.
 
 The searchers work in the unit cube; these maps send the cube into the restricted region, so

@@ -9,18 +9,18 @@ time (table + ``convergence.png``) and a head-to-head comparison of algorithms a
 (wins per scene, Wilcoxon signed-rank test); the best shapes per scene as thumbnails (matplotlib renders
 of the decoded meshes, plus one grid of all of them at a common scale, `best_shapes.png`).
 
-Realism (issue 14): every results table has a JSD column (the paper's realism figure of the best
+Realism (docs/realism.md): every results table has a JSD column (the paper's realism figure of the best
 shapes: the largest over a scene's attacked actors; the library's own leave-one-out maximum is
 the limit), and a section lists every best shape's realism report. Runs journalled before the
 realism figures existed get them computed from their best unit vectors (:func:`attach_realism`).
 Runs with a restricted search region, a realism penalty or vertex deformation are labelled
 with their knobs (:func:`run_label`), so they get rows of their own.
 
-Criticality (issue 39): beside the objective, CommonRoad CriMe's time to collision, headways,
+Criticality (docs/attack.md, Criticality): beside the objective, CommonRoad CriMe's time to collision, headways,
 required deceleration, BTN, closest encounter, TTC* and TTB of each original and best-shape
 closed-loop episode (:func:`criticality_table`).
 
-Objective (issue 18): every run is listed with its objective and prediction form
+Objective (paper Eq. 3-5, docs/attack.md): every run is listed with its objective and prediction form
 (:func:`objective_label`), and the paired change of each objective term is given unweighted and
 weighted, apart (:func:`objective_split`).
 """

@@ -425,7 +425,7 @@ class BlendSearchSearcher(Searcher):
 
 class SkoptSearcher(Searcher):
     """scikit-optimize's Bayesian optimiser (``skopt.Optimizer``, ask/tell) as a library
-    cross-check of :class:`BayesOpt` (issue 18, Table 5).
+    cross-check of :class:`BayesOpt` (paper Table 5, docs/results.md).
 
     Set up like ours where the paper fixes a choice, and left as the library's own where
     :class:`BayesOpt` departs from common practice, so the comparison asks one question: does

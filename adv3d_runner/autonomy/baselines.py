@@ -2,8 +2,8 @@
 
 :class:`ConstantVelocityPredictor` turns :class:`~.interface.Tracks` into
 :class:`~.interface.Predictions` by extrapolating each track's Kalman velocity. It is the
-reference a learned predictor must beat (issue 4: "minADE over 6 s beats a constant-velocity
-baseline"), and lets the episode loop run before any model is trained.
+reference a learned predictor must beat (its minADE over 6 s must be lower,
+docs/predictor.md), and lets the episode loop run before any model is trained.
 :class:`LaneFollowingPredictor` follows the lane graph instead (a stronger non-learned
 baseline, and a sensible fallback for the planner).
 

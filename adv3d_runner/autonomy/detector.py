@@ -423,7 +423,7 @@ def rotated_nms(boxes: np.ndarray, scores: np.ndarray, iou_threshold: float, max
     from squared distances where the margin is safe (relative 1e-9, far above rounding) and
     falls back to :func:`rotated_nms_numpy` for any other case (non-finite or tiny boxes, a
     distance within that margin). 0.59 -> 0.24 ms per call (50 captured calls of
-    ``highway-benchmark-000010``, issue 16).
+    ``highway-benchmark-000010``; docs/detector.md).
     """
     boxes = np.asarray(boxes, np.float64).reshape(-1, 5)
     scores = np.asarray(scores, np.float64).reshape(-1)
@@ -760,7 +760,7 @@ def upsample_concat(coarse: torch.Tensor, skip: torch.Tensor) -> torch.Tensor:
     temporary and the concatenation's second copy (0.57 -> 0.37 ms per 0.25 m frame). The
     blocks are written by a compiled loop (:func:`_upsample2_into`) where both tensors are
     contiguous float32 on the CPU: torch's strided 6-D copy took 0.33 of those 0.37 ms, the
-    loop 0.09 (issue 16)."""
+    loop 0.09 (docs/detector.md)."""
     B, C, h, w = coarse.shape
     H, W = skip.shape[-2:]
     if torch.is_grad_enabled() or (H, W) != (2 * h, 2 * w):
@@ -976,7 +976,7 @@ def fold_batchnorm(net: nn.Module) -> nn.Module:
     """An inference copy of ``net`` with every BatchNorm folded into the convolution before it
     (``torch.fx``'s conv-bn fusion): the same function up to float32 rounding (scores differ by
     ~1e-6), one pass over each feature map less; 6.8 -> 5.3 ms per 0.25 m frame on one core
-    (issue 16). Only for a model that is no longer trained: the fused copy has no BatchNorm
+    (docs/detector.md). Only for a model that is no longer trained: the fused copy has no BatchNorm
     statistics to update and its state_dict is not a :class:`PixorNet`'s."""
     import warnings
 

@@ -510,7 +510,7 @@ def no_reversing(local: np.ndarray) -> np.ndarray:
     """Agent-frame trajectories (N, K, T, 2) with the forward coordinate made non-decreasing and
     >= 0 (a running maximum): highway vehicles do not reverse. The network's residuals could
     move a slow or standing vehicle backwards by metres (seen on NGSIM US-101 stop-and-go,
-    issue 17), which the planner took for a car rolling back into the ego."""
+    docs/autonomy.md), which the planner took for a car rolling back into the ego."""
     out = np.array(local, dtype=np.float64, copy=True)
     out[..., 0] = np.maximum.accumulate(np.maximum(out[..., 0], 0.0), axis=-1)
     return out

@@ -7,7 +7,7 @@
   never silently replaced by something else.
 * ``make_stack("A-fast")``: Autonomy-A with the detector trained at 0.4 m cells
   (``assets/models/detector-fast/``): its network costs 2.9 instead of 6.5 ms per frame, for
-  long attack campaigns (issue 16); offline AP 0.973 against 0.964, but on the real benchmark
+  long attack campaigns; offline AP 0.973 against 0.964, but on the real benchmark
   part closed-loop AP 0.965 against 0.978 and a rougher ride (docs/detector.md).
 * ``make_stack("A-lanefollow")``: the learned detector with the lane-following predictor
   baseline (to tell detector problems from predictor problems).

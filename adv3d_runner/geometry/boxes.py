@@ -18,7 +18,7 @@ too far apart to touch (centre distance > sum of half diagonals) are skipped, so
 over a frame of detections costs little more than the candidate pairs that actually overlap.
 The per-pair loops (corners, candidates, ordering, shoelace) are compiled
 (:mod:`adv3d_runner.jit`) and give the bits the numpy passes they replaced gave; the angles
-stay ``np.arctan2`` (issue 16).
+stay ``np.arctan2``.
 """
 from __future__ import annotations
 

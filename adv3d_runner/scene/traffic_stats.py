@@ -1,4 +1,4 @@
-"""Traffic statistics of scenes, to compare generated traffic with recorded traffic (issue 17).
+"""Traffic statistics of scenes, to compare generated traffic with recorded traffic (docs/scenes.md).
 
 Every vehicle of a scene counts, the ego included (in a recorded scene it is a recorded car),
 over its recorded frames only (``synthetic`` frames, the ``--extend``-ed tail of a short

@@ -1,6 +1,6 @@
 """Compiled per-ray loops of the LiDAR pipeline (:mod:`adv3d_runner.sensors.lidar`).
 
-Why compiled (issue 16, point 2): each of these is one pass over the rays or returns that numpy
+Why compiled (docs/lidar.md): each of these is one pass over the rays or returns that numpy
 can only write as a dozen passes (gathers, temporaries, masks), and their sum cost more than
 half of what the pipeline spends outside Embree. Every kernel computes each value with the
 same float32 operations in the same order as the numpy code it replaced (no FMA: numba's

@@ -1,7 +1,7 @@
 """Compiled nearest-neighbour distances for the realism figures' Chamfer distance
 (:meth:`~adv3d_runner.shapes.realism.RealismReference.chamfer_distances`).
 
-Why (issue 16, point 3): every attack query measures its shape against each of the ~28 CAD
+Why (docs/realism.md): every attack query measures its shape against each of the ~28 CAD
 models in both directions, 56 scipy ``cKDTree`` queries of 1000 points (~33 ms per query, 3 %
 of a closed-loop query). The clouds are small and long along x (vehicles), so a sweep over one
 cloud sorted by x, outward from each query point's x until dx^2 exceeds the best squared

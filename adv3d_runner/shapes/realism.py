@@ -1,4 +1,4 @@
-"""How realistic a decoded vehicle shape is (issue 14): the paper's JSD and six other measures.
+"""How realistic a decoded vehicle shape is (docs/realism.md): the paper's JSD and six other measures.
 
 Every measure is a flat function on arrays; ``realism_report`` gathers them for one shape of
 the shape space as a plain JSON-able dict (what an attack journal carries). Definitions,

@@ -297,7 +297,7 @@ def avoidable_later(speeds: np.ndarray, travelled: np.ndarray, dt: float, reacti
     stop before the point it reaches at t: v(t - r)^2 / (2 decel) < s(t) - s(t - r). False for
     t < ``reaction``. speeds, travelled: (B, T) m/s and m driven since now.
 
-    Why (issue 17, crawls): the collision term counts every predicted mode with its probability,
+    Why (crawls of real traffic, docs/autonomy.md): the collision term counts every predicted mode with its probability,
     and at 1-2 m/s the predictor gives a leader that in fact keeps crawling a 10-20 % mode that
     stops; every candidate that follows the leader then "collides" with that mode seconds ahead,
     and only the stop targets win. Re-planning every 0.1 s sees such a mode coming; a collision
@@ -382,7 +382,7 @@ def progress_reference(distance: np.ndarray, safe: np.ndarray, limit_distance: f
     progress: the longest ``distance`` (B,) m among the ``safe`` (B,) bool candidates (all of
     them when none is safe), at least ``floor`` m and at most ``limit_distance`` m (driving at
     the speed limit for the horizon). Against the speed limit alone, at crawl speeds stopping
-    cost a tenth of a full progress loss and lost to a few units of headway cost (issue 17)."""
+    cost a tenth of a full progress loss and lost to a few units of headway cost (docs/autonomy.md, real traffic)."""
     d = np.asarray(distance, dtype=np.float64)
     pool = d[np.asarray(safe, bool)] if np.any(safe) else d
     best = float(np.max(pool)) if pool.size else 0.0

@@ -62,12 +62,12 @@ class PlannerConfig:
             (:meth:`~adv3d_runner.scene.lanemap.LaneMap.border_ends`: no lane goes on beyond it)
             is not a dead end: the road goes on. Real recordings are cut out of a longer road,
             and braking for the cut slowed the ego down before the end of most real scenes
-            (issue 17). Lane drops stay dead ends.
+            (docs/autonomy.md, real traffic). Lane drops stay dead ends.
         exempt_overlap_now: an actor-mode whose box overlaps the ego's footprint already now
             counts in neither the collision nor the buffer term: no plan can undo a present
             overlap, and on the learned stack it is nearly always a mislocalised detection
             beside the ego, for which every candidate "collided" and the emergency stop won
-            (NGSIM US-101 train recordings, issue 17).
+            (NGSIM US-101 train recordings, docs/autonomy.md).
         progress_floor: None: full progress is driving at the speed limit for the horizon; a
             number (m): full progress is the longest distance among the candidates without
             expected collision, at least this much (:func:`.costs.progress_reference`, as
@@ -77,7 +77,7 @@ class PlannerConfig:
             None: it competes like any candidate. Otherwise soft terms or an unlikely mode
             decided it: a track that appeared beside the ego filled every candidate's buffer
             term, or a 5 % mode touched every candidate, and the emergency stop's -7 m/s^2 scored
-            lowest (NGSIM US-101 train recordings, issue 17).
+            lowest (NGSIM US-101 train recordings, docs/autonomy.md).
         contingency_time, contingency_decel: None: off. A number (s): a collision with an
             actor-mode that the candidate could still avoid by braking at ``contingency_decel``
             from ``contingency_time`` s before it (:func:`.costs.avoidable_later`: only at
@@ -233,7 +233,7 @@ def _yaw_from_motion(xy: np.ndarray, yaw0: np.ndarray, chord: float = YAW_CHORD)
     far forward (index 0 always). :func:`_yaw_from_motion_numpy` is the definition (and the
     reasons); here the progress, its running maximum and the search for the chord's start are
     one compiled pass (:func:`_chord_vectors`) around numpy's cos, sin and arctan2: the same
-    bits, 0.22 -> 0.08 ms per plan (issue 16)."""
+    bits, 0.22 -> 0.08 ms per plan (docs/autonomy.md)."""
     N, K, T = xy.shape[:3]
     if N * K == 0 or T == 0:
         return _yaw_from_motion_numpy(xy, yaw0, chord)
@@ -306,7 +306,7 @@ def _yaw_from_motion_numpy(xy: np.ndarray, yaw0: np.ndarray, chord: float = YAW_
     Why a chord and not each 0.1 s step: a predicted path jitters by a few centimetres from step
     to step, which for a slow actor (a step of 0.2-0.8 m in stop-and-go traffic) turned into
     heading errors of 10-30 degrees; rotated that much, a truck in the next lane overlapped the
-    ego's footprint and every candidate "collided" (NGSIM US-101 scenes, issue 17). Progress is
+    ego's footprint and every candidate "collided" (NGSIM US-101 scenes, docs/autonomy.md). Progress is
     measured along ``yaw0`` (running maximum), so lateral jitter and backward jitter of a
     standing actor add nothing and it keeps its heading."""
     N, K, T = xy.shape[:3]

@@ -75,17 +75,17 @@ class ProposalConfig:
             (:func:`_expected_leaders`); ``"quantile"``, at the ``leader_quantile``
             probability-weighted quantile of those modes (0: the slowest); ``"nearest"``, every
             mode a leader of its own, so the IDM follows the nearest, i.e. slowest, mode, and at
-            step 0 (a tie) the first one (the planner before issue 17's third round).
+            step 0 (a tie) the first one (the planner before the real-traffic tuning, docs/archive.md).
         leader_quantile: see ``leader_modes``.
         alongside_leads: an actor alongside the ego when the plan starts (in the lane strip,
             its centre ahead of the ego's but the bumper gap <= 0: a car merging in beside the
-            ego) makes the IDM brake at ``max_decel`` (True, the planner before issue 17's
-            fourth round); False: it leads only once it is ahead (gap > 0), and until then the
+            ego) makes the IDM brake at ``max_decel`` (True, an earlier planner,
+            docs/archive.md); False: it leads only once it is ahead (gap > 0), and until then the
             candidates follow the next actor ahead (the collision and buffer terms still see it).
         accel_targets: m/s^2; extra candidates on the current lane (offset 0) that move their
             acceleration to each of these at the jerk limits and hold it (speed >= 0) instead of
             following the IDM: smooth speed profiles for the scorer to choose when they are safe
-            (empty: none, the default; an experiment of issue 17's fourth round).
+            (empty: none, the default; an experiment kept for diagnosis, docs/archive.md).
         headway_relaxation: s; 0 (the default): the IDM always asks for ``idm_headway``.
             Otherwise the planner keeps an effective headway (``SamplingPlanner``): a leader
             found at a shorter headway that is not closing in (a car that cuts in, or the ego
@@ -95,8 +95,8 @@ class ProposalConfig:
             changes). Without it the IDM brakes at once to open a 1 s gap to 1.5 s.
         smooth_follow: add one current-lane candidate whose speed plan is the least-jerk
             profile behind the predicted leaders (:func:`.smooth.smooth_profile`, planned over
-            the whole horizon at once instead of the IDM's step-by-step reaction; the default
-            since issue 17's seventh round); False: none (the planner before it). ``smooth_weights``: its (jerk, acceleration, speed, gap) weights
+            the whole horizon at once instead of the IDM's step-by-step reaction; the default);
+            False: none (an earlier planner, docs/archive.md). ``smooth_weights``: its (jerk, acceleration, speed, gap) weights
             (:class:`.smooth.SmoothWeights`); ``smooth_recover``: s over which a gap shorter
             than the IDM's ``idm_gap + idm_headway x v`` is to open. ``smooth_speed_weights``:
             one more such candidate per value, with that speed weight instead of
@@ -108,7 +108,7 @@ class ProposalConfig:
             it every change of a detection changed the executed acceleration in its last bits
             and the ego's path with it (the attack's static-hit cache then serves nothing
             after that frame); with it a small change of the inputs mostly changes nothing.
-            0: off (the planner before issue 17's eighth round; 0.1 since).
+            0: off (an earlier planner, docs/archive.md; 0.1 by default).
             ``smooth_resolution_speed``: m/s; > 0: below this speed the resolution shrinks in
             proportion to the speed (to a tenth of it at most): in crawls the profile asks for
             a few hundredths of m/s^2 and a whole step made it lose to the IDM's candidates.
@@ -118,14 +118,14 @@ class ProposalConfig:
             modes the collision term counts, not only those of ``min_mode_prob``): when one
             mode of the leader stops, even a 1 % one at the end of the horizon, the collision
             term rejects the ``smooth`` profile behind the expected leader, and only the IDM's
-            step-by-step braking was left (crawls of the train recordings, issue 17's tenth
-            round; the default since). False: none (the planner before that round).
+            step-by-step braking was left (crawls of the train recordings, docs/autonomy.md;
+            the default). False: none (an earlier planner, docs/archive.md).
         firm_braking: m/s^2; braking demanded harder than this builds up at ``max_brake_jerk``
             and is released as fast (``firm_release``); None: ``idm_decel``.
         stop_jerk: m/s^3; > 0: every candidate but the emergency stop brakes at most
             sqrt(2 stop_jerk v) at speed v, so that a stop ends with the braking eased off at
-            that jerk instead of the speed's clamp at 0 ending it within one step; 0: off (the
-            planner before issue 17's eighth round; 4 since).
+            that jerk instead of the speed's clamp at 0 ending it within one step; 0: off (an
+            earlier planner, docs/archive.md; 4 by default).
         min_headway: s, the shortest headway ``headway_relaxation`` accepts.
         closing_speed: m/s; a leader slower than the ego by more than this is closing in, and
             its short headway is not accepted.

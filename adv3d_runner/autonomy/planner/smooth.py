@@ -2,7 +2,7 @@
 extra current-lane candidate (``ProposalConfig.smooth_follow``).
 
 The IDM candidates react to the leader one step at a time, and on real traffic every plan
-brakes now and eases off later while the next plan brakes again (issue 17's traces). This
+brakes now and eases off later while the next plan brakes again (docs/autonomy.md, real traffic). This
 candidate instead plans the whole horizon at once, in the spirit of the piecewise-jerk speed
 optimisation of Apollo's planner (Zhang et al. 2018, "Optimal trajectory generation for
 autonomous vehicles under centripetal acceleration constraints..."; the speed QP of Apollo
