@@ -187,8 +187,25 @@ class ADV3D_PT_review(_Adv3dPanel, bpy.types.Panel):
         if rv.loaded:
             box = layout.box()
             box.label(text=" / ".join(rv.loaded.replace("\\", "/").split("/")[-3:]), icon="FILE")
-            box.label(text="Red: adversarial shapes; green: detections with scores")
+            _draw_legend(box)
             box.label(text="Scrub the timeline to step through the episode")
+
+
+#: Icons of Blender's colour tags for the review's legend (review.LEGEND, in order).
+_LEGEND_ICONS = ("COLLECTION_COLOR_01", "MESH_CUBE", "COLLECTION_COLOR_05", "OUTLINER_OB_POINTCLOUD",
+                 "COLLECTION_COLOR_04", "COLLECTION_COLOR_06", "COLLECTION_COLOR_03", "MATFLUID",
+                 "COLLECTION_COLOR_02")
+
+
+def _draw_legend(layout) -> None:
+    """What the review's colours mean (the same in Solid, Workbench and Eevee shading)."""
+    from .review import LEGEND
+
+    col = layout.column(align=True)
+    col.scale_y = 0.8
+    col.label(text="Legend", icon="INFO")
+    for (text, _), icon in zip(LEGEND, _LEGEND_ICONS):
+        col.label(text=text, icon=icon)
 
 
 def _draw_attack_files(layout, context) -> None:

@@ -446,7 +446,7 @@ def render_review(run_path: Path, replay: str | None, out: Path, frame: int | No
     scene = _reset(width, height, engine)
     if engine != "eevee":
         shading = scene.display.shading
-        shading.color_type = "OBJECT"  # the review engine colours objects
+        shading.color_type = "MATERIAL"  # the review's materials: per-object colours, heat-map bins
         shading.show_cavity = False  # cavity speckles the point cloud and the boxes
         shading.show_specular_highlight = False
     blender_addon.register()
@@ -455,18 +455,14 @@ def render_review(run_path: Path, replay: str | None, out: Path, frame: int | No
     if not 0 <= frame < counts["frames"]:
         raise SystemExit(_fail(f"--frame must be in [0, {counts['frames'] - 1}]"))
     scene.frame_set(frame)
-    objs = bpy.data.objects
-    for name, width_m in (("review plan", 0.15), ("review predictions", 0.06)):
-        objs[name].data.bevel_depth = width_m  # curves need a thickness to render
-    objs["review plan"].color = (0.95, 0.75, 0.0, 1.0)
-    objs["review predictions"].color = (0.6, 0.1, 0.8, 1.0)
-    boxes = objs["review detections"]
-    boxes.display_type = "SOLID"  # a wire display is not rendered: draw the edges as thin beams
-    boxes.modifiers.new("edges", "WIREFRAME").thickness = 0.06
-    boxes.color = (0.05, 0.75, 0.15, 1.0)
+    objs = bpy.data.objects  # colours, line widths and box edges are the Review panel's own
     lo, hi = np.array([-1e3, -1e3, 0.0]), np.array([1e3, 1e3, 0.0])
     _ground(lo, hi)
     objs["ground"].color = (0.85, 0.86, 0.88, 1.0)
+    if not objs["ground"].data.materials:
+        ground = bpy.data.materials.new("ground")
+        ground.diffuse_color = (0.85, 0.86, 0.88, 1.0)
+        objs["ground"].data.materials.append(ground)
     ego = objs["review ego"]
     centre = np.array(ego.matrix_world.translation)
     yaw = ego.matrix_world.to_euler().z
@@ -482,11 +478,6 @@ def render_review(run_path: Path, replay: str | None, out: Path, frame: int | No
     cam.location = centre - 20.0 * fwd - 7.0 * side + np.array([0.0, 0.0, 15.0])
     target = Vector((centre + 14.0 * fwd).tolist())
     cam.rotation_euler = (target - cam.location).to_track_quat("-Z", "Y").to_euler()
-    for obj in objs:  # score labels upright, facing the camera
-        if obj.name.startswith("review score"):
-            obj.data.size = 1.5
-            obj.color = (0.0, 0.45, 0.08, 1.0)
-            obj.rotation_euler = (math.radians(55.0), 0.0, yaw - math.pi / 2)
     rv = scene.adv3d.review
     data = ops_review.review.data_of(scene)
     dets = data.detections[frame] if data is not None and data.detections is not None else np.zeros((0, 7))
@@ -495,7 +486,7 @@ def render_review(run_path: Path, replay: str | None, out: Path, frame: int | No
                    f"{counts['actors']} actors ({counts['adversarial']} adversarial, red)",
                    f"{len(data.points[frame]) if data is not None and data.points else 0} LiDAR points",
                    f"{len(dets)} detections, scores " + " ".join(f"{v:.2f}" for v in sorted(dets[:, 6])[::-1][:4]),
-                   f"{len(data.predictions[frame]) if data is not None else 0} predicted trajectories (purple)",
+                   f"{len(data.predictions[frame]) if data is not None else 0} predicted trajectories (violet)",
                    "plan (yellow)", "Scrub the timeline to step through",
                    f"replay sha256 {rv.key.rsplit(':', 1)[-1][:12]}..."]
     _render(out, ("Adv3D  >  Review", lines) if panel else None)

@@ -23,14 +23,33 @@ from . import meshdata, places
 REVIEW_COLLECTION = "Adv3D Review"
 OCCUPANCY_OBJECT = "review occupancy"
 OCCUPANCY_ATTRIBUTE = "occupancy"
-OCCUPANCY_Z = 0.05  # m, the heat map lies just above the ground
-ADVERSARIAL_RGBA = (0.95, 0.1, 0.1, 1.0)
-BENIGN_RGBA = (0.6, 0.6, 0.62, 1.0)
+OCCUPANCY_Z = -0.03  # m, the heat map lies just under the ground: LiDAR points stay on top of it
+# Colours (docs/blender.md, "Review"): the attacked shape is the only saturated red; benign
+# actors are light grey so it stands out; the heat map runs from pale blue to orange (no red).
+ADVERSARIAL_RGBA = (0.95, 0.05, 0.05, 1.0)
+BENIGN_RGBA = (0.72, 0.72, 0.74, 1.0)
 EGO_RGBA = (0.1, 0.35, 0.9, 1.0)
 POINTS_RGBA = (0.05, 0.05, 0.05, 1.0)
+DETECTIONS_RGBA = (0.05, 0.75, 0.15, 1.0)
+PREDICTIONS_RGBA = (0.6, 0.1, 0.8, 1.0)
+PLAN_RGBA = (0.95, 0.75, 0.0, 1.0)
+LABEL_RGBA = (0.0, 0.45, 0.08, 1.0)
+OCCUPANCY_FREE_RGBA = (0.80, 0.87, 1.0, 1.0)
+OCCUPANCY_FULL_RGBA = (1.0, 0.5, 0.0, 1.0)
+#: Occupancy bins shown in Solid / Workbench shading (one material each, lower edges).
+OCCUPANCY_BINS = (0.0, 0.2, 0.4, 0.6, 0.8)
 LABEL_COLLECTION = "Adv3D Review scores"
 MAX_LABELS = 64  # score labels shown per frame (the highest-scoring first)
+LABEL_SIZE = 0.5  # m: small, and beside its box, never over the shape
+BOX_EDGE_M = 0.04  # detection boxes are drawn as edges this thick (they never hide a shape)
 POINT_RADIUS = 0.05  # m, display size of a LiDAR point
+
+#: What each colour means (the Review panel's legend; the same words in docs/blender.md).
+LEGEND = (("attacked actor: the adversarial shape", ADVERSARIAL_RGBA), ("other actors", BENIGN_RGBA),
+          ("ego vehicle", EGO_RGBA), ("LiDAR points", POINTS_RGBA),
+          ("detections (edges) and scores", DETECTIONS_RGBA), ("predicted trajectories", PREDICTIONS_RGBA),
+          ("ego plan", PLAN_RGBA), ("occupancy: free", OCCUPANCY_FREE_RGBA),
+          ("occupancy: occupied", OCCUPANCY_FULL_RGBA))
 
 # Review data in memory, keyed by the replay it came from (``ops_review.replay_key``: the file's
 # path and content hash); a scene shows the entry its ``adv3d.review.key`` property names (saved
@@ -152,12 +171,25 @@ def occupancy_grid_arrays(nx: int, ny: int, cell: float) -> tuple[np.ndarray, np
     return verts, faces
 
 
+def occupancy_rgba(p: np.ndarray) -> np.ndarray:
+    """(n, 4) RGBA of occupancy probabilities (n,): pale blue (free) to orange (occupied)."""
+    p = np.clip(np.asarray(p, dtype=np.float32), 0.0, 1.0).reshape(-1, 1)
+    free, full = np.array(OCCUPANCY_FREE_RGBA, np.float32), np.array(OCCUPANCY_FULL_RGBA, np.float32)
+    return (free + p * (full - free)).astype(np.float32)
+
+
 def occupancy_colours(values: np.ndarray) -> np.ndarray:
-    """Heat-map colours (4 nx ny, 4) RGBA float32 of occupancy probabilities (nx, ny): blue
-    (free) to red (occupied), one colour per cell repeated on its 4 vertices."""
-    p = np.clip(np.asarray(values, dtype=np.float32), 0.0, 1.0).reshape(-1)
-    rgba = np.stack([p, 0.15 * (1.0 - p), 1.0 - p, 0.25 + 0.75 * p], axis=1)
-    return np.repeat(rgba, 4, axis=0).astype(np.float32)
+    """Heat-map colours (4 nx ny, 4) RGBA float32 of occupancy probabilities (nx, ny) (the colour
+    attribute Eevee and Cycles show), one colour per cell repeated on its 4 vertices."""
+    return np.repeat(occupancy_rgba(np.asarray(values).reshape(-1)), 4, axis=0)
+
+
+def occupancy_bins(values: np.ndarray) -> np.ndarray:
+    """(2 nx ny,) material index of each heat-map triangle (its cell's ``OCCUPANCY_BINS`` bin):
+    what Solid and Workbench shading show, which read material colours, not attributes."""
+    p = np.clip(np.asarray(values, dtype=np.float64), 0.0, 1.0).reshape(-1)
+    b = np.searchsorted(np.asarray(OCCUPANCY_BINS), p, side="right") - 1
+    return np.repeat(b.astype(np.int32), 2)
 
 
 def _occupancy_object(root, data: ReviewData):
@@ -172,18 +204,34 @@ def _occupancy_object(root, data: ReviewData):
     mesh = obj.data
     attr = mesh.color_attributes.new(OCCUPANCY_ATTRIBUTE, "FLOAT_COLOR", "POINT")
     mesh.color_attributes.active_color = attr
-    # a material that shows the attribute in Eevee / Cycles (Solid view: colour "Attribute")
-    mat = bpy.data.materials.new(OCCUPANCY_OBJECT)  # node-based by default in Blender 5
-    nodes = mat.node_tree.nodes
-    bsdf = next(n for n in nodes if n.type == "BSDF_PRINCIPLED")
-    col = nodes.new("ShaderNodeAttribute")
-    col.attribute_name = OCCUPANCY_ATTRIBUTE
-    mat.node_tree.links.new(col.outputs["Color"], bsdf.inputs["Base Color"])
-    mat.node_tree.links.new(col.outputs["Color"], bsdf.inputs["Emission Color"])
-    bsdf.inputs["Emission Strength"].default_value = 0.5
-    mesh.materials.append(mat)
+    # One material per occupancy bin: its viewport colour is what Solid / Workbench shading show
+    # (per triangle, by material index); its nodes read the attribute for Eevee / Cycles.
+    centres = np.append(np.asarray(OCCUPANCY_BINS[1:]), 1.0) - 0.5 * np.diff(OCCUPANCY_BINS + (1.0,))
+    for i, rgba in enumerate(occupancy_rgba(centres)):
+        mat = bpy.data.materials.new(f"{OCCUPANCY_OBJECT} {i}")
+        if mat.node_tree is None:  # Blender 4.x (node-based by default from 5.0)
+            mat.use_nodes = True
+        mat.diffuse_color = tuple(float(c) for c in rgba)
+        nodes = mat.node_tree.nodes
+        bsdf = next(n for n in nodes if n.type == "BSDF_PRINCIPLED")
+        col = nodes.new("ShaderNodeAttribute")
+        col.attribute_name = OCCUPANCY_ATTRIBUTE
+        mat.node_tree.links.new(col.outputs["Color"], bsdf.inputs["Base Color"])
+        mat.node_tree.links.new(col.outputs["Color"], bsdf.inputs["Emission Color"])
+        bsdf.inputs["Emission Strength"].default_value = 0.5
+        mesh.materials.append(mat)
     obj["adv3d_occupancy_shape"] = [int(nx), int(ny)]
     return obj
+
+
+def car_arrays(length: float, width: float, height: float) -> tuple[np.ndarray, np.ndarray]:
+    """A simple car (origin at the footprint centre on the ground, front +x): a body of the full
+    length and 55 % of the height under a cabin set back, so the ego reads as a vehicle with a
+    front. Returns (16, 3) vertices in metres and (24, 3) triangles."""
+    body_v, body_f = meshdata.box_arrays(length, width, 0.55 * height)
+    cab_v, cab_f = meshdata.box_arrays(0.5 * length, 0.85 * width, 0.45 * height)
+    cab_v = cab_v + np.array([-0.1 * length, 0.0, 0.55 * height])
+    return np.concatenate([body_v, cab_v]), np.concatenate([body_f, cab_f + len(body_v)])
 
 
 def build_review(bscene, data: ReviewData, key: str = "") -> dict:
@@ -202,7 +250,7 @@ def build_review(bscene, data: ReviewData, key: str = "") -> dict:
     place = places.make_place(bscene, root, _review_bounds(data))
     bscene.frame_start = 0
     bscene.frame_end = data.frames - 1
-    ego = meshdata.new_mesh_object("review ego", *meshdata.box_arrays(*data.ego_dimensions), root)
+    ego = meshdata.new_mesh_object("review ego", *car_arrays(*data.ego_dimensions), root)
     _colour(ego, EGO_RGBA)
     _animate(ego, data.ego_poses)
     for actor in data.actors:
@@ -213,6 +261,8 @@ def build_review(bscene, data: ReviewData, key: str = "") -> dict:
         obj = meshdata.new_mesh_object(f"review actor {actor.id}", v, f, root)
         obj["adv3d_adversarial"] = bool(actor.adversarial)
         _colour(obj, ADVERSARIAL_RGBA if actor.adversarial else BENIGN_RGBA)
+        if actor.adversarial:
+            obj.show_in_front = True  # drawn over points and boxes in the viewport
         _animate(obj, actor.poses)
     points = bpy.data.objects.new("review lidar", bpy.data.meshes.new("review lidar"))
     root.objects.link(points)
@@ -221,24 +271,27 @@ def build_review(bscene, data: ReviewData, key: str = "") -> dict:
     _show_as_points(points)
     _colour(points, POINTS_RGBA)
     boxes = meshdata.new_mesh_object("review detections", np.zeros((0, 3)), np.zeros((0, 3), int), root)
-    _colour(boxes, (0.1, 0.9, 0.2, 1.0))
-    boxes.display_type = "WIRE"
-    for name in ("review predictions", "review plan"):
+    _colour(boxes, DETECTIONS_RGBA)
+    # edges as thin beams (a wire display is neither rendered nor drawn the same in every shading)
+    boxes.modifiers.new("edges", "WIREFRAME").thickness = BOX_EDGE_M
+    for name, rgba, width in (("review predictions", PREDICTIONS_RGBA, 0.05), ("review plan", PLAN_RGBA, 0.1)):
         curve = bpy.data.curves.new(name, "CURVE")
         curve.dimensions = "3D"
+        curve.bevel_depth = width  # a thickness, so the line shows in renders too
         obj = bpy.data.objects.new(name, curve)
         root.objects.link(obj)
+        _colour(obj, rgba)
     _occupancy_object(root, data)
     if data.detections is not None:
         most = max((len(d) for d in data.detections), default=0)
         labels = meshdata.get_collection(LABEL_COLLECTION, root)
         for i in range(min(most, MAX_LABELS)):
             curve = bpy.data.curves.new(f"review score {i}", "FONT")
-            curve.size = 0.9
-            curve.align_x = "CENTER"
+            curve.size = LABEL_SIZE
+            curve.align_x = "LEFT"
             obj = bpy.data.objects.new(f"review score {i}", curve)
             labels.objects.link(obj)
-            _colour(obj, (0.0, 0.45, 0.1, 1.0))
+            _colour(obj, LABEL_RGBA)
     places.adopt(root, place)
     attach(bscene, data, key or f"memory:{id(data)}")
     bscene.frame_set(0)
@@ -410,6 +463,7 @@ def _set_occupancy(obj, entry) -> None:
     obj.rotation_euler = (0.0, 0.0, float(pose[2]))
     attr = obj.data.color_attributes[OCCUPANCY_ATTRIBUTE]
     attr.data.foreach_set("color", occupancy_colours(values).ravel())
+    obj.data.polygons.foreach_set("material_index", occupancy_bins(values))
     obj.data.update()
 
 
@@ -426,9 +480,11 @@ def _set_labels(dets: np.ndarray) -> None:
             break
         shown = i < len(d)
         obj.hide_viewport = obj.hide_render = not shown
-        if shown:
+        if shown:  # on the ground beside the box's left side, never over the shape
+            x, y, yaw, _, w = d[i, :5]
             obj.data.body = f"{d[i, 6]:.2f}"
-            obj.location = (d[i, 0], d[i, 1], d[i, 5] + 0.4)
+            obj.location = (x - np.sin(yaw) * (0.5 * w + 0.3), y + np.cos(yaw) * (0.5 * w + 0.3), 0.05)
+            obj.rotation_euler = (0.0, 0.0, yaw)
 
 
 def blank_frame() -> None:

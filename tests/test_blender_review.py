@@ -329,7 +329,13 @@ def test_review_shows_the_occupancy_heat_map(ctx, tmp_path):
         np.testing.assert_allclose(np.array(obj.matrix_world.translation)[:2] + origin[:2], m.poses[0, :2], atol=1e-3)
         col = np.empty(len(obj.data.vertices) * 4, np.float32)
         obj.data.color_attributes[review.OCCUPANCY_ATTRIBUTE].data.foreach_get("color", col)
-        np.testing.assert_allclose(col.reshape(-1, 4)[::4, 0], (m.values[0] / 255.0).ravel(), atol=1e-6)
+        np.testing.assert_allclose(col.reshape(-1, 4)[::4], review.occupancy_rgba(m.values[0] / 255.0), atol=1e-6)
+        # Solid / Workbench shading read materials: each cell's triangles carry its bin's material
+        idx = np.empty(len(obj.data.polygons), np.int32)
+        obj.data.polygons.foreach_get("material_index", idx)
+        want = np.minimum((m.values[0] / 255.0 * 5).astype(int), 4).ravel()
+        np.testing.assert_array_equal(idx.reshape(-1, 2)[:, 0], want)
+        assert _world_points(obj)[:, 2].max() < 0.0  # under the ground: the points stay visible
         # the most occupied cell is where the map says (grid vertices follow the cell layout)
         i, j = np.unravel_index(np.argmax(m.values[0]), m.values[0].shape)
         cell = _world_points(obj).reshape(-1, 4, 3).mean(axis=1)[i * 4 + j]
@@ -435,3 +441,56 @@ def test_review_load_runs_in_short_steps_and_cancels(ctx, bundle):
     assert jobs.handle_event(ctx, job, "ESC") == jobs.CANCELLED
     assert "Adv3D Review" not in bpy.data.collections
     jobs.show_progress(ctx, None)
+
+
+def test_review_in_workbench_shows_the_attacked_shape_first_with_a_legend(ctx, bundle, tmp_path, repo_root):
+    """The review as Solid / Workbench shading draws it (material colours), rendered from above
+    the attacked actor: its red shape is the largest coloured thing in the frame (no detection box
+    or score label over it); the ego is a car (a cabin on a body); the panel has a legend."""
+    from blender_addon import review
+
+    assert bpy.ops.adv3d.review_load(filepath=str(bundle[0])) == {"FINISHED"}
+    objs = bpy.data.objects
+    ego = objs["review ego"]
+    assert len(ego.data.vertices) == 16 and len(ego.data.polygons) == 24  # body + cabin
+    adv = next(o for o in objs if o.get("adv3d_adversarial"))
+    assert adv.data.materials[0].diffuse_color[:] == pytest.approx(review.ADVERSARIAL_RGBA)
+    assert objs["review detections"].modifiers[0].type == "WIREFRAME"
+    assert all(o.data.size <= review.LABEL_SIZE for o in objs if o.name.startswith("review score"))
+    frames = [f for f in range(ctx.scene.frame_end + 1) if not _hidden_at(ctx.scene, adv, f)]
+    for f in frames[:: max(1, len(frames) // 3)]:
+        ctx.scene.frame_set(f)
+        centre = np.array(adv.matrix_world.translation)
+        for lab in (o for o in objs if o.name.startswith("review score") and not o.hide_render):
+            assert np.linalg.norm(np.array(lab.matrix_world.translation)[:2] - centre[:2]) > 0.5 * adv.dimensions[1]
+            assert lab.matrix_world.translation.z < 0.2  # on the ground, not over the shape
+    # rendered in Workbench by the render command (a child Blender: rendering needs one)
+    out = tmp_path / "review.png"
+    cmd = [sys.executable, "-m", "blender_addon.render", "--what", "review", "--run", str(bundle[0]),
+           "--frame", str(frames[len(frames) // 2]), "--size", "320x180", "--out", str(out)]
+    done = subprocess.run(cmd, cwd=repo_root, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
+    from PIL import Image
+
+    px = np.asarray(Image.open(out).convert("RGB"), dtype=np.int64)
+    red = (px[..., 0] > 120) & (px[..., 1] < 70) & (px[..., 2] < 70)
+    green = (px[..., 1] > 100) & (px[..., 0] < 90) & (px[..., 1] > px[..., 2] + 20)
+    assert red.sum() > 100 and red.sum() > 2 * green.sum(), (red.sum(), green.sum())
+    from blender_addon import panels
+
+    seen = []
+
+    class Layout:
+        def __getattr__(self, name):
+            return lambda *a, **k: self
+        def label(self, **kw):
+            seen.append(kw.get("text", ""))
+            return self
+
+    panels._draw_legend(Layout())
+    assert seen[1:] == [text for text, _ in review.LEGEND]
+
+
+def _hidden_at(scene, obj, frame: int) -> bool:
+    scene.frame_set(frame)
+    return obj.hide_render
