@@ -56,7 +56,8 @@ def cli_markdown() -> str:
     ]
     for words, _, help_line in commands:
         anchor = "adv3d-" + "-".join(words)
-        lines.append(f"| [`adv3d {' '.join(words)}`](#{anchor}) | {help_line} |")
+        cell = " ".join(help_line.split()).replace("|", "\\|")
+        lines.append(f"| [`adv3d {' '.join(words)}`](#{anchor}) | {cell} |")
     lines += ["", "## adv3d", "", "```text", _help_text(parser), "```", ""]
     for words, sub, _ in commands:
         anchor = "adv3d-" + "-".join(words)
