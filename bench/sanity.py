@@ -9,7 +9,8 @@ Every scene: a 5 s closed-loop episode (actors replay their logs), the full LiDA
   ``adv3d scenes generate --out runs/gentrain --count 40 --seed 500000 --split train``);
 * **real**: the *benchmark* part of ``scenes/real/`` (``scenes/real/split.json``, recordings
   held out from every training and tuning step; ``--real-part train`` runs the training part,
-  which is what the planner's comfort limits were tuned on).
+  which is what the planner's comfort limits were tuned on; ``--real-part fresh`` runs
+  ``scenes/real-fresh/``, recordings 10-18 that nothing was tuned on, docs/benchmark.md).
 
 Reported per set, next to the paper's "Original" row for Autonomy-A: the share of scenes where
 the ego neither collides nor leaves the road, collisions and whether the ego was at fault (the
@@ -20,7 +21,7 @@ frames, its slowest speed and hardest braking against the log's, and minADE / me
 recorded future only (the ``--extend``-ed tail of a recording is IDM, not real traffic). The
 issue-17 targets on the real benchmark are checked at the end.
 
-    .venv/bin/python bench/sanity.py [--quick] [--sets generated,real] [--real-part benchmark|train]
+    .venv/bin/python bench/sanity.py [--quick] [--sets generated,real] [--real-part benchmark|train|fresh]
                                      [--autonomy A|B|oracle|A-lanefollow] [--workers 2] [--seconds 5] [--tag NAME]
 
 ``--autonomy A`` needs the trained detector and predictor (assets/models/); without them use
