@@ -79,3 +79,30 @@ def test_the_command_line_reference_lists_every_command():
         assert f"## adv3d {' '.join(words)} {{" in page or f"# adv3d {' '.join(words)} {{" in page, words
         for option in sub._option_string_actions:
             assert option in page, (words, option)
+
+
+def test_every_command_of_the_how_to_page_parses(monkeypatch):
+    """docs/howto.md's recipes are not run (they are full size), but each ``adv3d`` line must parse
+    with the installed command line: no option that does not exist, no bad value."""
+    import glob
+    import shlex
+
+    from adv3d_runner.cli import _join_axis_values, build_parser
+
+    text = (ROOT / "docs" / "howto.md").read_text()
+    lines = [line.strip() for block in re.findall(r"^```sh[^\n]*\n(.*?)^```", text, flags=re.S | re.M)
+             for line in block.splitlines() if line.strip()]
+    assert len(lines) >= 12
+    monkeypatch.chdir(ROOT)
+    parser = build_parser()
+    for line in lines:
+        words = [w for word in shlex.split(line) for w in (sorted(glob.glob(word)) if "*" in word else [word])]
+        assert words[0] == "adv3d", line
+        if "--" in words:  # adv3d numerics --emulate NAME -- CMD: the command after -- parses too
+            inner = words[words.index("--") + 1:]
+            parser.parse_args(_join_axis_values(parser, inner[1:]))
+            words = words[:words.index("--")]
+        try:
+            parser.parse_args(_join_axis_values(parser, words[1:]))
+        except SystemExit as exc:
+            raise AssertionError(f"docs/howto.md: {line}") from exc
