@@ -9,7 +9,8 @@ How adv3d_runner gets into Blender: the build packs it as a wheel made from this
 (``adv3d-<version>-py3-none-any.whl``: the parts of ``adv3d_runner`` the add-on runs, no
 dependency metadata), next to the wheels of the third-party packages the add-on's code paths
 need and Blender lacks (trimesh; scikit-image for marching cubes, with lazy_loader and packaging;
-libigl and scipy for Build shape space). numpy is excluded: Blender ships it. Wheels are pinned
+libigl, scipy and embreex for Build shape space). numpy is excluded: Blender ships it. A
+platform without one of these wheels gets no zip (the build stops naming the wheel). Wheels are pinned
 to the versions installed here (the versions the tests ran with) and fetched once with
 ``pip download`` into a cache folder.
 """
@@ -68,14 +69,26 @@ RUNNER_PARTS = ("__init__.py", "errors.py", "fileio.py", "progress.py", "machine
 PLATFORM_TAGS = {
     "linux-x64": ["manylinux_2_28_x86_64", "manylinux_2_17_x86_64", "manylinux2014_x86_64"],
     "windows-x64": ["win_amd64"],
-    "macos-arm64": ["macosx_12_0_arm64", "macosx_11_0_arm64"],
-    "macos-x64": ["macosx_10_13_x86_64", "macosx_10_9_x86_64"],
+    # embreex 4.4's arm64 wheel is tagged macOS 13: the arm64 zip needs macOS 13 or later
+    "macos-arm64": ["macosx_14_0_arm64", "macosx_13_0_arm64", "macosx_12_0_arm64", "macosx_11_0_arm64"],
+    "macos-x64": ["macosx_13_0_x86_64", "macosx_12_0_x86_64", "macosx_11_0_x86_64", "macosx_10_15_x86_64",
+                  "macosx_10_13_x86_64", "macosx_10_9_x86_64"],
 }
+
+#: Licences the extensions platform takes for add-ons (they build on Blender's GPL Python API).
+ADDON_LICENCES = ("SPDX:GPL-2.0-or-later", "SPDX:GPL-3.0-or-later")
 
 # Files of blender_addon/ that go into the extension; the build-time self check and the
 # headless renderer are tools of this repository, not of the add-on.
-_ADDON_GLOBS = ("*.py", "blender_manifest.toml")
+_ADDON_GLOBS = ("*.py", "blender_manifest.toml", "LICENSE", "NOTICE.md")
 DEV_ONLY = ("selfcheck.py", "render.py")
+
+#: Starter data packed under ``starter/`` (the add-on's defaults when no library or shape space
+#: is set): the bundled library with its licences, the shipped shape space and its realism
+#: reference (about 6 MB next to the wheels' 70 MB).
+STARTER_FILES = (("assets/vehicles", "starter/vehicles"),
+                 ("assets/shape_space/vehicles_64.npz", "starter/shape_space/vehicles_64.npz"),
+                 ("assets/shape_space/realism_reference.npz", "starter/shape_space/realism_reference.npz"))
 
 
 def default_wheel_cache() -> Path:
@@ -143,7 +156,10 @@ def cmd_build(args) -> int:
     zips = build_extension(args.out, platforms=args.platforms, wheel_cache=args.wheel_cache,
                            offline=args.offline, bpy_check=not args.no_bpy_check)
     for z in zips:
-        status(f"built {z} ({z.stat().st_size / 1e6:.1f} MB), validated")
+        size = extension_sizes(z)
+        status(f"built {z} ({size['zip'] / 1e6:.1f} MB; unpacks to {size['unpacked'] / 1e6:.0f} MB, its wheels "
+               f"install {size['site_packages'] / 1e6:.0f} MB into Blender's shared extension site-packages), "
+               "validated")
     return 0
 
 
@@ -378,6 +394,7 @@ def build_extension(out: Path, platforms: list[str] | None = None, wheel_cache: 
                 for src in sorted(ADDON_DIR.glob(pattern)):
                     if src.name not in DEV_ONLY:
                         shutil.copy2(src, stage / src.name)
+            _copy_starter(stage)
             wheels = [runner_wheel(stage / "wheels")]
             for whl in fetch_wheels(platform, cache, offline):
                 wheels.append(Path(shutil.copy2(whl, stage / "wheels" / whl.name)))
@@ -392,6 +409,33 @@ def build_extension(out: Path, platforms: list[str] | None = None, wheel_cache: 
         validate_extension_zip(target, bpy_check=bpy_check and platform == host_platform())
         zips.append(target)
     return zips
+
+
+def _copy_starter(stage: Path) -> None:
+    """The starter library and shape space into ``stage/starter`` (skipped when this checkout
+    lacks them; the add-on then simply has no defaults)."""
+    for src, dst in STARTER_FILES:
+        source = REPO_ROOT / src
+        if source.is_dir():
+            shutil.copytree(source, stage / dst, ignore=shutil.ignore_patterns("*.sh", "__pycache__", "*.md"))
+        elif source.is_file():
+            (stage / dst).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(source, stage / dst)
+
+
+def extension_sizes(zip_path: Path) -> dict:
+    """Sizes in bytes of a built extension: ``zip`` (the download, what the platform's upload
+    limit applies to), ``unpacked`` (the extension folder) and ``site_packages`` (what its wheels
+    install into the site-packages that Blender shares between all extensions)."""
+    with zipfile.ZipFile(zip_path) as zf:
+        infos = zf.infolist()
+        installed = 0
+        for info in infos:
+            if info.filename.endswith(".whl"):
+                with zf.open(info) as fh, zipfile.ZipFile(fh) as whl:
+                    installed += sum(i.file_size for i in whl.infolist())
+        return {"zip": zip_path.stat().st_size, "unpacked": sum(i.file_size for i in infos),
+                "site_packages": installed}
 
 
 def _blender_ext(tool: Path, argv: list[str]) -> str:
@@ -437,6 +481,14 @@ def check_manifest(manifest: dict, names: set[str], where: str) -> list[str]:
             problems.append(f"{where}: wheels: {w} must not be shipped (Blender provides numpy; no torch/bpy)")
     if "__init__.py" not in names:
         problems.append(f"{where}: __init__.py missing")
+    licences = manifest.get("license")
+    if not isinstance(licences, list) or not any(x in ADDON_LICENCES for x in licences):
+        problems.append(f"{where}: license: expected one of {', '.join(ADDON_LICENCES)} (the extensions platform's "
+                        "licence for add-ons)")
+    if not isinstance(manifest.get("copyright"), list) or not manifest.get("copyright"):
+        problems.append(f"{where}: copyright: expected a list such as [\"2026 name\"]")
+    if "LICENSE" not in names:
+        problems.append(f"{where}: LICENSE (the add-on's licence text) missing")
     if manifest.get("blender_version_max") != BLENDER_VERSION_MAX:
         problems.append(f"{where}: blender_version_max: expected \"{BLENDER_VERSION_MAX}\" (cp311 wheels: "
                         "Blender 5.1 and later run Python 3.13)")

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: GPL-3.0-or-later
 """Adv3D Blender extension: curate the vehicle library, explore the shape space with live
 sliders, author scenes and attack them, review attack runs. A thin UI over ``adv3d_runner``
 (shapes, scene and the replay loader: numpy only), which ships with the extension as a wheel

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: GPL-3.0-or-later
 """Long work that never freezes Blender: a steps generator stepped by a modal operator's timer.
 
 The work itself is a *steps generator* (``adv3d_runner.progress``): it does one short piece of

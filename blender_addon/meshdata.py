@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: GPL-3.0-or-later
 """numpy <-> Blender mesh data, without per-element Python loops.
 
 Everything goes through ``foreach_get`` / ``foreach_set`` on whole flat arrays (the fast path the

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: GPL-3.0-or-later
 """Scenes panel: "Attack this scene" - the loop from authoring to review without leaving Blender.
 
 The scene as edited in Blender is written (``ops_scene.export_scene``, the same bytes Export

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: GPL-3.0-or-later
 """Library panel operators: load / save library.json, edit assets, import vehicle files.
 
 The panel mirrors the library in ``Scene.adv3d.library.assets``; the file stays the source of

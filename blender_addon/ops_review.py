@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: GPL-3.0-or-later
 """Review panel operators: load a run bundle (or one replay file) into the review engine.
 
 A replay file ("adv3d-replay", ``adv3d_runner.sim.replay``, numpy only) is converted into the

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: GPL-3.0-or-later
 """Scenes panel: load an adv3d scene file as Blender objects, edit it, export it back.
 
 Loading keeps the file's document verbatim in a text datablock; exporting starts from that

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: GPL-3.0-or-later
 """Shape-space panel operators and the live preview vehicle.
 
 The latent sliders are properties whose ``update`` callback calls ``schedule_preview_update``:

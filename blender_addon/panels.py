@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: GPL-3.0-or-later
 """The "Adv3D" sidebar tab (View3D > N): Library, Shape space, Scenes and Review panels.
 
 Panels only draw properties and operator buttons; all work is in the ``ops_*`` modules.

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: GPL-3.0-or-later
 """Where each panel puts its objects: its own collection under the scene, and its own *place*.
 
 Every panel (Library, Shape space, Scenes, Review) builds into one collection of its own, and

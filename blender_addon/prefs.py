@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: GPL-3.0-or-later
 """Add-on preferences (Edit > Preferences > Add-ons > Adv3D): the default paths the panels
 start from and the runner the Scenes panel's "Attack this scene" starts.
 
@@ -60,12 +61,25 @@ def value(name: str, context=None) -> str:
     return "" if p is None else getattr(p, name)
 
 
+#: Starter data the extension zip carries (``adv3d blender build``): the bundled library and the
+#: shipped shape space, used when neither a panel nor the preferences name one.
+STARTER = Path(__file__).resolve().parent / "starter"
+STARTER_LIBRARY = STARTER / "vehicles" / "library.json"
+STARTER_SPACE = STARTER / "shape_space" / "vehicles_64.npz"
+
+
 def default_library(context=None) -> str:
-    return bpy.path.abspath(value("default_library", context)) if value("default_library", context) else ""
+    """The preferences' library, else the extension's starter library ('' when neither)."""
+    if value("default_library", context):
+        return bpy.path.abspath(value("default_library", context))
+    return str(STARTER_LIBRARY) if STARTER_LIBRARY.is_file() else ""
 
 
 def default_space(context=None) -> str:
-    return bpy.path.abspath(value("default_space", context)) if value("default_space", context) else ""
+    """The preferences' shape space, else the extension's starter space ('' when neither)."""
+    if value("default_space", context):
+        return bpy.path.abspath(value("default_space", context))
+    return str(STARTER_SPACE) if STARTER_SPACE.is_file() else ""
 
 
 def runs_folder(context=None) -> Path:

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: GPL-3.0-or-later
 """Add-on state: PropertyGroups hung on ``Scene.adv3d`` and ``Object.adv3d``.
 
 Everything the panels show lives here (saved with the .blend, undoable); operators read and write

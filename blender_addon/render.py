@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: GPL-3.0-or-later
 """Headless preview renders with bpy (Workbench or Eevee), run in a child process.
 
     python -m blender_addon.render --what library --out docs/images/library.png

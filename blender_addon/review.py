@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: GPL-3.0-or-later
 """Review engine: per-frame episode data (poses, LiDAR points, detections, predictions, plan) as
 Blender objects that follow the timeline.
 

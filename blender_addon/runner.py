@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: GPL-3.0-or-later
 """The add-on's only door into ``adv3d_runner`` (numpy-only parts: shapes and scene).
 
 Imports are done lazily, inside functions, so registering the add-on stays instant and a
@@ -173,6 +174,22 @@ def _build_in_background(space, key: str, library_path) -> None:
                                                  else f"{type(exc).__name__}: {exc}")
 
 
+def _reference_beside(space) -> Any:
+    """A ``realism_reference.npz`` in the space file's folder built for it (the extension's
+    starter space carries its reference so), else None."""
+    from adv3d_runner.shapes import realism
+
+    hit = _PATHS.get(id(space))
+    if hit is None or hit[0] is not space:
+        return None
+    path = hit[1].parent / "realism_reference.npz"
+    try:
+        ref = realism.load_reference(path) if path.is_file() else None
+    except Adv3dError:
+        return None
+    return ref if ref is not None and ref.matches(space) else None
+
+
 def realism_reference(space, library_path: str | os.PathLike | None = None, wait: bool = False) -> Any:
     """The realism reference of ``space``: a known one at once; otherwise its background build is
     started (from ``library_path``, else the bundled library) and :class:`ReferencePending`
@@ -194,7 +211,7 @@ def realism_reference(space, library_path: str | os.PathLike | None = None, wait
     if thread is None or not thread.is_alive():
         if (key, str(library_path or "")) in _FAILED:  # another library may hold the assets: tried anew
             raise Adv3dError(_FAILED[key, str(library_path or "")])
-        ref = realism.known_reference(space)
+        ref = realism.known_reference(space) or _reference_beside(space)
         if ref is not None:
             _REFERENCES[key] = ref
             return ref

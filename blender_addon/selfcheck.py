@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: GPL-3.0-or-later
 """Install a built extension zip as a user of a stock Blender would, and use it.
 
 Run as a script in a child process (``adv3d blender build`` runs the install check; the tests

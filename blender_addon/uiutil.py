@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: GPL-3.0-or-later
 """Operator helpers shared by the panels: errors as reports, exporters with a format choice.
 
 * :func:`reported` wraps an operator's ``execute``: a bad file, an unwritable path or a folder

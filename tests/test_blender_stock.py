@@ -94,6 +94,17 @@ def test_extension_zip_contents(extension_zip):
     assert "adv3d_runner/sim/replay.py" in runner_names and "adv3d_runner/shapes/shape_space.py" in runner_names
     assert not any(n.startswith(("adv3d_runner/attack/", "adv3d_runner/autonomy/", "adv3d_runner/training/"))
                    for n in runner_names)
+    # licensed as the extensions platform asks of add-ons, with the licence text and the note on
+    # how it combines with the runner's MIT licence; starter data; embreex shipped
+    assert manifest["license"] == ["SPDX:GPL-3.0-or-later"] and manifest["copyright"]
+    assert {"LICENSE", "NOTICE.md", "starter/vehicles/library.json", "starter/shape_space/vehicles_64.npz",
+            "starter/shape_space/realism_reference.npz"} <= names
+    assert any(n.startswith("wheels/embreex-") for n in names)
+    assert any("license" in p for p in check_manifest(dict(manifest, license=["SPDX:MIT"]), names, "zip"))
+    from adv3d_runner.blender_cli import extension_sizes
+
+    size = extension_sizes(extension_zip)
+    assert size["zip"] < size["unpacked"] < size["site_packages"] + 20e6
     bad = dict(manifest, blender_version_max="6.0.0")
     assert any("blender_version_max" in p for p in check_manifest(bad, names, "zip"))
     bad = dict(manifest, platforms=["windows-x64"])
@@ -140,3 +151,15 @@ def test_every_panel_works_in_a_fresh_environment_with_only_bpy_and_numpy(extens
     result = _session(python, extension_zip, data, repo_root, env, tmp_path)  # cwd outside the repository
     assert result["ok"] and result["numpy"].startswith("1.")
     shutil.rmtree(tmp_path / "venv", ignore_errors=True)  # ~1 GB
+
+
+def test_no_build_for_a_platform_without_its_wheels(tmp_path):
+    """A platform whose wheels cannot be had gets no zip: the build stops naming the missing
+    wheel and the platform (here: an empty wheel cache, offline)."""
+    from adv3d_runner.blender_cli import build_extension
+    from adv3d_runner.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=r"no \S+ wheel for macos-arm64 in .*--offline"):
+        build_extension(tmp_path / "out", platforms=["macos-arm64"], wheel_cache=tmp_path / "empty", offline=True,
+                        bpy_check=False)
+    assert not list((tmp_path / "out").glob("*.zip"))
