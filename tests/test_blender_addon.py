@@ -702,9 +702,13 @@ def test_manifest_checks_catch_problems():
 
     good = {"schema_version": "1.0.0", "id": "adv3d", "version": "0.1.0", "name": "Adv3D", "tagline": "t",
             "maintainer": "m", "type": "add-on", "blender_version_min": "4.2.0", "blender_version_max": "5.1.0",
-            "license": ["SPDX:MIT"], "wheels": ["./wheels/adv3d-0.1.0-py3-none-any.whl"]}
-    names = {"__init__.py", "blender_manifest.toml", "wheels/adv3d-0.1.0-py3-none-any.whl"}
+            "license": ["SPDX:GPL-3.0-or-later"], "copyright": ["2026 adv3d developers"],
+            "wheels": ["./wheels/adv3d-0.1.0-py3-none-any.whl"]}
+    names = {"__init__.py", "blender_manifest.toml", "LICENSE", "wheels/adv3d-0.1.0-py3-none-any.whl"}
     assert check_manifest(good, names, "z") == []
+    assert any("license: expected one of" in p for p in check_manifest(dict(good, license=["SPDX:MIT"]), names, "z"))
+    assert any("copyright" in p for p in check_manifest({k: v for k, v in good.items() if k != "copyright"}, names, "z"))
+    assert any("LICENSE" in p for p in check_manifest(good, names - {"LICENSE"}, "z"))
     assert any("not in the archive" in p for p in check_manifest(good, names - {"wheels/adv3d-0.1.0-py3-none-any.whl"}, "z"))
     bad = dict(good, wheels=good["wheels"] + ["./wheels/numpy-1.26.4-cp311-cp311-linux_x86_64.whl"])
     assert any("must not be shipped" in p for p in check_manifest(bad, names | {bad["wheels"][1][2:]}, "z"))
