@@ -2,13 +2,15 @@
 the held-out store and the per-scene aggregation."""
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
 from adv3d_runner.attack.config import scene_seed
 from adv3d_runner.attack.protocol import (HeldoutStore, HeldoutTask, evaluation_seeds, metric_value, run_heldout,
                                           scene_means, select_scenes)
-from adv3d_runner.errors import ConfigError, FileFormatError
+from adv3d_runner.errors import Adv3dError, ConfigError, FileFormatError
 from adv3d_runner.scene.generate import DENSITIES
 
 
@@ -82,3 +84,55 @@ def test_metric_value_and_scene_means():
     pairs = [("a", {"cost": 1.0}), ("a", {"cost": 3.0}), ("b", {"cost": None}), ("b", {"cost": 4.0}), ("c", {})]
     means = scene_means(pairs, lambda r: metric_value(r, "objective"))
     assert means["a"] == 2.0 and means["b"] == 4.0 and np.isnan(means["c"])
+
+
+def test_original_settings_drop_what_the_original_scene_never_reads():
+    from dataclasses import replace
+
+    from adv3d_runner.attack.config import QuerySettings
+    from adv3d_runner.attack.protocol import original_settings
+
+    base = QuerySettings(autonomy="oracle", seconds=2.0)
+    for other in (replace(base, shape_model="vd", vd_bound=0.2), replace(base, realism_weight=300.0, class_scales=True),
+                  replace(base, seed=5, scene_seeds=True), replace(base, incremental=False)):
+        assert original_settings(other) == original_settings(base)
+    for other in (replace(base, objective="M1"), replace(base, target_rank=1), replace(base, actors=2),
+                  replace(base, reactive=True), replace(base, autonomy="A")):
+        assert original_settings(other) != original_settings(base)
+
+
+def test_run_heldout_shares_the_original_between_settings(tmp_path, monkeypatch):
+    """A second setting of a table (another shape model, realism preset or algorithm) copies the
+    original scene's held-out records this process made for the first one: nothing simulated."""
+    from dataclasses import replace
+
+    from adv3d_runner.attack import protocol
+    from adv3d_runner.attack.config import QuerySettings
+
+    monkeypatch.setattr(protocol, "_ORIGINAL_RECORDS", {})
+    first = HeldoutStore(tmp_path / "a.json.gz")
+    rec = {"seed": 11, "cost": 2.0, "components": {"det": 1.0}, "metrics": {}}
+    tasks = [HeldoutTask(str(tmp_path / "no-such-scene.json"), "s", "original", None, 11)]
+    protocol._ORIGINAL_RECORDS[protocol._original_key(tasks[0].ref, QuerySettings(), 11)] = rec
+    assert run_heldout(tasks, replace(QuerySettings(), shape_model="vd"), first) == 0  # the scene file is never read
+    assert first.get("s|original|11", None)["cost"] == 2.0
+    second = HeldoutStore(tmp_path / "b.json.gz")
+    with pytest.raises(Adv3dError, match="no-such-scene"):  # another objective: a new evaluation
+        run_heldout(tasks, replace(QuerySettings(), objective="M1"), second)
+
+
+def test_the_shared_original_evaluation_is_the_settings_own(tmp_path):
+    """The original scene evaluated under original_settings gives the record the setting's own
+    workspace gives (other search seeds, shape-model bound, plain LiDAR)."""
+    from dataclasses import replace
+
+    from adv3d_runner.attack.config import QuerySettings
+    from adv3d_runner.attack.evaluator import workspace_for
+    from adv3d_runner.attack.protocol import _clean, heldout_evaluate, original_settings
+
+    scene = str(Path(__file__).resolve().parents[1] / "scenes" / "highway" / "highway-benchmark-000000.json.gz")
+    settings = QuerySettings(autonomy="oracle", seconds=1.0, seed=7, scene_seeds=True, vd_bound=0.2, incremental=False)
+    assert original_settings(settings) != settings
+    res, _ = workspace_for(scene, settings).evaluate(None, closed_loop=True, seed=123)
+    own = _clean({"seed": 123, "cost": res.cost, "components": res.components, "metrics": res.metrics})
+    assert heldout_evaluate(scene, settings, None, 123) == own

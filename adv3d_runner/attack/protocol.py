@@ -186,13 +186,35 @@ def _clean(x: Any) -> Any:
     return x
 
 
+#: Fields of :class:`QuerySettings` that an evaluation of the original scene (no shape) on a
+#: given seed never reads: the search's own seeds, the shape model and its region and realism
+#: knobs, and how the LiDAR is computed (``incremental``: identical results either way).
+SHAPE_ONLY_FIELDS = ("seed", "scene_seeds", "shape_space", "shape_model", "vd_bound", "vd_lattice", "max_mahalanobis",
+                     "class_scales", "realism_weight", "region", "incremental")
+
+
+def original_settings(settings: QuerySettings) -> QuerySettings:
+    """``settings`` with :data:`SHAPE_ONLY_FIELDS` at their defaults: what the original scene's
+    held-out evaluation depends on (stack, targets, objective and its form, episode length,
+    reactive actors, library). Settings that differ only in those fields (a table's search
+    algorithms, shape models, realism presets) share the original's evaluations and the
+    workspace they run on (:func:`run_heldout`)."""
+    defaults = QuerySettings()
+    return dataclasses.replace(settings, **{f: getattr(defaults, f) for f in SHAPE_ONLY_FIELDS
+                                            if hasattr(defaults, f)})
+
+
 def heldout_evaluate(ref: str, settings: QuerySettings, unit: np.ndarray | None, seed: int) -> dict[str, Any]:
     """One closed-loop evaluation of ``unit`` (None: the original scene) on ``seed``, with the
     run's settings (stack, objective and its form, shape model): ``{"seed", "cost",
     "components", "metrics"}`` (the query's result without the realism figures; JSON-safe). Runs
-    in this process on its cached scene workspace (``evaluator.workspace_for``)."""
+    in this process on its cached scene workspace (``evaluator.workspace_for``): the search's
+    own when the search ran in this process (its world, background and static-hit caches), and
+    for the original scene the one of :func:`original_settings`."""
     from .evaluator import workspace_for
 
+    if unit is None:
+        settings = original_settings(settings)
     u = None if unit is None else np.asarray(unit, dtype=np.float64).reshape(-1)
     res, _ = workspace_for(ref, settings).evaluate(u, closed_loop=True, seed=int(seed))
     return _clean({"seed": int(seed), "cost": res.cost, "components": res.components, "metrics": res.metrics})
@@ -311,12 +333,66 @@ def heldout_tasks(summary: dict, run_seed: int, k: int) -> list[HeldoutTask]:
     return tasks
 
 
+#: This process's held-out evaluations of original scenes: (scene file, :func:`original_settings`,
+#: seed) -> record. Another setting of the same table evaluates the same episodes (a campaign
+#: runs every setting of a run seed on each scene), so they are simulated once per process.
+_ORIGINAL_RECORDS: dict[tuple, dict] = {}
+#: The held-out worker processes of this process, by count: kept between :func:`run_heldout`
+#: calls so that a campaign's workers import the stack and build a scene's workspace once, not
+#: once per run folder.
+_POOLS: dict[int, Any] = {}
+
+
+def _original_key(ref: str, settings: QuerySettings, seed: int) -> tuple:
+    return (str(Path(ref).resolve()), original_settings(settings), int(seed))
+
+
+def heldout_pool(workers: int):
+    """This process's pool of ``workers`` spawned held-out workers (one thread per numerical
+    library each), started on first use and kept until the process exits."""
+    import atexit
+    import concurrent.futures as cf
+    import multiprocessing as mp
+    import os
+
+    pool = _POOLS.get(int(workers))
+    if pool is None:
+        from ..machine import limit_threads, single_thread_env
+
+        env = {k: v for k, v in single_thread_env().items() if k not in os.environ}  # the user's settings win
+        saved = {k: os.environ.get(k) for k in env}
+        os.environ.update(env)  # inherited by the spawned interpreters (read when numpy / torch load)
+        try:
+            pool = cf.ProcessPoolExecutor(max_workers=int(workers), mp_context=mp.get_context("spawn"),
+                                          initializer=limit_threads)
+            for fut in [pool.submit(int, 0) for _ in range(int(workers))]:  # start them with this environment
+                fut.result()
+        finally:
+            for k, v in saved.items():
+                if v is None:
+                    os.environ.pop(k, None)
+                else:
+                    os.environ[k] = v
+        _POOLS[int(workers)] = pool
+        if len(_POOLS) == 1:
+            atexit.register(lambda: [p.shutdown(cancel_futures=True) for p in _POOLS.values()])
+    return pool
+
+
 def run_heldout(tasks: Sequence[HeldoutTask], settings: QuerySettings, store: HeldoutStore, *, workers: int = 1,
                 on_done: Callable[[HeldoutTask], None] | None = None) -> int:
-    """Make every task not in ``store`` yet (serially, or on ``workers`` spawned processes) and
-    store each result as it arrives. The same shape on the same scene and seed is one episode
-    (e.g. open- and closed-loop searches that kept the same point): it is simulated once and
-    stored under each key. Returns the number of new simulations."""
+    """Make every task not in ``store`` yet (in this process, or on ``workers`` processes of
+    :func:`heldout_pool`) and store each result as it arrives. What was simulated already is
+    not simulated again:
+
+    * the same shape on the same scene and seed is one episode (e.g. open- and closed-loop
+      searches that kept the same point): simulated once and stored under each key;
+    * the original scene on a seed is simulated once per process for every setting with the
+      same :func:`original_settings` (a table's algorithms, shape models or realism presets);
+    * in this process, the evaluations run on the search's workspace (``evaluator.workspace_for``:
+      its world and background), in worker processes on workspaces kept from earlier calls.
+
+    Returns the number of new simulations."""
     def unit_of(t: HeldoutTask):
         return None if t.unit is None else np.asarray(t.unit)
 
@@ -330,6 +406,9 @@ def run_heldout(tasks: Sequence[HeldoutTask], settings: QuerySettings, store: He
             groups.setdefault(ident(t.scene_id, t.seed, t.unit), []).append(t)
 
     def put(group: list[HeldoutTask], rec: dict) -> None:
+        t0 = group[0]
+        if t0.unit is None:
+            _ORIGINAL_RECORDS[_original_key(t0.ref, settings, t0.seed)] = rec
         for t in group:
             store.put(t.key, unit_of(t), {k: v for k, v in rec.items() if k != "unit"})
             if on_done:
@@ -337,22 +416,25 @@ def run_heldout(tasks: Sequence[HeldoutTask], settings: QuerySettings, store: He
 
     todo = []
     for key, group in groups.items():
+        t0 = group[0]
+        shared = _ORIGINAL_RECORDS.get(_original_key(t0.ref, settings, t0.seed)) if t0.unit is None else None
         if key in known:
             put(group, known[key])
+        elif shared is not None:
+            put(group, shared)
         else:
             todo.append(group)
-    if workers <= 1:
+    if workers <= 1 or len(todo) <= 1:
         for group in todo:
             t = group[0]
             put(group, heldout_evaluate(t.ref, settings, t.unit, t.seed))
         return len(todo)
     import concurrent.futures as cf
-    import multiprocessing as mp
 
-    with cf.ProcessPoolExecutor(max_workers=int(workers), mp_context=mp.get_context("spawn")) as pool:
-        futures = {pool.submit(heldout_evaluate, g[0].ref, settings, g[0].unit, g[0].seed): g for g in todo}
-        for fut in cf.as_completed(futures):
-            put(futures[fut], fut.result())
+    pool = heldout_pool(int(workers))
+    futures = {pool.submit(heldout_evaluate, g[0].ref, settings, g[0].unit, g[0].seed): g for g in todo}
+    for fut in cf.as_completed(futures):
+        put(futures[fut], fut.result())
     return len(todo)
 
 
