@@ -231,7 +231,7 @@ def test_cli_attack_and_report(tmp_path, repo_root, capsys, monkeypatch):
     run = json.loads((out / "run.json").read_text())
     assert run["scenes"] == [str(scene)] and run["autonomy"] == "oracle" and run["seconds"] == 0.3
     assert AttackConfig.from_run_json(run) == AttackConfig([str(scene)], algo="random", budget=2, seconds=0.3,
-                                                          autonomy="oracle")
+                                                          autonomy="oracle", region="realistic")  # the CLI's default
     # resuming: --workers may change, --batch is kept from run.json (a different one is refused)
     before = (out / "queries.jsonl").read_text()
     assert main(["-q", "attack", str(scene), "--algo", "random", "--budget", "2", "--seconds", "0.3",

@@ -55,4 +55,47 @@ def test_demo_decodes_vehicles_and_attacks(tmp_path):
     assert mesh.is_watertight and len(mesh.faces) > 1000
     lines = (out / "attack" / "queries.jsonl").read_text().splitlines()
     assert len(lines) == 2 and all(json.loads(line)["status"] == "ok" for line in lines)
-    assert "Original" in (out / "attack" / "report.md").read_text()
+    report = (out / "attack" / "report.md").read_text()
+    assert "Original" in report and "### Avoidability: stack-induced or scenario-induced" in report
+    # the demo searched the realistic region and ends on its finding (or says there is none)
+    from adv3d_runner.attack.avoidability import read_avoidability
+    from adv3d_runner.demo import report_finding
+
+    run = json.loads((out / "attack" / "run.json").read_text())
+    assert run["region"] == "realistic"
+    summary = json.loads((out / "attack" / "summary.json").read_text())
+    ((sid, entry),) = summary["scenes"].items()
+    assert all(r["realistic"] for r in entry["modes"]["closed"]["closed_loop_eval"]["realism"])
+    doc = read_avoidability(out / "attack")
+    finding = doc["scenes"][sid]["modes"]["closed"]["finding"]
+    lines = report_finding(out / "attack", out / "finding")
+    assert lines[0].startswith(f"best shape of {sid} [closed]: passes the realism report; avoidability: {finding}")
+    if finding == "stack-induced":
+        assert lines[-2].startswith("criticality: ") and lines[-1].startswith("export: ")
+    else:
+        assert lines[-1].startswith("no realistic, stack-induced finding on this scene")
+
+
+def test_demo_finding_line_names_criticality_and_exports(tmp_path):
+    """report_finding on a real demo run whose avoidability file says stack-induced (as a scene with
+    such a finding would have it): the finding, its criticality line and the export."""
+    pytest.importorskip("scenariogeneration")
+    from adv3d_runner.attack.avoidability import FAILURE_KINDS
+    from adv3d_runner.demo import criticality_line, report_finding
+
+    out = tmp_path / "demo"
+    assert main(["-q", "demo", "--out", str(out), "--budget", "1", "--seconds", "0.5"]) == 0
+    path = out / "attack" / "avoidability.json"
+    doc = json.loads(path.read_text())
+    ((sid, sc),) = doc["scenes"].items()
+    m = sc["modes"]["closed"]
+    m["finding"] = "stack-induced"
+    m["kinds"]["hard_braking"]["verdict"] = "stack-induced"
+    path.write_text(json.dumps(doc))
+    lines = report_finding(out / "attack", out / "finding")
+    assert lines[1] == f"finding: {sid} [closed]: hard braking with the stack, not with ground-truth perception"
+    crit = json.loads((out / "attack" / "summary.json").read_text())["scenes"][sid]["modes"]["closed"][
+        "closed_loop_eval"].get("criticality")
+    assert lines[2] == "criticality: " + criticality_line(crit)
+    assert lines[3].startswith("export: ") and (out / "finding" / "export.json").is_file(), lines
+    assert set(FAILURE_KINDS) == set(m["kinds"])

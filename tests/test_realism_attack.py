@@ -246,7 +246,8 @@ def test_cli_preset_and_explicit_knobs():
     assert opts["realism_weight"] == 7.0 and opts["class_scales"] == preset_knobs("realistic")["class_scales"]
     args = parser.parse_args(["attack", "s.json.gz", "--out", "x", "--shape-model", "vd", "--vd-bound", "0.1",
                               "--vd-lattice", "4,3,2"])
-    assert cli._shape_options(args) == {"shape_model": "vd", "vd_bound": 0.1, "vd_lattice": (4, 3, 2)}
+    assert cli._shape_options(args) == {"shape_model": "vd", "region": "paper", "vd_bound": 0.1,
+                                        "vd_lattice": (4, 3, 2)}
     with pytest.raises(ConfigError):
         cli._shape_options(parser.parse_args(["attack", "s.json.gz", "--out", "x", "--vd-bound", "0.1"]))
 

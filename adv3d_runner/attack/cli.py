@@ -100,6 +100,11 @@ def register(subparsers) -> None:
                         "(paper: 0.1, 0.2, 0.5, 1.0; default 0.5)")
     g.add_argument("--vd-lattice", type=_lattice, default=None, metavar="NX,NY,NZ",
                    help="vd: control lattice nodes along length, width, height (default 6,3,3: 162 dimensions)")
+    g.add_argument("--region", choices=("realistic", "paper"), default=None,  # config.REGIONS, without importing it
+                   help="realistic: search only where the realism report passes (latents within its Mahalanobis "
+                        "limit, class-plausible scales, every shape checked; a shape that fails is an invalid "
+                        "query, not simulated); paper: the paper's box (latent min/max, scales 0.8-1.3). Default "
+                        "realistic, paper with --shape-model vd or --algo bruteforce")
     g.add_argument("--max-mahalanobis", type=at.number(0.0, MAX_MAHALANOBIS, lo_open=True), default=None, metavar="R",
                    help="search only latents within Mahalanobis distance R of the library mean (inside the box)")
     g.add_argument("--class-scales", action="store_true", default=None,
@@ -108,7 +113,43 @@ def register(subparsers) -> None:
                    help="maximise objective - W x (JSD excess over the library's leave-one-out maximum); default 0")
     g.add_argument("--realism-preset", choices=sorted(PRESETS), default=None,
                    help="named setting of the three realism knobs (explicit knobs override it)")
+    g = p.add_argument_group("after the search (docs/attack.md, \"Avoidability\" and \"How often\")")
+    g.add_argument("--avoidability", type=at.integer(1, 1000), default=None, metavar="K",
+                   help="re-run every best shape on K held-out seeds with the stack and with ground-truth "
+                        "perception (adv3d avoidability): are its failures stack- or scenario-induced")
+    g.add_argument("--failure-rate", type=at.integer(1, 1_000_000), default=None, metavar="N",
+                   help="simulate N shapes per scene drawn from the realistic prior and report the share that "
+                        "make the stack fail, per failure kind, with a Clopper-Pearson interval (adv3d rate)")
     p.set_defaults(func=_attack)
+
+    v = subparsers.add_parser(
+        "avoidability", help="are a run's failures the stack's fault? (oracle re-run on held-out seeds)",
+        description="Re-simulate every best shape of an attack run (and each scene's original) on held-out noise "
+                    "seeds with the run's stack and with a reference stack (default oracle: ground-truth perception, "
+                    "the same planner). A failure (collision, at-fault collision, braking below -4 m/s^2, leaving the "
+                    "road, progress below 0.8 of the original) the reference shows too is scenario-induced; one only "
+                    "the stack shows is stack-induced. Writes RUN/avoidability.json; adv3d report shows it.")
+    v.add_argument("run", metavar="RUN", help="attack run folder")
+    v.add_argument("--eval-seeds", type=at.integer(1, 1000), default=3, help="held-out seeds per shape (default 3)")
+    v.add_argument("--reference", type=stack_spec, default="oracle", metavar="STACK",
+                   help="the reference stack (default oracle)")
+    v.add_argument("--workers", type=at.integer(1, 256), default=1, help="local worker processes (default 1)")
+    v.set_defaults(func=_avoidability)
+
+    q = subparsers.add_parser(
+        "rate", help="how often a realistic shape makes the stack fail (rates with confidence intervals)",
+        description="Draw N shapes per attacked scene of a run from the realistic prior (the realistic region, "
+                    "uniform, conditioned on passing the realism report), simulate each with the run's stack on the "
+                    "scene's held-out seeds, and write the share that fail, per failure kind, with a Clopper-Pearson "
+                    "interval (RUN/failure_rate.json); adv3d report shows it beside the worst case.")
+    q.add_argument("run", metavar="RUN", help="attack run folder")
+    q.add_argument("--samples", type=at.integer(1, 1_000_000), required=True, metavar="N",
+                   help="realistic shapes per scene")
+    q.add_argument("--eval-seeds", type=at.integer(1, 1000), default=3,
+                   help="held-out seeds the draws cycle through (default 3)")
+    q.add_argument("--confidence", type=at.number(0.0, 0.9999, lo_open=True), default=0.95,
+                   help="confidence level of the intervals (default 0.95)")
+    q.set_defaults(func=_rate)
 
     r = subparsers.add_parser("report", help="markdown report of attack runs",
                               description="Write a markdown report (Table-1-style metrics, convergence plot, "
@@ -144,8 +185,33 @@ def _attack(args: argparse.Namespace) -> int:
         for mode, m in entry.get("modes", {}).items():
             status(f"{sid} [{mode}]: best cost {m.get('best_cost')} at query {m.get('best_index')} "
                    f"({m.get('n_failed', 0)} failed of {m.get('n_queries')})")
-    status(f"run bundle: {args.out}  (adv3d report {args.out})")
     check_outcome(summary, read_run(args.out)[1])  # exit 1 saying why when nothing worked
+    if args.avoidability:
+        _avoidability(argparse.Namespace(run=args.out, eval_seeds=args.avoidability, reference="oracle",
+                                         workers=workers if not args.ray_address else 1))
+    if args.failure_rate:
+        _rate(argparse.Namespace(run=args.out, samples=args.failure_rate, eval_seeds=3, confidence=0.95))
+    status(f"run bundle: {args.out}  (adv3d report {args.out})")
+    return 0
+
+
+def _avoidability(args: argparse.Namespace) -> int:
+    from ..progress import status
+    from .avoidability import run_avoidability, summary_line
+
+    doc = run_avoidability(args.run, eval_seeds=args.eval_seeds, reference=args.reference, workers=args.workers)
+    status(f"avoidability: {summary_line(doc)} -> {args.run}/avoidability.json")
+    return 0
+
+
+def _rate(args: argparse.Namespace) -> int:
+    from ..progress import status
+    from .failure_rate import format_rate, run_failure_rate
+
+    doc = run_failure_rate(args.run, samples=args.samples, eval_seeds=args.eval_seeds, confidence=args.confidence)
+    for sid, e in doc["scenes"].items():
+        status(f"{sid}: {e['accepted']} realistic shapes, any failure {format_rate(e['rates']['any'])}")
+    status(f"failure rates: {args.run}/failure_rate.json")
     return 0
 
 
@@ -156,6 +222,10 @@ def _shape_options(args: argparse.Namespace) -> dict:
     from .realism_constraints import preset_knobs
 
     out: dict = {"shape_model": args.shape_model}
+    region = getattr(args, "region", None)
+    if region is None:
+        region = "paper" if args.shape_model == "vd" or getattr(args, "algo", None) == "bruteforce" else "realistic"
+    out["region"] = region
     if args.realism_preset:
         out.update(preset_knobs(args.realism_preset))
     for key in ("max_mahalanobis", "class_scales", "realism_weight", "vd_bound", "vd_lattice"):

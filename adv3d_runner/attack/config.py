@@ -21,6 +21,10 @@ each scene's search seed and LiDAR-noise seed from ``seed`` and the scene's cont
 :func:`scene_seed`) is written when true; ``target_rank`` (attack the ``actors`` actors after
 the ``target_rank`` closest in front: the paper's Table 2 attacks each of the 3 closest alone) is
 written when not 0.
+
+``region`` (``paper``: the paper's latent box; ``realistic``: where the calibrated realism
+report passes, :mod:`.realism_constraints`) is written when it is not ``paper``, the region of
+every run before the key, which a run.json without it reads as.
 """
 from __future__ import annotations
 
@@ -41,8 +45,12 @@ from .vertex_deform import DEFAULT_LATTICE, MAX_VD_BOUND, check_lattice
 
 #: Knobs added after run.json version 1, with the value that leaves them out of run.json.
 _OPTIONAL_KEYS = {"shape_model": "latent", "max_mahalanobis": None, "class_scales": False, "realism_weight": 0.0,
-                  "pred_reduction": LEGACY_PRED_REDUCTION, "scene_seeds": False, "target_rank": 0}
+                  "pred_reduction": LEGACY_PRED_REDUCTION, "scene_seeds": False, "target_rank": 0,
+                  "region": "paper"}
 _VD_KEYS = ("vd_bound", "vd_lattice")
+#: Search regions of the latent shape model: ``paper`` (the paper's box: the latents' min/max,
+#: scales 0.8-1.3) or ``realistic`` (where the realism report passes; realism_constraints.py).
+REGIONS = ("paper", "realistic")
 AUTONOMY = ("A", "oracle", "B", "A-fast")
 #: Bounds of the options (the CLI's argument types use the same ones).
 MAX_ACTORS = 64
@@ -75,6 +83,7 @@ class QuerySettings:
     pred_reduction: str = DEFAULT_PRED_REDUCTION
     scene_seeds: bool = False
     target_rank: int = 0
+    region: str = "paper"
     #: how, not what: reuse the static LiDAR hits between the queries of a scene
     #: (``sensors.incremental``); the results are identical either way.
     incremental: bool = True
@@ -192,6 +201,7 @@ class AttackConfig:
     pred_reduction: str = DEFAULT_PRED_REDUCTION
     scene_seeds: bool = False
     target_rank: int = 0
+    region: str = "paper"
 
     def __post_init__(self) -> None:
         """Every field typed and in range (``ConfigError`` naming the option): a config built
@@ -261,7 +271,9 @@ class AttackConfig:
         if self.max_mahalanobis is not None and not (np.isfinite(self.max_mahalanobis)
                                                      and 0 < self.max_mahalanobis <= MAX_MAHALANOBIS):
             raise ConfigError(f"--max-mahalanobis must be a number in (0, {MAX_MAHALANOBIS:g}], got {self.max_mahalanobis}")
-        region = self.max_mahalanobis is not None or self.class_scales
+        if self.region not in REGIONS:
+            raise ConfigError(f"--region must be one of {', '.join(REGIONS)}, got {self.region!r}")
+        region = self.max_mahalanobis is not None or self.class_scales or self.region == "realistic"
         if self.shape_model == "vd":
             if not (np.isfinite(self.vd_bound) and 0 < self.vd_bound <= MAX_VD_BOUND):
                 raise ConfigError(f"--vd-bound must be a number of metres in (0, {MAX_VD_BOUND:g}], got {self.vd_bound}")
@@ -269,11 +281,11 @@ class AttackConfig:
                 raise ConfigError(f"--algo {self.algo} does not apply to vertex deformation (a grid of 3^D points "
                                   f"in D = 3 x lattice nodes, or the library's latents); use bo, random or blendsearch")
             if region:
-                raise ConfigError("--max-mahalanobis and --class-scales restrict the latent shape space; "
-                                  "they do not apply to --shape-model vd")
+                raise ConfigError("--max-mahalanobis, --class-scales and --region realistic restrict the latent "
+                                  "shape space; they do not apply to --shape-model vd (use --region paper)")
         if region and self.algo == "bruteforce":
-            raise ConfigError("bruteforce enumerates the library's own vehicles; --max-mahalanobis and "
-                              "--class-scales do not apply")
+            raise ConfigError("bruteforce enumerates the library's own vehicles; --max-mahalanobis, "
+                              "--class-scales and --region realistic do not apply (use --region paper)")
 
     @property
     def modes(self) -> list[str]:
@@ -289,7 +301,7 @@ class AttackConfig:
                              vd_lattice=self.vd_lattice, max_mahalanobis=self.max_mahalanobis,
                              class_scales=self.class_scales, realism_weight=self.realism_weight,
                              library=self.library, pred_reduction=self.pred_reduction,
-                             scene_seeds=self.scene_seeds, target_rank=self.target_rank)
+                             scene_seeds=self.scene_seeds, target_rank=self.target_rank, region=self.region)
 
     def search_seed(self, scene_digest: str) -> int:
         """The seed of the searcher on a scene: ``seed``, or with ``scene_seeds`` one derived

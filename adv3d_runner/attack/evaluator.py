@@ -228,7 +228,9 @@ class SceneWorkspace:
         (``sim.evaluate.episode_evaluation``) for both the objective and the metrics. A decoded
         query carries its shapes' cheap realism figures; with ``realism_weight`` W > 0 the cost
         is the objective minus W times the realism penalty (``realism_constraints.realism_penalty``),
-        which ``components`` holds unweighted as ``realism_penalty``.
+        which ``components`` holds unweighted as ``realism_penalty``. In the realistic region
+        (``settings.region``) the shapes are decoded where the realism report passes
+        (``ActorShapes.realistic_unit``).
         """
         from ..sim.evaluate import episode_evaluation, episode_metrics
         from .objective import episode_objective

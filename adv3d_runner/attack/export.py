@@ -32,8 +32,9 @@ from typing import Any
 import numpy as np
 
 from ..errors import ConfigError, FileFormatError, RunFailedError, UsageError
+from ..sim.evaluate import hardest_braking  # noqa: F401  (the failure's hardest braking; tests use it from here)
 
-#: hardest braking that counts as a failure (m/s^2): issue 39's avoidability rule
+#: hardest braking that counts as a failure (m/s^2; the avoidability rule, docs/attack.md)
 HARD_BRAKING = -4.0
 MANIFEST = "export.json"
 FILES = {"commonroad": "scenario.xml", "openscenario": "scenario.xosc", "opendrive": "road.xodr",
@@ -50,12 +51,6 @@ class ExportResult:
 
     out: Path
     manifest: dict
-
-
-def hardest_braking(speeds: np.ndarray, dt: float) -> float:
-    """The most negative acceleration of a speed trace (m/s^2; forward differences), 0 for one frame."""
-    v = np.asarray(speeds, dtype=np.float64)
-    return float(min(0.0, np.min(np.diff(v)) / dt)) if len(v) > 1 else 0.0
 
 
 def _check_out(out: Path) -> None:

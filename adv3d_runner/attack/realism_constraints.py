@@ -17,6 +17,16 @@ every searcher (BO, random, grid, BlendSearch) searches it unchanged:
   leave-one-out maximum (:func:`realism_penalty`); ``P`` is journalled unweighted as the
   ``realism_penalty`` component.
 
+* **The realistic region** (``--region realistic``, the command's default for latent shapes):
+  latents in the Mahalanobis ball of the realism report's own limit (the calibrated
+  ``RealismReference.mahalanobis_limit``; ``--max-mahalanobis`` overrides the radius),
+  class-plausible scales, and every query's shapes checked with the whole realism report
+  (``shapes.realism``): a shape that fails it is moved toward the cube's centre (the library's
+  mean latent at mid-range scales) to the first point that passes
+  (``shape_models.ActorShapes.realistic_unit``); when none does, the query is ``invalid``
+  (:class:`UnrealisticShapeError`), never simulated. So every shape a search simulates and keeps
+  passes the report, whatever its limits are set to.
+
 Definitions, costs and the sweep that chose the preset: docs/realism.md.
 """
 from __future__ import annotations
@@ -26,9 +36,14 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from ..errors import ConfigError
+from ..errors import ConfigError, InvalidQueryError
 from ..shapes.realism import regularised_covariance
 from .names import PRESETS  # noqa: F401  (named settings of the realism knobs; re-exported)
+
+
+class UnrealisticShapeError(InvalidQueryError):
+    """A query of the realistic region none of whose shapes toward the region's centre passes the
+    realism report."""
 
 
 def preset_knobs(name: str) -> dict[str, Any]:

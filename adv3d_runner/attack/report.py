@@ -281,6 +281,76 @@ def criticality_table(runs: list[tuple[str, dict, list, dict]]) -> str:
             "is (BTN >= 1: braking alone cannot avoid it).\n")
 
 
+def avoidability_table(runs: list[tuple[str, dict, list, dict]]) -> str:
+    """Markdown table: per best shape, its avoidability (``RUN/avoidability.json``,
+    :mod:`.avoidability`): the finding and, per failure kind, on how many held-out seeds it is
+    stack-induced / scenario-induced. Empty when no run has the file."""
+    from .avoidability import FAILURE_KINDS, read_avoidability, summary_line
+
+    rows, notes = [], []
+    for root, run, _, _ in runs:
+        doc = read_avoidability(root)
+        if doc is None:
+            continue
+        notes.append(f"{run_label(run)}: {summary_line(doc)}")
+        for sid, sc in sorted(doc["scenes"].items()):
+            for mode, m in sc.get("modes", {}).items():
+                cells = []
+                for kind in FAILURE_KINDS:
+                    k = m["kinds"][kind]
+                    cells.append("-" if k["verdict"] == "none" else
+                                 f"{k['verdict']} ({k['stack_induced']}s/{k['scenario_induced']}b of {k['seeds']}"
+                                 + (f", {k['in_original']} in orig." if k.get("in_original") else "") + ")")
+                rows.append(f"| {run_label(run)} | {sid} | {mode} | **{m['finding']}** | " + " | ".join(cells) + " |")
+    if not rows:
+        return ""
+    return ("| run | scene | mode | finding | " + " | ".join(k.replace("_", " ") for k in FAILURE_KINDS) + " |\n"
+            "|---|---|---|---|" + "---|" * len(FAILURE_KINDS) + "\n" + "\n".join(rows) + "\n\n"
+            + "\n".join(f"- {n}" for n in notes) + "\n\n"
+            "Each best shape re-simulated on held-out seeds with the stack under test and with the reference stack "
+            "(ground-truth perception, same planner). Per kind: the verdict, and on how many seeds only the stack "
+            "failed (s) or both failed (b); in orig.: seeds where the stack's original episode fails that way too. "
+            "finding: stack-induced when some failure only the stack shows is not already in the original; "
+            "scenario-induced when the reference fails too (docs/attack.md, \"Avoidability\").\n")
+
+
+def rate_table(runs: list[tuple[str, dict, list, dict]]) -> str:
+    """Markdown table: per scene, the worst case the search found beside the share of realistic
+    shapes that make the stack fail (``RUN/failure_rate.json``, :mod:`.failure_rate`). Empty when
+    no run has the file."""
+    from .avoidability import FAILURE_KINDS
+    from .failure_rate import format_rate, read_failure_rate
+
+    rows, foot = [], []
+    for root, run, _, _ in runs:
+        doc = read_failure_rate(root)
+        if doc is None:
+            continue
+        for sid, sc in sorted(doc["scenes"].items()):
+            w = sc.get("worst_case") or {}
+            fails = [k.replace("_", " ") for k, v in (w.get("failures") or {}).items() if v]
+            cost = w.get("cost")
+            worst = f"{'-' if cost is None else f'{cost:.4g}'}: {', '.join(fails) or 'no failure'}"
+            orig = sorted({k for v in (sc.get("original_failures") or {}).values() for k in v})
+            rows.append(f"| {run_label(run)} | {sid} | {worst} | {sc['accepted']} ({sc['rejected_draws']} rejected) | "
+                        + " | ".join(format_rate(sc["rates"].get(k)) for k in (*FAILURE_KINDS, "any"))
+                        + f" | {', '.join(k.replace('_', ' ') for k in orig) or '-'} |")
+        pooled = doc.get("pooled") or {}
+        rows.append(f"| {run_label(run)} | all scenes | | | "
+                    + " | ".join(format_rate(pooled.get(k)) for k in (*FAILURE_KINDS, "any")) + " | |")
+        foot.append(f"{run_label(run)}: {doc['samples']} draws per scene, {100 * doc['confidence']:.0f} % "
+                    f"{doc['interval']} intervals, prior: {doc['prior']}")
+    if not rows:
+        return ""
+    kinds = [k.replace("_", " ") for k in (*FAILURE_KINDS, "any")]
+    return ("| run | scene | worst case (search objective: failures) | realistic shapes | " + " | ".join(kinds)
+            + " | original fails |\n|---|---|---|---:|" + "---:|" * len(kinds) + "---|\n" + "\n".join(rows) + "\n\n"
+            + "\n".join(f"- {f}" for f in foot) + "\n\n"
+            "Rates: k/n (share, interval) of the realistic shapes whose closed-loop episode fails that way; the worst "
+            "case is the search's best shape on its own seed. original fails: failures the original scene shows on "
+            "the same seeds (they count in the rates too; docs/attack.md, \"How often\").\n")
+
+
 # metrics where a lower value is worse for the stack (the others: higher is worse)
 LOWER_IS_WORSE = ("AP", "Recall", "Occ. mAP", "Occ. Soft-IoU", "Flow-gr. mAP", "Flow-gr. Soft-IoU")
 
@@ -734,6 +804,12 @@ def write_report(run_dirs: Sequence[str | Path], out: str | Path | None = None) 
     crit = criticality_table(runs)
     if crit:
         lines += ["### Criticality (CommonRoad CriMe)", "", crit, ""]
+    avoid = avoidability_table(runs)
+    if avoid:
+        lines += ["### Avoidability: stack-induced or scenario-induced", "", avoid, ""]
+    rates = rate_table(runs)
+    if rates:
+        lines += ["### How often: worst case and failure rate of realistic shapes", "", rates, ""]
     curves = convergence(runs)
     lines += ["## Search: best cost against queries and wall time", ""]
     if curves:

@@ -85,12 +85,19 @@ class ActorShapes:
         self.classes = actor_classes(scene, self.targets)
         self.region = None
         self.templates: list[VertexDeformation] = []
+        self._reference = None
+        self._projected: dict[tuple, tuple[np.ndarray, dict]] = {}
+        #: the realistic region (``settings.region``): class scales, the report's Mahalanobis
+        #: limit as radius, and every shape checked (:meth:`check_realistic`)
+        self.realistic = getattr(settings, "region", "paper") == "realistic"
+        self.class_scales = bool(settings.class_scales) or self.realistic
         if settings.shape_model == "vd":
             self.templates = [VertexDeformation(v, f, settings.vd_bound, settings.vd_lattice)
                               for v, f in own_meshes(scene, self.targets, library)]
         elif settings.max_mahalanobis is not None:
             self.region = LatentRegion.from_space(space, settings.max_mahalanobis)
-        self._reference = None
+        elif self.realistic:
+            self.region = LatentRegion.from_space(space, self.reference.mahalanobis_limit)
 
     @property
     def per_actor(self) -> int:
@@ -107,23 +114,85 @@ class ActorShapes:
     def decode_actor(self, i: int, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None,
                                                             np.ndarray | None]:
         """Target i's unit vector -> (vertices (V, 3) m, faces (F, 3), latent (K,) or None,
-        scales (width, length) or None).
+        scales (width, length) or None). In the realistic region the unit vector is first moved
+        onto the region (:meth:`realistic_unit`).
 
         Raises:
             EmptySurfaceError: the latent has no surface.
+            UnrealisticShapeError: realistic region, and no shape on the way to the centre passes.
         """
+        if self.realistic:
+            u = self.realistic_unit(i, u)[0]
+        return self._decode_raw(i, u)
+
+    #: fractions t of the way from the region's centre to the asked point tried, in order
+    #: (:meth:`realistic_unit`)
+    PROJECTION_STEPS = (1.0, 0.75, 0.5, 0.25, 0.0)
+
+    def realistic_unit(self, i: int, u: np.ndarray) -> tuple[np.ndarray, dict[str, Any]]:
+        """Target i's unit vector moved into the realistic region: the first point
+        ``c + t (u - c)`` (c the cube's centre: the library's mean latent at mid-range scales;
+        t in :data:`PROJECTION_STEPS`, from 1 = ``u`` itself) whose shape passes the realism
+        report, with that report. Deterministic; remembered for the last few vectors (a query
+        is decoded for its episode and reported for its realism).
+
+        Raises:
+            UnrealisticShapeError: no point of the way passes (the centre fails too).
+        """
+        from .realism_constraints import UnrealisticShapeError
+
+        u = np.asarray(u, dtype=np.float64).reshape(-1)
+        key = (i, u.tobytes())
+        hit = self._projected.get(key)
+        if hit is not None:
+            return hit
+        c = np.full_like(u, 0.5)
+        flags: list[str] = []
+        for t in self.PROJECTION_STEPS:
+            cand = c + t * (u - c)
+            try:
+                rep = self._report_raw(i, cand)
+            except EmptySurfaceError:
+                continue
+            if rep.get("realistic", not rep.get("flags")):
+                rep = {**rep, "projection_t": float(t)}
+                if len(self._projected) >= 16:
+                    self._projected.pop(next(iter(self._projected)))
+                self._projected[key] = (cand, rep)
+                return cand, rep
+            flags = flags or list(rep.get("flags") or [])
+        raise UnrealisticShapeError(f"actor {self.targets[i]}: no shape between the query and the realistic "
+                                    f"region's centre passes the realism report (the query fails "
+                                    f"{', '.join(flags) or 'it'})")
+
+    def passes(self, u: np.ndarray) -> bool:
+        """Whether every attacked actor's shape of ``u`` passes the realism report as it is
+        (unmoved; the realistic prior of ``attack.failure_rate`` samples by this)."""
+        U = split_query(u, len(self.targets), self.per_actor)
+        for i, ui in enumerate(U):
+            try:
+                rep = self._report_raw(i, ui)
+            except EmptySurfaceError:
+                return False
+            if not rep.get("realistic", not rep.get("flags")):
+                return False
+        return True
+
+    def _decode_raw(self, i: int, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None,
+                                                          np.ndarray | None]:
+        """:meth:`decode_actor` without moving ``u`` onto the realistic region."""
         if self.templates:
             t = self.templates[i]
             return t.deform(u), t.faces, None, None
         space = self.space
-        if self.region is None and not self.settings.class_scales:
+        if self.region is None and not self.class_scales:
             z, sc = space.unit_to_latent(u)  # the paper's box: exactly targets.decode_query
             v, f = space.decode_latent(z, sc)
             return v, f, z, sc
         u = space.check_unit(u)
         z = self.region.to_latent(u[:space.k]) if self.region is not None else space.unit_to_latent(u)[0]
         cls = self.classes[i]
-        if not self.settings.class_scales or cls is None:
+        if not self.class_scales or cls is None:
             sc = space.unit_to_latent(u)[1]
             v, f = space.decode_latent(z, sc)
             return v, f, z, sc
@@ -179,22 +248,25 @@ class ActorShapes:
         """Per target, the whole realism report of the query's shape (best shapes; ~0.1 s each).
 
         Latent shapes: ``realism.latent_realism_report`` (JSD, nearest, Mahalanobis, artefacts,
-        dimensions). Vertex-deformed meshes have no decoder field: the mesh measures only
-        (``quick_measures`` + plausible classes), their limits and the largest vertex
-        displacement actually applied (``max_displacement_m``).
+        dimensions); in the realistic region the report of the shape the query was moved to
+        (:meth:`realistic_unit`, with its ``projection_t``). Vertex-deformed meshes have no
+        decoder field: the mesh measures only (``quick_measures`` + plausible classes), their
+        limits and the largest vertex displacement actually applied (``max_displacement_m``).
         """
         U = split_query(u, len(self.targets), self.per_actor)
+        if self.realistic:
+            return [self.realistic_unit(i, ui)[1] for i, ui in enumerate(U)]
+        return [self._report_raw(i, ui) for i, ui in enumerate(U)]
+
+    def _report_raw(self, i: int, ui: np.ndarray) -> dict[str, Any]:
+        """The realism report of target i's shape of ``ui`` (not moved onto any region)."""
         ref = self.reference
-        out = []
-        for i, ui in enumerate(U):
-            v, f, z, sc = self.decode_actor(i, ui)
-            if z is not None:
-                out.append(realism.latent_realism_report(self.space, z, sc, ref, vehicle_class=self.classes[i]))
-                continue
-            rep = realism.quick_measures(v, f, ref, vehicle_class=self.classes[i])
-            rep["plausible_classes"] = realism.plausible_classes(rep["dimensions_m"])
-            rep["limits"] = {"jsd": ref.jsd_limit, "nearest_chamfer_m": ref.chamfer_limit_m, "dimension_excess": 0.0}
-            rep["max_displacement_m"] = float(np.abs(self.templates[i].displacements(ui)).max())
-            rep["realistic"] = not rep["flags"]
-            out.append(rep)
-        return out
+        v, f, z, sc = self._decode_raw(i, ui)
+        if z is not None:
+            return realism.latent_realism_report(self.space, z, sc, ref, vehicle_class=self.classes[i])
+        rep = realism.quick_measures(v, f, ref, vehicle_class=self.classes[i])
+        rep["plausible_classes"] = realism.plausible_classes(rep["dimensions_m"])
+        rep["limits"] = {"jsd": ref.jsd_limit, "nearest_chamfer_m": ref.chamfer_limit_m, "dimension_excess": 0.0}
+        rep["max_displacement_m"] = float(np.abs(self.templates[i].displacements(ui)).max())
+        rep["realistic"] = not rep["flags"]
+        return rep

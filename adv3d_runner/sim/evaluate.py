@@ -22,8 +22,9 @@
 * **Collision** (footprint overlap with any actor), ``at_fault`` (the first collision is with
   an actor ahead of the ego: a replayed actor can drive into a slower ego from behind),
   minimum ego-actor footprint distance, **off road** (largest distance of an ego footprint
-  corner outside the union of the lane strips; ``off_road`` when > ``OFF_ROAD_TOLERANCE``), and
-  **progress** (path length, m).
+  corner outside the union of the lane strips; ``off_road`` when > ``OFF_ROAD_TOLERANCE``),
+  **progress** (path length, m) and the **hardest braking** of the driven speed trace
+  (``hardest_braking_mps2``, m/s^2, :func:`hardest_braking`).
 
 :func:`detection_frames` and :func:`prediction_pairs` give the per-frame inputs the attack
 objective (paper Eq. 4-5) needs, with the same ground-truth rules. Both are computed once per
@@ -236,6 +237,13 @@ def _f(x) -> float | None:
     return x if np.isfinite(x) else None
 
 
+def hardest_braking(speeds: np.ndarray, dt: float) -> float:
+    """The most negative acceleration of a speed trace (m/s^2, forward differences of the (T,)
+    speeds over ``dt`` s); 0 for a trace that never slows down or has one frame."""
+    v = np.asarray(speeds, dtype=np.float64).reshape(-1)
+    return float(min(0.0, np.min(np.diff(v)) / float(dt))) if len(v) > 1 else 0.0
+
+
 def episode_metrics(result, lanes, min_gt_points: int = MIN_GT_POINTS,
                     evaluation: EpisodeEvaluation | None = None) -> dict:
     """The metrics document of one episode (JSON-ready; see module docstring).
@@ -293,6 +301,7 @@ def episode_metrics(result, lanes, min_gt_points: int = MIN_GT_POINTS,
         "min_distance": _f(rep.min_distance),
         "off_road": bool(off.max(initial=0.0) > OFF_ROAD_TOLERANCE), "off_road_m": float(off.max(initial=0.0)),
         "progress_m": path, "mean_speed": _f(np.mean(result.ego_speeds)) if T else None,
+        "hardest_braking_mps2": hardest_braking(result.ego_speeds[:T], result.dt),
         "ms_per_frame": timing, "fps": _f(T / total) if total > 0 else None,
     }
     if evaluation.not_available:  # a plugin stack without these outputs: not available, never zero
