@@ -28,6 +28,7 @@ COMMAND_MODULES = (
     "adv3d_runner.training.cli",    # train ...
     "adv3d_runner.attack.cli",      # attack, report
     "adv3d_runner.attack.export_cli",  # export (a found failure as CommonRoad / OpenSCENARIO)
+    "adv3d_runner.experiments.cli",  # experiments (the paper's tables on the protocol)
     "adv3d_runner.blender_cli",     # blender build/render (never imports bpy in-process)
     "adv3d_runner.machine_cli",     # numerics
 )
