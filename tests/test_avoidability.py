@@ -214,6 +214,13 @@ def test_avoidability_pairs_stack_and_oracle_on_heldout_seeds(run_a):
     assert again["cost"] == pytest.approx(oracle[heldout_key(sid, "closed", s0)]["cost"], rel=1e-9)
     text = write_report([run_a], run_a / "r.md").read_text()
     assert "### Avoidability: stack-induced or scenario-induced" in text and sc["modes"]["closed"]["finding"] in text
+    from adv3d_runner.attack.avoidability import kind_totals
+
+    totals = kind_totals(doc)
+    for kind in FAILURE_KINDS:
+        verdict = sc["modes"]["closed"]["kinds"][kind]["verdict"]
+        assert totals[kind][STACK_INDUCED] == (verdict == STACK_INDUCED)
+        assert totals[kind][SCENARIO_INDUCED] == (verdict == SCENARIO_INDUCED)
 
 
 def test_reference_equal_to_the_stack_finds_nothing_stack_induced(run_a):

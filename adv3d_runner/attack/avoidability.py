@@ -225,6 +225,19 @@ def avoidability_of(summary: Mapping[str, Any], stack_evals: Mapping[str, dict],
             "scenes": scenes, "totals": totals}
 
 
+def kind_totals(doc: Mapping[str, Any]) -> dict[str, dict[str, int]]:
+    """Per failure kind, over every best shape of an avoidability document: how many are
+    stack-induced and how many scenario-induced (their verdicts; the table row a paper table
+    splits its failures by)."""
+    out = {k: {STACK_INDUCED: 0, SCENARIO_INDUCED: 0} for k in FAILURE_KINDS}
+    for sc in doc.get("scenes", {}).values():
+        for m in sc.get("modes", {}).values():
+            for kind, v in m.get("kinds", {}).items():
+                if kind in out and v.get("verdict") in out[kind]:
+                    out[kind][v["verdict"]] += 1
+    return out
+
+
 def run_avoidability(run_dir: str | Path, *, eval_seeds: int = 3, reference: str = DEFAULT_REFERENCE,
                      workers: int = 1) -> dict[str, Any]:
     """Re-simulate every best shape of the run (and each scene's original) on ``eval_seeds``

@@ -285,14 +285,17 @@ def avoidability_table(runs: list[tuple[str, dict, list, dict]]) -> str:
     """Markdown table: per best shape, its avoidability (``RUN/avoidability.json``,
     :mod:`.avoidability`): the finding and, per failure kind, on how many held-out seeds it is
     stack-induced / scenario-induced. Empty when no run has the file."""
-    from .avoidability import FAILURE_KINDS, read_avoidability, summary_line
+    from .avoidability import FAILURE_KINDS, SCENARIO_INDUCED, STACK_INDUCED, kind_totals, read_avoidability, summary_line
 
     rows, notes = [], []
     for root, run, _, _ in runs:
         doc = read_avoidability(root)
         if doc is None:
             continue
-        notes.append(f"{run_label(run)}: {summary_line(doc)}")
+        totals = kind_totals(doc)
+        notes.append(f"{run_label(run)}: {summary_line(doc)}; per kind, best shapes stack-induced / scenario-induced: "
+                     + ", ".join(f"{k.replace('_', ' ')} {t[STACK_INDUCED]}/{t[SCENARIO_INDUCED]}"
+                                 for k, t in totals.items()))
         for sid, sc in sorted(doc["scenes"].items()):
             for mode, m in sc.get("modes", {}).items():
                 cells = []
