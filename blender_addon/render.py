@@ -488,7 +488,8 @@ def render_review(run_path: Path, replay: str | None, out: Path, frame: int | No
                    f"{len(data.points[frame]) if data is not None and data.points else 0} LiDAR points",
                    f"{len(dets)} detections, scores " + " ".join(f"{v:.2f}" for v in sorted(dets[:, 6])[::-1][:4]),
                    f"{len(data.predictions[frame]) if data is not None else 0} predicted trajectories (violet)",
-                   "plan (yellow)", "Scrub the timeline to step through",
+                   "plan (yellow)", "Scrub the timeline to step through", ("head", "Legend"),
+                   *(text for text, _ in ops_review.review.LEGEND),
                    f"replay sha256 {rv.key.rsplit(':', 1)[-1][:12]}..."]
     _render(out, ("Adv3D  >  Review", lines) if panel else None)
     blender_addon.unregister()
