@@ -57,12 +57,12 @@ def test_a_tables_family_is_corrected_and_its_power_stated():
     assert comps[0]["p_bh"] == pytest.approx(0.02) and comps[1]["p_bh"] == pytest.approx(0.04)
     assert "p_holm" not in comps[2] and comps[3]["p_holm"] is None
     md = "\n".join(findings_markdown({"Original": {"findings": None, "criticality": None},
-                                      "Adv.": {"findings": {"stack_induced": 2, "scenario_induced": 1, "no_failure": 0,
-                                                            "shapes": 3, "of": 3},
+                                      "Adv.": {"findings": {"stack_induced": 2, "scenario_induced": 1, "pre_existing": 0,
+                                                            "no_failure": 0, "shapes": 3, "of": 3},
                                                "criticality": {"ttc": {"mean": 1.25, "scenes": 3}},
                                                "realistic_best_shapes": [1, 3]}}))
-    assert "| Original | n/a | n/a | n/a | n/a | n/a | n/a | n/a |" in md
-    assert "| Adv. | 2/3 | 1/3 | 0/3 | 1.25 (3 sc.) | n/a | 1/3 | n/a |" in md
+    assert "| Original | n/a | n/a | n/a | n/a | n/a | n/a | n/a | n/a |" in md
+    assert "| Adv. | 2/3 | 1/3 | 0/3 | 0/3 | 1.25 (3 sc.) | n/a | 1/3 | n/a |" in md
 
 
 def test_experiments_command_is_registered_light_and_typed():
@@ -106,3 +106,24 @@ def test_experiments_list_and_table_only_errors(tmp_path, capsys):
     assert main(["experiments", "table1", "--table-only", "--results", str(tmp_path)]) == 1
     err = capsys.readouterr().err
     assert err.startswith("adv3d: error: ") and "no protocol.json" in err and err.count("\n") == 1
+
+
+@pytest.mark.slow
+def test_avoidability_split_is_kept_and_tabled(tmp_path):
+    """--avoidability: each kept run gets the oracle reference's held-out records and its
+    avoidability.json, and the table's findings count the split. With the oracle as the stack
+    under test the reference sees what the stack sees: no failure can be stack-induced."""
+    from adv3d_runner.cli import main
+
+    assert main(["experiments", "table1", "--autonomy", "oracle", "--scenes", "1", "--real", "0", "--seeds", "1",
+                 "--budget", "1", "--n-initial", "1", "--seconds", "0.3", "--eval-seeds", "1", "--work",
+                 str(tmp_path / "w"), "--results", str(tmp_path / "r"), "--avoidability"]) == 0
+    folder = tmp_path / "r" / "table1_oracle_b1"
+    kept = folder / "runs" / "bo" / "seed0" / "highway-benchmark-000000"
+    assert (kept / "avoidability.json").is_file() and (kept / "heldout.oracle.json.gz").is_file()
+    import json
+
+    table = json.loads((folder / "table.json").read_text())
+    f = table["rows"]["Adv. closed-loop"]["findings"]
+    assert f["of"] == 1 and f["shapes"] == 1 and f["stack_induced"] == 0
+    assert table["rows"]["Original"]["findings"] is None

@@ -106,6 +106,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="run only every N-th unit (seed, setting, scene) from the I-th: N processes side by side "
                         "on one machine, each with its own compute file; then --table-only")
     p.add_argument("--table-only", action="store_true", help="rebuild table.md/json from the kept files, run nothing")
+    p.add_argument("--avoidability", action="store_true",
+                   help="also re-simulate the originals and best shapes with the oracle reference stack on the "
+                        "held-out seeds and keep each run's stack-induced / scenario-induced split "
+                        "(avoidability.json; docs/results.md, Protocol)")
     p.add_argument("--docs", action="store_true",
                    help="rewrite docs/results.md's generated parts (verdicts, the shipped stack's tables, compute) "
                         "from the kept tables under --results; run nothing")

@@ -520,6 +520,8 @@ def run_table(spec: TableSpec, args, command: str) -> Path:
         store = HeldoutStore(keep_dir / "heldout.json.gz")
         n_new = run_heldout(heldout_tasks(summary, seed, args.eval_seeds), cfg.settings, store,
                             workers=args.workers)
+        if getattr(args, "avoidability", False):
+            n_new += keep_avoidability(summary, seed, args.eval_seeds, cfg, store, keep_dir, args.workers)
         compute.update(queries=max(0, new_q - kept_q), heldout=n_new)
         print(f"[{spec.name}] {tag}: {new_q} queries ({new_q - kept_q} new), {n_new} held-out evaluations, "
               f"{time.perf_counter() - t0:.0f} s", flush=True)
@@ -527,6 +529,31 @@ def run_table(spec: TableSpec, args, command: str) -> Path:
         print(f"[{spec.name}] shard {shard[0]}/{shard[1]} done; build the table with --table-only", flush=True)
         return results
     return build_table(spec, args.autonomy, Path(args.results), args.budget)
+
+
+def keep_avoidability(summary: dict, seed: int, eval_seeds: int, cfg, store, keep_dir: Path, workers: int) -> int:
+    """The stack-induced / scenario-induced split of a kept run (:mod:`adv3d_runner.attack.avoidability`):
+    the original and every best shape re-simulated with the oracle reference stack on the run's
+    held-out seeds (``heldout.oracle.json.gz``, resumable), classified against the stack's own
+    held-out records (``store``), written to ``keep_dir/avoidability.json``. Returns the new
+    reference episodes."""
+    from dataclasses import replace
+
+    from adv3d_runner.attack.avoidability import DEFAULT_REFERENCE, FILE, avoidability_of, reference_store_name
+    from adv3d_runner.attack.protocol import HeldoutStore, heldout_tasks, run_heldout
+    from adv3d_runner.fileio import write_json
+
+    reference = HeldoutStore(keep_dir / reference_store_name(DEFAULT_REFERENCE))
+    tasks = heldout_tasks(summary, seed, eval_seeds)
+    n_new = run_heldout(tasks, replace(cfg.settings, autonomy=DEFAULT_REFERENCE), reference, workers=workers)
+    seeds: dict[str, list[int]] = {}
+    for t in tasks:   # the stack's own held-out seeds, scene by scene
+        if t.seed not in seeds.setdefault(t.scene_id, []):
+            seeds[t.scene_id].append(t.seed)
+    doc = avoidability_of(summary, store.evaluations, reference.evaluations, seeds, reference=DEFAULT_REFERENCE)
+    doc.update(stack=cfg.autonomy, eval_seeds=int(eval_seeds))
+    write_json(keep_dir / FILE, doc)
+    return n_new
 
 
 # ============================================================================ the table
@@ -964,13 +991,14 @@ def correct_family(comparisons: list[dict]) -> dict:
 
 def findings_of(entries: list[dict]) -> dict | None:
     """A search row's avoidability split over its best shapes (scene x run seed): counts of
-    ``stack-induced``, ``scenario-induced`` and ``no failure`` findings from the kept runs'
-    avoidability.json (:mod:`adv3d_runner.attack.avoidability`); None where no kept run has one."""
+    ``stack-induced``, ``scenario-induced``, ``pre-existing`` (failing only as the original
+    does) and ``no failure`` findings from the kept runs' avoidability.json (:mod:`adv3d_runner.attack.avoidability`); None where no kept run has one."""
     found = [e.get("finding") for e in entries if e.get("finding")]
     if not found:
         return None
     return {"stack_induced": found.count("stack-induced"), "scenario_induced": found.count("scenario-induced"),
-            "no_failure": found.count("no failure"), "shapes": len(found), "of": len(entries)}
+            "pre_existing": found.count("pre-existing"), "no_failure": found.count("no failure"),
+            "shapes": len(found), "of": len(entries)}
 
 
 def criticality_of(entries: list[dict]) -> dict | None:
@@ -1252,14 +1280,14 @@ def findings_markdown(rows: dict) -> list[str]:
     CriMe criticality figures and the realism verdicts; "n/a" where the kept runs lack them."""
     lines = ["Findings (best shapes: scene x run seed; criticality of the search seed's closed-loop episode, "
              "mean over scenes):", "",
-             "| | stack-induced | scenario-induced | no failure | "
+             "| | stack-induced | scenario-induced | pre-existing | no failure | "
              + " | ".join(f"{label} {unit}" for label, _, unit in CRITICALITY)
              + " | realistic (realism report) | calibrated realism verdict |",
-             "|---|---:|---:|---:|" + "---:|" * len(CRITICALITY) + "---:|---:|"]
+             "|---|---:|---:|---:|---:|" + "---:|" * len(CRITICALITY) + "---:|---:|"]
     for name, row in rows.items():
         f = row.get("findings")
-        split = ([f"{f['stack_induced']}/{f['of']}", f"{f['scenario_induced']}/{f['of']}", f"{f['no_failure']}/{f['of']}"]
-                 if f else ["n/a"] * 3)
+        split = ([f"{f[k]}/{f['of']}" for k in ("stack_induced", "scenario_induced", "pre_existing", "no_failure")]
+                 if f else ["n/a"] * 4)
         crit = row.get("criticality") or {}
         cells = [f"{_fmt(crit[key]['mean'])} ({crit[key]['scenes']} sc.)" if key in crit else "n/a"
                  for _, key, _ in CRITICALITY]
