@@ -1,6 +1,10 @@
-"""The content-keyed library mesh cache (shapes/mesh_cache.py) gives what trimesh's glb reading
-gives, bit for bit, and survives a corrupt or foreign cache file."""
+"""The content-keyed caches of derived data (docs/performance.md): library meshes
+(shapes/mesh_cache.py) give what trimesh's glb reading gives, and a background's coherent-cast
+certificates (sensors/coherent.py) what certifying it gives, bit for bit; both survive a corrupt
+or foreign cache file."""
 from __future__ import annotations
+
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -118,3 +122,56 @@ def test_actor_mesh_equals_the_trimesh_computation(cache, assets):
         got = actors.actor_mesh(lib, aid, dims)
         np.testing.assert_array_equal(got.vertices, expected)
         np.testing.assert_array_equal(got.faces, np.asarray(mesh.faces))
+
+
+def _background():
+    from adv3d_runner.scene import load_scene
+    from adv3d_runner.scene.background import background_mesh
+
+    path = Path(__file__).resolve().parents[1] / "scenes" / "highway" / "highway-benchmark-000000.json.gz"
+    if not path.exists():
+        pytest.skip("bundled scene missing")
+    v, f, _ = background_mesh(load_scene(path))
+    return np.asarray(v, np.float32), np.asarray(f, np.int32)
+
+
+def test_certificates_from_the_cache_equal_the_computed_ones(cache):
+    from adv3d_runner.sensors import coherent
+
+    v, f = _background()
+    assert len(f) >= coherent.CACHE_MIN_FACES
+    want = coherent.face_certificates(v, f)
+    first = coherent.cached_face_certificates(v, f)  # computed and written
+    path = coherent.certificates_cache_path(v, f)
+    assert path.is_file()
+    second = coherent.cached_face_certificates(v, f)  # read
+    for got in (first, second):
+        assert got.margin == want.margin
+        for name in coherent._ARRAYS:
+            a, b = getattr(got, name), getattr(want, name)
+            assert a.dtype == b.dtype
+            np.testing.assert_array_equal(a, b)
+    moved = v.copy()
+    moved[0, 0] += 1.0
+    assert coherent.certificates_cache_path(moved, f) != path
+
+
+@pytest.mark.parametrize("damage", ["garbage", "truncated", "slot_out_of_range"])
+def test_a_corrupt_certificates_file_is_recomputed(cache, damage):
+    from adv3d_runner.sensors import coherent
+
+    v, f = _background()
+    want = coherent.cached_face_certificates(v, f)
+    path = coherent.certificates_cache_path(v, f)
+    if damage == "garbage":
+        path.write_bytes(b"PK not really")
+    elif damage == "truncated":
+        path.write_bytes(path.read_bytes()[:1000])
+    else:
+        members = {k: getattr(want, k) for k in coherent._ARRAYS}
+        members["cell_slot"] = members["cell_slot"] + len(members["cell_frame"]) + 1
+        path.write_bytes(npz_bytes(members))
+    got = coherent.cached_face_certificates(v, f)
+    for name in coherent._ARRAYS:
+        np.testing.assert_array_equal(getattr(got, name), getattr(want, name))
+    assert coherent._load_certificates(path, len(f), coherent.MARGIN_M) is not False  # rewritten

@@ -40,7 +40,8 @@ import numpy as np
 
 from ..jit import kernel
 
-__all__ = ["MARGIN_M", "MIN_SIN_INCIDENCE", "FaceCertificates", "face_certificates", "uncertain_rays"]
+__all__ = ["MARGIN_M", "MIN_SIN_INCIDENCE", "FaceCertificates", "cached_face_certificates", "face_certificates",
+           "uncertain_rays"]
 
 #: Distance within which another face counts as a competitor, metres (see the module docstring).
 MARGIN_M = 0.002
@@ -117,6 +118,77 @@ def face_certificates(vertices: np.ndarray, faces: np.ndarray, margin: float = M
         near_a.append(a[near])
     slot, frame, table = crowded_cells(tri, inner, has_inner, np.concatenate(near_b), np.concatenate(near_a), margin)
     return FaceCertificates(crowded, altitudes, normals, float(margin), slot, frame, table)
+
+
+#: Bumped when :func:`face_certificates` changes what it computes (the cache key holds it).
+CERTIFICATES_VERSION = 1
+#: Meshes with fewer faces are certified directly: hashing and reading a cache file cost more.
+CACHE_MIN_FACES = 2000
+_ARRAYS = ("crowded", "altitudes", "normals", "cell_slot", "cell_frame", "cell_crowded")
+
+
+def certificates_cache_path(vertices: np.ndarray, faces: np.ndarray, margin: float = MARGIN_M):
+    """The cache file of a mesh's certificates: ``<cache>/certificates/<key>.npz``
+    (:func:`adv3d_runner.fileio.user_cache_dir`), ``key`` the SHA-256 of the float32 vertices,
+    the int32 faces, the margin and :data:`CERTIFICATES_VERSION`."""
+    import hashlib
+
+    from ..fileio import user_cache_dir
+
+    h = hashlib.sha256(np.ascontiguousarray(vertices, np.float32).tobytes())
+    h.update(np.ascontiguousarray(faces, np.int32).tobytes())
+    h.update(f"\0{float(margin)!r}\0v{CERTIFICATES_VERSION}\0{len(faces)}".encode())
+    return user_cache_dir() / "certificates" / f"{h.hexdigest()[:40]}.npz"
+
+
+def _load_certificates(path, n_faces: int, margin: float) -> FaceCertificates | None | bool:
+    """A cache file's certificates; ``False`` when it is missing, unreadable or inconsistent
+    (``None`` is a stored "too many overlapping faces")."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            if "none" in z.files:
+                return None
+            a = {k: z[k] for k in _ARRAYS}
+    except Exception:  # noqa: BLE001 - a missing, truncated or foreign file raises many types
+        return False
+    n_slots = len(a["cell_frame"])
+    ok = (a["crowded"].dtype == bool and a["crowded"].shape == (n_faces,)
+          and a["altitudes"].dtype == np.float64 and a["altitudes"].shape == (n_faces, 3)
+          and a["normals"].dtype == np.float64 and a["normals"].shape == (n_faces, 3)
+          and a["cell_slot"].dtype == np.int32 and a["cell_slot"].shape == (n_faces,)
+          and a["cell_frame"].dtype == np.float64 and a["cell_frame"].shape == (n_slots, 3)
+          and a["cell_crowded"].dtype == bool and a["cell_crowded"].shape == (n_slots, 2 * CELLS * CELLS + 1)
+          and (n_faces == 0 or (a["cell_slot"].min() >= -1 and a["cell_slot"].max() < n_slots)))
+    if not ok:
+        return False
+    return FaceCertificates(a["crowded"], a["altitudes"], a["normals"], float(margin), a["cell_slot"],
+                            a["cell_frame"], a["cell_crowded"])
+
+
+def cached_face_certificates(vertices: np.ndarray, faces: np.ndarray,
+                             margin: float = MARGIN_M) -> FaceCertificates | None:
+    """:func:`face_certificates`, kept in the user's cache by the mesh's content (a scene's
+    background is certified once per machine, not in every process: 0.2 CPU-s of a generated
+    highway's world build; docs/performance.md). The file is read without pickle, its shapes,
+    dtypes and slot indices checked (zip's CRC catches a damaged member); a file that fails is
+    ignored and rewritten. Meshes under :data:`CACHE_MIN_FACES` faces are certified directly."""
+    from ..fileio import atomic_path, npz_bytes
+
+    if len(faces) < CACHE_MIN_FACES:
+        return face_certificates(vertices, faces, margin)
+    path = certificates_cache_path(vertices, faces, margin)
+    cached = _load_certificates(path, len(faces), margin) if path.exists() else False
+    if cached is not False:
+        return cached
+    cert = face_certificates(vertices, faces, margin)
+    members = {"none": np.zeros(0)} if cert is None else {k: getattr(cert, k) for k in _ARRAYS}
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with atomic_path(path) as tmp:
+            tmp.write_bytes(npz_bytes(members))
+    except OSError:
+        pass  # a read-only cache: certified again next time
+    return cert
 
 
 #: Cells per side of a crowded face's inner triangle (2 CELLS^2 cells): only the cells that

@@ -26,7 +26,7 @@ import hashlib
 import numpy as np
 
 from . import embree
-from .coherent import MIN_SIN_INCIDENCE, FaceCertificates, face_certificates, uncertain_rays
+from .coherent import MIN_SIN_INCIDENCE, FaceCertificates, cached_face_certificates, uncertain_rays
 
 __all__ = ["MeshBVH", "mesh_key", "cast_nearest"]
 
@@ -127,7 +127,7 @@ class MeshBVH:
                 self._scene = embree.TriangleScene(v, f)  # committed: the BVH is built now
                 self.direct = True
                 if coherent:
-                    self.certificates = face_certificates(v, f)
+                    self.certificates = cached_face_certificates(v, f)
             else:
                 from embreex import rtcore_scene as rtcs
                 from embreex.mesh_construction import TriangleMesh
