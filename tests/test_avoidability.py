@@ -117,7 +117,7 @@ def test_realistic_region_decodes_only_shapes_that_pass(scene_path):
     paper = ActorShapes(QuerySettings(), scene, select_targets(scene, 1), settings.load_shape_space())
     rng = np.random.default_rng(3)
     moved = 0
-    for _ in range(6):
+    for _ in range(3):
         u = rng.random(shapes.per_actor)
         (rep,) = shapes.full_reports(u)
         assert rep["realistic"] and rep["projection_t"] in shapes.PROJECTION_STEPS
@@ -227,7 +227,7 @@ def test_reference_equal_to_the_stack_finds_nothing_stack_induced(run_a):
     """Paired seeds: the stack against itself fails or passes together on every seed."""
     from adv3d_runner.attack.avoidability import run_avoidability
 
-    doc = run_avoidability(run_a, eval_seeds=2, reference="A")
+    doc = run_avoidability(run_a, eval_seeds=1, reference="A")
     for sc in doc["scenes"].values():
         for m in sc["modes"].values():
             for row in m["per_seed"]:
