@@ -1006,7 +1006,8 @@ def test_import_keeps_colours_as_the_cli_does_and_takes_every_cli_format(ctx, li
     me = bpy.data.meshes.new("red car")
     me.from_pydata(car.vertices.tolist(), [], car.faces.tolist())
     mat = bpy.data.materials.new("red paint")
-    mat.use_nodes = True
+    if mat.node_tree is None:  # Blender 4.x; node-based by default from 5.0
+        mat.use_nodes = True
     mat.node_tree.nodes["Principled BSDF"].inputs["Base Color"].default_value = (0.58, 0.012, 0.012, 1.0)
     me.materials.append(mat)
     ctx.scene.collection.objects.link(bpy.data.objects.new("red car", me))
