@@ -58,7 +58,13 @@ def register(subparsers) -> None:
 
     r = sub.add_parser("realism", help="realism figures of a shape: JSD, nearest vehicle, Mahalanobis, "
                                        "artefacts, dimensions (docs/realism.md)")
-    r.add_argument("--u", required=True, type=at.numbers(0.0, 1.0), help="comma-separated unit vector, as for decode")
+    what = r.add_mutually_exclusive_group(required=True)
+    what.add_argument("--u", type=at.numbers(0.0, 1.0), help="comma-separated unit vector, as for decode")
+    what.add_argument("--mesh", type=Path, help="any vehicle file the importer reads (.glb .gltf .obj .ply .stl "
+                                                ".fbx .blend .json .ac .acc): SDF, decode and every check")
+    what.add_argument("--set", nargs="+", type=Path, metavar="FILE",
+                      help="vehicle files: set-level realism against the library (MMD, COV, 1-NNA with "
+                           "Chamfer distance; Jensen-Shannon distance)")
     r.add_argument("--class", dest="vehicle_class", default=None, choices=list(DIMENSION_RANGES),
                    help="vehicle class for the dimension check (default: the nearest library model's)")
     r.add_argument("--space", type=Path, default=None, help="shape space .npz (default: the bundled one)")
@@ -141,22 +147,64 @@ def _decode(args: argparse.Namespace) -> int:
     return 0
 
 
+def _import_for_realism(path: Path):
+    from .mesh_io import import_vehicle
+
+    mesh, _curation, _report = import_vehicle(path)
+    return mesh
+
+
+def _realism_set(args: argparse.Namespace, space, ref) -> int:
+    import json
+
+    import numpy as np
+
+    from .realism_set import meshes_set_realism
+
+    meshes = []
+    for path in args.set:
+        m = _import_for_realism(path)
+        meshes.append((np.asarray(m.vertices), np.asarray(m.faces)))
+    rep = meshes_set_realism(meshes, ref)
+    rep["reference"] = list(ref.asset_ids)
+    if args.json:
+        print(json.dumps(rep, indent=1))
+        return 0
+    print("\n".join([
+        f"set          {rep['n_found']} shape(s) against {rep['n_reference']} library CAD models",
+        f"MMD-CD       {rep['mmd_cd_m2']:.4f} m^2 (lower: every library model has a close found shape)",
+        f"COV-CD       {rep['cov_cd'] * 100:.1f} % of the library models are some shape's nearest",
+        f"1-NNA-CD     {rep['nna_cd'] * 100:.1f} % (50 %: indistinguishable from the library; 100 %: apart)",
+        f"JS distance  {rep['jsd_distance']:.3f} (BEV histogram of the set against the library's; "
+        f"sqrt of the divergence in nats, at most 0.833)",
+    ]))
+    return 0
+
+
 def _realism(args: argparse.Namespace) -> int:
     import json
     import time
 
-    from .realism import DIMENSION_RANGES, default_reference, realism_report
+    from .realism import DIMENSION_RANGES, default_reference, mesh_realism_report, realism_report
 
     from ..errors import ConfigError
 
     if args.vehicle_class is not None and args.vehicle_class not in DIMENSION_RANGES:
         raise ConfigError(f"--class must be one of {', '.join(DIMENSION_RANGES)}, got {args.vehicle_class!r}")
     space = _load_space(args.space)
-    u = args.u
-    _unit_for(space, u)
     ref = default_reference(space)
+    if args.set:
+        return _realism_set(args, space, ref)
     t0 = time.perf_counter()
-    rep = realism_report(space, u, ref, vehicle_class=args.vehicle_class)
+    if args.mesh is not None:
+        mesh = _import_for_realism(args.mesh)
+        rep = mesh_realism_report(space, mesh.vertices, mesh.faces, ref, vehicle_class=args.vehicle_class)
+        what = f"mesh {args.mesh.name}"
+    else:
+        u = args.u
+        _unit_for(space, u)
+        rep = realism_report(space, u, ref, vehicle_class=args.vehicle_class)
+        what = f"shape        u={[round(x, 4) for x in u]}"
     dt = time.perf_counter() - t0
     if args.json:
         print(json.dumps(rep, indent=1))
@@ -164,21 +212,31 @@ def _realism(args: argparse.Namespace) -> int:
     lim = rep["limits"]
     flag = {k: ("  <- unrealistic" if k in rep["flags"] else "") for k in lim}
     dims = rep["dimensions_m"]
+    body = rep["body_dimensions_m"]
     lines = [
-        f"shape        u={[round(x, 4) for x in u]}  {dims[0]:.2f} x {dims[1]:.2f} x {dims[2]:.2f} m",
-        f"JSD          {rep['jsd']:.3f} (library leave-one-out max {lim['jsd']:.3f}){flag['jsd']}",
+        f"{what}  {dims[0]:.2f} x {dims[1]:.2f} x {dims[2]:.2f} m overall, body {body[0]:.2f} x {body[1]:.2f} x "
+        f"{body[2]:.2f} m",
+    ]
+    if args.mesh is not None:
+        src, drop, out = rep["source_dimensions_m"], rep["dropped_extent_m"], rep["outside_source_m"]
+        lines.append(f"SDF          source {src[0]:.2f} x {src[1]:.2f} x {src[2]:.2f} m; decoding lost "
+                     + "/".join(f"{x:.2f}" for x in drop) + " m of L/W/H; decoded surface at most "
+                     f"{out[0]:.3f} m (99 %: {out[1]:.3f} m) from the source")
+    lines += [
+        f"JSD          {rep['jsd']:.3f} Jensen-Shannon distance (limit {lim['jsd']:.3f}){flag['jsd']}",
         f"nearest      {rep['nearest_asset']} at {rep['nearest_chamfer_m']:.3f} m Chamfer "
-        f"(library max {lim['nearest_chamfer_m']:.3f}){flag['nearest_chamfer_m']}; "
+        f"(limit {lim['nearest_chamfer_m']:.3f}){flag['nearest_chamfer_m']}; "
         f"nearest latent {rep['nearest_latent_asset']} at {rep['nearest_latent_distance']:.3f}",
-        f"Mahalanobis  {rep['mahalanobis']:.2f} (library leave-one-out max {lim['mahalanobis']:.2f}){flag['mahalanobis']}",
+        f"Mahalanobis  {rep['mahalanobis']:.2f} (limit {lim['mahalanobis']:.2f}){flag['mahalanobis']}",
         f"parts        {rep['parts_before_cleanup']} before clean-up ({rep['floating_parts']} floating, "
         f"{rep['cavities']} cavities), {rep['parts_after_cleanup']} after; clean-up drops "
         f"{rep['dropped_volume_fraction'] * 100:.3f} % of the volume; floating "
-        f"{rep['floating_volume_fraction'] * 100:.3f} %{flag['floating_volume_fraction']}",
+        f"{rep['floating_volume_fraction'] * 100:.3f} % (limit {lim['floating_volume_fraction'] * 100:.3f} %)"
+        f"{flag['floating_volume_fraction']}",
         f"genus        {rep['genus']} (robust {rep['genus_robust']}){flag['genus_robust']}",
-        f"thinnest     {rep['thinnest_wall_m']:.3f} m wall ({rep['thin_wall_fraction'] * 100:.1f} % of the surface "
-        f"thinner than {lim['thinnest_wall_m']:.3f} m){flag['thinnest_wall_m']}",
-        f"dimensions   class {rep['dimension_class']}: excess L/W/H "
+        f"thinnest     {rep['thinnest_wall_m']:.3f} m wall, limit {lim['thinnest_wall_m']:.3f} m "
+        f"({rep['thin_wall_fraction'] * 100:.1f} % of the surface thinner than a voxel){flag['thinnest_wall_m']}",
+        f"dimensions   class {rep['dimension_class']}, body (no mirrors): excess L/W/H "
         + "/".join(f"{x * 100:.0f} %" for x in rep["dimension_excess"])
         + f"; plausible as {', '.join(rep['plausible_classes']) or 'no class'}{flag['dimension_excess']}",
         f"verdict      {'realistic' if rep['realistic'] else 'unrealistic: ' + ', '.join(rep['flags'])}"
