@@ -26,11 +26,11 @@ DISTANCE_TOL = 0.5  # m
 
 @pytest.fixture(scope="module")
 def run_dir(tmp_path_factory) -> Path:
-    """A tiny attack: oracle stack, 2 random queries, 3 s, on a real US-101 scene whose best shape
-    makes the oracle brake hard (about -4.3 m/s^2)."""
+    """A tiny attack: oracle stack, 2 random queries of the paper's box, 3 s, on a real US-101 scene
+    whose best shape makes the oracle brake hard (about -4.3 m/s^2)."""
     out = tmp_path_factory.mktemp("attack") / "run"
     assert main(["-q", "attack", str(SCENE), "--autonomy", "oracle", "--budget", "2", "--seconds", f"{SECONDS:g}",
-                 "--algo", "random", "--out", str(out)]) == 0
+                 "--algo", "random", "--region", "paper", "--out", str(out)]) == 0
     return out
 
 
