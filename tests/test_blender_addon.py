@@ -1068,9 +1068,12 @@ def test_build_steps_stay_short_from_a_fresh_session(lib_copy, repo_root):
         "fresh = not any(m in sys.modules for m in ('trimesh', 'networkx', 'scipy.spatial'))\n"
         "job = jobs.Job('Build', ops_shapes.build_steps(load_library(sys.argv[1]), sys.argv[2],"
         " {'k': 2, 'resolution': 16}))\n"
+        "loads = []\n"
         "while job.run_slice(0.0) == jobs.RUNNING:\n"
-        "    pass\n"
-        "print(json.dumps({'fresh': fresh, 'state': job.state, 'cpu': job.max_step_cpu_s, 'slowest': job.slowest}))\n")
+        "    if job.message.startswith('loading '):\n"
+        "        loads.append(job.message)\n"
+        "print(json.dumps({'fresh': fresh, 'state': job.state, 'cpu': job.max_step_cpu_s, 'slowest': job.slowest,"
+        " 'loads': loads}))\n")
     out = subprocess.run([sys.executable, "-c", code, str(lib_copy), str(lib_copy.parent / "fresh.npz")],
                          capture_output=True, text=True, cwd=repo_root, timeout=600)
     assert out.returncode == 0, out.stderr[-2000:]
@@ -1078,8 +1081,11 @@ def test_build_steps_stay_short_from_a_fresh_session(lib_copy, repo_root):
     assert res["fresh"] and res["state"] == "done"
     from blender_addon import jobs
 
-    # half the limit here: a reviewer's machine measured ~3x this one's CPU time for the imports
-    assert res["cpu"] < jobs.MAX_STEP_S / 2, res
+    assert res["cpu"] < jobs.MAX_STEP_S, res
+    # trimesh's import is cut into its heavy parts, one step each (whole, it took 0.34 s of CPU
+    # here and 0.98 s on a reviewer's machine: too close to, or over, the limit)
+    parts = [m for m in res["loads"] if m.split()[-1].startswith(("scipy", "networkx", "trimesh"))]
+    assert len(parts) >= 4 and "loading trimesh.util" in res["loads"], res["loads"]
 
 
 def test_build_refuses_more_components_than_the_assets_give(ctx, lib_copy, tmp_path):
