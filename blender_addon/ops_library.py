@@ -487,7 +487,9 @@ class ADV3D_OT_library_import(bpy.types.Operator, ImportHelper):
 
     def invoke(self, context, event):
         if self.directory and self.files:  # dropped onto the viewport (FileHandler): options, then import
-            return self.invoke_popup(context) if hasattr(self, "invoke_popup") else self.execute(context)
+            if context.window is None or not hasattr(self, "invoke_popup"):
+                return self.execute(context)
+            return self.invoke_popup(context)
         return ImportHelper.invoke(self, context, event)
 
     def paths(self) -> list[Path]:

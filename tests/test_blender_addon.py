@@ -1044,9 +1044,16 @@ def test_import_several_files_named_licence_replace_and_new_library(ctx, tmp_pat
                                         axis_up="Z") == {"FINISHED"}
     library = load_library(lib_file)
     assert library.ids() == ["nolicence.a", "nolicence.b"]
+    # what a drop onto the viewport calls: the file handler's operator invoked with the files
+    handler = bpy.types.FileHandler.bl_rna_get_subclass_py("ADV3D_FH_vehicle")
+    assert handler is not None and handler.bl_import_operator == "adv3d.library_import"
+    _red_car(src / "dropped.glb")
+    assert bpy.ops.adv3d.library_import("INVOKE_DEFAULT", directory=str(src), files=[{"name": "dropped.glb"}],
+                                        licence_name="CC-BY-4.0") == {"FINISHED"}
+    assert "nolicence.dropped" in load_library(lib_file).ids()
     a = library.get("nolicence.a")
     assert a.licence["name"] == "CC-BY-4.0" and "CC-BY-4.0" in (lib_file.parent / a.licence["file"]).read_text()
-    assert len(ctx.scene.adv3d.library.assets) == 2
+    assert len(ctx.scene.adv3d.library.assets) == 3  # a, b and the dropped one
     with pytest.raises(RuntimeError, match="already in the library"):
         bpy.ops.adv3d.library_import(filepath=str(src / "a.glb"), licence_name="CC-BY-4.0", length=3.0)
     assert load_library(lib_file).get("nolicence.a").dimensions[0] == pytest.approx(4.4, abs=2e-3)
