@@ -1,0 +1,121 @@
+"""Start-up cost of the ``adv3d`` command: what a person waits for before any work.
+
+    .venv/bin/python bench/startup.py [--repeat 5] [--root CHECKOUT] [--out FILE]
+
+Runs, ``--repeat`` times each, in subprocesses of this interpreter (``python -m
+adv3d_runner.cli``, the code of ``--root``, default this checkout):
+
+* ``adv3d --help`` and ``adv3d SUB --help`` for a fixed set of subcommands;
+* ``adv3d simulate highway-benchmark-000000 --seconds 0.1`` with Autonomy-A and with the
+  oracle stack (the fixed cost of an episode: imports, scene, world, stack, one frame), after
+  one unmeasured run that fills the caches (numba's, the mesh cache);
+* ``python -c "import M"`` of the heavy modules (numpy, torch, numba, scipy.optimize, trimesh).
+
+Each figure is the median CPU seconds (user + system of the child, ``os.wait4``) and the median
+wall seconds; the machine is shared, so CPU time is the figure to compare. Also records the
+heaviest imports of ``simulate`` (``-X importtime``, top level). Writes ``bench/results/
+startup.json`` unless ``--out``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+HELP = (["--help"], ["simulate", "--help"], ["attack", "--help"], ["shapes", "build", "--help"],
+        ["train", "detector", "--help"], ["scenes", "--help"], ["numerics", "--help"])
+IMPORTS = ("numpy", "torch", "numba", "scipy.optimize", "trimesh")
+
+
+def run(cmd: list[str], cwd: Path, env: dict) -> tuple[float, float, int]:
+    """(CPU s of the child, wall s, exit code)."""
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(cmd, cwd=cwd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    _, status, usage = os.wait4(proc.pid, 0)
+    wall = time.perf_counter() - t0
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    return usage.ru_utime + usage.ru_stime, wall, proc.returncode
+
+
+def measure(cmd: list[str], cwd: Path, env: dict, repeat: int) -> dict:
+    runs = [run(cmd, cwd, env) for _ in range(repeat)]
+    if any(rc != 0 for _, _, rc in runs):  # e.g. a command the measured checkout does not have
+        return {"failed": f"exit {max(rc for _, _, rc in runs)}", "runs": repeat}
+    cpu = [c for c, _, _ in runs]
+    wall = [w for _, w, _ in runs]
+    return {"cpu_s_median": statistics.median(cpu), "cpu_s_min": min(cpu), "cpu_s_max": max(cpu),
+            "wall_s_median": statistics.median(wall), "runs": repeat}
+
+
+def top_imports(cmd: list[str], cwd: Path, env: dict, n: int = 8) -> list[tuple[str, float]]:
+    """The ``n`` costliest top-level imports of ``cmd`` (cumulative s, ``-X importtime``)."""
+    proc = subprocess.run([sys.executable, "-X", "importtime", *cmd], cwd=cwd, env=env, capture_output=True, text=True)
+    out = []
+    for line in proc.stderr.splitlines():
+        if not line.startswith("import time:") or "cumulative" in line:
+            continue
+        _, cum, name = line.split("|")
+        if not name.startswith("  "):  # top level: one space of indentation
+            out.append((name.strip(), int(cum) / 1e6))
+    return sorted(out, key=lambda x: -x[1])[:n]
+
+
+def main() -> int:
+    from adv3d_runner.machine import machine_info
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--root", type=Path, default=ROOT, help="checkout whose code runs (default this one)")
+    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "startup.json")
+    args = ap.parse_args()
+    root = args.root.resolve()
+    env = {**os.environ, "PYTHONPATH": str(root)}
+    scene = str(root / "scenes" / "highway" / "highway-benchmark-000000.json.gz")
+    py = [sys.executable]
+    doc: dict = {"format": "adv3d.bench", "topic": "startup",
+                 "command": " ".join([Path(sys.executable).name, "bench/startup.py"] + sys.argv[1:]),
+                 "code": str(root), "commit": subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root,
+                                                             capture_output=True, text=True).stdout.strip(),
+                 "machine": machine_info("numpy", "torch"),
+                 "load_average_at_start": list(os.getloadavg()),
+                 "timing": "CPU s (user + system) of each child process, median of --repeat runs; wall s median"}
+    results: dict = {}
+    for words in HELP:
+        name = "adv3d " + " ".join(words)
+        results[name] = measure([*py, "-m", "adv3d_runner.cli", *words], root, env, args.repeat)
+        r = results[name]
+        print(f"{name:32s} " + (f"{r['cpu_s_median']:6.2f} CPU-s {r['wall_s_median']:6.2f} s" if "failed" not in r
+                                else r["failed"]), flush=True)
+    with tempfile.TemporaryDirectory(prefix="adv3d-startup-") as tmp:
+        for stack in ("A", "oracle"):
+            cmd = [*py, "-m", "adv3d_runner.cli", "-q", "simulate", scene, "--seconds", "0.1", "--autonomy", stack,
+                   "--out", str(Path(tmp) / stack)]
+            run(cmd, root, env)  # fills the caches
+            name = f"adv3d simulate highway-benchmark-000000 --seconds 0.1 --autonomy {stack}"
+            results[name] = measure(cmd, root, env, args.repeat)
+            print(f"{name:32s} {results[name]['cpu_s_median']:6.2f} CPU-s {results[name]['wall_s_median']:6.2f} s",
+                  flush=True)
+            doc.setdefault("simulate_top_imports_s", {})[stack] = top_imports(cmd[1:], root, env)
+    for module in IMPORTS:
+        name = f"import {module}"
+        results[name] = measure([*py, "-c", f"import {module}"], root, env, args.repeat)
+        print(f"{name:32s} {results[name]['cpu_s_median']:6.2f} CPU-s", flush=True)
+    doc["load_average_at_end"] = list(os.getloadavg())
+    doc["results"] = results
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(doc, indent=1) + "\n")
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
