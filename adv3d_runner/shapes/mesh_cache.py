@@ -39,6 +39,7 @@ class MeshArrays:
     bounds: np.ndarray
 
     def copy(self) -> "MeshArrays":
+        """A deep copy (the arrays copied)."""
         return MeshArrays(self.vertices.copy(), self.faces.copy(), self.bounds.copy())
 
 
