@@ -31,6 +31,10 @@ class Finding:
 
 
 FINDINGS = (
+    Finding("Table 1, A: closed-loop shapes beat open-loop ones", "shipped/table1_A_b20", "Adv. closed-loop",
+            "Adv. open-loop"),
+    Finding("Table 1, A: the closed-loop attack hurts the stack", "shipped/table1_A_b20", "Adv. closed-loop",
+            "Original"),
     Finding("Table 1, A: closed-loop shapes beat open-loop ones", "table1_A_b20", "Adv. closed-loop", "Adv. open-loop"),
     Finding("Table 1, A: closed-loop shapes beat open-loop ones", "table1_A", "Adv. closed-loop", "Adv. open-loop"),
     Finding("Table 1, A: the closed-loop attack hurts the stack", "table1_A_b20", "Adv. closed-loop", "Original"),
