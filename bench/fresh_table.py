@@ -24,7 +24,7 @@ RESULTS = ROOT / "bench" / "results"
 #: docs/benchmark.md, "Rule of the looks"
 FRESH_TARGETS = {"at_fault_collisions_max": 0, "drive_jerk_max": 1.0, "progress_ratio_min": 0.8, "min_ade_max": 1.8}
 COLUMNS = ("ok_rate", "collisions", "at_fault_collisions", "ap", "recall", "min_ade", "min_ade_recorded", "mean_ade",
-           "occ_map", "occ_soft_iou", "plan_lat", "plan_jerk", "drive_lat", "drive_jerk", "drive_peak_jerk_max",
+           "occ_map", "occ_soft_iou", "fg_map", "fg_soft_iou", "epe", "plan_lat", "plan_jerk", "drive_lat", "drive_jerk", "drive_peak_jerk_max",
            "progress_ratio_mean", "progress_ratio_min")
 
 
