@@ -52,7 +52,7 @@ TYPICAL_DIMENSIONS: dict[str, tuple[float, float, float]] = {
 DIMENSION_RANGES: dict[str, tuple[tuple[float, float], tuple[float, float], tuple[float, float]]] = {
     "sedan": ((4.0, 5.4), (1.65, 1.97), (1.35, 1.60)),
     "hatchback": ((2.5, 4.5), (1.47, 1.85), (1.38, 1.80)),
-    "sports": ((3.7, 4.9), (1.70, 2.05), (1.05, 1.40)),
+    "sports": ((3.7, 5.1), (1.55, 2.05), (1.00, 1.40)),
     "suv": ((3.4, 5.8), (1.60, 2.10), (1.55, 2.00)),
     "van": ((4.2, 7.4), (1.70, 2.10), (1.70, 3.10)),
     "pickup": ((4.8, 6.8), (1.75, 2.45), (1.65, 2.10)),

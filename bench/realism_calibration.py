@@ -14,14 +14,16 @@ detailed OpenMaterial coupe (interior, mirrors) as it is in its pack; and the ha
 double walls, all at once) on four library cars.
 
 Unrealistic set (must fail): per base car the 1.36 m-wide sedan, the front fused to a 7.4 m
-flatbed, the paper's free vertex noise at 0.5 m and 1 m and the project's lattice deformation
+flatbed, the paper's free vertex noise at 0.5 m and 1 m (on the mean shape decoded at every third
+grid node, 298 vertices, scaled to the car's box: the paper's template) and the project's lattice deformation
 (``attack/vertex_deform.py``) at 0.5 m and 1 m (two seeds); blobs; and shapes of the search box's
 BO corner (random latents at the smallest width and length scale: 2.9-3.7 x 1.3 m, the attack's
 blobs), reported through ``latent_realism_report``.
 
 Every report is computed once; the figures do not depend on the limits, so the confusion table is
-evaluated under the shipped limits (``realism.LIMITS``) and under the limits the real set
-proposes (``propose_limits``). Writes the figures, both tables, per-check pass rates, the file
+evaluated under the limits before calibration (``RealismLimits()``: the library's own extremes,
+one voxel, genus 0), the shipped ones (``realism.LIMITS``) and those the real set proposes
+(``propose_limits``: each check at the real set's extreme). Writes the figures, both tables, per-check pass rates, the file
 list with SHA-256 hashes (not the data), machine and command. docs/realism.md quotes it.
 """
 from __future__ import annotations
@@ -72,14 +74,15 @@ def true_scale(lib, asset_id: str):
     dimensions recorded in library.json. The curated meshes were scaled by their bounding box,
     mirrors included (the Kenney sedan's body is 1.56 m wide in its 1.80 m box). A recorded
     dimension outside its class's real range (the stylised Quaternius cars are 1.15-1.31 m high)
-    is brought to the nearest end of the range: true scale is a real car's."""
+    is brought just inside the nearest end of the range: true scale is a real car's."""
     from adv3d_runner.vehicle_classes import DIMENSION_RANGES
 
     mesh = load_asset_mesh(lib, asset_id)
     v = np.asarray(mesh.vertices, dtype=np.float64)
     body = R.body_dimensions(v, np.asarray(mesh.faces))
     rng = np.asarray(DIMENSION_RANGES[lib.get(asset_id).vehicle_class], dtype=np.float64)
-    want = np.clip(np.asarray(lib.get(asset_id).dimensions, dtype=np.float64), rng[:, 0], rng[:, 1])
+    # 1 % inside the range: the body measure of the scaled mesh is within ~1 cm of its target
+    want = np.clip(np.asarray(lib.get(asset_id).dimensions, dtype=np.float64), 1.01 * rng[:, 0], 0.99 * rng[:, 1])
     v = v * (want / body)
     v -= [0.5 * (v[:, 0].min() + v[:, 0].max()), 0.5 * (v[:, 1].min() + v[:, 1].max()), v[:, 2].min()]
     out = mesh.copy()
@@ -110,8 +113,19 @@ def main() -> int:
     t_start = time.time()
     lib = load_library()
     files, records = [], []
+    # every report is appended to a journal next to --out as it is computed; a rerun resumes
+    journal = args.out.with_suffix(".partial.jsonl")
+    done = {}
+    if journal.is_file():
+        for line in journal.read_text().splitlines():
+            if line.strip():
+                rec = json.loads(line)
+                done[rec["name"]] = rec
 
     def run(name, kind, mesh=None, cls=None, latent=None, source=None):
+        if name in done:
+            records.append(done[name])
+            return
         t0 = time.perf_counter()
         rec = {"name": name, "kind": kind, "class": cls, "source": source}
         try:
@@ -125,6 +139,8 @@ def main() -> int:
             rec["error"] = f"{type(exc).__name__}: {exc}"
         rec["seconds"] = round(time.perf_counter() - t0, 2)
         records.append(rec)
+        with journal.open("a") as fh:
+            fh.write(json.dumps(rec) + "\n")
         print(f"{kind:11s} {name:55s} {rec['seconds']:6.1f}s "
               f"{rec.get('error') or rec['report']['flags']}", flush=True)
 
@@ -157,7 +173,9 @@ def main() -> int:
     # ---------------------------------------------------------------- unrealistic
     bases = UNREALISTIC_BASES[:1] if args.quick else UNREALISTIC_BASES
     base_meshes = [(b, true_scale(lib, b)) for b in bases]
-    for name, mesh in C.unrealistic_shapes(base_meshes, seed=0, blobs=2 if args.quick else 6):
+    template = C.mean_shape_template(space)
+    for name, mesh in C.unrealistic_shapes(base_meshes, seed=0, blobs=2 if args.quick else 6,
+                                           noise_template=template):
         cls = lib.get(name.split(">")[0]).vehicle_class if ">" in name else None
         run(name, "unrealistic", mesh, cls, source="generated")
     rng = np.random.default_rng(1)
@@ -193,6 +211,7 @@ def write_tables(head: dict, records: list, files: list, space, ref, out_path: P
             rep["dimension_class"] = classes[best]
             rep["dimension_excess"] = [float(x) for x in excess[best]]
     voxel = space.grid.voxel * space.grid.extent_m
+    before = R.RealismLimits().resolve(ref, voxel)  # the library's own extremes, one voxel, genus 0
     shipped = R.LIMITS.resolve(ref, voxel)
     proposed_limits = C.propose_limits(records, R.RealismLimits(), R.RealismLimits().resolve(ref, voxel))
     proposed = proposed_limits.resolve(ref, voxel)
@@ -202,6 +221,8 @@ def write_tables(head: dict, records: list, files: list, space, ref, out_path: P
         "wall_s": head["wall_s"],
         "targets": {"real_pass": C.TARGET_REAL_PASS, "unrealistic_fail": C.TARGET_UNREALISTIC_FAIL},
         "torcs_left_out": TORCS_LEFT_OUT,
+        "before_limits": before,
+        "before": C.confusion(records, before),
         "shipped_limits": shipped,
         "shipped": C.confusion(records, shipped),
         "proposed_limits": proposed,
@@ -210,7 +231,7 @@ def write_tables(head: dict, records: list, files: list, space, ref, out_path: P
         "files": files,
         "records": records,
     }
-    for key in ("shipped", "proposed"):
+    for key in ("before", "shipped", "proposed"):
         t = out[key]
         print(f"{key:9s} real pass {t['real']['pass']}/{t['real']['n']}  unrealistic fail "
               f"{t['unrealistic']['fail']}/{t['unrealistic']['n']}  limits {out[key + '_limits']}")

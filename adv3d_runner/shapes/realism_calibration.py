@@ -209,16 +209,39 @@ def vertex_noise(mesh, bound: float, rng: np.random.Generator):
     return _grounded(m)
 
 
-def unrealistic_shapes(base: Iterable[tuple[str, Any]], seed: int = 0, blobs: int = 6) -> list[tuple[str, Any]]:
+def mean_shape_template(space, step: int = 3):
+    """The shape space's mean shape decoded on every ``step``-th grid node: the paper's vertex
+    deformation template ("a decoded mean shape with 252 vertices"; 298 here at step 3)."""
+    from .decode import extract_surface
+    from .sdf import GridSpec
+
+    import trimesh
+
+    g = space.grid
+    n = g.resolution
+    sub = np.asarray(space.mean, dtype=np.float32).reshape(n, n, n)[::step, ::step, ::step]
+    m = sub.shape[0]
+    coarse = GridSpec(m, g.extent_m * (m - 1) * step / (n - 1), g.ground_z, g.truncation)
+    return trimesh.Trimesh(*extract_surface(sub, coarse), process=False)
+
+
+def unrealistic_shapes(base: Iterable[tuple[str, Any]], seed: int = 0, blobs: int = 6,
+                       noise_template=None) -> list[tuple[str, Any]]:
     """Known-unrealistic meshes from base cars: per car the narrow sedan, the fused flatbed and
-    vertex noise at 0.5 m and 1 m; plus ``blobs`` blobs and the BO blob's 2.93 x 1.31 x 0.93 m."""
+    vertex noise at 0.5 m and 1 m (on ``noise_template`` scaled to the car's box when given,
+    e.g. ``mean_shape_template``: the paper's template); plus ``blobs`` blobs and the BO blob's
+    2.93 x 1.31 x 0.93 m."""
+    from .mesh_io import scale_to_dimensions
+
     rng = np.random.default_rng(seed)
     out = []
     for name, mesh in base:
         out.append((f"{name}>narrow-5.10x1.36x1.68", narrow_sedan(mesh)))
         out.append((f"{name}>front+flatbed-7.4m", fused_flatbed(mesh)))
+        tmpl = mesh if noise_template is None else scale_to_dimensions(
+            noise_template, tuple(np.ptp(np.asarray(mesh.vertices), axis=0)))[0]
         for b in (0.5, 1.0):
-            out.append((f"{name}>vertex-noise-{b:g}m", vertex_noise(mesh, b, rng)))
+            out.append((f"{name}>vertex-noise-{b:g}m", vertex_noise(tmpl, b, rng)))
     for i in range(blobs):
         out.append((f"blob-{i}", blob(rng)))
     out.append(("blob-2.93x1.31x0.93", blob(rng, (2.93, 1.31, 0.93))))
