@@ -196,7 +196,9 @@ def main() -> int:
 
     head = {"command": "python bench/realism_calibration.py" + (" --quick" if args.quick else ""),
             "machine": info, "wall_s": round(time.time() - t_start, 1)}
-    return write_tables(head, records, files, space, ref, args.out)
+    rc = write_tables(head, records, files, space, ref, args.out)
+    journal.unlink()  # the result file holds every record now
+    return rc
 
 
 def write_tables(head: dict, records: list, files: list, space, ref, out_path: Path) -> int:

@@ -81,6 +81,26 @@ def test_mesh_report_keeps_the_body_and_reports_what_the_grid_drops(space, ref):
     assert set(rep["flags"]) == set(R.check_flags(rep, rep["limits"]))
 
 
+def test_double_walls_with_open_windows_decode_solid(space, ref):
+    """The held-out CAD's hollow bodies: an inner skin 3 cm inside the outer one and the side
+    windows open. The inner skin, seen from outside only through the windows, leaves the sign."""
+    from adv3d_runner.shapes.decode import extract_surface
+    from adv3d_runner.shapes.library import load_asset_mesh, load_library
+    from adv3d_runner.shapes.sdf import sdf_volume
+
+    car = C.with_open_windows(C.with_double_walls(load_asset_mesh(load_library(), "kenney-car-kit.sedan")))
+    v, f = np.asarray(car.vertices), np.asarray(car.faces)
+    rep = R.mesh_realism_report(space, v, f, ref, vehicle_class="sedan")
+    voxel = space.grid.voxel * space.grid.extent_m
+    assert rep["floating_volume_fraction"] == 0.0 and rep["cavities"] == 0
+    assert rep["thinnest_wall_m"] >= voxel and rep["thin_wall_fraction"] < 0.01
+    # without the visibility rule (the shape-space build's SDF) it is a hollow shell
+    hollow = sdf_volume(v, f, space.grid, space.method)
+    assert R.wall_thickness(hollow, space.grid).mean() < 0.5 * R.wall_thickness(
+        sdf_volume(v, f, space.grid, space.method, min_visibility=R.MESH_MIN_VISIBILITY), space.grid).mean()
+    extract_surface(hollow, space.grid)  # still a surface, just the wrong one
+
+
 def test_unrealistic_shapes_fail_the_report(space, ref):
     car = rounded_car()
     rng = np.random.default_rng(0)

@@ -287,7 +287,7 @@ def _fibonacci_directions(n: int) -> np.ndarray:
 
 
 def orient_patches_by_visibility(
-    vertices: np.ndarray, faces: np.ndarray, eps: float = 1e-4
+    vertices: np.ndarray, faces: np.ndarray, eps: float = 1e-4, min_visibility: float = 0.0
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """Orient a triangle soup so every patch faces the side it is seen from.
 
@@ -309,10 +309,18 @@ def orient_patches_by_visibility(
     libigl has this method (``igl.embree.reorient_facets_raycast``) but draws random ray
     directions without a seed, so its result changes from run to run.
 
+    With ``min_visibility`` > 0, an open patch whose better side escapes for less than that
+    share of its (cosine- and area-weighted) rays counts as hidden too: the inner skin of a
+    double-walled body seen only through the window openings. Left in the sign, its winding,
+    facing the cabin, cancels the outer skin's there (w ~ 0) and the car decodes as a hollow
+    shell; the outer skin faces half of all directions and escapes for most of them.
+
     Args:
         vertices: (V, 3) float64, unit-cube coordinates (``eps`` is in these units).
         faces: (F, 3) int64 (degenerate faces removed).
         eps: ray origins are moved this far off the face along its normal.
+        min_visibility: share of escaping rays below which an open patch is hidden (0: only
+            patches seen from neither side, as the shape-space build).
     Returns:
         (F, 3) int64 faces (same order), (F,) bool mask of the faces of hidden open patches,
         and a report ``{"patches", "closed", "open", "hidden", "patches_turned",
@@ -366,6 +374,8 @@ def orient_patches_by_visibility(
         caster = RayMeshIntersector(trimesh.Trimesh(v, ff, process=False), scale_to_box=False)
         front = np.zeros(len(sample))
         back = np.zeros(len(sample))
+        front_all = np.zeros(len(sample))
+        back_all = np.zeros(len(sample))
         for j, d in enumerate(dirs):
             side = np.where(cos[:, j] >= 0, 1.0, -1.0)
             origins = centroid + (eps * side)[:, None] * normal[sample]
@@ -373,12 +383,19 @@ def orient_patches_by_visibility(
             w = np.abs(cos[:, j]) * escaped
             front += np.where(side > 0, w, 0.0)
             back += np.where(side < 0, w, 0.0)
+            front_all += np.where(side > 0, np.abs(cos[:, j]), 0.0)
+            back_all += np.where(side < 0, np.abs(cos[:, j]), 0.0)
         weight = area[sample]
         owner = patch[sample]
         f_score = np.bincount(owner, weights=front * weight, minlength=n_patches)
         b_score = np.bincount(owner, weights=back * weight, minlength=n_patches)
         turn[open_ids] = b_score[open_ids] > f_score[open_ids]
         hidden_patch[open_ids] = (f_score[open_ids] == 0) & (b_score[open_ids] == 0)
+        if min_visibility > 0:
+            f_all = np.bincount(owner, weights=front_all * weight, minlength=n_patches)
+            b_all = np.bincount(owner, weights=back_all * weight, minlength=n_patches)
+            share = np.maximum(f_score / np.maximum(f_all, 1e-300), b_score / np.maximum(b_all, 1e-300))
+            hidden_patch[open_ids] |= share[open_ids] < min_visibility
     flip = turn[patch]
     ff[flip] = ff[flip][:, ::-1]
     changed = int(np.sum(np.any(ff != f0, axis=1)))
@@ -565,7 +582,8 @@ def fill_enclosed_cavities_steps(vertices: np.ndarray, faces: np.ndarray, inside
 # ----------------------------------------------------------------------------------- SDF
 
 
-def sdf_volume(vertices_m: np.ndarray, faces: np.ndarray, grid: GridSpec, method: str = DEFAULT_METHOD) -> np.ndarray:
+def sdf_volume(vertices_m: np.ndarray, faces: np.ndarray, grid: GridSpec, method: str = DEFAULT_METHOD,
+               min_visibility: float = 0.0) -> np.ndarray:
     """Truncated SDF of a metric vehicle mesh on ``grid``.
 
     Args:
@@ -573,17 +591,19 @@ def sdf_volume(vertices_m: np.ndarray, faces: np.ndarray, grid: GridSpec, method
         faces: (F, 3) triangle indices.
         grid: the common grid.
         method: one of ``METHODS``.
+        min_visibility: ``winding``: open patches seen from outside along less than this share
+            of their rays leave the sign (:func:`orient_patches_by_visibility`; 0 as the build).
     Returns:
         (N, N, N) float32, unit-cube units, negative inside, clamped to +-truncation.
     Raises:
         ConfigError: unknown method.
         Adv3dError: the mesh leaves the grid cube or encloses no volume.
     """
-    return run_steps(sdf_volume_steps(vertices_m, faces, grid, method))
+    return run_steps(sdf_volume_steps(vertices_m, faces, grid, method, min_visibility=min_visibility))
 
 
 def sdf_volume_steps(vertices_m: np.ndarray, faces: np.ndarray, grid: GridSpec, method: str = DEFAULT_METHOD,
-                     chunk: int = STEP_POINTS) -> Steps[np.ndarray]:
+                     chunk: int = STEP_POINTS, min_visibility: float = 0.0) -> Steps[np.ndarray]:
     """:func:`sdf_volume` as a steps generator (``progress.run_steps``): the per-point libigl /
     Embree queries run ``chunk`` grid points at a time with a ``yield`` between pieces (the
     Blender add-on's Build stays responsive); the result is the same array, bit for bit."""
@@ -606,7 +626,8 @@ def sdf_volume_steps(vertices_m: np.ndarray, faces: np.ndarray, grid: GridSpec, 
 
     if method in ("winding", "winding-outward"):
         if method == "winding":
-            fo, hidden, _ = orient_patches_by_visibility(v, f, eps)
+            fo, hidden, _ = (orient_patches_by_visibility(v, f, eps, min_visibility) if min_visibility > 0
+                             else orient_patches_by_visibility(v, f, eps))
             fw = fo[~hidden] if (~hidden).any() else fo  # hidden panels stay out of the sign
         else:
             fo, _ = orient_faces(v, f, rule="outward")
