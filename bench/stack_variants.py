@@ -1,8 +1,9 @@
 """Stack variants for one-off looks (``bench/sanity.py --autonomy bench.stack_variants:NAME``).
 
-* ``a_predictor_ft``: Autonomy-A with the predictor of ``runs/predictor-ft`` (made by
-  ``bench/predictor_finetune.py --out runs/predictor-ft``) in place of the shipped one; its
-  ``stack_info`` names the variant and carries the SHA-256 of those weights.
+* ``a_predictor_ft``: Autonomy-A with the predictor of ``assets/models/predictor-fresh-ft``
+  (``bench/predictor_finetune.py --out runs/predictor-ft``, copied there; docs/benchmark.md) in
+  place of the shipped one; its ``stack_info`` names the variant and carries the SHA-256 of
+  those weights.
 """
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ import hashlib
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-FT_PREDICTOR = ROOT / "runs" / "predictor-ft"
+FT_PREDICTOR = ROOT / "assets" / "models" / "predictor-fresh-ft"
 
 
 def a_predictor_ft():
