@@ -115,3 +115,22 @@ def test_build_reproduces_the_kept_scenes(tmp_path):
         assert a["commonroad_sha256"] == b["commonroad_sha256"]
         _close(load_scene(tmp_path / f"{a['scene']}.json.gz").to_dict(),
                load_scene(FRESH_DIR / f"{b['scene']}.json.gz").to_dict())
+
+
+def test_fine_tuned_predictor_loads_and_saw_train_recordings_only():
+    """The fine-tuned predictor kept beside the shipped one loads, predicts finite modes, and its
+    report names only scenes of train recordings (docs/benchmark.md)."""
+    import json
+
+    from adv3d_runner.autonomy.predictor import load_predictor
+
+    folder = REPO / "assets" / "models" / "predictor-fresh-ft"
+    model = load_predictor(folder)
+    feats = np.zeros((2, model.config.num_features), np.float32)
+    prior = np.zeros((2, model.config.steps, 2), np.float32)
+    traj, probs = model.predict_local(feats, prior)
+    assert traj.shape == (2, model.config.num_modes, model.config.steps, 2) and np.isfinite(traj).all()
+    report = json.loads((folder / "training_report.json").read_text())
+    train = set(load_real_split().recordings["train"])
+    names = list(report["data"]["real_train_scenes"])
+    assert len(names) == 47 and {recording_of(n.split(".")[0]) for n in names} <= train
