@@ -209,6 +209,9 @@ def test_vd_template_is_the_actors_own_mesh(space, ref):
     u = np.random.default_rng(3).random(162)
     rep = shapes.full_reports(u)[0]
     assert 0 < rep["max_displacement_m"] <= 1.0 and rep["jsd"] == shapes.figures(*shapes.decode_query(u))[0]["jsd"]
+    # the limits a vertex-deformed shape's report states are the ones its flags were checked on
+    assert rep["limits"]["jsd"] == R.LIMITS.resolve(ref, 0.0)["jsd"]
+    assert ("jsd" in rep["flags"]) == (rep["jsd"] > rep["limits"]["jsd"])
 
 
 # ----------------------------------------------------------------------------- config, CLI, journal

@@ -266,7 +266,8 @@ class ActorShapes:
             return realism.latent_realism_report(self.space, z, sc, ref, vehicle_class=self.classes[i])
         rep = realism.quick_measures(v, f, ref, vehicle_class=self.classes[i])
         rep["plausible_classes"] = realism.plausible_classes(rep["dimensions_m"])
-        rep["limits"] = {"jsd": ref.jsd_limit, "nearest_chamfer_m": ref.chamfer_limit_m, "dimension_excess": 0.0}
+        lim = realism.LIMITS.resolve(ref, 0.0)  # the limits quick_measures checked (one place)
+        rep["limits"] = {k: lim[k] for k in ("jsd", "nearest_chamfer_m", "dimension_excess")}
         rep["max_displacement_m"] = float(np.abs(self.templates[i].displacements(ui)).max())
         rep["realistic"] = not rep["flags"]
         return rep
