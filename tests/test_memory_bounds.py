@@ -211,7 +211,8 @@ def test_json_depth_is_measured_in_blocks():
     rng = np.random.default_rng(2)
     text = bytes(rng.choice(np.frombuffer(b"[]{}x", np.uint8), 3 * fileio._DEPTH_BLOCK + 11))
     codes = np.frombuffer(text, np.uint8)
-    assert fileio._depth(text) == int(np.cumsum(fileio._BRACKETS[codes], dtype=np.int64).max())
+    steps = np.frombuffer(fileio._BRACKETS, np.int8)[codes]  # +1 opens, -1 closes, 0 else
+    assert fileio._depth(text) == int(np.cumsum(steps, dtype=np.int64).max())
     deep = b"[" * 70 + b"]" * 70
     saved = fileio._DEPTH_BLOCK
     try:

@@ -148,11 +148,13 @@ class ActorShapes:
             return hit
         c = np.full_like(u, 0.5)
         flags: list[str] = []
+        empty: EmptySurfaceError | None = None
         for t in self.PROJECTION_STEPS:
             cand = c + t * (u - c)
             try:
                 rep = self._report_raw(i, cand)
-            except EmptySurfaceError:
+            except EmptySurfaceError as exc:
+                empty = exc
                 continue
             if rep.get("realistic", not rep.get("flags")):
                 rep = {**rep, "projection_t": float(t)}
@@ -161,6 +163,8 @@ class ActorShapes:
                 self._projected[key] = (cand, rep)
                 return cand, rep
             flags = flags or list(rep.get("flags") or [])
+        if empty is not None and not flags:  # nothing decoded at all: that is the reason, not realism
+            raise empty
         raise UnrealisticShapeError(f"actor {self.targets[i]}: no shape between the query and the realistic "
                                     f"region's centre passes the realism report (the query fails "
                                     f"{', '.join(flags) or 'it'})")
