@@ -42,7 +42,7 @@ sys.path.insert(0, str(ROOT))
 from adv3d_runner.scene import Scene, save_scene  # noqa: E402
 from adv3d_runner.scene.actors import assign_assets  # noqa: E402
 from adv3d_runner.scene.commonroad import import_commonroad  # noqa: E402
-from adv3d_runner.scene.real import FRESH_RECORDINGS, FRESH_INDEX_HEADER, recording_of  # noqa: E402
+from adv3d_runner.scene.real import FRESH_INDEX_HEADER, FRESH_RECORDINGS, longest_file_per_recording  # noqa: E402
 from adv3d_runner.shapes.library import load_library  # noqa: E402
 
 SHARED = ROOT.parent / "shared" / "scenarios" / "commonroad-us101"
@@ -97,14 +97,7 @@ def main(argv: list[str] | None = None) -> int:
         wanted = {int(x) for x in args.recordings.split(",")}
         if not wanted <= set(FRESH_RECORDINGS):
             ap.error(f"--recordings: only the fresh recordings {list(FRESH_RECORDINGS)}")
-    files: dict[int, tuple[int, Path]] = {}
-    for f in sorted(Path(args.source).glob("USA_US101-*.xml")):
-        r = recording_of(f.stem)
-        if r not in wanted:
-            continue
-        size = f.stat().st_size
-        if r not in files or size > files[r][0]:
-            files[r] = (size, f)
+    files = longest_file_per_recording(args.source, wanted)
     missing = wanted - set(files)
     if missing:
         ap.error(f"{args.source}: no CommonRoad file of recording(s) {sorted(missing)}")
@@ -112,7 +105,7 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     lines = [",".join(FRESH_INDEX_HEADER)]
-    for r, (_, f) in sorted(files.items()):
+    for r, f in sorted(files.items()):
         cars = moving_cars(f, args.min_speed)
         digest = sha256(f)
         for i in spread(len(cars), args.per_recording):

@@ -27,7 +27,7 @@ sys.path.insert(0, str(ROOT))
 from adv3d_runner.scene import Scene, load_scene, save_scene  # noqa: E402
 from adv3d_runner.scene.commonroad import import_commonroad  # noqa: E402
 from adv3d_runner.scene.actors import assign_assets  # noqa: E402
-from adv3d_runner.scene.real import load_real_split, recording_of  # noqa: E402
+from adv3d_runner.scene.real import load_real_split, longest_file_per_recording, recording_of  # noqa: E402
 from adv3d_runner.shapes.library import load_library  # noqa: E402
 
 SHARED = ROOT.parent / "shared" / "scenarios" / "commonroad-us101"
@@ -62,19 +62,12 @@ def main() -> int:
         s = load_scene(p)
         used.setdefault(recording_of(p.name.split(".")[0]), set()).add(int(s.source.details["ego_obstacle_id"]))
     # one file per train recording: the one that records longest (its variants share the traffic)
-    files: dict[int, tuple[int, Path]] = {}
-    for f in sorted(Path(args.source).glob("USA_US101-*.xml")):
-        r = recording_of(f.stem)
-        if r not in train:
-            continue
-        size = f.stat().st_size
-        if r not in files or size > files[r][0]:
-            files[r] = (size, f)
+    files = longest_file_per_recording(args.source, train)
     library = load_library()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     index = []
-    for r, (_, f) in sorted(files.items()):
+    for r, f in sorted(files.items()):
         for oid in _full_cover_cars(f):
             if oid in used.get(r, set()):
                 continue

@@ -40,6 +40,17 @@ def recording_of(name: str) -> int:
     return int(m.group(1))
 
 
+
+def longest_file_per_recording(source: str | Path, recordings) -> dict[int, Path]:
+    """Per recording of ``recordings``, its largest ``USA_US101-*.xml`` file in ``source`` (the
+    one that records longest: a recording's variants share its traffic), by recording number."""
+    files: dict[int, tuple[int, Path]] = {}
+    for f in sorted(Path(source).glob("USA_US101-*.xml")):
+        r = recording_of(f.stem)
+        if r in recordings and (r not in files or f.stat().st_size > files[r][0]):
+            files[r] = (f.stat().st_size, f)
+    return {r: f for r, (_, f) in files.items()}
+
 @dataclass(frozen=True)
 class RealSplit:
     """The parts of the real scenes.
