@@ -1,6 +1,8 @@
 """What machine a measurement was taken on: benchmarks and training reports record it."""
 from __future__ import annotations
 
+import contextlib
+
 import os
 import platform
 from importlib.metadata import PackageNotFoundError, version
@@ -61,6 +63,24 @@ def single_thread_env() -> dict[str, str]:
     """
     return {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 
+
+
+@contextlib.contextmanager
+def single_thread_children():
+    """While the block runs, the environment holds :func:`single_thread_env`'s variables the user
+    has not set (a value the user set wins), so processes spawned in it start their numerical
+    libraries on one thread (they read the variables when numpy / torch load); restored after."""
+    env = {k: v for k, v in single_thread_env().items() if k not in os.environ}
+    saved = {k: os.environ.get(k) for k in env}
+    os.environ.update(env)
+    try:
+        yield
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
 
 def limit_threads() -> None:
     """One thread per numerical library in this process: the variables of

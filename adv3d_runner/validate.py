@@ -338,6 +338,22 @@ class Node:
         return resolve_inside(root, self.value, file=self.file, field=self.path, inside=inside)
 
 
+def read_optional_contract(path: str | Path, fmt: str, supported_versions: Sequence[int]) -> Node | None:
+    """An optional contract file (a run's ``avoidability.json``, ``failure_rate.json``, ...): None
+    when absent, else its root :class:`Node` with the ``format`` / ``version`` header checked
+    (``node.value`` is the document).
+
+    Raises:
+        FileFormatError: naming the file and field.
+    """
+    path = Path(path)
+    if not path.exists():
+        return None
+    node = Node(read_json(path), "$", path)
+    check_header(node, fmt, supported_versions)
+    return node
+
+
 def check_header(doc: Node | Any, fmt: str, supported_versions: Sequence[int],
                  file: str | Path | None = None) -> int:
     """Check the ``format`` / ``version`` header every contract file carries.

@@ -239,3 +239,18 @@ def test_read_npz_steps_names_the_file_for_a_corrupt_deflate_stream(tmp_path):
             assert "replay.points.npz" in str(exc)
             hits += 1
     assert hits > 0
+
+
+def test_optional_contract_absent_is_none_and_a_bad_header_names_the_file(tmp_path):
+    import json
+
+    from adv3d_runner.errors import FileFormatError
+    from adv3d_runner.validate import read_optional_contract
+
+    path = tmp_path / "avoidability.json"
+    assert read_optional_contract(path, "adv3d-avoidability", (1,)) is None
+    path.write_text(json.dumps({"format": "adv3d-avoidability", "version": 1, "scenes": {}}))
+    assert read_optional_contract(path, "adv3d-avoidability", (1,)).value["scenes"] == {}
+    path.write_text(json.dumps({"format": "adv3d-failure-rate", "version": 1}))
+    with pytest.raises(FileFormatError, match=r"avoidability\.json.*format"):
+        read_optional_contract(path, "adv3d-avoidability", (1,))

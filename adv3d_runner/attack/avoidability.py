@@ -279,18 +279,14 @@ def read_avoidability(run_dir: str | Path) -> dict[str, Any] | None:
     Raises:
         FileFormatError: naming the file and field.
     """
-    from ..fileio import read_json
-    from ..validate import Node, check_header
+    from ..validate import read_optional_contract
 
-    path = Path(run_dir) / FILE
-    if not path.exists():
+    node = read_optional_contract(Path(run_dir) / FILE, FORMAT, (VERSION,))
+    if node is None:
         return None
-    doc = read_json(path)
-    node = Node(doc, "$", path)
-    check_header(node, FORMAT, (VERSION,))
     node["scenes"].object("scene id -> the scene's avoidability")
     node["reference"].string()
-    return doc
+    return node.value
 
 
 def summary_line(doc: Mapping[str, Any]) -> str:

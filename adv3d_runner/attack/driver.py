@@ -111,23 +111,14 @@ class ProcessExecutor:
     writes_pending = True
 
     def __init__(self, workers: int):
-        from ..machine import single_thread_env
+        from ..machine import single_thread_children
 
         ctx = mp.get_context("spawn")
-        env = {k: v for k, v in single_thread_env().items() if k not in os.environ}  # the user's settings win
-        saved = {k: os.environ.get(k) for k in env}
-        os.environ.update(env)  # inherited by the spawned interpreters (read when numpy / torch load)
-        try:
+        with single_thread_children():
             self.pools = [cf.ProcessPoolExecutor(max_workers=1, mp_context=ctx, initializer=worker_setup)
                           for _ in range(int(workers))]
             for pool in self.pools:  # start them now, with this environment
                 pool.submit(int, 0).result()
-        finally:
-            for k, v in saved.items():
-                if v is None:
-                    os.environ.pop(k, None)
-                else:
-                    os.environ[k] = v
         self.slots = len(self.pools)
 
     def submit(self, slot: int, fn: Callable, *args) -> cf.Future:

@@ -201,17 +201,13 @@ def run_failure_rate(run_dir: str | Path, *, samples: int, eval_seeds: int = 3,
 
 def read_failure_rate(run_dir: str | Path) -> dict[str, Any] | None:
     """``RUN/failure_rate.json`` when there (format and version checked), else None."""
-    from ..fileio import read_json
-    from ..validate import Node, check_header
+    from ..validate import read_optional_contract
 
-    path = Path(run_dir) / FILE
-    if not path.exists():
+    node = read_optional_contract(Path(run_dir) / FILE, FORMAT, (VERSION,))
+    if node is None:
         return None
-    doc = read_json(path)
-    node = Node(doc, "$", path)
-    check_header(node, FORMAT, (VERSION,))
     node["scenes"].object("scene id -> the scene's failure rates")
-    return doc
+    return node.value
 
 
 def format_rate(block: Mapping[str, Any] | None) -> str:

@@ -353,26 +353,16 @@ def heldout_pool(workers: int):
     import atexit
     import concurrent.futures as cf
     import multiprocessing as mp
-    import os
 
     pool = _POOLS.get(int(workers))
     if pool is None:
-        from ..machine import limit_threads, single_thread_env
+        from ..machine import limit_threads, single_thread_children
 
-        env = {k: v for k, v in single_thread_env().items() if k not in os.environ}  # the user's settings win
-        saved = {k: os.environ.get(k) for k in env}
-        os.environ.update(env)  # inherited by the spawned interpreters (read when numpy / torch load)
-        try:
+        with single_thread_children():
             pool = cf.ProcessPoolExecutor(max_workers=int(workers), mp_context=mp.get_context("spawn"),
                                           initializer=limit_threads)
             for fut in [pool.submit(int, 0) for _ in range(int(workers))]:  # start them with this environment
                 fut.result()
-        finally:
-            for k, v in saved.items():
-                if v is None:
-                    os.environ.pop(k, None)
-                else:
-                    os.environ[k] = v
         _POOLS[int(workers)] = pool
         if len(_POOLS) == 1:
             atexit.register(lambda: [p.shutdown(cancel_futures=True) for p in _POOLS.values()])
