@@ -549,3 +549,27 @@ def test_a_plugin_stack_gets_a_safe_table_folder_and_tables_record_the_stack():
     assert "/" not in odd and " " not in odd and odd != pt.stack_folder("exec:/opt/venv/bin/python other.py")
     assert "stack" in pt.VERSION_KEYS
     assert pt.model_versions("oracle")["stack"]["name"] == "oracle"
+
+
+def test_a_realistic_region_table_on_fresh_scenes_has_its_own_folder(tmp_path, capsys):
+    """``--region realistic`` searches where the realism report passes and keeps the table in
+    ``<table>_<stack>[_b<budget>]_realistic`` (another protocol than the paper's box);
+    ``--fresh`` takes scenes of the fresh real part, labelled so in the table."""
+    mod = _driver()
+    args = ["table1", "--autonomy", "oracle", "--region", "realistic", "--scenes", "0", "--real", "0", "--fresh", "1",
+            "--seeds", "1", "--budget", "2", "--n-initial", "2", "--seconds", "0.3", "--eval-seeds", "1",
+            "--work", str(tmp_path / "work"), "--results", str(tmp_path / "res")]
+    assert mod.main(args) == 0
+    folder = tmp_path / "res" / "table1_oracle_b2_realistic"
+    proto = json.loads((folder / "protocol.json").read_text())
+    assert proto["region"] == "realistic" and proto["scenes"][0]["part"] == "real-fresh"
+    assert "fresh:" in proto["scene_rule"]
+    run = next(folder.glob("runs/bo/seed0/*/run.json"))
+    assert json.loads(run.read_text())["region"] == "realistic"
+    assert "fresh real (recording 10) 1" in (folder / "table.md").read_text()
+    assert not (tmp_path / "res" / "table1_oracle_b2").exists()
+    # a protocol.json without the key is the paper's box: growing it with the realistic region is refused
+    proto.pop("region")
+    (folder / "protocol.json").write_text(json.dumps(proto))
+    capsys.readouterr()
+    assert mod.main(args) == 1 and "region" in capsys.readouterr().err

@@ -136,3 +136,24 @@ def test_the_shared_original_evaluation_is_the_settings_own(tmp_path):
     res, _ = workspace_for(scene, settings).evaluate(None, closed_loop=True, seed=123)
     own = _clean({"seed": 123, "cost": res.cost, "components": res.components, "metrics": res.metrics})
     assert heldout_evaluate(scene, settings, None, 123) == own
+
+
+def test_fresh_scenes_spread_over_recordings_and_speed_ranks():
+    from adv3d_runner.attack.protocol import select_fresh
+    from adv3d_runner.scene.real import load_fresh_part
+
+    part = load_fresh_part()
+    nine = select_fresh(9)
+    assert [s.recording for s in nine] == list(part.recordings)   # one per fresh recording first
+    assert all(s.part == "real-fresh" and s.path.startswith("scenes/real-fresh/") for s in nine)
+    ranks = {}
+    for row, path in zip(part.rows, part.paths()):
+        ranks.setdefault(int(row["recording"]), []).append(path.name)
+    # recording j's first scene is its speed rank j mod n: the first round spreads over the ranks
+    got = [ranks[s.recording].index(s.path.split("/")[-1]) for s in nine]
+    assert got == [j % len(ranks[r]) for j, r in enumerate(sorted(ranks))]
+    more = select_scenes(2, 0, n_fresh=12)
+    assert more[:2] == select_scenes(2, 0) and more[2:11] == nine   # a larger set extends a smaller one
+    assert len({s.path for s in select_fresh(len(part.rows))}) == len(part.rows)
+    with pytest.raises(ConfigError, match="fresh real part holds"):
+        select_fresh(len(part.rows) + 1)

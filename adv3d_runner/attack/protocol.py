@@ -51,6 +51,15 @@ SCENE_RULE = (
     "recording's scenes in the file's order: round v takes each recording's v-th scene), until R "
     "scenes. Chosen from the scene files alone, before any attack ran on them.")
 
+#: The rule for the fresh real benchmark part (``scenes/real-fresh``), recorded in a table's
+#: protocol when it has fresh scenes.
+FRESH_RULE = (
+    "fresh: the scenes of scenes/real-fresh/index.csv (recordings 10-18, never trained or tuned on; "
+    "each recording's scenes are its egos at evenly spaced ranks of logged speed, slowest first), "
+    "rounds v = 0, 1, ... visit the recordings in ascending order and recording j takes its scene "
+    "of rank (j + v) mod (its scene count) not yet chosen, so every round spreads over the speed "
+    "ranks, until F scenes. Chosen from the manifest alone, before any attack ran on them.")
+
 
 @dataclass(frozen=True)
 class SceneChoice:
@@ -58,7 +67,8 @@ class SceneChoice:
 
     Attributes:
         path: the scene file, relative to the repository root when it lies inside it.
-        part: ``generated`` or ``real``.
+        part: ``generated``, ``real`` (the benchmark part of ``scenes/real``) or
+            ``real-fresh`` (``scenes/real-fresh``).
         density, layout: the generator's (generated scenes); ``recording``: the NGSIM
             recording (real scenes).
     """
@@ -94,10 +104,11 @@ def generated_catalogue(folder: str | Path = HIGHWAY_DIR) -> list[tuple[Path, st
     return out
 
 
-def select_scenes(n_generated: int, n_real: int, *, highway_dir: str | Path = HIGHWAY_DIR,
-                  split_path: str | Path | None = None) -> list[SceneChoice]:
+def select_scenes(n_generated: int, n_real: int, *, n_fresh: int = 0, highway_dir: str | Path = HIGHWAY_DIR,
+                  split_path: str | Path | None = None, fresh_dir: str | Path | None = None) -> list[SceneChoice]:
     """The protocol's scene set by :data:`SCENE_RULE`: ``n_generated`` generated scenes, then
-    ``n_real`` real benchmark scenes.
+    ``n_real`` real benchmark scenes, then ``n_fresh`` scenes of the fresh real part
+    (:data:`FRESH_RULE`).
 
     Raises:
         ConfigError: fewer scenes exist than asked for.
@@ -149,7 +160,45 @@ def select_scenes(n_generated: int, n_real: int, *, highway_dir: str | Path = HI
         if len(chosen) < n_real:
             raise ConfigError(f"the real benchmark part holds {len(chosen)} scenes, {n_real} asked for")
         out += chosen
+    if n_fresh < 0:
+        raise ConfigError(f"the fresh scene count must be >= 0, got {n_fresh}")
+    if n_fresh:
+        out += select_fresh(n_fresh, fresh_dir)
     return out
+
+
+def select_fresh(n_fresh: int, folder: str | Path | None = None) -> list[SceneChoice]:
+    """``n_fresh`` scenes of the fresh real part by :data:`FRESH_RULE` (manifest
+    ``<folder>/index.csv``, default ``scenes/real-fresh``).
+
+    Raises:
+        ConfigError: the part holds fewer scenes; FileFormatError: a bad manifest."""
+    from ..scene.real import load_fresh_part
+
+    part = load_fresh_part(folder)
+    by_rec: dict[int, list[Path]] = {}
+    for row, path in zip(part.rows, part.paths()):
+        by_rec.setdefault(int(row["recording"]), []).append(path)
+    if n_fresh > sum(len(p) for p in by_rec.values()):
+        raise ConfigError(f"the fresh real part holds {sum(len(p) for p in by_rec.values())} scenes, "
+                          f"{n_fresh} asked for")
+    chosen: list[SceneChoice] = []
+    taken: set[Path] = set()
+    v = 0
+    while len(chosen) < n_fresh:
+        for j, rec in enumerate(sorted(by_rec)):
+            paths = by_rec[rec]
+            # rank (j + v) mod n, or the next one not yet taken
+            for q in range(len(paths)):
+                path = paths[(j + v + q) % len(paths)]
+                if path not in taken:
+                    taken.add(path)
+                    chosen.append(SceneChoice(_rel(path), "real-fresh", recording=rec))
+                    break
+            if len(chosen) == n_fresh:
+                break
+        v += 1
+    return chosen
 
 
 def evaluation_seeds(run_seed: int, scene_digest: str, k: int) -> list[int]:

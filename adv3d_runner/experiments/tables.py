@@ -90,10 +90,12 @@ class TableSpec:
     compute_column: bool = False
     note: str = ""
 
-    def folder(self, autonomy: str, budget: int = 100) -> str:
-        """``<table>_<autonomy>``, with ``_b<budget>`` for a budget other than the paper's 100 (a
-        reduced-budget table is another protocol: it never mixes with the full one)."""
-        return f"{self.name}_{stack_folder(autonomy)}" + ("" if budget == 100 else f"_b{budget}")
+    def folder(self, autonomy: str, budget: int = 100, region: str = "paper") -> str:
+        """``<table>_<autonomy>``, with ``_b<budget>`` for a budget other than the paper's 100 and
+        ``_realistic`` for the realistic search region (another budget or region is another
+        protocol: it never mixes with the paper's)."""
+        return (f"{self.name}_{stack_folder(autonomy)}" + ("" if budget == 100 else f"_b{budget}")
+                + ("" if region == "paper" else f"_{region}"))
 
 
 def _realistic() -> dict:
@@ -202,6 +204,24 @@ TABLES: dict[str, TableSpec] = {
 
 # ============================================================================ running
 
+def scene_key(path: str) -> str:
+    """A protocol scene's key in a table: its file name without ``.json``/``.json.gz`` (the
+    scene id without ``commonroad-``; fresh real scenes carry ``.ego<id>`` in it)."""
+    name = path.split("/")[-1]
+    for ext in (".json.gz", ".json"):
+        if name.endswith(ext):
+            return name[: -len(ext)]
+    return name
+
+
+def part_label(s: dict) -> str:
+    """A protocol scene's part in a table's header: its density (generated), ``real (recording
+    N)`` or ``fresh real (recording N)``."""
+    if s.get("density"):
+        return str(s["density"])
+    return f"{'fresh real' if s.get('part') == 'real-fresh' else 'real'} (recording {s.get('recording')})"
+
+
 def _json_object(path: Path, list_key: str | None = None) -> dict:
     """A kept JSON file that must be an object (with a list under ``list_key`` when given);
     FileFormatError naming the file otherwise."""
@@ -227,10 +247,21 @@ def scene_id_of(path: str) -> str:
     return str(read_json(REPO / path if not Path(path).is_absolute() else path)["id"])
 
 
+def setting_region(spec: TableSpec, setting: str, region: str) -> str:
+    """A setting's search region: ``region``, except the paper's box for the settings the
+    realistic region does not apply to (vertex deformation, brute force over the library;
+    ``adv3d attack --region``'s rule)."""
+    knobs = spec.settings[setting]
+    if knobs.get("shape_model") == "vd" or knobs.get("algo") == "bruteforce":
+        return "paper"
+    return region
+
+
 def setting_config(spec: TableSpec, setting: str, scene: str, seed: int, args) -> "object":
     from adv3d_runner.attack.config import AttackConfig
 
     knobs = dict(spec.settings[setting])
+    knobs["region"] = setting_region(spec, setting, getattr(args, "region", "paper"))
     if spec.name == "realism" and setting == "realistic":
         knobs.update(_realistic())
     scale = spec.budget_scale.get(setting)
@@ -336,10 +367,15 @@ def protocol_doc(spec: TableSpec, args, scenes) -> dict:
     from adv3d_runner.attack.protocol import SCENE_RULE
     from adv3d_runner.metrics.stats import CONFIDENCE, EXACT_MAX_N, N_RESAMPLES
 
+    from adv3d_runner.attack.protocol import FRESH_RULE
+
+    region = getattr(args, "region", "paper")
+    extra = {} if region == "paper" else {"region": region}  # absent: the paper's box (every table before)
+    rule = SCENE_RULE + (" " + FRESH_RULE if any(s.part == "real-fresh" for s in scenes) else "")
     return {"table": spec.name, "autonomy": args.autonomy, "budget": args.budget, "n_initial": args.n_initial,
             "seconds": args.seconds, "batch": args.batch, "eval_seeds": args.eval_seeds,
-            "pred_reduction": args.pred_reduction, "objective": "per setting (default M0)",
-            "scene_rule": SCENE_RULE, "scenes": [s.as_dict() for s in scenes],
+            "pred_reduction": args.pred_reduction, "objective": "per setting (default M0)", **extra,
+            "scene_rule": rule, "scenes": [s.as_dict() for s in scenes],
             "bootstrap": {"kind": "percentile, over scenes", "n_resamples": N_RESAMPLES, "confidence": CONFIDENCE,
                           "seed": 0},
             "test": f"paired sign-flip permutation test of the mean per-scene difference, two-sided, exact up to "
@@ -379,7 +415,9 @@ def stack_folder(autonomy: str) -> str:
     return f"{tail}-{hashlib.sha256(autonomy.encode()).hexdigest()[:8]}"
 
 
-PROTOCOL_KEYS = ("autonomy", "budget", "n_initial", "seconds", "batch", "eval_seeds", "pred_reduction")
+PROTOCOL_KEYS = ("autonomy", "budget", "n_initial", "seconds", "batch", "eval_seeds", "pred_reduction", "region")
+#: A protocol key's value when protocol.json leaves it out (written only when not the default).
+PROTOCOL_DEFAULTS = {"region": "paper"}
 
 
 #: What a table's numbers depend on beyond its options (run.json ``versions``): the shape space,
@@ -427,12 +465,13 @@ def run_transfer(spec: TableSpec, args, command: str) -> Path:
     src = args.source_autonomy or ("B" if args.autonomy == "A" else "A")
     if src == args.autonomy:
         raise ConfigError("transfer: --source-autonomy must differ from --autonomy")
-    source = Path(args.results) / TABLES["table1"].folder(src, args.budget)
+    region = getattr(args, "region", "paper")
+    source = Path(args.results) / TABLES["table1"].folder(src, args.budget, region)
     kept = load_kept(source)
     if not kept:
         raise ConfigError(f"transfer: no kept table1 runs of Autonomy-{src} in {source}; run table1 --autonomy {src} "
                           f"--budget {args.budget} first")
-    results = Path(args.results) / spec.folder(args.autonomy, args.budget)
+    results = Path(args.results) / spec.folder(args.autonomy, args.budget, region)
     proto = read_protocol(source / "protocol.json")
     # the numbers are the target stack's (its weights evaluate); the shapes were found with the source's
     proto.update(table="transfer", autonomy=args.autonomy, transfer_from=src, source_folder=source.name,
@@ -453,7 +492,7 @@ def run_transfer(spec: TableSpec, args, command: str) -> Path:
         n_new = run_heldout(heldout_tasks(k["summary"], k["seed"], k_eval), cfg.settings, store, workers=args.workers)
         compute.update(heldout=n_new)
         print(f"[transfer {src}->{args.autonomy}] seed{k['seed']}/{k['scene']}: {n_new} held-out evaluations", flush=True)
-    return build_table(spec, args.autonomy, Path(args.results), args.budget)
+    return build_table(spec, args.autonomy, Path(args.results), args.budget, region=region)
 
 
 def run_table(spec: TableSpec, args, command: str) -> Path:
@@ -466,10 +505,11 @@ def run_table(spec: TableSpec, args, command: str) -> Path:
         raise ConfigError(f"{spec.name} cannot run yet: {spec.needs}")
     if spec.name == "transfer":
         return run_transfer(spec, args, command)
-    folder = spec.folder(args.autonomy, args.budget)
+    region = getattr(args, "region", "paper")
+    folder = spec.folder(args.autonomy, args.budget, region)
     results = Path(args.results) / folder
     work = Path(args.work) / folder
-    scenes = select_scenes(args.scenes, args.real)
+    scenes = select_scenes(args.scenes, args.real, n_fresh=getattr(args, "fresh", 0))
     for setting in spec.settings if scenes else ():  # every setting's attack is valid (bounds, memory)
         setting_config(spec, setting, scenes[0].path, 0, args)  # before anything is written
     proto = protocol_doc(spec, args, scenes)
@@ -477,10 +517,13 @@ def run_table(spec: TableSpec, args, command: str) -> Path:
     proto_path = results / "protocol.json"
     if proto_path.exists():
         old = read_protocol(proto_path)
-        diff = [k for k in PROTOCOL_KEYS if old.get(k) != proto.get(k)]
+        def val(doc: dict, k: str):
+            return doc.get(k, PROTOCOL_DEFAULTS.get(k))
+
+        diff = [k for k in PROTOCOL_KEYS if val(old, k) != val(proto, k)]
         if diff:
             raise ConfigError(f"{proto_path} was grown with other protocol values ({', '.join(diff)}: "
-                              f"{[old.get(k) for k in diff]} now {[proto.get(k) for k in diff]}); use another --results")
+                              f"{[val(old, k) for k in diff]} now {[val(proto, k) for k in diff]}); use another --results")
         made = made_with(old, results)
         if made and "stack" not in made:  # kept before stacks were recorded: its stack is --autonomy's
             made = {**made, "stack": proto["versions"].get("stack")}
@@ -533,7 +576,7 @@ def run_table(spec: TableSpec, args, command: str) -> Path:
     if shard is not None:  # the other shards may still run: the table is built once they are all done
         print(f"[{spec.name}] shard {shard[0]}/{shard[1]} done; build the table with --table-only", flush=True)
         return results
-    return build_table(spec, args.autonomy, Path(args.results), args.budget)
+    return build_table(spec, args.autonomy, Path(args.results), args.budget, region=region)
 
 
 def keep_avoidability(summary: dict, seed: int, eval_seeds: int, cfg, store, keep_dir: Path, workers: int) -> int:
@@ -802,7 +845,8 @@ def _missing_from(kept: list[dict], settings: list[str], floor: tuple[list[int],
     return out
 
 
-def build_table(spec: TableSpec, autonomy: str, results_root: Path, budget: int = 100, only: bool = False) -> Path:
+def build_table(spec: TableSpec, autonomy: str, results_root: Path, budget: int = 100, only: bool = False,
+                region: str = "paper") -> Path:
     """table.json and table.md of a table folder, from its kept files alone (:func:`load_kept`
     checks them). ``only`` (``--table-only``): the folder must hold a table's protocol.json.
 
@@ -817,7 +861,7 @@ def build_table(spec: TableSpec, autonomy: str, results_root: Path, budget: int 
     from adv3d_runner.errors import ConfigError
     from adv3d_runner.metrics.stats import bootstrap_ci, paired_mde, paired_summary
 
-    results = results_root / spec.folder(autonomy, budget)
+    results = results_root / spec.folder(autonomy, budget, region)
     METRICS = metrics_for(autonomy)
     if only and not (results / "protocol.json").is_file():
         raise ConfigError(f"{results}: no protocol.json, so no table was run there (--results {results_root}, "
@@ -847,7 +891,7 @@ def build_table(spec: TableSpec, autonomy: str, results_root: Path, budget: int 
     weights = {}
     for k in kept:
         weights.setdefault(k["setting"], AttackConfig.from_run_json(k["run"]).settings.weights)
-    scene_part = {s["path"].split("/")[-1].split(".")[0]: s for s in proto.get("scenes", [])}
+    scene_part = {scene_key(s["path"]): s for s in proto.get("scenes", [])}
 
     def per_scene(name: str, value) -> dict[str, float]:
         return scene_means(((e["scene"], r) for e in rows[name] for r in e["heldout"]), value)
@@ -1127,7 +1171,8 @@ def table_markdown(spec: TableSpec, doc: dict, scene_part: dict) -> str:
     from adv3d_runner.attack.protocol import metrics_for
 
     METRICS = metrics_for(doc["autonomy"])
-    folder_name = spec.folder(doc["autonomy"], int(doc.get("protocol", {}).get("budget") or 100))
+    folder_name = spec.folder(doc["autonomy"], int(doc.get("protocol", {}).get("budget") or 100),
+                              str(doc.get("protocol", {}).get("region") or "paper"))
     proto = doc.get("protocol", {})
     rows = doc["rows"]
     lines = [f"### {spec.title}, Autonomy-{doc['autonomy']}", ""]
@@ -1137,8 +1182,7 @@ def table_markdown(spec: TableSpec, doc: dict, scene_part: dict) -> str:
     form = any_row.get("objective_form", {})
     parts = {}
     for s in proto.get("scenes", []):
-        parts.setdefault(s.get("density") or f"real (recording {s.get('recording')})", 0)
-        parts[s.get("density") or f"real (recording {s.get('recording')})"] += 1
+        parts[part_label(s)] = parts.get(part_label(s), 0) + 1
     cpu = doc["compute"].get("cpu_s_total")
     done_scenes = max(r["n_scenes"] for r in rows.values())
     done_seeds = sorted({s for r in rows.values() for s in r["seeds"]})
@@ -1260,7 +1304,8 @@ def table_markdown(spec: TableSpec, doc: dict, scene_part: dict) -> str:
     scenes = sorted({s for r in rows.values() for s in r["metrics"]["objective"]["per_scene"]})
     for s in scenes:
         info = scene_part.get(s.replace("commonroad-", ""), {})
-        part = info.get("density") or (f"real, rec. {info.get('recording')}" if info.get("recording") else "")
+        part = info.get("density") or (f"{'fresh ' if info.get('part') == 'real-fresh' else ''}real, rec. "
+                                       f"{info.get('recording')}" if info.get("recording") else "")
         cells = []
         for n in names:
             o = rows[n]["metrics"]["objective"]["per_scene"].get(s, float("nan"))
