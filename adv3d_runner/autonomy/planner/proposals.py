@@ -129,6 +129,14 @@ class ProposalConfig:
         min_headway: s, the shortest headway ``headway_relaxation`` accepts.
         closing_speed: m/s; a leader slower than the ego by more than this is closing in, and
             its short headway is not accepted.
+        moveoff_gap: m; > 0 (and < ``idm_gap``): the IDM's jam distance falls towards this
+            while the ego is slow and its leader pulls away (:func:`moveoff_jam_gap`), so that
+            the ego moves off behind a queue's leader as soon as the leader does instead of
+            standing until the gap has grown past ``idm_gap`` (recorded queues stand at 2-3 m
+            bumper gaps; the ``headway`` cost accepts 2 m at standstill); 0: off.
+            ``moveoff_speed`` (m/s): the ego speed at which the jam distance is ``idm_gap``
+            again; ``moveoff_dv`` (m/s): the leader's lead in speed at which the whole drop
+            applies.
     """
 
     horizon: float = 5.0
@@ -172,6 +180,9 @@ class ProposalConfig:
     stop_jerk: float = 4.0
     smooth_resolution_speed: float = 0.0
     smooth_cautious: bool = True
+    moveoff_gap: float = 0.0
+    moveoff_speed: float = 3.0
+    moveoff_dv: float = 1.0
 
     def __post_init__(self):
         if self.leader_modes not in ("expected", "quantile", "nearest"):
@@ -179,12 +190,33 @@ class ProposalConfig:
         if self.headway_relaxation < 0.0 or not 0.0 < self.min_headway <= self.idm_headway:
             raise ValueError(f"headway_relaxation must be >= 0 s and min_headway in (0, idm_headway], got "
                              f"{self.headway_relaxation!r} and {self.min_headway!r}")
+        if self.moveoff_gap < 0.0 or self.moveoff_speed <= 0.0 or self.moveoff_dv <= 0.0:
+            raise ValueError(f"moveoff_gap must be >= 0 m and moveoff_speed, moveoff_dv > 0 m/s, got "
+                             f"{self.moveoff_gap!r}, {self.moveoff_speed!r}, {self.moveoff_dv!r}")
         if self.firm_braking is not None and self.firm_braking <= 0.0:
             raise ValueError(f"firm_braking must be > 0 m/s^2 or None, got {self.firm_braking!r}")
 
     @property
     def steps(self) -> int:
         return int(round(self.horizon / self.dt))
+
+
+#: Rules whose switch, at its "off" value, leaves every plan bit for bit as before the rule
+#: existed: switch field -> (off value, the rule's fields). While off, the rule's fields are left
+#: out of the planner's fingerprint (:func:`fingerprint_fields`), so adding a rule switched off
+#: does not invalidate kept runs and caches.
+RULES_OFF = {"moveoff_gap": (0.0, ("moveoff_gap", "moveoff_speed", "moveoff_dv"))}
+
+
+def fingerprint_fields(proposals: dict) -> dict:
+    """``dataclasses.asdict`` of a :class:`ProposalConfig` less the fields of every rule of
+    :data:`RULES_OFF` that is switched off (what the planner's fingerprint hashes)."""
+    out = dict(proposals)
+    for switch, (off, names) in RULES_OFF.items():
+        if out.get(switch) == off:
+            for name in names:
+                out.pop(name, None)
+    return out
 
 
 @dataclass
@@ -410,6 +442,7 @@ def rollout_candidates(ego_pose: np.ndarray, ego_speed: float, ego_accel: float,
         1.0 if config.alongside_leads else 0.0,
         config.idm_decel if config.firm_braking is None else config.firm_braking,
         config.smooth_resolution, config.stop_jerk, config.smooth_resolution_speed,
+        config.moveoff_gap, config.moveoff_speed, config.moveoff_dv,
     ], dtype=np.float64)
     cautious = _mode_bounds(spec, target_d, s0, modes, ego_length, T) if modes else {}
     plan = _smooth_plans(spec, s0, v0, float(ego_accel), lead_s_ok, lead_back, config, params, headway, T, cautious)
@@ -483,7 +516,8 @@ def _smooth_plans(spec: CandidateSpec, s0: np.ndarray, v0: float, a0: float, lea
 # indices into the ``limits`` vector of :func:`_rollout_kernel`
 (_IDM_ACCEL, _IDM_DECEL, _IDM_GAP, _IDM_HEADWAY, _MAX_DECEL, _JERK_DN, _BRAKE_DN, _UP_RELEASE, _DEADBAND,
  _COOLNESS, _LA_TIME, _LA_MIN, _LAT_LIM, _KAPPA_MAX, _VEH_ACC, _VEH_DEC, _VEH_SPEED, _LR, _DT, _FIRM_RELEASE,
- _CLAMP_VEHICLE, _ALONGSIDE_LEADS, _FIRM_AT, _SMOOTH_RES, _STOP_JERK, _SMOOTH_RES_SPEED) = range(26)
+ _CLAMP_VEHICLE, _ALONGSIDE_LEADS, _FIRM_AT, _SMOOTH_RES, _STOP_JERK, _SMOOTH_RES_SPEED,
+ _MOVEOFF_GAP, _MOVEOFF_SPEED, _MOVEOFF_DV) = range(29)
 
 
 @kernel
@@ -584,7 +618,9 @@ def _rollout_kernel(pose, v0, a0, s0, inv_trans, hermite, v_des, emergency, acce
                 if gap <= 0.0:
                     a = -max_decel
                 else:
-                    s_star = limits[_IDM_GAP] + max(0.0, v * limits[_IDM_HEADWAY] + v * (v - v_lead) / sqrt_ab)
+                    jam = moveoff_jam_gap(limits[_IDM_GAP], v, v_lead, limits[_MOVEOFF_GAP], limits[_MOVEOFF_SPEED],
+                                          limits[_MOVEOFF_DV])
+                    s_star = jam + max(0.0, v * limits[_IDM_HEADWAY] + v * (v - v_lead) / sqrt_ab)
                     q = s_star / max(gap, 0.1)
                     a = a - idm_accel * (q * q)
                     if coolness > 0.0:
@@ -952,6 +988,27 @@ def _groups(corridor: np.ndarray, target_d: np.ndarray) -> tuple[np.ndarray, np.
     rows = sorted(set(keys))
     where = {k: i for i, k in enumerate(rows)}
     return np.array(rows, np.float64).reshape(-1, 2), np.array([where[k] for k in keys], np.int64)
+
+
+@kernel
+def moveoff_jam_gap(jam_gap: float, v: float, v_lead: float, moveoff_gap: float, moveoff_speed: float,
+                    moveoff_dv: float) -> float:
+    """The IDM's jam distance s0 (m) for an ego at ``v`` behind a leader at ``v_lead`` (m/s).
+
+    ``jam_gap`` (the IDM's s0), except while the ego is slower than ``moveoff_speed`` and the
+    leader faster than the ego: then it falls linearly towards ``moveoff_gap``, by the fraction
+    (1 - v / moveoff_speed) x min(1, (v_lead - v) / moveoff_dv). At standstill the IDM's
+    acceleration is a_max (1 - (s0 / gap)^2), which is not positive while the gap is below s0:
+    with s0 = 3 m an ego standing 2.5 m behind a leader that rolls off waits until the leader has
+    opened the gap past 3 m (3.2 m with the acceleration deadband). A leader that stands or is
+    slower than the ego (an approach, a stop) keeps ``jam_gap``, so where the ego stops is
+    unchanged. The value is continuous in ``v`` and ``v_lead``. ``moveoff_gap`` <= 0 or >=
+    ``jam_gap``: off (``jam_gap``).
+    """
+    if moveoff_gap <= 0.0 or moveoff_gap >= jam_gap or v_lead <= v or v >= moveoff_speed:
+        return jam_gap
+    w = (1.0 - v / moveoff_speed) * min(1.0, (v_lead - v) / moveoff_dv)
+    return jam_gap - (jam_gap - moveoff_gap) * w
 
 
 @kernel
