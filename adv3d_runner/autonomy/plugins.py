@@ -216,8 +216,11 @@ def planner_fingerprint() -> str:
     import json
 
     from .planner.planner import PlannerConfig
+    from .planner.proposals import fingerprint_fields
 
-    text = json.dumps(dataclasses.asdict(PlannerConfig()), sort_keys=True, default=str)
+    doc = dataclasses.asdict(PlannerConfig())
+    doc["proposals"] = fingerprint_fields(doc["proposals"])  # a rule switched off is not hashed
+    text = json.dumps(doc, sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
