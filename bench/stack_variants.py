@@ -4,6 +4,9 @@
   (``bench/predictor_finetune.py --out runs/predictor-ft``, copied there; docs/benchmark.md) in
   place of the shipped one; its ``stack_info`` names the variant and carries the SHA-256 of
   those weights.
+* ``a_predictor_anchored``: Autonomy-A with the anchored predictor of
+  ``assets/models/predictor-anchored`` (``python -m adv3d_runner.training.predictor_anchored``,
+  docs/predictor.md), named and fingerprinted the same way.
 """
 from __future__ import annotations
 
@@ -13,16 +16,28 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 FT_PREDICTOR = ROOT / "assets" / "models" / "predictor-fresh-ft"
+ANCHORED_PREDICTOR = ROOT / "assets" / "models" / "predictor-anchored"
 
 
-def a_predictor_ft():
-    """Autonomy-A with the fine-tuned predictor (see the module docstring)."""
+def _with_predictor(folder: Path, name: str, tag: str):
+    """Autonomy-A with the predictor of ``folder``, its stack_info named ``name`` and its
+    fingerprint extended by ``tag=<SHA-256 of the weights, 16 hex>``."""
     from adv3d_runner.autonomy.predictor import load_predictor
     from adv3d_runner.autonomy.stacks import own_stack
 
     stack = own_stack("A")
-    stack.predictor = load_predictor(FT_PREDICTOR)
-    digest = hashlib.sha256((FT_PREDICTOR / "weights.pt").read_bytes()).hexdigest()[:16]
-    stack.stack_info = dataclasses.replace(stack.stack_info, name="A-predictor-ft",
-                                           fingerprint=f"{stack.stack_info.fingerprint};predictor-ft={digest}")
+    stack.predictor = load_predictor(folder)
+    digest = hashlib.sha256((folder / "weights.pt").read_bytes()).hexdigest()[:16]
+    stack.stack_info = dataclasses.replace(stack.stack_info, name=name,
+                                           fingerprint=f"{stack.stack_info.fingerprint};{tag}={digest}")
     return stack
+
+
+def a_predictor_ft():
+    """Autonomy-A with the fine-tuned predictor (see the module docstring)."""
+    return _with_predictor(FT_PREDICTOR, "A-predictor-ft", "predictor-ft")
+
+
+def a_predictor_anchored():
+    """Autonomy-A with the anchored predictor (see the module docstring)."""
+    return _with_predictor(ANCHORED_PREDICTOR, "A-predictor-anchored", "predictor-anchored")

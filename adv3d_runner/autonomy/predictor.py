@@ -56,7 +56,8 @@ DEFAULT_MODEL_DIR = MODEL_DIRS["predictor"]
 WEIGHTS_NAME = "weights.pt"
 CONFIG_NAME = "config.json"
 MODEL_FORMAT = "adv3d-predictor"
-MODEL_VERSION = 1
+MODEL_VERSION = 1                                     # prior-based models (the residuals refine one prior)
+ANCHORED_VERSION = 2                                  # anchored models (one lane-following anchor per mode)
 
 HISTORY = 10                                          # past states used (1 s at 10 Hz)
 LANE_OFFSETS = np.arange(-10.0, 200.1, 10.0)          # m along the lane from the agent (22)
@@ -66,6 +67,8 @@ CHAIN_STEP = 2.0                                      # m, resampling of the lan
 CHAIN_AHEAD = float(LANE_OFFSETS[-1]) + 20.0          # m chained past a lane's end
 DEFAULT_SPEED_LIMIT = 29.0                            # m/s when a lane has none (feature "limit")
 OFF_LANE = 1.0                                        # m outside a lane strip still lane-bound (prior)
+PATH_STEP = 2.0                                       # m between the points of a track's lane path
+PATH_S = np.arange(0.0, 250.0 + 0.5 * PATH_STEP, PATH_STEP)  # (126,) arc lengths of the lane path, m
 
 # feature block sizes (kept in one place so the layout is documented and checked)
 _HIST_F = HISTORY * 5
@@ -141,9 +144,10 @@ def encode(tracks: Tracks, lane_map: LaneMap, steps: int = PREDICTION_STEPS,
     return _encode(tracks, lane_map, steps, dt)[:2]
 
 
-def _encode(tracks: Tracks, lane_map: LaneMap, steps: int, dt: float):
+def _encode(tracks: Tracks, lane_map: LaneMap, steps: int, dt: float, with_path: bool = False):
     """:func:`encode` of n > 0 tracks -> features, prior, and for :meth:`LearnedPredictor.predict`
-    the sanitized boxes (n, 5), ``ok`` (n,) (the box is finite) and cos, sin of their yaw (n,)."""
+    the sanitized boxes (n, 5), ``ok`` (n,) (the box is finite) and cos, sin of their yaw (n,);
+    with ``with_path`` also the lane path (n, len(PATH_S), 2) of :func:`lane_paths`."""
     n = len(tracks)
     boxes, vel, hist, hv, misses = _track_arrays(tracks, n)
     boxes, vel, hist, hv, ok, dyaw, rel = _sanitize_kernel(boxes, vel, hist, hv)
@@ -155,7 +159,58 @@ def _encode(tracks: Tracks, lane_map: LaneMap, steps: int, dt: float):
     lanes = _lane_arrays(lane_index(lane_map)) if len(lane_map) else _NO_LANES
     feats, prior = _features_kernel(boxes, vel, hist, hv, ok, c, s, cd, sd, speed, dist, rel, misses,
                                     _times(steps, dt), LANE_OFFSETS, *lanes, _CAST)
-    return feats, prior, boxes, ok, c, s
+    if not with_path:
+        return feats, prior, boxes, ok, c, s
+    # the lane path: the prior's rule at 1 m/s along the heading, sampled at the arc lengths PATH_S
+    # (the same kernel; its features of this call are not used)
+    unit = np.ascontiguousarray(np.c_[c, s])
+    _, path = _features_kernel(boxes, unit, hist, hv, ok, c, s, cd, sd, np.ones(n), dist, rel, misses,
+                               PATH_S, LANE_OFFSETS, *lanes, _CAST)
+    return feats, prior, boxes, ok, c, s, path
+
+
+def lane_paths(tracks: Tracks, lane_map: LaneMap) -> np.ndarray:
+    """Each track's lane path in its agent frame: (N, len(PATH_S), 2) float32, the points at arc
+    lengths ``PATH_S`` (0, 2, .., 250 m) along its lane chain keeping its lateral offset, or
+    straight ahead for a track more than ``OFF_LANE`` m outside its lane strip (the prior's rule,
+    :func:`encode`). The anchors of an anchored model move along it (:func:`anchor_trajectories`)."""
+    n = len(tracks)
+    if n == 0:
+        return np.zeros((0, len(PATH_S), 2), np.float32)
+    return _encode(tracks, lane_map, PREDICTION_STEPS, DT, with_path=True)[6]
+
+
+def anchor_speed(feats: np.ndarray) -> np.ndarray:
+    """(N,) m/s the anchors start from: the Kalman velocity along the heading, >= 0, as the
+    features hold it (feature ``_HIST_F`` is that velocity / 10; the prior uses the same speed)."""
+    return np.maximum(np.asarray(feats, np.float64)[:, _HIST_F] * 10.0, 0.0)
+
+
+def anchor_trajectories(path: np.ndarray, speed: np.ndarray, scales, accels, steps: int = PREDICTION_STEPS,
+                        dt: float = DT) -> np.ndarray:
+    """Lane-following anchors: (N, K, steps, 2) agent-frame positions at t = dt .. steps dt.
+
+    Mode k moves along the track's lane path (``path`` (N, G, 2) at arc lengths ``PATH_S``) at the
+    speed ``max(scales[k] * speed + accels[k] * t, 0)`` m/s (``speed`` (N,) m/s): a scale of 1
+    and no acceleration is the lane-following baseline's first mode, a negative acceleration
+    brakes to a stop and stays there. Past the path's end the last segment is extended."""
+    path = np.asarray(path, np.float64)
+    v0 = np.asarray(speed, np.float64)[:, None, None] * np.asarray(scales, np.float64)[None, :, None]
+    a = np.broadcast_to(np.asarray(accels, np.float64)[None, :, None], v0.shape)
+    t = (np.arange(1, steps + 1) * dt)[None, None, :]
+    s_go = v0 * t + 0.5 * a * t * t
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_stop = np.where(a < 0, v0 / np.where(a < 0, -a, 1.0), np.inf)
+        s_stop = np.where(a < 0, v0 * v0 / np.where(a < 0, -2.0 * a, 1.0), np.inf)
+    s_arc = np.where(t < t_stop, s_go, s_stop)                         # (N, K, T)
+    G = path.shape[1]
+    u = np.maximum(s_arc / PATH_STEP, 0.0)
+    i = np.minimum(np.floor(u).astype(np.int64), G - 2)
+    f = (u - i)[..., None]
+    rows = np.arange(len(path))[:, None, None]
+    p0 = path[rows, i]
+    p1 = path[rows, i + 1]
+    return p0 + f * (p1 - p0)
 
 
 def _history(tracks: Tracks, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -564,6 +619,15 @@ class PredictorConfig:
     layers: int = 3
     residual_scale: float = 10.0   # m: network outputs are residuals / this
     dt: float = DT
+    # anchored models (empty for the prior-based ones): mode k's anchor follows the lane path at
+    # max(anchor_scales[k] * speed + anchor_accels[k] * t, 0) m/s (anchor_trajectories)
+    anchor_scales: tuple[float, ...] = ()
+    anchor_accels: tuple[float, ...] = ()
+
+    @property
+    def anchored(self) -> bool:
+        """The residuals refine one lane-following anchor per mode instead of the one prior."""
+        return len(self.anchor_scales) > 0
 
 
 def build_net(config: PredictorConfig):
@@ -572,8 +636,8 @@ def build_net(config: PredictorConfig):
     from torch import nn
 
     class PredictorNet(nn.Module):
-        """features (B, F) + prior (B, T, 2) -> trajectories (B, K, T, 2) m in the agent frame
-        (prior + residuals), mode logits (B, K)."""
+        """features (B, F) + prior (B, T, 2) or anchors (B, K, T, 2) -> trajectories (B, K, T, 2)
+        m in the agent frame (prior or anchors + residuals), mode logits (B, K)."""
 
         def __init__(self, cfg: PredictorConfig):
             super().__init__()
@@ -585,12 +649,16 @@ def build_net(config: PredictorConfig):
             self.body = nn.Sequential(*body)
             self.traj = nn.Linear(cfg.hidden, cfg.num_modes * cfg.steps * 2)
             self.logits = nn.Linear(cfg.hidden, cfg.num_modes)
+            if cfg.anchored:  # untrained, it predicts the anchors themselves
+                nn.init.zeros_(self.traj.weight)
+                nn.init.zeros_(self.traj.bias)
 
         def forward(self, feats, prior):
             h = self.body(feats)
             B = feats.shape[0]
             res = self.traj(h).view(B, self.cfg.num_modes, self.cfg.steps, 2) * self.cfg.residual_scale
-            return prior[:, None] + res, self.logits(h)
+            base = prior if prior.dim() == 4 else prior[:, None]
+            return base + res, self.logits(h)
 
     return PredictorNet(config)
 
@@ -623,15 +691,29 @@ class LearnedPredictor:
         """Predict on ``lane_map`` until the next reset."""
         self.lane_map = lane_map
 
-    def predict_local(self, feats: np.ndarray, prior: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Network on precomputed features (N, F) and priors (N, T, 2) -> agent-frame
-        trajectories (N, K, T, 2) float64 and probabilities (N, K)."""
+    def base(self, feats: np.ndarray, prior: np.ndarray, path: np.ndarray | None = None) -> np.ndarray:
+        """What the residuals are added to: the prior (N, T, 2), or for an anchored model the
+        anchors (N, K, T, 2) float32 from the lane paths ``path`` (N, G, 2) and the features."""
+        if not self.config.anchored:
+            return prior
+        if path is None:
+            raise ValueError("an anchored predictor needs the tracks' lane paths (predictor.lane_paths)")
+        cfg = self.config
+        return anchor_trajectories(path, anchor_speed(feats), cfg.anchor_scales, cfg.anchor_accels, cfg.steps,
+                                   cfg.dt).astype(np.float32)
+
+    def predict_local(self, feats: np.ndarray, prior: np.ndarray,
+                      path: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Network on precomputed features (N, F) and priors (N, T, 2) (an anchored model: and
+        lane paths (N, G, 2)) -> agent-frame trajectories (N, K, T, 2) float64 and
+        probabilities (N, K)."""
         torch = self._torch
         if self.threads:
             torch.set_num_threads(self.threads)
+        base = self.base(feats, prior, path)
         with torch.inference_mode():
             traj, logits = self.net(torch.from_numpy(np.ascontiguousarray(feats, np.float32)),
-                                    torch.from_numpy(np.ascontiguousarray(prior, np.float32)))
+                                    torch.from_numpy(np.ascontiguousarray(base, np.float32)))
             probs = torch.softmax(logits, dim=-1)
         return traj.numpy().astype(np.float64), probs.numpy().astype(np.float64)
 
@@ -690,7 +772,7 @@ class LearnedPredictor:
                 h = x
                 for w, b, shape, nw, nb, eps in layers:
                     h = torch.relu(F.layer_norm(F.linear(h, w, b), shape, nw, nb, eps))
-                traj = p[:, None] + F.linear(h, tw, tb).view(x.shape[0], K, T, 2) * scale
+                traj = (p if p.dim() == 4 else p[:, None]) + F.linear(h, tw, tb).view(x.shape[0], K, T, 2) * scale
                 logits = F.linear(h, lw, lb)
             probs = torch.softmax(logits, dim=-1)
         return traj.numpy(), probs.numpy()
@@ -704,7 +786,11 @@ class LearnedPredictor:
         K, T = self.config.num_modes, self.config.steps
         if n == 0:
             return Predictions(np.zeros(0, np.int64), np.zeros((0, K, T, 2)), np.zeros((0, K)), self.config.dt)
-        feats, prior, boxes, ok, c, s = _encode(tracks, self.lane_map, T, self.config.dt)
+        if self.config.anchored:
+            feats, prior, boxes, ok, c, s, path = _encode(tracks, self.lane_map, T, self.config.dt, with_path=True)
+            prior = self.base(feats, prior, path)
+        else:
+            feats, prior, boxes, ok, c, s = _encode(tracks, self.lane_map, T, self.config.dt)
         local, probs = self._forward(feats, prior)
         # no_reversing, then to_map_frame; a track without a (finite) pose has nothing sensible
         # to predict: its rows are kept but NaN
@@ -728,7 +814,10 @@ def save_predictor(net, config: PredictorConfig, out_dir: str | Path, extra: dic
     buf = io.BytesIO()
     torch.save({k: v.detach().cpu().contiguous() for k, v in net.state_dict().items()}, buf)
     atomic_write_bytes(out / WEIGHTS_NAME, buf.getvalue())
-    doc = {"format": MODEL_FORMAT, "version": MODEL_VERSION, "config": asdict(config),
+    cfg_doc = asdict(config)
+    if not config.anchored:  # a prior-based model's file stays readable by version-1 readers
+        del cfg_doc["anchor_scales"], cfg_doc["anchor_accels"]
+    doc = {"format": MODEL_FORMAT, "version": ANCHORED_VERSION if config.anchored else MODEL_VERSION, "config": cfg_doc,
            "features": {"history": HISTORY, "lane_offsets_m": LANE_OFFSETS.tolist(), "neighbours": NEIGHBOURS,
                         "neighbour_range_m": NEIGHBOUR_RANGE, "chain_step_m": CHAIN_STEP},
            "weights": WEIGHTS_NAME}
@@ -749,19 +838,32 @@ def load_predictor(path: str | Path = DEFAULT_MODEL_DIR, threads: int | None = 1
     if not cfg_path.is_file():
         raise FileFormatError(str(cfg_path), "$", "a predictor config.json (train one with `adv3d train predictor`)", "no file")
     doc = Node.load(cfg_path)
-    check_header(doc, MODEL_FORMAT, (MODEL_VERSION,))
+    version = check_header(doc, MODEL_FORMAT, (MODEL_VERSION, ANCHORED_VERSION))
     raw = doc["config"]
     raw.object()
-    raw.check_keys(PredictorConfig.__dataclass_fields__)
+    raw.check_keys(PredictorConfig.__dataclass_fields__ if version == ANCHORED_VERSION else
+                   [k for k in PredictorConfig.__dataclass_fields__ if not k.startswith("anchor_")])
     dflt = PredictorConfig()
+    num_modes = raw.get("num_modes", dflt.num_modes).integer(lo=1, hi=64)
+    scales: tuple[float, ...] = ()
+    accels: tuple[float, ...] = ()
+    if version == ANCHORED_VERSION:
+        sc, ac = raw["anchor_scales"], raw["anchor_accels"]
+        scales = tuple(float(v) for v in sc.numbers())
+        accels = tuple(float(v) for v in ac.numbers())
+        if len(scales) != num_modes or not all(0.0 <= v <= 10.0 for v in scales):
+            sc.fail(f"{num_modes} speed scales in [0, 10] (one per mode)", list(scales))
+        if len(accels) != num_modes or not all(abs(v) <= 20.0 for v in accels):
+            ac.fail(f"{num_modes} accelerations in [-20, 20] m/s^2 (one per mode)", list(accels))
     config = PredictorConfig(
         num_features=raw.get("num_features", dflt.num_features).integer(lo=NUM_FEATURES, hi=NUM_FEATURES),
-        num_modes=raw.get("num_modes", dflt.num_modes).integer(lo=1, hi=64),
+        num_modes=num_modes,
         steps=raw.get("steps", dflt.steps).integer(lo=1, hi=1000),
         hidden=raw.get("hidden", dflt.hidden).integer(lo=1, hi=8192),
         layers=raw.get("layers", dflt.layers).integer(lo=1, hi=64),
         residual_scale=raw.get("residual_scale", dflt.residual_scale).number(lo=0.0, lo_open=True, hi=1000.0),
-        dt=raw.get("dt", dflt.dt).number(lo=0.0, lo_open=True, hi=10.0))
+        dt=raw.get("dt", dflt.dt).number(lo=0.0, lo_open=True, hi=10.0),
+        anchor_scales=scales, anchor_accels=accels)
     feats = doc.get("features", {})
     feats.object()
     offsets = feats.get("lane_offsets_m", LANE_OFFSETS.tolist()).numbers()

@@ -49,12 +49,13 @@ from typing import Sequence
 import numpy as np
 
 from ..autonomy.interface import PREDICTION_STEPS, Detections
-from ..autonomy.predictor import HISTORY, LANE_OFFSETS, NEIGHBOURS, NUM_FEATURES, OFF_LANE, encode
+from ..autonomy.interface import DT
+from ..autonomy.predictor import HISTORY, LANE_OFFSETS, NEIGHBOURS, NUM_FEATURES, OFF_LANE, PATH_S, _encode
 from ..fileio import atomic_path
 from ..metrics.prediction import displacement_errors, match_to_ground_truth
 from ..scene.lanemap import LaneMap
 
-DATA_VERSION = 1
+DATA_VERSION = 2                 # 2: every sample carries its lane path (anchored models)
 DATA_TAG = 0x9D1C7               # SeedSequence namespace of the perception noise
 REAL_TAG = 0x4EA1                # sub-namespace of real (recorded) scenes
 DETECT_RANGE = 80.0              # m around the ego
@@ -65,7 +66,7 @@ NOISE_RANGES = {"pos_std": (0.05, 0.25), "yaw_std": (0.01, 0.05), "miss": (0.0, 
 SIZE_NOISE = 0.03                # relative std of detected length / width
 BASELINES = ("constant_velocity", "lane_following")
 METRIC_COLUMNS = ("min_ade", "mean_ade", "min_fde", "mean_fde", "top1_ade", "top1_fde")
-ARRAYS = ("features", "prior", "future", "future_valid", "boxes", "frame", "seed") + tuple(
+ARRAYS = ("features", "prior", "path", "future", "future_valid", "boxes", "frame", "seed") + tuple(
     f"{b}_metrics" for b in BASELINES)
 
 
@@ -74,7 +75,7 @@ def data_key() -> str:
     doc = {"v": DATA_VERSION, "tag": DATA_TAG, "range": DETECT_RANGE, "stride": FRAME_STRIDE,
            "min_future": MIN_FUTURE, "match": MATCH_DISTANCE, "noise": NOISE_RANGES, "size": SIZE_NOISE,
            "features": NUM_FEATURES, "off_lane": OFF_LANE, "history": HISTORY, "lanes": LANE_OFFSETS.tolist(), "neigh": NEIGHBOURS,
-           "steps": PREDICTION_STEPS}
+           "steps": PREDICTION_STEPS, "path": PATH_S.tolist()}
     return hashlib.sha1(json.dumps(doc, sort_keys=True).encode()).hexdigest()[:12]
 
 
@@ -87,6 +88,7 @@ def cache_dir(root: str | Path | None = None) -> Path:
 def _empty() -> dict[str, np.ndarray]:
     T = PREDICTION_STEPS
     out = {"features": np.zeros((0, NUM_FEATURES), np.float32), "prior": np.zeros((0, T, 2), np.float32),
+           "path": np.zeros((0, len(PATH_S), 2), np.float32),
            "future": np.zeros((0, T, 2), np.float32), "future_valid": np.zeros((0, T), bool),
            "boxes": np.zeros((0, 5)), "frame": np.zeros(0, np.int32), "seed": np.zeros(0, np.int64)}
     for b in BASELINES:
@@ -137,10 +139,34 @@ def real_scene_samples(scene) -> dict[str, np.ndarray]:
     return _samples(scene, rng, -1 - crc, recorded)
 
 
-def _samples(scene, rng: np.random.Generator, seed_value: int, recorded: np.ndarray | None = None) -> dict[str, np.ndarray]:
+def recording_samples(scene, draw: int = 0) -> dict[str, np.ndarray]:
+    """Samples of *every* vehicle of a recorded scene, not only those near its ego: the ego's
+    own track joins the actors and nothing is out of detection range, recorded frames only
+    (:func:`real_scene_samples`). ``draw`` picks the perception-noise stream
+    (``SeedSequence([DATA_TAG, REAL_TAG, crc32(scene id), 1 + draw])``), so that several draws
+    of one recording are different noisy views of the same traffic. The ``seed`` column holds
+    ``-1 - crc32(scene id)``."""
+    import dataclasses
+
+    from ..scene.schema import Actor
+
+    crc = _scene_crc(scene)
+    rng = np.random.default_rng(np.random.SeedSequence([DATA_TAG, REAL_TAG, crc, 1 + int(draw)]))
+    ego_id = 1 + max((a.id for a in scene.actors), default=-1)
+    as_actor = Actor(id=ego_id, cls="sedan", dimensions=scene.ego.dimensions, track=scene.ego.track)
+    whole = dataclasses.replace(scene, actors=list(scene.actors) + [as_actor])
+    recorded = np.ones((len(whole.actors), whole.frames), bool)
+    for i, actor in enumerate(whole.actors):
+        recorded[i] = ~whole.actor_synthetic(actor.id)
+    return _samples(whole, rng, -1 - crc, recorded, detect_range=np.inf)
+
+
+def _samples(scene, rng: np.random.Generator, seed_value: int, recorded: np.ndarray | None = None,
+             detect_range: float = DETECT_RANGE) -> dict[str, np.ndarray]:
     """The pipeline of :func:`scene_samples` on a loaded scene with its noise stream ``rng``;
     ``recorded`` (A, F) bool, when given, marks the actor frames that may be used (others are
-    absent); ``seed_value`` fills the ``seed`` column."""
+    absent); ``seed_value`` fills the ``seed`` column; actors within ``detect_range`` m of the
+    ego are detected."""
     from ..autonomy.baselines import ConstantVelocityPredictor, LaneFollowingPredictor
     from ..autonomy.tracker import MultiObjectTracker
 
@@ -164,7 +190,7 @@ def _samples(scene, rng: np.random.Generator, seed_value: int, recorded: np.ndar
     vpad = np.concatenate([valid, np.zeros((len(poses), T), bool)], axis=1)
     chunks = []
     for f in range(F):
-        vis = np.flatnonzero(valid[:, f] & (np.hypot(poses[:, f, 0] - ego[f, 0], poses[:, f, 1] - ego[f, 1]) <= DETECT_RANGE))
+        vis = np.flatnonzero(valid[:, f] & (np.hypot(poses[:, f, 0] - ego[f, 0], poses[:, f, 1] - ego[f, 1]) <= detect_range))
         # draw the same number of random values every frame for every visible actor (stable streams)
         u = rng.random(len(vis))
         eps = rng.normal(size=(len(vis), 5))
@@ -190,15 +216,15 @@ def _samples(scene, rng: np.random.Generator, seed_value: int, recorded: np.ndar
         rows, fut, fval = rows[enough], fut[enough], fval[enough]
         if len(rows) == 0:
             continue
-        feats, prior = encode(tracks, lane_map)
-        feats, prior = feats[rows], prior[rows]
+        feats, prior, *_, path = _encode(tracks, lane_map, T, DT, with_path=True)
+        feats, prior, path = feats[rows], prior[rows], path[rows]
         boxes = tracks.boxes[rows]
         c, s = np.cos(boxes[:, 4]), np.sin(boxes[:, 4])
         rel = fut - boxes[:, None, :2]
         local = np.stack([c[:, None] * rel[..., 0] + s[:, None] * rel[..., 1],
                           -s[:, None] * rel[..., 0] + c[:, None] * rel[..., 1]], axis=-1)
         local = np.where(fval[..., None], local, 0.0)
-        chunk = {"features": feats, "prior": prior, "future": local.astype(np.float32),
+        chunk = {"features": feats, "prior": prior, "path": path, "future": local.astype(np.float32),
                  "future_valid": fval, "boxes": boxes, "frame": np.full(len(rows), f, np.int32),
                  "seed": np.full(len(rows), int(seed), np.int64)}
         for name, model in zip(BASELINES, (cv, lf)):

@@ -1,0 +1,307 @@
+"""The anchored predictor: residuals on lane-following anchors, trained on every vehicle of the
+*train* recordings and on generated traffic (docs/predictor.md, "The anchored predictor").
+
+Each of the K = 6 modes starts from its own anchor: the track moves along its lane path
+(:func:`~adv3d_runner.autonomy.predictor.lane_paths`, lateral offset kept) from its tracked
+speed with a fixed acceleration (``ANCHOR_ACCELS``: keep the speed, +-0.4 and +-1.0 m/s^2, brake
+at 2 m/s^2 to a stop). The network (the shipped architecture) adds residuals to the anchors and
+gives the mode probabilities; its trajectory head starts at zero, so the untrained model *is*
+the anchor set, and the anchor set with the speed factors of :class:`LaneFollowingPredictor`
+would be that baseline.
+
+Data (nothing of the benchmark recordings 4, 6, 9 or the fresh ones 10-18 is trained on):
+
+* **real**: every vehicle of each train recording (``scenes/real/split.json``'s train part; one
+  scene per recording, the one with the most recorded frames, since the CommonRoad variants of
+  a recording share its traffic), the ego included and no detection range
+  (:func:`~.predictor_data.recording_samples`), ``--draws`` independent perception-noise draws;
+* **generated**: ``--gen-scenes`` training-split scenes (seeds ``SEED ..``).
+
+Validation (how the settings were chosen): ``--val-recording R`` leaves train recording R out of
+the training data and reports the model on its vehicles (draw 0) beside the anchors alone and
+both baselines. The fresh part is never read here.
+
+    .venv/bin/python -m adv3d_runner.training.predictor_anchored --out DIR [--val-recording R]
+        [--epochs 12] [--gen-scenes 80] [--draws 20] [--seed 100000]
+
+Writes ``weights.pt`` + ``config.json`` (:func:`~adv3d_runner.autonomy.predictor.load_predictor`)
+and ``training_report.json`` (the command, the SHA-256 of every real scene file and of the
+training arrays, the loss curves, held-out tables). Same seed, same weights on one machine
+(one torch thread).
+"""
+from __future__ import annotations
+
+import argparse
+import hashlib
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ANCHOR_SCALES = (1.0, 1.0, 1.0, 1.0, 1.0, 1.0)
+ANCHOR_ACCELS = (0.0, 0.4, -0.4, 1.0, -1.0, -2.0)     # m/s^2, chosen on the train recordings
+REPO = Path(__file__).resolve().parents[2]
+
+
+def train_recording_files(split=None) -> dict[int, Path]:
+    """{train recording: the scene file of ``scenes/real/`` with its most recorded frames}."""
+    from ..scene import load_scene
+    from ..scene.real import load_real_split, recording_of
+
+    split = split or load_real_split()
+    best: dict[int, tuple[int, Path]] = {}
+    for path in split.paths("train"):
+        rec = recording_of(path.name.split(".json")[0])
+        n = int(load_scene(path).source.details.get("recorded_frames", 0))
+        if rec not in best or n > best[rec][0]:
+            best[rec] = (n, path)
+    return {rec: p for rec, (n, p) in sorted(best.items())}
+
+
+def recording_dataset(files: dict[int, Path], draws: int, cache: str | Path | None = None) -> dict[str, np.ndarray]:
+    """Samples of every vehicle of each recording's scene, ``draws`` noise draws each (cached per
+    file and draw under the predictor data cache); a ``recording`` column is added."""
+    from ..scene import load_scene
+    from .predictor_data import ARRAYS, _empty, cache_dir, load_samples, real_cache_name, recording_samples, save_samples
+
+    folder = cache_dir(cache)
+    parts = []
+    for rec, path in files.items():
+        scene = None
+        for draw in range(draws):
+            cpath = folder / real_cache_name(path).replace(".npz", f"-all-d{draw:03d}.npz")
+            arrays = None
+            if cpath.is_file():
+                try:
+                    arrays = load_samples(cpath)
+                except Exception:  # a broken cache entry is rebuilt, never trusted
+                    arrays = None
+            if arrays is None:
+                scene = scene or load_scene(path)
+                arrays = recording_samples(scene, draw)
+                save_samples(cpath, arrays)
+            arrays = {k: arrays[k] for k in ARRAYS}
+            arrays["recording"] = np.full(len(arrays["features"]), rec, np.int64)
+            parts.append(arrays)
+    if not parts:
+        out = _empty()
+        out["recording"] = np.zeros(0, np.int64)
+        return out
+    return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+
+
+def _digest(arrays: dict, keys=("features", "prior", "path", "future", "future_valid")) -> str:
+    h = hashlib.sha256()
+    for k in keys:
+        h.update(np.ascontiguousarray(arrays[k]).tobytes())
+    return h.hexdigest()
+
+
+def _anchors(arrays: dict, cfg) -> np.ndarray:
+    from ..autonomy.predictor import anchor_speed, anchor_trajectories
+
+    out = np.empty((len(arrays["features"]), cfg.num_modes, cfg.steps, 2), np.float32)
+    for i in range(0, len(out), 8192):
+        sl = slice(i, i + 8192)
+        out[sl] = anchor_trajectories(arrays["path"][sl], anchor_speed(arrays["features"][sl]), cfg.anchor_scales,
+                                      cfg.anchor_accels, cfg.steps, cfg.dt)
+    return out
+
+
+def evaluate(model, arrays: dict) -> dict:
+    """minADE etc. of ``model`` (a LearnedPredictor), of its anchors alone and of both baselines
+    on ``arrays`` (outputs as the planner gets them: no reversing), for samples known for 6 s
+    (``full_6s``) and for >= 3 s (``all``)."""
+    from ..autonomy.predictor import no_reversing
+    from .predictor_data import BASELINES, per_sample_metrics
+
+    if len(arrays["features"]) == 0:
+        return {"n_samples": {"full_6s": 0, "all": 0}}
+    fut = arrays["future"].astype(np.float64)
+    val = arrays["future_valid"]
+    traj, probs = model.predict_local(arrays["features"], arrays["prior"], arrays["path"])
+    anchors = model.base(arrays["features"], arrays["prior"], arrays["path"]).astype(np.float64)
+    K = model.config.num_modes
+    rows = {f"learned_k{K}": per_sample_metrics(no_reversing(traj), probs, fut, val),
+            f"anchors_k{K}": per_sample_metrics(anchors, np.full((len(fut), K), 1.0 / K), fut, val)}
+    for b in BASELINES:
+        rows[b] = arrays[f"{b}_metrics"]
+    full = val.all(axis=1)
+    cols = ("min_ade", "mean_ade", "min_fde", "mean_fde", "top1_ade", "top1_fde")
+    out = {"n_samples": {"full_6s": int(full.sum()), "all": int(len(full))}}
+    for sub, mask in (("full_6s", full), ("all", np.ones(len(full), bool))):
+        out[sub] = {name: {c: (float(m[mask, j].mean()) if mask.any() else None) for j, c in enumerate(cols)}
+                    for name, m in rows.items()}
+    return out
+
+
+def train_anchored(out: str | Path, *, epochs: int = 12, gen_scenes: int = 80, val_scenes: int = 10, draws: int = 20,
+                   seed: int = 100_000, batch: int = 512, lr: float = 1e-3, hidden: int = 256, layers: int = 3,
+                   residual_scale: float = 2.0, cls_weight: float = 0.5, lane_dropout: float = 0.05,
+                   val_recording: int | None = None, fixed_modes: tuple[int, ...] = (), cache: str | Path | None = None,
+                   command: str = "") -> dict:
+    """Train the anchored predictor (module docstring) and write it to ``out``; returns the report.
+
+    ``fixed_modes``: modes whose residuals stay zero (their rows of the trajectory head are zero
+    and get no gradient), so that they are their anchors exactly."""
+    import torch
+
+    from ..autonomy.predictor import (_AGENT_F, _HIST_F, _LANE_F, NUM_FEATURES, LearnedPredictor, PredictorConfig,
+                                      build_net, save_predictor)
+    from ..errors import ConfigError
+    from ..fileio import write_json
+    from ..scene.real import load_real_split
+    from .predictor_data import ARRAYS, build_dataset, build_real_dataset, data_key
+    from .predictor_train import HELD_OUT_OFFSET, _wta_losses
+
+    torch.manual_seed(seed)
+    torch.set_num_threads(1)
+    t0 = time.perf_counter()
+    split = load_real_split()
+    files = train_recording_files(split)
+    if val_recording is not None and val_recording not in files:
+        raise ConfigError(f"--val-recording {val_recording} is not a train recording {sorted(files)}")
+    train_files = {r: p for r, p in files.items() if r != val_recording}
+    real = recording_dataset(train_files, draws, cache)
+    gen = build_dataset(range(seed, seed + gen_scenes), cache, desc="generated training scenes")
+    held = build_dataset(range(seed + HELD_OUT_OFFSET, seed + HELD_OUT_OFFSET + val_scenes), cache,
+                         desc="generated held-out scenes")
+    held_sets = {"generated": held,
+                 "real_benchmark_tuned_on": build_real_dataset(split.paths("benchmark"), cache,
+                                                               desc="real benchmark part (tuned on)")}
+    if val_recording is not None:
+        held_sets[f"validation_recording_{val_recording}"] = recording_dataset({val_recording: files[val_recording]}, 1, cache)
+    train = {k: np.concatenate([gen[k], real[k]]) for k in ARRAYS}
+    t_data = time.perf_counter() - t0
+    print(f"{len(gen['features'])} generated + {len(real['features'])} real samples ({t_data:.0f} s)", flush=True)
+
+    cfg = PredictorConfig(num_features=NUM_FEATURES, num_modes=len(ANCHOR_ACCELS), hidden=hidden, layers=layers,
+                          residual_scale=residual_scale, anchor_scales=ANCHOR_SCALES, anchor_accels=ANCHOR_ACCELS)
+    net = build_net(cfg)
+    if fixed_modes:
+        if not all(0 <= k < cfg.num_modes for k in fixed_modes):
+            raise ConfigError(f"--fixed-modes: modes are 0..{cfg.num_modes - 1}")
+        keep = torch.ones(cfg.num_modes, cfg.steps * 2)
+        keep[list(fixed_modes)] = 0.0
+        keep = keep.reshape(-1)
+        net.traj.weight.register_hook(lambda grad: grad * keep[:, None])
+        net.traj.bias.register_hook(lambda grad: grad * keep)
+    X = torch.from_numpy(train["features"])
+    A = torch.from_numpy(_anchors(train, cfg))
+    Y = torch.from_numpy(train["future"])
+    M = torch.from_numpy(train["future_valid"])
+    n = len(X)
+    steps = max(1, (n + batch - 1) // batch)
+    opt = torch.optim.AdamW(net.parameters(), lr=lr, weight_decay=1e-4)
+    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=lr, total_steps=epochs * steps, pct_start=0.1)
+    g = torch.Generator().manual_seed(seed)
+    lane_lo = _HIST_F + _AGENT_F
+    lane_hi = lane_lo + 3 * _LANE_F
+    curves: dict[str, list] = {"epoch": [], "train_loss": [], "train_reg_ade": [], "train_cls": []}
+    for name in held_sets:
+        curves[f"{name}_min_ade"] = []
+    t1 = time.perf_counter()
+    for ep in range(epochs):
+        net.train()
+        perm = torch.randperm(n, generator=g)
+        tot = reg_sum = cls_sum = 0.0
+        for i in range(steps):
+            idx = perm[i * batch:(i + 1) * batch]
+            xb = X[idx].clone()
+            drop = torch.rand(len(idx), generator=g) < lane_dropout  # some samples see no map
+            xb[drop, lane_lo:lane_hi] = 0.0
+            traj, logits = net(xb, A[idx])
+            reg, cls = _wta_losses(torch, traj, logits, Y[idx], M[idx])
+            loss = reg + cls_weight * cls
+            opt.zero_grad()
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(net.parameters(), 5.0)
+            opt.step()
+            sched.step()
+            k = len(idx)
+            tot += float(loss.detach()) * k
+            reg_sum += float(reg.detach()) * k
+            cls_sum += float(cls.detach()) * k
+        net.eval()
+        model = LearnedPredictor(net, cfg)
+        curves["epoch"].append(ep + 1)
+        curves["train_loss"].append(tot / n)
+        curves["train_reg_ade"].append(reg_sum / n)
+        curves["train_cls"].append(cls_sum / n)
+        msg = []
+        for name, arrays in held_sets.items():
+            ev = evaluate(model, arrays)
+            v = ev["all"][f"learned_k{cfg.num_modes}"]["min_ade"] if ev["n_samples"]["all"] else None
+            curves[f"{name}_min_ade"].append(v)
+            msg.append(f"{name} {v:.3f}" if v is not None else f"{name} -")
+        print(f"epoch {ep + 1}/{epochs}: loss {tot / n:.3f} ade {reg_sum / n:.3f} | minADE (>= 3 s) " + ", ".join(msg)
+              + f" ({time.perf_counter() - t1:.0f} s)", flush=True)
+    t_train = time.perf_counter() - t1
+    model = LearnedPredictor(net.eval(), cfg)
+    tables = {name: evaluate(model, arrays) for name, arrays in held_sets.items()}
+    out = Path(out)
+    save_predictor(net, cfg, out, extra={"training_report": "training_report.json"})
+    report = {
+        "format": "adv3d-predictor-training-report", "version": 1,
+        "command": command or " ".join(["python -m adv3d_runner.training.predictor_anchored"] + sys.argv[1:]),
+        "model": "anchored: residuals on lane-following anchors (docs/predictor.md)",
+        "data": {"data_key": data_key(),
+                 "real": {"recordings": sorted(train_files), "validation_recording": val_recording, "draws": draws,
+                          "samples": int(len(real["features"])),
+                          "scenes": {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in train_files.values()}},
+                 "generated_train_seeds": [seed, seed + gen_scenes - 1], "generated_samples": int(len(gen["features"])),
+                 "held_out_seeds": [seed + HELD_OUT_OFFSET, seed + HELD_OUT_OFFSET + val_scenes - 1],
+                 "train_samples": int(n), "train_arrays_sha256": _digest(train), "seconds": round(t_data, 1)},
+        "training": {"epochs": epochs, "batch": batch, "lr": lr, "optimizer": "AdamW (weight decay 1e-4) + one-cycle",
+                     "cls_weight": cls_weight, "lane_dropout": lane_dropout, "threads": 1, "torch_seed": seed,
+                     "hidden": hidden, "layers": layers, "residual_scale": residual_scale,
+                     "fixed_modes": list(fixed_modes),
+                     "anchor_scales": list(ANCHOR_SCALES), "anchor_accels": list(ANCHOR_ACCELS),
+                     "seconds": round(t_train, 1), "weights_sha256": None},
+        "curves": curves,
+        "held_out": tables,
+        "machine": {"platform": platform.platform(), "python": platform.python_version(), "torch": torch.__version__,
+                    "cpu": platform.processor() or platform.machine()},
+        "notes": "held_out: generated held-out scenes, the real benchmark part that was tuned on (recordings 4, 6, 9; "
+                 "samples around its egos) and, with --val-recording, every vehicle of the left-out train recording; "
+                 "the fresh part (recordings 10-18) is never read here.",
+    }
+    report["training"]["weights_sha256"] = hashlib.sha256((out / "weights.pt").read_bytes()).hexdigest()
+    write_json(out / "training_report.json", report)
+    return report
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", required=True)
+    ap.add_argument("--val-recording", type=int, default=None, help="leave this train recording out and report on it")
+    ap.add_argument("--epochs", type=int, default=12)
+    ap.add_argument("--gen-scenes", type=int, default=80)
+    ap.add_argument("--val-scenes", type=int, default=10)
+    ap.add_argument("--draws", type=int, default=20)
+    ap.add_argument("--seed", type=int, default=100_000)
+    ap.add_argument("--lr", type=float, default=1e-3)
+    ap.add_argument("--hidden", type=int, default=256)
+    ap.add_argument("--residual-scale", type=float, default=2.0)
+    ap.add_argument("--fixed-modes", default="", help="comma-separated modes kept at their anchors (no residual)")
+    ap.add_argument("--cache", default=None)
+    args = ap.parse_args(argv)
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    rep = train_anchored(args.out, epochs=args.epochs, gen_scenes=args.gen_scenes, val_scenes=args.val_scenes,
+                         draws=args.draws, seed=args.seed, lr=args.lr, hidden=args.hidden,
+                         residual_scale=args.residual_scale, val_recording=args.val_recording,
+                         fixed_modes=tuple(int(k) for k in args.fixed_modes.split(",") if k.strip()), cache=args.cache)
+    for name, t in rep["held_out"].items():
+        if not t["n_samples"]["all"]:
+            continue
+        row = " ".join(f"{m} {v['min_ade']:.3f}" for m, v in t["all"].items())
+        print(f"{name} (>= 3 s, {t['n_samples']['all']} samples): {row}")
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
