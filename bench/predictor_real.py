@@ -58,7 +58,7 @@ def main() -> int:
         rows = {}
         for name, folder in models.items():
             model = load_predictor(folder)
-            traj, probs = model.predict_local(held["features"], held["prior"])
+            traj, probs = model.predict_local(held["features"], held["prior"], held["path"])
             # as LearnedPredictor.predict does (no reversing): what the planner receives
             m = per_sample_metrics(no_reversing(traj), probs, held["future"].astype(np.float64), held["future_valid"])
             rows[name] = m
