@@ -396,10 +396,54 @@ def test_flat_forward_equals_the_folded_graph_module():
     det.inference_net = fold_batchnorm(net)
     pts = np.c_[np.random.default_rng(0).uniform([0, -10, 0.5], [40, 10, 2.0], (3000, 3)), np.ones(3000)]
     a = det.detect(pts, score_threshold=0.0)
-    det._flat = (det.inference_net, None)  # the module path
+    det._flat = (det.inference_net, None, {})  # the module path
     # (the two decodes of the same maps also agree only because decode_boxes makes its rows
     # contiguous: with numpy 1.26's arctan2 on strided rows this failed in ~1 run of 6, the
     # heading of one box a rounding step apart, depending on where the rows lay in memory)
     b = det.detect(pts, score_threshold=0.0)
     assert a.boxes.tobytes() == b.boxes.tobytes() and a.scores.tobytes() == b.scores.tobytes()
 
+
+
+def test_blocked_forward_gives_the_flat_forwards_bits_and_is_checked_before_use(monkeypatch):
+    """``blocked_forward`` (maps kept in oneDNN's layout between the 3 x 3 convolutions) gives
+    ``flat_forward``'s outputs bit for bit on voxel grids, batched or not; the detector runs it
+    only where that check passed for the input shape, and ``flat_forward`` otherwise."""
+    from adv3d_runner.autonomy import detector as detector_mod
+    from adv3d_runner.autonomy.detector import blocked_forward, flat_forward, fold_batchnorm
+
+    torch.manual_seed(5)
+    torch.set_num_threads(1)
+    cfg = DetectorConfig(resolution=0.4)
+    net = PixorNet(cfg).eval()
+    with torch.no_grad():  # BatchNorm statistics away from the identity, so folding matters
+        for m in net.modules():
+            if isinstance(m, torch.nn.BatchNorm2d):
+                m.running_mean.uniform_(-0.2, 0.2)
+                m.running_var.uniform_(0.5, 2.0)
+    gm = fold_batchnorm(net)
+    flat, blocked = flat_forward(gm), blocked_forward(gm)
+    if blocked is None:
+        pytest.skip("torch without oneDNN")
+    assert blocked_forward(net) is None  # not a folded graph
+    rng = np.random.default_rng(0)
+    for batch in (1, 2):
+        pts = [rng.uniform([-12, -24, 0.0], [60, 24, 4.0], (int(rng.integers(500, 20000)), 3))
+               for _ in range(batch)]
+        x = torch.from_numpy(np.stack([voxelize(p, cfg) for p in pts]))
+        with torch.inference_mode():
+            want, got = flat(x), blocked(x)
+        assert [a.shape for a in want] == [b.shape for b in got]
+        assert all(a.numpy().tobytes() == b.numpy().tobytes() for a, b in zip(want, got))
+    det = BevDetector(cfg, net)
+    det.inference_net = gm
+    frame = np.c_[rng.uniform([0, -10, 0.5], [40, 10, 2.0], (3000, 3)), np.ones(3000)]
+    a = det.detect(frame, score_threshold=0.0)
+    chosen = det._flat[2]
+    assert len(chosen) == 1 and next(iter(chosen.values())) is not det._flat[1]  # the blocked forward
+    monkeypatch.setattr(detector_mod, "same_outputs", lambda *args, **kw: False)  # a check that fails
+    other = BevDetector(cfg, net)
+    other.inference_net = gm
+    b = other.detect(frame, score_threshold=0.0)
+    assert next(iter(other._flat[2].values())) is other._flat[1]  # falls back to flat_forward
+    assert a.boxes.tobytes() == b.boxes.tobytes() and a.scores.tobytes() == b.scores.tobytes()

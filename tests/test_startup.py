@@ -68,7 +68,8 @@ def test_subcommand_help_is_cheap(words):
 
 def test_simulate_with_the_oracle_loads_no_torch_trimesh_or_scipy_optimize(tmp_path):
     """An episode without a learned model imports no torch; actor meshes come from the mesh
-    cache (no trimesh); the tracker loads scipy's assignment alone (no scipy.optimize)."""
+    cache (no trimesh); the tracker loads scipy's assignment alone (no scipy.optimize); numba's
+    BLAS check finds scipy's BLAS extension loaded alone (no scipy.linalg, adv3d_runner/jit.py)."""
     scene = ROOT / "scenes" / "highway" / "highway-benchmark-000000.json.gz"
     if not scene.exists():
         pytest.skip("bundled scene missing")
@@ -80,8 +81,9 @@ def test_simulate_with_the_oracle_loads_no_torch_trimesh_or_scipy_optimize(tmp_p
     args = ["-q", "simulate", str(scene), "--seconds", "0.1", "--autonomy", "oracle", "--out", str(tmp_path / "run")]
     names, _, proc = _imported(args, env)
     assert proc.returncode == 0, proc.stderr[-2000:]
-    assert "torch" not in names and "trimesh" not in names and "scipy.optimize" not in names, \
-        sorted(n for n in names if n.split(".")[0] in ("torch", "trimesh") or n == "scipy.optimize")
+    unwanted = ("scipy.optimize", "scipy.linalg")
+    assert "torch" not in names and "trimesh" not in names and not set(unwanted) & names, \
+        sorted(n for n in names if n.split(".")[0] in ("torch", "trimesh") or n in unwanted)
     assert (tmp_path / "run" / "metrics.json").is_file()
 
 
@@ -96,3 +98,18 @@ def test_the_trackers_assignment_is_scipys():
         cost[cost > 0.7] = 1e6
         for got, want in zip(tracker.linear_sum_assignment(cost), linear_sum_assignment(cost)):
             np.testing.assert_array_equal(got, want)
+
+
+def test_numba_finds_blas_without_scipy_linalg_and_the_package_still_imports():
+    """numba's target set-up runs with scipy's BLAS extension loaded alone: BLAS counts as
+    available, ``scipy.linalg`` is not imported by it, and importing the package afterwards
+    gives the package with the same extension (a fresh process: this one may hold scipy.linalg)."""
+    code = ("import sys, numpy as np, adv3d_runner.jit; from numba import njit\n"
+            "njit(lambda a: a.sum())(np.ones(3))\n"
+            "import numba.np.old_arraymath as oa\n"
+            "print(oa._HAVE_BLAS, 'scipy.linalg' in sys.modules)\n"
+            "import scipy.linalg\n"
+            "print(njit(lambda a, b: a @ b)(np.eye(2), np.full((2, 2), 3.0)).sum(), scipy.linalg.cython_blas.__name__)")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert proc.stdout.split() == ["True", "False", "12.0", "scipy.linalg.cython_blas"], proc.stdout

@@ -821,18 +821,33 @@ class BevDetector:
         self.inference_net: nn.Module = self.net
         self.threads = threads
         self.timings: dict[str, float] = {}
-        self._flat: tuple[nn.Module, Any] | None = None  # (inference_net, its flat_forward)
+        #: run the network through :func:`blocked_forward` where it gives the same bits
+        self.blocked = True
+        # (inference_net, its flat_forward, the forward chosen per (input shape, threads))
+        self._flat: tuple[nn.Module, Any, dict] | None = None
 
     def _forward(self, grids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         if self.threads is not None and torch.get_num_threads() != self.threads:
             torch.set_num_threads(self.threads)
+        x = torch.from_numpy(np.ascontiguousarray(grids))
+        with torch.inference_mode():
+            logits, box = self._runner(tuple(x.shape))(x)
+            return torch.sigmoid(logits[:, 0]).numpy(), box.numpy()
+
+    def _runner(self, shape: tuple[int, ...]):
+        """The forward :meth:`_forward` runs on inputs of ``shape``: :func:`blocked_forward` of
+        ``inference_net`` where it gives the same bits as :func:`flat_forward` on that shape and
+        this thread count (checked once, :func:`same_outputs`), else :func:`flat_forward`, else
+        the module itself."""
         net = self.inference_net
         if self._flat is None or self._flat[0] is not net:
-            self._flat = (net, flat_forward(net))
-        run = self._flat[1] or net
-        with torch.inference_mode():
-            logits, box = run(torch.from_numpy(np.ascontiguousarray(grids)))
-            return torch.sigmoid(logits[:, 0]).numpy(), box.numpy()
+            self._flat = (net, flat_forward(net), {})
+        _, flat, chosen = self._flat
+        key = (shape, torch.get_num_threads())
+        if key not in chosen:
+            blocked = blocked_forward(net) if flat is not None and self.blocked else None
+            chosen[key] = blocked if blocked is not None and same_outputs(flat, blocked, shape) else (flat or net)
+        return chosen[key]
 
     def detect(self, points: np.ndarray, score_threshold: float | None = None) -> Detections:
         """Vehicles in one LiDAR frame.
@@ -907,16 +922,14 @@ def load_detector(path: str | Path = DEFAULT_MODEL_DIR, threads: int | None = 1,
     return det
 
 
-def flat_forward(net: nn.Module):
-    """The forward of a :func:`fold_batchnorm` graph as a list of direct calls, or None.
+def _graph_steps(net: nn.Module) -> tuple[list[tuple[str, Any, tuple[int, ...]]], tuple[int, ...]] | None:
+    """The steps of a :func:`fold_batchnorm` graph in order, or None for anything else.
 
-    For a ``torch.fx.GraphModule`` whose modules are all zero-padded ``Conv2d`` and ``ReLU``
-    (what :func:`fold_batchnorm` makes of a :class:`PixorNet`) and whose ``forward`` is its
-    own: a function of the input that calls ``torch.conv2d`` with each convolution's weight,
-    bias, stride, padding, dilation and groups and ``torch.relu_`` / ``torch.relu`` in the
-    graph's order, as the modules' forwards do (the same ATen calls, so the same bits),
-    without nn.Module's call machinery (23 module calls a frame, ~0.1 ms). The weights are
-    the modules' own tensors, so changing them in place is seen. None for anything else."""
+    For a ``torch.fx.GraphModule`` whose modules are all zero-padded ``Conv2d`` and ``ReLU`` and
+    whose ``forward`` is its own: ``(kind, what, args)`` per node, ``kind`` one of ``"conv"``
+    (``what`` the Conv2d), ``"relu"`` (``what`` its ``inplace``) or ``"call"`` (``what`` the
+    function), ``args`` the indices of the values it takes (0: the input, k: step k's result);
+    and the indices of the outputs."""
     if not isinstance(net, torch.fx.GraphModule) or "forward" in vars(net):
         return None
     steps, names, out = [], {}, None
@@ -932,27 +945,32 @@ def flat_forward(net: nn.Module):
         if node.op == "call_module":
             m = net.get_submodule(node.target)
             if type(m) is nn.Conv2d and m.padding_mode == "zeros" and len(node.args) == 1:
-                fn = _conv_call(m)
+                step = ("conv", m)
             elif type(m) is nn.ReLU and len(node.args) == 1:
-                fn = torch.relu_ if m.inplace else torch.relu
+                step = ("relu", m.inplace)
             else:
                 return None
         elif node.op == "call_function":
-            fn = node.target
+            step = ("call", node.target)
         else:
             return None
         if not all(isinstance(a, torch.fx.Node) for a in node.args):
             return None
-        steps.append((fn, tuple(names[a.name] for a in node.args)))
+        steps.append((*step, tuple(names[a.name] for a in node.args)))
         names[node.name] = len(names)
     if out is None or not isinstance(out, tuple) or not all(isinstance(a, torch.fx.Node) for a in out):
         return None
-    outs = tuple(names[a.name] for a in out)
-    # each step also names the values it uses last, dropped at once (as fx's code does): the
-    # allocator then reuses their memory while it is still in cache
-    last = {i: k for k, (_, args) in enumerate(steps) for i in args}
+    return steps, tuple(names[a.name] for a in out)
+
+
+def _run_plan(plan: list[tuple[Any, tuple[int, ...]]], outs: tuple[int, ...]):
+    """A forward calling ``fn(*values)`` for each ``(fn, args)`` of ``plan`` in order (value 0 is
+    the input, value k step k's result) and returning the values ``outs``. Each value is dropped
+    after its last use (as fx's code does): the allocator then reuses its memory while it is
+    still in cache."""
+    last = {i: k for k, (_, args) in enumerate(plan) for i in args}
     plan = [(fn, args, tuple(i for i in set(args) if last[i] == k and i not in outs))
-            for k, (fn, args) in enumerate(steps)]
+            for k, (fn, args) in enumerate(plan)]
 
     def forward(x: torch.Tensor):
         env = [x] + [None] * len(plan)
@@ -963,6 +981,96 @@ def flat_forward(net: nn.Module):
         return tuple(env[i] for i in outs)
 
     return forward
+
+
+def flat_forward(net: nn.Module):
+    """The forward of a :func:`fold_batchnorm` graph as a list of direct calls, or None.
+
+    For a graph :func:`_graph_steps` reads: a function of the input that calls
+    ``torch.conv2d`` with each convolution's weight, bias, stride, padding, dilation and groups
+    and ``torch.relu_`` / ``torch.relu`` in the graph's order, as the modules' forwards do (the
+    same ATen calls, so the same bits), without nn.Module's call machinery (23 module calls a
+    frame, ~0.1 ms). The weights are the modules' own tensors, so changing them in place is
+    seen. None for anything else."""
+    graph = _graph_steps(net)
+    if graph is None:
+        return None
+    steps, outs = graph
+    relu = {True: torch.relu_, False: torch.relu}
+    plan = [(_conv_call(what) if kind == "conv" else relu[what] if kind == "relu" else what, args)
+            for kind, what, args in steps]
+    return _run_plan(plan, outs)
+
+
+def blocked_forward(net: nn.Module):
+    """:func:`flat_forward` with the feature maps between the ``k x k`` convolutions (k > 1)
+    kept in oneDNN's blocked layout, or None (what :func:`flat_forward` declines, or a torch
+    without oneDNN).
+
+    Called on plain NCHW tensors, torch hands each such convolution to oneDNN, which reorders
+    its input into its blocked layout, its weights into theirs, and its output back, every
+    call (docs/performance.md, "Why the detector costs more on some CPUs"). Here the weights
+    are reordered once (so changing the module's weights later is not seen: build it again)
+    and a map stays blocked from one convolution (and its ReLU) to the next; it is made plain
+    only where a step needs it (the 1 x 1 convolutions, which torch runs itself on one thread,
+    the upsampling merge, the outputs). Reorders are copies, so where oneDNN runs the same
+    convolution kernels as for plain tensors the outputs are the same bits;
+    :class:`BevDetector` checks that per input shape before using it (:func:`same_outputs`)."""
+    graph = _graph_steps(net) if torch.backends.mkldnn.is_available() else None
+    if graph is None:
+        return None
+    steps, outs = graph
+    blocked = [False] * (len(steps) + 1)  # per value: in the blocked layout
+    plan: list[tuple[Any, tuple[int, ...]]] = []
+    converted: dict[tuple[int, bool], int] = {}
+    position = list(range(len(steps) + 1))  # a value's index in the plan's values
+
+    def take(i: int, want_blocked: bool) -> int:
+        """The plan value holding value ``i`` in the wanted layout (adding a conversion)."""
+        if blocked[i] == want_blocked:
+            return position[i]
+        if (i, want_blocked) not in converted:
+            plan.append((torch.Tensor.to_mkldnn if want_blocked else torch.Tensor.to_dense, (position[i],)))
+            converted[(i, want_blocked)] = len(plan)
+        return converted[(i, want_blocked)]
+
+    relu = {True: torch.relu_, False: torch.relu}
+    for k, (kind, what, args) in enumerate(steps, 1):
+        if kind == "conv" and what.kernel_size != (1, 1):
+            plan.append((_blocked_conv_call(what), (take(args[0], True),)))
+            blocked[k] = True
+        elif kind == "relu":
+            plan.append((relu[what], (position[args[0]],)))
+            blocked[k] = blocked[args[0]]
+            if what:  # in place: a copy in the other layout made before is stale
+                converted.pop((args[0], not blocked[k]), None)
+        else:
+            fn = _conv_call(what) if kind == "conv" else what
+            plan.append((fn, tuple(take(i, False) for i in args)))
+        position[k] = len(plan)
+    out_positions = tuple(take(i, False) for i in outs)
+    return _run_plan(plan, out_positions)
+
+
+def _blocked_conv_call(m: nn.Conv2d):
+    """``m(x)`` for ``x`` in oneDNN's layout, the result in that layout:
+    ``torch.mkldnn_convolution`` with the weights reordered once (as
+    ``torch.utils.mkldnn.MkldnnConv2d`` does)."""
+    stride, padding, dilation, groups = m.stride, m.padding, m.dilation, m.groups
+    w = torch._C._nn.mkldnn_reorder_conv2d_weight(m.weight.detach().to_mkldnn(), padding, stride, dilation, groups)
+    b = None if m.bias is None else m.bias.detach().to_mkldnn()
+    return lambda x: torch.mkldnn_convolution(x, w, b, padding, stride, dilation, groups)
+
+
+def same_outputs(a, b, shape: tuple[int, ...], seed: int = 0) -> bool:
+    """Whether forwards ``a`` and ``b`` give the same bits on a seeded random input of ``shape``
+    (B, C, nx, ny): a tenth of the cells in (0, 1], as sparse as a LiDAR frame's grid but
+    reaching every weight."""
+    g = torch.Generator().manual_seed(seed)
+    x = torch.rand(shape, generator=g)
+    x = torch.where(torch.rand(shape, generator=g) < 0.1, x, torch.zeros(()))
+    with torch.inference_mode():
+        return all(u.numpy().tobytes() == v.numpy().tobytes() for u, v in zip(a(x), b(x)))
 
 
 def _conv_call(m: nn.Conv2d):
