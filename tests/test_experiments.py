@@ -8,6 +8,8 @@ import sys
 import numpy as np
 import pytest
 
+from adv3d_runner.errors import FileFormatError
+from adv3d_runner.fileio import REPO_ROOT as REPO
 from adv3d_runner.metrics.stats import benjamini_hochberg, holm, paired_mde
 
 
@@ -45,6 +47,17 @@ def test_paired_mde_by_hand():
     assert paired_mde(float("nan"), 10) == float("inf") and paired_mde(0.0, 10) == 0.0
 
 
+def test_scenes_to_detect_is_the_first_design_whose_mde_reaches_the_difference():
+    from adv3d_runner.metrics.stats import scenes_to_detect
+
+    n = scenes_to_detect(43.0, 7.2)
+    assert paired_mde(43.0, n) <= 7.2 < paired_mde(43.0, n - 1)
+    assert n == scenes_to_detect(43.0, -7.2)                 # the sign does not matter
+    assert scenes_to_detect(1.0, 10.0) == 6                  # the exact test's floor
+    assert scenes_to_detect(1.0, 0.0) is None and scenes_to_detect(float("nan"), 1.0) is None
+    assert scenes_to_detect(100.0, 1e-3) is None              # beyond MAX_PLANNED_SCENES
+
+
 def test_a_tables_family_is_corrected_and_its_power_stated():
     from adv3d_runner.experiments.tables import correct_family, findings_markdown
 
@@ -60,9 +73,42 @@ def test_a_tables_family_is_corrected_and_its_power_stated():
                                       "Adv.": {"findings": {"stack_induced": 2, "scenario_induced": 1, "pre_existing": 0,
                                                             "no_failure": 0, "shapes": 3, "of": 3},
                                                "criticality": {"ttc": {"mean": 1.25, "scenes": 3}},
-                                               "realistic_best_shapes": [1, 3]}}))
+                                               "realistic_best_shapes": [1, 3],
+                                               "calibrated_realistic_best_shapes": [0, 3]}}))
     assert "| Original | n/a | n/a | n/a | n/a | n/a | n/a | n/a | n/a |" in md
-    assert "| Adv. | 2/3 | 1/3 | 0/3 | 0/3 | 1.25 (3 sc.) | n/a | 1/3 | n/a |" in md
+    assert "| Adv. | 2/3 | 1/3 | 0/3 | 0/3 | 1.25 (3 sc.) | n/a | 1/3 | 0/3 |" in md
+
+
+def test_best_shapes_get_the_calibrated_realism_verdict(tmp_path):
+    """``keep_realism`` recomputes a kept run's best shapes' realism reports against the
+    calibrated limits (realism.json), once; the table reads it per row."""
+    import json
+    import shutil
+
+    from adv3d_runner.attack.config import AttackConfig
+    from adv3d_runner.experiments import tables
+    from adv3d_runner.shapes.realism import LIMITS
+
+    src = REPO / "docs" / "results" / "shipped" / "table1_A_b20" / "runs" / "bo" / "seed0" / "highway-benchmark-000000"
+    run = tmp_path / "runs" / "bo" / "seed0" / src.name
+    shutil.copytree(src, run)
+    (run / tables.REALISM_FILE).unlink(missing_ok=True)
+    summary = json.loads((run / "summary.json").read_text())
+    cfg = AttackConfig.from_run_json(json.loads((run / "run.json").read_text()))
+    assert tables.keep_realism(summary, cfg, run) == 2                     # open and closed best shapes
+    doc = tables.kept_realism(run)
+    assert doc["limits"]["jsd"] == pytest.approx(LIMITS.jsd_max)        # the calibrated limits, not the run's
+    verdicts = doc["scenes"][src.name]["modes"]
+    assert set(verdicts) == {"open", "closed"}
+    for v in verdicts.values():
+        assert v[0]["actor"] == summary["scenes"][src.name]["targets"][0]
+        assert v[0]["realistic"] == (not v[0]["flags"])
+    assert tables.keep_realism(summary, cfg, run) == 0                     # kept once
+    k = {"scene": src.name, "realism": doc}
+    assert tables._calibrated(k, "closed") == verdicts["closed"][0]["realistic"]
+    (run / tables.REALISM_FILE).write_text(json.dumps({**doc, "version": 99}))
+    with pytest.raises(FileFormatError, match="version"):
+        tables.kept_realism(run)
 
 
 def test_experiments_command_is_registered_light_and_typed():

@@ -47,7 +47,8 @@ def test_driver_smoke_run_resume_and_rebuild(tmp_path, capsys):
     assert mod.main(args) == 0
     folder = tmp_path / "res" / "table1_A_b2"
     kept = folder / "runs" / "bo" / "seed0" / "highway-benchmark-000000"
-    assert sorted(p.name for p in kept.iterdir()) == ["heldout.json.gz", "queries.jsonl.gz", "run.json", "summary.json"]
+    assert sorted(p.name for p in kept.iterdir()) == ["heldout.json.gz", "queries.jsonl.gz", "realism.json", "run.json",
+                                                      "summary.json"]
     run = json.loads((kept / "run.json").read_text())
     assert run["scene_seeds"] is True and run["pred_reduction"] == "sum" and run["mode"] == "both"
     table = json.loads((folder / "table.json").read_text())
@@ -400,7 +401,9 @@ def test_list_names_each_kept_tables_block_and_what_grows_beyond_it(tmp_path):
     (["--workers", "0"], "--workers"), (["--budget", "99999999999999999999"], "--budget"),
     (["--seeds", "1001"], "--seeds"), (["--scenes", "0", "--real", "0"], "--scenes/--real"),
     (["--scenes", "5000"], "--scenes/--real"), (["--source-autonomy", "Q"], "--source-autonomy"),
-    (["--results", "{file}"], "--results"), (["--work", "{file}/sub"], "--work")])
+    (["--results", "{file}"], "--results"), (["--work", "{file}/sub"], "--work"), (["--fresh", "-1"], "--fresh"),
+    (["--fresh", "999"], "--scenes/--real/--fresh"), (["--region", "box"], "--region"),
+    (["--realism-verdicts"], "--realism-verdicts")])
 def test_a_bad_option_is_one_usage_line_and_exit_2_before_anything_runs(tmp_path, capsys, bad, option):
     """Every bad value of bench/paper_tables.py is refused by its argparse type (the CLI's
     adv3d_runner.argtypes) with one usage line naming the option, exit code 2, before any attack
@@ -566,6 +569,12 @@ def test_a_realistic_region_table_on_fresh_scenes_has_its_own_folder(tmp_path, c
     assert "fresh:" in proto["scene_rule"]
     run = next(folder.glob("runs/bo/seed0/*/run.json"))
     assert json.loads(run.read_text())["region"] == "realistic"
+    # every best shape's calibrated realism verdict is kept beside the run; in the realistic
+    # region every shape the search simulated passed it
+    cal = json.loads((run.parent / "realism.json").read_text())["scenes"]
+    assert all(a["realistic"] for s in cal.values() for m in s["modes"].values() for a in m)
+    assert json.loads((folder / "table.json").read_text())["rows"]["Adv. closed-loop"][
+        "calibrated_realistic_best_shapes"] == [1, 1]
     assert "fresh real (recording 10) 1" in (folder / "table.md").read_text()
     assert not (tmp_path / "res" / "table1_oracle_b2").exists()
     # a protocol.json without the key is the paper's box: growing it with the realistic region is refused

@@ -113,6 +113,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="run only every N-th unit (seed, setting, scene) from the I-th: N processes side by side "
                         "on one machine, each with its own compute file; then --table-only")
     p.add_argument("--table-only", action="store_true", help="rebuild table.md/json from the kept files, run nothing")
+    p.add_argument("--realism-verdicts", action="store_true",
+                   help="with --table-only: first give every kept run without one its best shapes' calibrated realism "
+                        "verdicts (realism.json; decoding and measuring shapes, no episode)")
     p.add_argument("--avoidability", action="store_true",
                    help="also re-simulate the originals and best shapes with the oracle reference stack on the "
                         "held-out seeds and keep each run's stack-induced / scenario-induced split "
@@ -174,7 +177,12 @@ def execute(args: argparse.Namespace, command: str) -> int:
             print(tables.list_tables(Path(args.results)))
             return 0
         spec = tables.TABLES[args.table]
+        if args.realism_verdicts and not args.table_only:
+            raise UsageError("argument --realism-verdicts: only with --table-only (a run makes them itself)")
         if args.table_only:
+            if args.realism_verdicts:
+                n = tables.backfill_realism(Path(args.results) / spec.folder(args.autonomy, args.budget, args.region))
+                print(f"{n} best shapes given their calibrated realism verdict")
             path = tables.build_table(spec, args.autonomy, Path(args.results), args.budget, only=True,
                                       region=args.region)
         else:

@@ -31,6 +31,14 @@ class Finding:
 
 
 FINDINGS = (
+    Finding("Table 1, B: closed-loop shapes beat open-loop ones", "shipped/table1_B_realistic", "Adv. closed-loop",
+            "Adv. open-loop"),
+    Finding("Table 1, B: the closed-loop attack hurts the stack", "shipped/table1_B_realistic", "Adv. closed-loop",
+            "Original"),
+    Finding("Table 1, B: the open-loop attack hurts the stack", "shipped/table1_B_realistic", "Adv. open-loop",
+            "Original"),
+    Finding("Table 1, B: the closed-loop attack lowers occupancy mAP", "shipped/table1_B_realistic",
+            "Adv. closed-loop", "Original", "Occupancy mAP"),
     Finding("Table 1, A: closed-loop shapes beat open-loop ones", "shipped/table1_A_b20", "Adv. closed-loop",
             "Adv. open-loop"),
     Finding("Table 1, A: the closed-loop attack hurts the stack", "shipped/table1_A_b20", "Adv. closed-loop",
@@ -96,8 +104,8 @@ def verdicts_markdown(root: Path) -> str:
     from ..attack.protocol import LOWER_IS_WORSE
 
     lines = ["| finding (the paper's) | kept table | planner | scenes x run seeds, budget | metric | mean Δ [95 % CI] "
-             "| a worse | p | p Holm (tests) | MDE 80 % | verdict |",
-             "|---|---|---|---|---|---:|---:|---:|---:|---:|---|"]
+             "| a worse | p | p Holm (tests) | MDE 80 % | scenes for Δ | verdict |",
+             "|---|---|---|---|---|---:|---:|---:|---:|---:|---:|---|"]
     for f in FINDINGS:
         doc = _table(root, f.folder)
         c = comparison(doc, f.a, f.b, f.metric) if doc else None
@@ -111,7 +119,7 @@ def verdicts_markdown(root: Path) -> str:
         lines.append(f"| {f.claim} | `{f.folder}` | `{planner}` | {c['n']} x {len(seeds)}, {proto.get('budget')} | "
                      f"{f.metric} | {ci} | {c['worse_for_stack']}/{c['n']} | {_fmt(c['p_permutation'])} | "
                      f"{_fmt(c.get('p_holm'))} ({m}) | {_fmt(c.get('mde_80'))} | "
-                     f"{verdict(c, f.metric in LOWER_IS_WORSE)} |")
+                     f"{c.get('scenes_to_detect_80') or '-'} | {verdict(c, f.metric in LOWER_IS_WORSE)} |")
     return "\n".join(lines) + "\n"
 
 
@@ -203,14 +211,17 @@ def compute_markdown(root: Path, rate_folder: str, rate_scale: dict[str, float] 
     lines += [f"| all | | {units_all} | | {total_cpu:.0f} | {longest:.2f} |", ""]
     scaled = "; ".join(f"{k}: r x {v:g}" for k, v in rate_scale.items())
     if scaled:
-        lines += [f"Rate factors: {scaled} (the mean query wall time of `{C_JOURNAL}` over the shipped A table's "
-                  f"closed-loop search on the same scene, `{A_JOURNAL}`; two sittings at different loads).", ""]
+        lines += [f"Rate factors: {scaled} (C: the mean query wall time of `{C_JOURNAL}` over the shipped A "
+                  f"table's closed-loop search on the same scene, `{A_JOURNAL}`, two sittings at different loads; "
+                  f"B, where its kept table is there: its measured CPU s per episode over A's).", ""]
     lines += ["Wall time: a unit (one run seed, setting and scene) is sequential (BO with batch 1 asks one query "
               "at a time), units are independent, so with c cores in all (one `--shard I/c` process per core, "
               "across machines sharing the kept folder, or one Ray worker per core) T = max(C / c, t_unit) "
               "with C the CPU-hours and t_unit the longest unit; per-query Ray parallelism (`adv3d attack "
               "--ray-address`) helps only with `--batch` > 1, which is another protocol. T is a lower bound: "
               "shards whose units differ in length finish apart.", "",
+              f"On N nodes of k cores: T(N) = max(C / (N k), t_unit) = max({total_cpu:.0f} / (N k), {longest:.2f}) h "
+              f"(C and t_unit from the table above).", "",
               "| machine | cores c | wall time, h |", "|---|---:|---:|",
               f"| this machine | 2 | {max(total_cpu / 2, longest):.0f} ({max(total_cpu / 2, longest) / 24:.1f} days) |"]
     for n in nodes:
@@ -240,13 +251,41 @@ C_JOURNAL = "autonomy_c_bo12/queries.jsonl"
 A_JOURNAL = "shipped/table1_A_b20/runs/bo/seed0/highway-benchmark-000000/queries.jsonl.gz"
 
 
+#: The kept tables whose measured CPU s per episode price the campaign: Autonomy-A's (every row
+#: but B's) and Autonomy-B's (its row, as a factor on A's).
+RATE_A, RATE_B = "shipped/table1_A_b20", "shipped/table1_B_realistic"
+
 #: The shipped stack's kept tables, quoted whole on the page.
-SHIPPED = ("shipped/table1_A_b20",)
+SHIPPED = ("shipped/table1_B_realistic", "shipped/table1_A_b20")
+
+
+def stale_against(doc: dict) -> list[str]:
+    """What of a kept table's stack differs from the stack in this checkout: the weights, the
+    planner, the shape space or the stack's fingerprint (``tables.VERSION_KEYS``), each as
+    ``"<what> <kept> (now <current>)"``; [] when it is the stack as it is now."""
+    from .tables import VERSION_KEYS, model_versions
+
+    kept = doc.get("versions") or {}
+    now = model_versions(str(doc.get("autonomy") or (doc.get("protocol") or {}).get("autonomy")))
+    out = []
+    for key in VERSION_KEYS:
+        a, b = kept.get(key), now.get(key)
+        if a is None or a == b:
+            continue
+        if isinstance(a, dict) and isinstance(b, dict):
+            out += [f"{key} {k} `{a.get(k)}` (now `{b.get(k)}`)" for k in sorted(set(a) | set(b))
+                    if a.get(k) != b.get(k) and k != "fingerprint"]
+            if a.get("fingerprint") != b.get("fingerprint") and key == "stack":
+                out.append(f"stack fingerprint `{a.get('fingerprint')}` (now `{b.get('fingerprint')}`)")
+        else:
+            out.append(f"{key} `{a}` (now `{b}`)")
+    return out
 
 
 def shipped_markdown(root: Path) -> str:
     """The shipped stack's kept tables (their ``table.md``, headings one level down, the
-    picture linked from the page's folder)."""
+    picture linked from the page's folder), each marked **stale** where the stack in this
+    checkout is no longer the one it was made with (:func:`stale_against`)."""
     out = []
     for folder in SHIPPED:
         path = root / folder / "table.md"
@@ -254,6 +293,12 @@ def shipped_markdown(root: Path) -> str:
             out.append(f"`{folder}`: not built yet.\n")
             continue
         text = path.read_text()
+        stale = stale_against(json.loads((root / folder / "table.json").read_text()))
+        if stale:
+            head, _, rest = text.partition("\n")
+            text = (head + "\n\n> **Stale:** made with a stack this checkout no longer ships: " + "; ".join(stale)
+                    + ". Its numbers are of that stack; rerun the table's command to measure the shipped one.\n"
+                    + rest)
         out.append(text.rstrip("\n") + "\n\n"
                    + f"![Held-out change against the original, scene by scene](results/{folder}/table.png)\n")
     return "\n".join(out)
@@ -263,8 +308,12 @@ def blocks(root: Path) -> dict[str, str]:
     """The generated blocks of docs/results.md, by name."""
     have = (root / C_JOURNAL).is_file() and (root / A_JOURNAL).is_file()
     c_factor = round(mean_query_wall(root / C_JOURNAL) / mean_query_wall(root / A_JOURNAL), 2) if have else 1.0
+    scale = {"C, realistic region": c_factor}
+    a_rate, b_rate = kept_rate(root, RATE_A), kept_rate(root, RATE_B)
+    if a_rate and b_rate:  # B priced at its own measured rate
+        scale["B, realistic region"] = round(b_rate[2] / a_rate[2], 2)
     return {"verdicts": verdicts_markdown(root), "shipped": shipped_markdown(root),
-            "compute": compute_markdown(root, "shipped/table1_A_b20", rate_scale={"C, realistic region": c_factor})}
+            "compute": compute_markdown(root, RATE_A, rate_scale=scale)}
 
 
 def write_docs(page: Path, root: Path) -> bool:

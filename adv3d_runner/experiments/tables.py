@@ -570,6 +570,7 @@ def run_table(spec: TableSpec, args, command: str) -> Path:
                             workers=args.workers)
         if getattr(args, "avoidability", False):
             n_new += keep_avoidability(summary, seed, args.eval_seeds, cfg, store, keep_dir, args.workers)
+        keep_realism(summary, cfg, keep_dir)
         compute.update(queries=max(0, new_q - kept_q), heldout=n_new)
         print(f"[{spec.name}] {tag}: {new_q} queries ({new_q - kept_q} new), {n_new} held-out evaluations, "
               f"{time.perf_counter() - t0:.0f} s", flush=True)
@@ -658,8 +659,86 @@ def load_kept(results: Path) -> list[dict]:
         out.append({"setting": d.parent.parent.name, "seed": int(d.parent.name[4:]), "scene": d.name,
                     "run": run.value, "summary": summary.value,
                     "heldout": HeldoutStore(held).evaluations if held.exists() else {},
-                    "avoidability": kept_avoidability(d)})
+                    "avoidability": kept_avoidability(d), "realism": kept_realism(d)})
     return out
+
+
+#: A kept run's calibrated realism verdicts of its best shapes (:func:`keep_realism`).
+REALISM_FILE = "realism.json"
+REALISM_FORMAT = "adv3d.best_shape_realism"
+REALISM_VERSION = 1
+
+
+def keep_realism(summary: dict, cfg, keep_dir: Path) -> int:
+    """``keep_dir/realism.json``: every best shape's realism report recomputed with the current
+    code against the calibrated limits (``shapes.realism.LIMITS``; docs/realism.md,
+    Calibration), so runs kept before the calibration get the verdict it gives. Per scene and
+    mode the verdict of each attacked actor (``realistic``, ``flags``); in the realistic region
+    the report of the shape the query was moved to (``ActorShapes.full_reports``). Vertex-deformed
+    shapes are checked on their mesh measures only. Returns the shapes checked (0 when the file
+    is there already or the run was made with another shape space, whose unit vectors decode to
+    other shapes)."""
+    from adv3d_runner.attack.shape_models import ActorShapes
+    from adv3d_runner.fileio import write_json
+    from adv3d_runner.scene.schema import load_scene
+    if (keep_dir / REALISM_FILE).is_file():
+        return 0
+    space = cfg.settings.load_shape_space()
+    made_with = (summary.get("run", {}).get("versions") or {}).get("shape_space")
+    if made_with is not None and made_with != space.content_hash:
+        return 0
+    scenes, n, limits = {}, 0, None
+    for sid, entry in summary.get("scenes", {}).items():
+        if "skipped" in entry:
+            continue
+        shapes = ActorShapes(cfg.settings, load_scene(entry["ref"]), entry["targets"], space,
+                             cfg.settings.load_library())
+        modes = {}
+        for mode, m in entry.get("modes", {}).items():
+            if not m.get("best_unit"):
+                continue
+            reports = shapes.full_reports(np.asarray(m["best_unit"], dtype=np.float64).reshape(-1))
+            modes[mode] = [{"actor": a, "realistic": bool(r["realistic"]), "flags": list(r["flags"])}
+                           for a, r in zip(entry["targets"], reports)]
+            limits = limits or next((r.get("limits") for r in reports if r.get("limits")), None)
+            n += len(reports)
+        scenes[sid] = {"modes": modes}
+    write_json(keep_dir / REALISM_FILE, {"format": REALISM_FORMAT, "version": REALISM_VERSION,
+                                         "limits": limits, "scenes": scenes})
+    return n
+
+
+def backfill_realism(results: Path) -> int:
+    """:func:`keep_realism` for every kept run of a table folder that has no realism.json yet
+    (runs kept before the file existed); returns the shapes checked."""
+    from adv3d_runner.attack.config import AttackConfig
+
+    n = 0
+    for d in sorted(q for q in (results / "runs").glob("*/seed*/*") if q.is_dir()):
+        if (d / REALISM_FILE).is_file() or not (d / "summary.json").is_file():
+            continue
+        cfg = AttackConfig.from_run_json(_json_object(d / "run.json"), d / "run.json")
+        n += keep_realism(_json_object(d / "summary.json"), cfg, d)
+    return n
+
+
+def kept_realism(run_dir: Path) -> dict | None:
+    """A kept run's ``realism.json`` (:func:`keep_realism`), header checked; None where absent."""
+    from adv3d_runner.validate import read_optional_contract
+
+    node = read_optional_contract(run_dir / REALISM_FILE, REALISM_FORMAT, (REALISM_VERSION,))
+    if node is None:
+        return None
+    node["scenes"].object("scene id -> the scene's best-shape realism verdicts")
+    return node.value
+
+
+def _calibrated(k: dict, mode: str) -> bool | None:
+    """A best shape's calibrated realism verdict (every attacked actor realistic) from its kept
+    run's realism.json; None without one."""
+    doc = k.get("realism") or {}
+    actors = (((doc.get("scenes") or {}).get(k["scene"]) or {}).get("modes") or {}).get(mode)
+    return all(a.get("realistic") for a in actors) if actors else None
 
 
 def kept_avoidability(run_dir: Path) -> dict | None:
@@ -803,6 +882,7 @@ def collect(spec: TableSpec, kept: list[dict]) -> dict[str, list[dict]]:
                                "realistic": (all(r.get("realistic") for r in reps) if reps else None),
                                "setting": k["setting"],
                                "finding": _finding(k, what) if what != "original" else None,
+                               "calibrated": _calibrated(k, what) if what != "original" else None,
                                "criticality": {key: _criticality_value(ev, key) for _, key, _ in CRITICALITY}})
     for name, src in spec.rows.items():
         if src != "original" and src[0] in spec.groups:
@@ -859,7 +939,7 @@ def build_table(spec: TableSpec, autonomy: str, results_root: Path, budget: int 
     from adv3d_runner.attack.protocol import LOWER_IS_WORSE, metric_value, metrics_for, scene_means
     from adv3d_runner.fileio import atomic_write_text, write_json
     from adv3d_runner.errors import ConfigError
-    from adv3d_runner.metrics.stats import bootstrap_ci, paired_mde, paired_summary
+    from adv3d_runner.metrics.stats import bootstrap_ci, paired_mde, paired_summary, scenes_to_detect
 
     results = results_root / spec.folder(autonomy, budget, region)
     METRICS = metrics_for(autonomy)
@@ -940,6 +1020,9 @@ def build_table(spec: TableSpec, autonomy: str, results_root: Path, budget: int 
         real = [e["realistic"] for e in rows[name] if e["realistic"] is not None]
         if real:
             row["realistic_best_shapes"] = [int(sum(real)), len(real)]
+        calibrated = [e.get("calibrated") for e in rows[name] if e.get("calibrated") is not None]
+        if calibrated:
+            row["calibrated_realistic_best_shapes"] = [int(sum(calibrated)), len(calibrated)]
         search = scene_means(((e["scene"], e) for e in rows[name]),
                              lambda e: e["search_cost"] if e["search_cost"] is not None else np.nan)
         row["search_seed_objective"] = {"mean": bootstrap_ci(list(search.values()))[0], "per_scene": search}
@@ -979,6 +1062,8 @@ def build_table(spec: TableSpec, autonomy: str, results_root: Path, budget: int 
                      sd_diff=sd if np.isfinite(sd) else None)
             mde = paired_mde(sd, len(d))
             s["mde_80"] = mde if np.isfinite(mde) else None  # None: the design detects no difference
+            # the scenes a design needs to detect a difference as large as the measured one
+            s["scenes_to_detect_80"] = scenes_to_detect(sd, s["mean_diff"]) if len(d) > 1 else None
             table["comparisons"].append(s)
         for t in TERMS:
             ta, tb = table["rows"][a].get("terms", {}).get(t), table["rows"][b].get("terms", {}).get(t)
@@ -1342,12 +1427,15 @@ def findings_markdown(rows: dict) -> list[str]:
         crit = row.get("criticality") or {}
         cells = [f"{_fmt(crit[key]['mean'])} ({crit[key]['scenes']} sc.)" if key in crit else "n/a"
                  for _, key, _ in CRITICALITY]
-        real = row.get("realistic_best_shapes")
-        lines.append(f"| {name} | " + " | ".join(split + cells) + f" | {f'{real[0]}/{real[1]}' if real else 'n/a'} | n/a |")
+        real, cal = row.get("realistic_best_shapes"), row.get("calibrated_realistic_best_shapes")
+        lines.append(f"| {name} | " + " | ".join(split + cells) + f" | {f'{real[0]}/{real[1]}' if real else 'n/a'} | "
+                     f"{f'{cal[0]}/{cal[1]}' if cal else 'n/a'} |")
     lines += ["", "n/a: not in the kept runs. The split needs each run's avoidability.json (`adv3d avoidability RUN`: "
               "the best shapes re-simulated with the oracle reference stack on the held-out seeds); the criticality "
-              "needs runs made since CommonRoad CriMe's figures are recorded; the calibrated realism verdict is not "
-              "computed by this version.", ""]
+              "needs runs made since CommonRoad CriMe's figures are recorded. Realistic (realism report): the verdict the "
+              "run recorded, under the limits of its time; calibrated realism verdict: each best shape's report "
+              "recomputed against the calibrated limits (realism.json, made when the table's command runs; "
+              "docs/realism.md, Calibration): shapes passing / shapes checked.", ""]
     return lines
 
 

@@ -264,3 +264,34 @@ def paired_mde(sd_diff: float, n: int, *, alpha: float = ALPHA, power: float = P
         return float("inf")
     df = n - 1
     return float((t.ppf(1.0 - alpha / 2.0, df) + t.ppf(power, df)) * abs(sd_diff) / np.sqrt(n))
+
+
+#: The largest scene count :func:`scenes_to_detect` searches.
+MAX_PLANNED_SCENES = 100_000
+
+
+def scenes_to_detect(sd_diff: float, delta: float, *, alpha: float = ALPHA, power: float = POWER) -> int | None:
+    """The fewest scenes n whose design detects a mean paired difference ``delta`` with
+    probability ``power`` (``paired_mde(sd_diff, n) <= |delta|``): the size a table needs for a
+    difference as large as, say, the one it measured, from its measured per-scene spread.
+
+    Args:
+        sd_diff: standard deviation (ddof 1) of the per-scene differences.
+        delta: the difference to detect, in the metric's unit.
+    Returns:
+        n (at least 6, the exact sign-flip test's smallest at 0.05); None when ``delta`` is 0 or
+        not finite, sd is not finite, or more than :data:`MAX_PLANNED_SCENES` scenes would be
+        needed.
+    """
+    if not (np.isfinite(delta) and np.isfinite(sd_diff)) or delta == 0.0:
+        return None
+    lo, hi = 2, MAX_PLANNED_SCENES
+    if paired_mde(sd_diff, hi, alpha=alpha, power=power) > abs(delta):
+        return None
+    while lo < hi:  # paired_mde falls with n: bisect for the first n that reaches |delta|
+        mid = (lo + hi) // 2
+        if paired_mde(sd_diff, mid, alpha=alpha, power=power) <= abs(delta):
+            hi = mid
+        else:
+            lo = mid + 1
+    return int(lo)
