@@ -1,9 +1,11 @@
 """Start-up cost of the ``adv3d`` command: what a person waits for before any work.
 
-    .venv/bin/python bench/startup.py [--repeat 5] [--root CHECKOUT] [--out FILE]
+    .venv/bin/python bench/startup.py [--repeat 5] [--root CHECKOUT [--root CHECKOUT2 ...]] [--out FILE]
 
 Runs, ``--repeat`` times each, in subprocesses of this interpreter (``python -m
-adv3d_runner.cli``, the code of ``--root``, default this checkout):
+adv3d_runner.cli``, the code of ``--root``, default this checkout; given several ``--root``, the
+runs of each command alternate between them, so that they share the machine's load, and the
+file holds each one's figures under ``roots``, the first one's also under ``results``):
 
 * ``adv3d --help`` and ``adv3d SUB --help`` for a fixed set of subcommands;
 * ``adv3d simulate highway-benchmark-000000 --seconds 0.1`` with Autonomy-A and with the
@@ -47,7 +49,19 @@ def run(cmd: list[str], cwd: Path, env: dict) -> tuple[float, float, int]:
 
 
 def measure(cmd: list[str], cwd: Path, env: dict, repeat: int) -> dict:
-    runs = [run(cmd, cwd, env) for _ in range(repeat)]
+    return summarize([run(cmd, cwd, env) for _ in range(repeat)], repeat)
+
+
+def measure_alternating(cmds: list[tuple[list[str], Path, dict]], repeat: int) -> list[dict]:
+    """:func:`measure` of each (cmd, cwd, env), their runs alternating."""
+    runs: list[list] = [[] for _ in cmds]
+    for _ in range(repeat):
+        for k, (cmd, cwd, env) in enumerate(cmds):
+            runs[k].append(run(cmd, cwd, env))
+    return [summarize(r, repeat) for r in runs]
+
+
+def summarize(runs: list[tuple[float, float, int]], repeat: int) -> dict:
     if any(rc != 0 for _, _, rc in runs):  # e.g. a command the measured checkout does not have
         return {"failed": f"exit {max(rc for _, _, rc in runs)}", "runs": repeat}
     cpu = [c for c, _, _ in runs]
@@ -69,48 +83,58 @@ def top_imports(cmd: list[str], cwd: Path, env: dict, n: int = 8) -> list[tuple[
     return sorted(out, key=lambda x: -x[1])[:n]
 
 
+def _commit(root: Path) -> str:
+    """The checkout's commit, with ``+changes`` where its tracked files differ from it."""
+    head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True, text=True).stdout.strip()
+    dirty = subprocess.run(["git", "diff", "--quiet", "HEAD"], cwd=root).returncode != 0
+    return head + ("+changes" if dirty else "")
+
+
 def main() -> int:
     from adv3d_runner.machine import machine_info
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--repeat", type=int, default=5)
-    ap.add_argument("--root", type=Path, default=ROOT, help="checkout whose code runs (default this one)")
+    ap.add_argument("--root", type=Path, action="append", default=None,
+                    help="checkout whose code runs (default this one); repeat to compare checkouts side by side")
     ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "startup.json")
     args = ap.parse_args()
-    root = args.root.resolve()
-    env = {**os.environ, "PYTHONPATH": str(root)}
-    scene = str(root / "scenes" / "highway" / "highway-benchmark-000000.json.gz")
+    roots = [r.resolve() for r in (args.root or [ROOT])]
+    envs = [{**os.environ, "PYTHONPATH": str(root)} for root in roots]
     py = [sys.executable]
     doc: dict = {"format": "adv3d.bench", "topic": "startup",
                  "command": " ".join([Path(sys.executable).name, "bench/startup.py"] + sys.argv[1:]),
-                 "code": str(root), "commit": subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root,
-                                                             capture_output=True, text=True).stdout.strip(),
+                 "code": str(roots[0]), "commit": _commit(roots[0]),
                  "machine": machine_info("numpy", "torch"),
                  "load_average_at_start": list(os.getloadavg()),
+                 "bytecode_cache_written": not os.environ.get("PYTHONDONTWRITEBYTECODE"),
                  "timing": "CPU s (user + system) of each child process, median of --repeat runs; wall s median"}
-    results: dict = {}
+    results: list[dict] = [{} for _ in roots]
+
+    def record(name: str, cmds: list[list[str]]) -> None:
+        got = measure_alternating([(cmd, root, env) for cmd, root, env in zip(cmds, roots, envs)], args.repeat)
+        for res, r in zip(results, got):
+            res[name] = r
+        print(f"{name:32s} " + "  ".join(f"{r['cpu_s_median']:6.2f} CPU-s {r['wall_s_median']:6.2f} s"
+                                         if "failed" not in r else r["failed"] for r in got), flush=True)
+
     for words in HELP:
-        name = "adv3d " + " ".join(words)
-        results[name] = measure([*py, "-m", "adv3d_runner.cli", *words], root, env, args.repeat)
-        r = results[name]
-        print(f"{name:32s} " + (f"{r['cpu_s_median']:6.2f} CPU-s {r['wall_s_median']:6.2f} s" if "failed" not in r
-                                else r["failed"]), flush=True)
+        record("adv3d " + " ".join(words), [[*py, "-m", "adv3d_runner.cli", *words] for _ in roots])
     with tempfile.TemporaryDirectory(prefix="adv3d-startup-") as tmp:
         for stack in ("A", "oracle"):
-            cmd = [*py, "-m", "adv3d_runner.cli", "-q", "simulate", scene, "--seconds", "0.1", "--autonomy", stack,
-                   "--out", str(Path(tmp) / stack)]
-            run(cmd, root, env)  # fills the caches
-            name = f"adv3d simulate highway-benchmark-000000 --seconds 0.1 --autonomy {stack}"
-            results[name] = measure(cmd, root, env, args.repeat)
-            print(f"{name:32s} {results[name]['cpu_s_median']:6.2f} CPU-s {results[name]['wall_s_median']:6.2f} s",
-                  flush=True)
-            doc.setdefault("simulate_top_imports_s", {})[stack] = top_imports(cmd[1:], root, env)
+            cmds = [[*py, "-m", "adv3d_runner.cli", "-q", "simulate",
+                     str(root / "scenes" / "highway" / "highway-benchmark-000000.json.gz"), "--seconds", "0.1",
+                     "--autonomy", stack, "--out", str(Path(tmp) / f"{stack}{k}")] for k, root in enumerate(roots)]
+            for cmd, root, env in zip(cmds, roots, envs):
+                run(cmd, root, env)  # fills the caches
+            record(f"adv3d simulate highway-benchmark-000000 --seconds 0.1 --autonomy {stack}", cmds)
+            doc.setdefault("simulate_top_imports_s", {})[stack] = top_imports(cmds[0][1:], roots[0], envs[0])
     for module in IMPORTS:
-        name = f"import {module}"
-        results[name] = measure([*py, "-c", f"import {module}"], root, env, args.repeat)
-        print(f"{name:32s} {results[name]['cpu_s_median']:6.2f} CPU-s", flush=True)
+        record(f"import {module}", [[*py, "-c", f"import {module}"] for _ in roots])
     doc["load_average_at_end"] = list(os.getloadavg())
-    doc["results"] = results
+    doc["results"] = results[0]
+    if len(roots) > 1:
+        doc["roots"] = [{"code": str(root), "commit": _commit(root), "results": res} for root, res in zip(roots, results)]
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(doc, indent=1) + "\n")
     print(f"wrote {args.out}")

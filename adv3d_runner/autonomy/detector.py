@@ -823,6 +823,13 @@ class BevDetector:
         self.timings: dict[str, float] = {}
         #: run the network through :func:`blocked_forward` where it gives the same bits
         self.blocked = True
+        #: "float32" (the trained network's arithmetic) or "bfloat16": the network's weights and
+        #: feature maps rounded to bfloat16 (oneDNN's bf16 kernels, float32 accumulation), about
+        #: 1.5x faster where the CPU has AVX512-BF16 or AMX and slower where not; other scores
+        #: (by up to ~0.005 on the shipped model) and so other results: an option, measured in
+        #: docs/performance.md, not the default
+        self.precision = "float32"
+        self._bf16: tuple[nn.Module, Any] | None = None  # (inference_net, its bfloat16 forward)
         # (inference_net, its flat_forward, the forward chosen per (input shape, threads))
         self._flat: tuple[nn.Module, Any, dict] | None = None
 
@@ -831,8 +838,24 @@ class BevDetector:
             torch.set_num_threads(self.threads)
         x = torch.from_numpy(np.ascontiguousarray(grids))
         with torch.inference_mode():
-            logits, box = self._runner(tuple(x.shape))(x)
+            if self.precision == "bfloat16":
+                logits, box = self._bf16_runner()(x.to(torch.bfloat16))
+                logits, box = logits.float(), box.float()
+            elif self.precision == "float32":
+                logits, box = self._runner(tuple(x.shape))(x)
+            else:
+                raise ConfigError(f"detector precision must be 'float32' or 'bfloat16', got {self.precision!r}")
             return torch.sigmoid(logits[:, 0]).numpy(), box.numpy()
+
+    def _bf16_runner(self):
+        """:func:`flat_forward` of a bfloat16 copy of ``inference_net`` (made once per net)."""
+        net = self.inference_net
+        if self._bf16 is None or self._bf16[0] is not net:
+            import copy
+
+            half = copy.deepcopy(net).to(torch.bfloat16)
+            self._bf16 = (net, flat_forward(half) or half)
+        return self._bf16[1]
 
     def _runner(self, shape: tuple[int, ...]):
         """The forward :meth:`_forward` runs on inputs of ``shape``: :func:`blocked_forward` of
@@ -899,12 +922,15 @@ def save_detector(det: BevDetector, out_dir: str | Path, extra_config: dict[str,
     return out_dir / WEIGHTS_NAME
 
 
-def load_detector(path: str | Path = DEFAULT_MODEL_DIR, threads: int | None = 1, **overrides: Any) -> BevDetector:
+def load_detector(path: str | Path = DEFAULT_MODEL_DIR, threads: int | None = 1, precision: str = "float32",
+                  **overrides: Any) -> BevDetector:
     """Load a trained detector.
 
     Args:
         path: the model folder (``config.json`` + weights) or its ``config.json``.
         threads: torch threads for inference (1 = one core, as the episode benchmark assumes).
+        precision: :attr:`BevDetector.precision` ("float32", the default, or "bfloat16", which
+            gives other results).
         overrides: decoding parameters to change (e.g. ``score_threshold=0.3``).
     Raises:
         FileFormatError: missing/invalid config, or weights that are not a plain tensor
@@ -919,6 +945,9 @@ def load_detector(path: str | Path = DEFAULT_MODEL_DIR, threads: int | None = 1,
     load_state_into(net, doc, cfg_path, WEIGHTS_NAME, "detector weights (state_dict .pt)")
     det = BevDetector(cfg, net, threads=threads)
     det.inference_net = fold_batchnorm(net)
+    if precision not in ("float32", "bfloat16"):
+        raise ConfigError(f"detector precision must be 'float32' or 'bfloat16', got {precision!r}")
+    det.precision = precision
     return det
 
 
