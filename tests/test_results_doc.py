@@ -23,11 +23,15 @@ BARE = re.compile(rf"(?<![\w.`/-]){NUMBER}(?![\w`])")
 
 
 def resolve(doc, path: str):
-    """``a.b[k=v;k2=v2].c``: keys, and list items selected by their fields."""
-    for part in re.findall(r"[^.\[\]]+(?:\[[^\]]*\])?", path):
+    """``a.b[k=v;k2=v2].c.0.{d. e}``: keys, list items selected by their fields, list items by
+    index, and a key with dots in braces (a row name such as ``{Adv. closed-loop}``)."""
+    for part in re.findall(r"\{[^}]*\}|[^.\[\]{}]+(?:\[[^\]]*\])?", path):
+        if part.startswith("{"):
+            doc = doc[part[1:-1]]
+            continue
         key, _, sel = part.partition("[")
         if key:
-            doc = doc[key]
+            doc = doc[int(key)] if isinstance(doc, list) else doc[key]   # a list item by its index
         if sel:
             want = dict(kv.split("=", 1) for kv in sel.rstrip("]").split(";"))
             (doc,) = [x for x in doc if all(str(x.get(k)) == v for k, v in want.items())]

@@ -216,8 +216,9 @@ def compute_markdown(root: Path, rate_folder: str, rate_scale: dict[str, float] 
                   f"B, where its kept table is there: its measured CPU s per episode over A's).", ""]
     lines += ["Wall time: a unit (one run seed, setting and scene) is sequential (BO with batch 1 asks one query "
               "at a time), units are independent, so with c cores in all (one `--shard I/c` process per core, "
-              "across machines sharing the kept folder, or one Ray worker per core) T = max(C / c, t_unit) "
-              "with C the CPU-hours and t_unit the longest unit; per-query Ray parallelism (`adv3d attack "
+              "across machines sharing the kept folder) T = max(C / c, t_unit) with C the CPU-hours and t_unit "
+              "the longest unit. On a Ray cluster the same holds with the shard processes started on its nodes "
+              "(the driver has no Ray scheduler of its own units); Ray's per-query parallelism (`adv3d attack "
               "--ray-address`) helps only with `--batch` > 1, which is another protocol. T is a lower bound: "
               "shards whose units differ in length finish apart.", "",
               f"On N nodes of k cores: T(N) = max(C / (N k), t_unit) = max({total_cpu:.0f} / (N k), {longest:.2f}) h "
@@ -255,8 +256,8 @@ A_JOURNAL = "shipped/table1_A_b20/runs/bo/seed0/highway-benchmark-000000/queries
 #: but B's) and Autonomy-B's (its row, as a factor on A's).
 RATE_A, RATE_B = "shipped/table1_A_b20", "shipped/table1_B_realistic"
 
-#: The shipped stack's kept tables, quoted whole on the page.
-SHIPPED = ("shipped/table1_B_realistic", "shipped/table1_A_b20")
+#: The shipped stack's kept tables, quoted whole on the page: generated block -> its tables.
+SHIPPED = {"shipped-b": ("shipped/table1_B_realistic",), "shipped": ("shipped/table1_A_b20",)}
 
 
 def stale_against(doc: dict) -> list[str]:
@@ -282,12 +283,12 @@ def stale_against(doc: dict) -> list[str]:
     return out
 
 
-def shipped_markdown(root: Path) -> str:
+def shipped_markdown(root: Path, folders: tuple[str, ...]) -> str:
     """The shipped stack's kept tables (their ``table.md``, headings one level down, the
     picture linked from the page's folder), each marked **stale** where the stack in this
     checkout is no longer the one it was made with (:func:`stale_against`)."""
     out = []
-    for folder in SHIPPED:
+    for folder in folders:
         path = root / folder / "table.md"
         if not path.is_file():
             out.append(f"`{folder}`: not built yet.\n")
@@ -312,7 +313,8 @@ def blocks(root: Path) -> dict[str, str]:
     a_rate, b_rate = kept_rate(root, RATE_A), kept_rate(root, RATE_B)
     if a_rate and b_rate:  # B priced at its own measured rate
         scale["B, realistic region"] = round(b_rate[2] / a_rate[2], 2)
-    return {"verdicts": verdicts_markdown(root), "shipped": shipped_markdown(root),
+    return {"verdicts": verdicts_markdown(root), **{name: shipped_markdown(root, folders)
+                                                    for name, folders in SHIPPED.items()},
             "compute": compute_markdown(root, RATE_A, rate_scale=scale)}
 
 
