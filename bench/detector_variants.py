@@ -1,16 +1,18 @@
-"""What the detector's bfloat16 option (``BevDetector.precision``) gains per query, and what it
-changes: Autonomy-A closed-loop queries with the float32 network (the default) and with the
-bfloat16 one, side by side.
+"""What the detector's ways of running its network cost per query, and whether they change
+results: Autonomy-A closed-loop queries with each variant, side by side in one process.
 
-    .venv/bin/python bench/detector_precision.py [--queries 3] [--scenes 000000,000010,000041] [--out FILE]
+    .venv/bin/python bench/detector_variants.py [--queries 3] [--scenes 000000,000010,000041] [--out FILE]
 
-One process pinned to one core, one thread per library (as ``bench/attack.py --stages``). Per
-scene, two workspaces (``SceneWorkspace``, static-hit cache on; one per precision, so neither
-reuses the other's LiDAR cache) evaluate the same ``--queries`` + 1 seeded shapes (5 s, closed
-loop), alternating between the precisions; the first query of each is not counted. Records
-per precision the median CPU seconds per query (``time.process_time``), the detector's CPU
-per query and its network's per frame (``time.thread_time``), and per query whether the two
-results (objective, metrics) are equal. Writes JSON to ``--out`` (default: print only).
+Variants: ``flat`` (``flat_forward``: plain NCHW tensors, as before the blocked layout),
+``shipped`` (what ``load_detector`` gives: ``blocked_forward`` where it gives the same bits) and
+``bfloat16`` (the precision option, other results). One process pinned to one core, one thread
+per library (as ``bench/attack.py --stages``). Per scene, one workspace per variant
+(``SceneWorkspace``, static-hit cache on, so none reuses another's LiDAR cache) evaluates the
+same ``--queries`` + 1 seeded shapes (5 s, closed loop), the variants in turns, so they share the
+machine's load; the first query of each is not counted. Records per variant the median CPU
+seconds per query (``time.process_time``), the detector's CPU per query and its network's per
+frame (``time.thread_time``), and per query whether each variant's result (objective, metrics)
+equals ``flat``'s. Writes JSON to ``--out`` (default: print only).
 """
 from __future__ import annotations
 
@@ -33,7 +35,7 @@ sys.path.insert(0, str(ROOT))
 
 from adv3d_runner.machine import machine_info  # noqa: E402
 
-PRECISIONS = ("float32", "bfloat16")
+VARIANTS = ("flat", "shipped", "bfloat16")
 
 
 def main() -> int:
@@ -46,15 +48,16 @@ def main() -> int:
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args()
     load = list(os.getloadavg())
-    rows = {p: [] for p in PRECISIONS}
-    same = []
+    rows = {p: [] for p in VARIANTS}
+    same: dict[str, list[bool]] = {p: [] for p in VARIANTS[1:]}
     for sc in args.scenes.split(","):
         scene = str(ROOT / "scenes" / "highway" / f"highway-benchmark-{sc}.json.gz")
         spaces = {}
-        for p in PRECISIONS:
+        for p in VARIANTS:
             ws = SceneWorkspace(scene, QuerySettings(autonomy="A", seconds=5.0, incremental=True))
             det = ws.stack.detector
-            det.precision = p
+            det.blocked = p != "flat"
+            det.precision = "bfloat16" if p == "bfloat16" else "float32"
             det.clock = staticmethod(time.thread_time)
             spent = {"detector": 0.0, "network": 0.0, "frames": 0}
             detect = det.detect
@@ -83,23 +86,26 @@ def main() -> int:
                     rows[p].append({"scene": sc, "cpu_s": total, "detector_s": spent["detector"],
                                     "network_ms_per_frame": 1000 * spent["network"] / max(spent["frames"], 1)})
             if q:
-                same.append(len(set(got.values())) == 1)
+                for p in same:
+                    same[p].append(got[p] == got["flat"])
         print(f"  {sc}: done", flush=True)
     out = {p: {"queries": len(r), "cpu_s_per_query_median": float(np.median([x["cpu_s"] for x in r])),
                "detector_s_per_query_mean": float(np.mean([x["detector_s"] for x in r])),
                "network_ms_per_frame_median": float(np.median([x["network_ms_per_frame"] for x in r])),
                "per_query": r} for p, r in rows.items()}
-    doc = {"format": "adv3d.bench", "topic": "detector_precision",
-           "command": " ".join([Path(sys.executable).name, "bench/detector_precision.py"] + sys.argv[1:]),
+    doc = {"format": "adv3d.bench", "topic": "detector_variants",
+           "command": " ".join([Path(sys.executable).name, "bench/detector_variants.py"] + sys.argv[1:]),
            "machine": machine_info("numpy", "torch"), "load_average_at_start": load,
            "load_average_at_end": list(os.getloadavg()),
            "timing": "time.process_time per query, one process pinned to one core, one thread per library",
-           "precisions": out, "results_equal_per_query": same}
-    for p in PRECISIONS:
+           "variants": out, "results_equal_to_flat_per_query": same}
+    for p in VARIANTS:
         o = out[p]
         print(f"{p:9s} median {o['cpu_s_per_query_median']:.3f} CPU-s/query, detector {o['detector_s_per_query_mean']:.3f} "
               f"s/query, network {o['network_ms_per_frame_median']:.2f} ms/frame")
-    print(f"results equal in {sum(same)} of {len(same)} queries; load {load[0]:.1f}")
+    for p, eq in same.items():
+        print(f"{p}: results equal to flat's in {sum(eq)} of {len(eq)} queries")
+    print(f"load {load[0]:.1f}")
     if args.out:
         args.out.write_text(json.dumps(doc, indent=1) + "\n")
         print(f"wrote {args.out}")

@@ -1,6 +1,6 @@
 """Start-up cost of the ``adv3d`` command: what a person waits for before any work.
 
-    .venv/bin/python bench/startup.py [--repeat 5] [--root CHECKOUT [--root CHECKOUT2 ...]] [--out FILE]
+    .venv/bin/python bench/startup.py [--repeat 5] [--root CHECKOUT [--root CHECKOUT2 ...]] [--only TEXT] [--out FILE]
 
 Runs, ``--repeat`` times each, in subprocesses of this interpreter (``python -m
 adv3d_runner.cli``, the code of ``--root``, default this checkout; given several ``--root``, the
@@ -97,6 +97,7 @@ def main() -> int:
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--root", type=Path, action="append", default=None,
                     help="checkout whose code runs (default this one); repeat to compare checkouts side by side")
+    ap.add_argument("--only", default=None, help="measure only the commands whose name holds this text")
     ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "startup.json")
     args = ap.parse_args()
     roots = [r.resolve() for r in (args.root or [ROOT])]
@@ -112,6 +113,8 @@ def main() -> int:
     results: list[dict] = [{} for _ in roots]
 
     def record(name: str, cmds: list[list[str]]) -> None:
+        if args.only and args.only not in name:
+            return
         got = measure_alternating([(cmd, root, env) for cmd, root, env in zip(cmds, roots, envs)], args.repeat)
         for res, r in zip(results, got):
             res[name] = r
@@ -125,6 +128,8 @@ def main() -> int:
             cmds = [[*py, "-m", "adv3d_runner.cli", "-q", "simulate",
                      str(root / "scenes" / "highway" / "highway-benchmark-000000.json.gz"), "--seconds", "0.1",
                      "--autonomy", stack, "--out", str(Path(tmp) / f"{stack}{k}")] for k, root in enumerate(roots)]
+            if args.only and args.only not in f"adv3d simulate --autonomy {stack}":
+                continue
             for cmd, root, env in zip(cmds, roots, envs):
                 run(cmd, root, env)  # fills the caches
             record(f"adv3d simulate highway-benchmark-000000 --seconds 0.1 --autonomy {stack}", cmds)

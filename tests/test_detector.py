@@ -438,14 +438,21 @@ def test_blocked_forward_gives_the_flat_forwards_bits_and_is_checked_before_use(
     det = BevDetector(cfg, net)
     det.inference_net = gm
     frame = np.c_[rng.uniform([0, -10, 0.5], [40, 10, 2.0], (3000, 3)), np.ones(3000)]
-    a = det.detect(frame, score_threshold=0.0)
-    chosen = det._flat[2]
-    assert len(chosen) == 1 and next(iter(chosen.values())) is not det._flat[1]  # the blocked forward
+    first = det.detect(frame, score_threshold=0.0)
+    (entry,) = det._flat[2].values()
+    assert entry[0] is det._flat[1]  # flat_forward for the first blocked_after calls
+    for _ in range(det.blocked_after):
+        a = det.detect(frame, score_threshold=0.0)
+    assert entry[0] is not det._flat[1] and entry[1] is None  # then the blocked forward, checked
+    assert a.boxes.tobytes() == first.boxes.tobytes() and a.scores.tobytes() == first.scores.tobytes()
     monkeypatch.setattr(detector_mod, "same_outputs", lambda *args, **kw: False)  # a check that fails
     other = BevDetector(cfg, net)
     other.inference_net = gm
+    other.blocked_after = 0
     b = other.detect(frame, score_threshold=0.0)
-    assert next(iter(other._flat[2].values())) is other._flat[1]  # falls back to flat_forward
+    (entry,) = other._flat[2].values()
+    assert entry[0] is other._flat[1] and entry[1] is None  # stays with flat_forward
+    assert b.boxes.tobytes() == first.boxes.tobytes() and b.scores.tobytes() == first.scores.tobytes()
     assert a.boxes.tobytes() == b.boxes.tobytes() and a.scores.tobytes() == b.scores.tobytes()
 
 

@@ -821,8 +821,10 @@ class BevDetector:
         self.inference_net: nn.Module = self.net
         self.threads = threads
         self.timings: dict[str, float] = {}
-        #: run the network through :func:`blocked_forward` where it gives the same bits
+        #: run the network through :func:`blocked_forward` where it gives the same bits, after
+        #: this many calls per input shape (:meth:`_runner`)
         self.blocked = True
+        self.blocked_after = 20
         #: "float32" (the trained network's arithmetic) or "bfloat16": the network's weights and
         #: feature maps rounded to bfloat16 (oneDNN's bf16 kernels, float32 accumulation), about
         #: 1.5x faster where the CPU has AVX512-BF16 or AMX and slower where not; other scores
@@ -830,7 +832,8 @@ class BevDetector:
         #: docs/performance.md, not the default
         self.precision = "float32"
         self._bf16: tuple[nn.Module, Any] | None = None  # (inference_net, its bfloat16 forward)
-        # (inference_net, its flat_forward, the forward chosen per (input shape, threads))
+        # (inference_net, its flat_forward, per (input shape, threads) the forward chosen and
+        # the calls made until the blocked layout's check)
         self._flat: tuple[nn.Module, Any, dict] | None = None
 
     def _forward(self, grids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -858,19 +861,28 @@ class BevDetector:
         return self._bf16[1]
 
     def _runner(self, shape: tuple[int, ...]):
-        """The forward :meth:`_forward` runs on inputs of ``shape``: :func:`blocked_forward` of
-        ``inference_net`` where it gives the same bits as :func:`flat_forward` on that shape and
-        this thread count (checked once, :func:`same_outputs`), else :func:`flat_forward`, else
-        the module itself."""
+        """The forward :meth:`_forward` runs on inputs of ``shape``: :func:`flat_forward` of
+        ``inference_net`` (the module itself where that declines) for the first
+        :attr:`blocked_after` calls, then :func:`blocked_forward` if it gave the same bits as
+        :func:`flat_forward` on that shape with this thread count (checked once, on
+        :func:`check_input`: two forwards and oneDNN's set-up of the blocked kernels, about
+        0.025 CPU-s, which a one-frame command would pay for nothing)."""
         net = self.inference_net
         if self._flat is None or self._flat[0] is not net:
             self._flat = (net, flat_forward(net), {})
         _, flat, chosen = self._flat
         key = (shape, torch.get_num_threads())
-        if key not in chosen:
-            blocked = blocked_forward(net) if flat is not None and self.blocked else None
-            chosen[key] = blocked if blocked is not None and same_outputs(flat, blocked, shape) else (flat or net)
-        return chosen[key]
+        entry = chosen.setdefault(key, [flat or net, 0])  # [forward, calls until the check; None: done]
+        if entry[1] is not None:
+            entry[1] += 1
+            if flat is None or not self.blocked:
+                entry[1] = None
+            elif entry[1] > self.blocked_after:
+                entry[1] = None
+                blocked = blocked_forward(net)
+                if blocked is not None and same_outputs(flat, blocked, shape):
+                    entry[0] = blocked
+        return entry[0]
 
     def detect(self, points: np.ndarray, score_threshold: float | None = None) -> Detections:
         """Vehicles in one LiDAR frame.
