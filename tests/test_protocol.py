@@ -149,7 +149,7 @@ def test_fresh_scenes_spread_over_recordings_and_speed_ranks():
     ranks = {}
     for row, path in zip(part.rows, part.paths()):
         ranks.setdefault(int(row["recording"]), []).append(path.name)
-    # recording j's first scene is its speed rank j mod n: the first round spreads over the ranks
+    # recording j's first scene is its speed rank j mod n: the first pass spreads over the ranks
     got = [ranks[s.recording].index(s.path.split("/")[-1]) for s in nine]
     assert got == [j % len(ranks[r]) for j, r in enumerate(sorted(ranks))]
     more = select_scenes(2, 0, n_fresh=12)
