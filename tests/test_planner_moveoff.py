@@ -106,3 +106,67 @@ def test_the_rule_switched_off_is_left_out_of_the_planner_fingerprint():
     assert not {"moveoff_gap", "moveoff_speed", "moveoff_dv"} & set(off)
     assert on["moveoff_gap"] == 2.0 and on["moveoff_speed"] == ProposalConfig().moveoff_speed
     assert set(on) - set(off) == {"moveoff_gap", "moveoff_speed", "moveoff_dv"}
+
+
+def _moveoff_planner(**fields) -> SamplingPlanner:
+    base = PlannerConfig()
+    return SamplingPlanner(replace(base, proposals=replace(base.proposals, moveoff_gap=2.0, **fields)))
+
+
+def test_an_ego_that_stopped_closer_than_the_moveoff_gap_moves_off_with_moveoff_stand():
+    """Stopped 1.5 m (bumper to bumper) behind a car that rolls off at 1 m/s^2 after 0.3 s (an
+    ego that rolled into the queue stops closer than ``moveoff_gap``): with the lower jam distance
+    at most 0.9 of the gap now (``moveoff_stand``) it starts rolling at least 0.5 s earlier and
+    drives further in 4 s than with ``moveoff_gap`` alone (which holds it until the gap has grown
+    past 2 m), and keeps more than 1 m to the leader."""
+    lanes = straight_lanes(1)
+    ego = EgoState([0.0, 0.0, 0.0], 0.0, length=4.8, width=1.9)
+    leader = _rolling_leader(0.5 * 4.8 + 1.5 + 0.5 * 4.6, 0.3, 1.0)
+    runs = {}
+    for stand in (0.0, 0.9):
+        ego_boxes, act_boxes, speeds, _ = closed_loop(lanes, ego, leader, 4.0,
+                                                      planner=_moveoff_planner(moveoff_stand=stand))
+        rep = collisions(ego_boxes, act_boxes)
+        assert not rep.collided
+        runs[stand] = (_first_move(speeds, 0.01), float(ego_boxes[-1, 0] - ego_boxes[0, 0]), rep.min_distance)
+    (t_plain, dist_plain, _), (t_stand, dist_stand, clear) = runs[0.0], runs[0.9]
+    assert t_stand <= t_plain - 0.5, runs
+    assert dist_stand > dist_plain + 0.05, runs
+    assert clear > 1.0, runs
+
+
+def test_moveoff_start_only_leaves_a_slow_follow_behind_a_slower_leader_unchanged():
+    """An ego at 2.5 m/s 6 m behind a leader at 1.5 m/s (slowing behind a slower car, below
+    ``moveoff_speed``): the rule does not hold now, but the rollouts that slow below the leader's
+    speed later apply it in their later steps, which changes the candidates; with
+    ``moveoff_start_only`` every candidate is the one without the rule."""
+    lanes = straight_lanes(1)
+    ego = EgoState([0.0, 0.0, 0.0], 2.5, length=4.8, width=1.9)
+    x_lead = 0.5 * 4.8 + 6.0 + 0.5 * 4.6
+    now = np.array([[x_lead, 0.0, 4.6, 1.9, 0.0]])
+    future = np.stack([np.c_[x_lead + 1.5 * DT * np.arange(1, 61), np.zeros(60)]])
+    tracks, preds = actor_inputs(now, future)
+
+    def accel(planner):
+        return planner_on(lanes, planner).plan_with_scores(ego, preds, tracks)[1].accel
+
+    off = accel(_planner(0.0))
+    assert not np.array_equal(accel(_moveoff_planner()), off)
+    assert np.array_equal(accel(_moveoff_planner(moveoff_start_only=True)), off)
+
+
+def test_the_moveoff_refinements_switched_off_are_left_out_of_the_fingerprint():
+    import dataclasses
+
+    from adv3d_runner.autonomy.planner import ProposalConfig
+    from adv3d_runner.autonomy.planner.proposals import fingerprint_fields
+
+    plain = fingerprint_fields(dataclasses.asdict(ProposalConfig(moveoff_gap=2.0)))
+    assert not {"moveoff_stand", "moveoff_start_only"} & set(plain)
+    both = fingerprint_fields(dataclasses.asdict(ProposalConfig(moveoff_gap=2.0, moveoff_stand=0.9,
+                                                                moveoff_start_only=True)))
+    assert both["moveoff_stand"] == 0.9 and both["moveoff_start_only"] is True
+    off = fingerprint_fields(dataclasses.asdict(ProposalConfig(moveoff_stand=0.9, moveoff_start_only=True)))
+    assert not {"moveoff_gap", "moveoff_stand", "moveoff_start_only"} & set(off)
+    with pytest.raises(ValueError, match="moveoff_stand"):
+        ProposalConfig(moveoff_stand=1.0)

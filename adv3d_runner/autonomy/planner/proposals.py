@@ -137,6 +137,16 @@ class ProposalConfig:
             ``moveoff_speed`` (m/s): the ego speed at which the jam distance is ``idm_gap``
             again; ``moveoff_dv`` (m/s): the leader's lead in speed at which the whole drop
             applies.
+        moveoff_stand: a fraction in (0, 1): the move-off rule's lower jam distance is at most
+            this fraction of the candidate's gap to its leader now (step 0), so that an ego that
+            rolled in and stopped closer than ``moveoff_gap`` (a stop from a crawl ends 1.5 m
+            behind the leader) moves off as the leader pulls away instead of waiting for the gap
+            to grow to ``moveoff_gap``; 0: off (docs/benchmark.md, rolling-in starts).
+        moveoff_start_only: True: the move-off rule applies to a candidate only when it holds at
+            its step 0 (the ego slower than ``moveoff_speed`` now and its leader faster); False:
+            at every step of the rollout, so that a slow follow (an ego slowing behind a slower
+            leader) whose rollout later falls below the leader's speed follows closer in its
+            later steps, which changes which candidate wins.
     """
 
     horizon: float = 5.0
@@ -183,6 +193,8 @@ class ProposalConfig:
     moveoff_gap: float = 0.0
     moveoff_speed: float = 3.0
     moveoff_dv: float = 1.0
+    moveoff_stand: float = 0.0
+    moveoff_start_only: bool = False
 
     def __post_init__(self):
         if self.leader_modes not in ("expected", "quantile", "nearest"):
@@ -193,6 +205,8 @@ class ProposalConfig:
         if self.moveoff_gap < 0.0 or self.moveoff_speed <= 0.0 or self.moveoff_dv <= 0.0:
             raise ValueError(f"moveoff_gap must be >= 0 m and moveoff_speed, moveoff_dv > 0 m/s, got "
                              f"{self.moveoff_gap!r}, {self.moveoff_speed!r}, {self.moveoff_dv!r}")
+        if not 0.0 <= self.moveoff_stand < 1.0:
+            raise ValueError(f"moveoff_stand must be in [0, 1), got {self.moveoff_stand!r}")
         if self.firm_braking is not None and self.firm_braking <= 0.0:
             raise ValueError(f"firm_braking must be > 0 m/s^2 or None, got {self.firm_braking!r}")
 
@@ -205,7 +219,10 @@ class ProposalConfig:
 #: existed: switch field -> (off value, the rule's fields). While off, the rule's fields are left
 #: out of the planner's fingerprint (:func:`fingerprint_fields`), so adding a rule switched off
 #: does not invalidate kept runs and caches.
-RULES_OFF = {"moveoff_gap": (0.0, ("moveoff_gap", "moveoff_speed", "moveoff_dv"))}
+RULES_OFF = {"moveoff_gap": (0.0, ("moveoff_gap", "moveoff_speed", "moveoff_dv", "moveoff_stand",
+                                   "moveoff_start_only")),
+             "moveoff_stand": (0.0, ("moveoff_stand",)),
+             "moveoff_start_only": (False, ("moveoff_start_only",))}
 
 
 def fingerprint_fields(proposals: dict) -> dict:
@@ -442,7 +459,8 @@ def rollout_candidates(ego_pose: np.ndarray, ego_speed: float, ego_accel: float,
         1.0 if config.alongside_leads else 0.0,
         config.idm_decel if config.firm_braking is None else config.firm_braking,
         config.smooth_resolution, config.stop_jerk, config.smooth_resolution_speed,
-        config.moveoff_gap, config.moveoff_speed, config.moveoff_dv,
+        config.moveoff_gap, config.moveoff_speed, config.moveoff_dv, config.moveoff_stand,
+        1.0 if config.moveoff_start_only else 0.0,
     ], dtype=np.float64)
     cautious = _mode_bounds(spec, target_d, s0, modes, ego_length, T) if modes else {}
     plan = _smooth_plans(spec, s0, v0, float(ego_accel), lead_s_ok, lead_back, config, params, headway, T, cautious)
@@ -517,7 +535,7 @@ def _smooth_plans(spec: CandidateSpec, s0: np.ndarray, v0: float, a0: float, lea
 (_IDM_ACCEL, _IDM_DECEL, _IDM_GAP, _IDM_HEADWAY, _MAX_DECEL, _JERK_DN, _BRAKE_DN, _UP_RELEASE, _DEADBAND,
  _COOLNESS, _LA_TIME, _LA_MIN, _LAT_LIM, _KAPPA_MAX, _VEH_ACC, _VEH_DEC, _VEH_SPEED, _LR, _DT, _FIRM_RELEASE,
  _CLAMP_VEHICLE, _ALONGSIDE_LEADS, _FIRM_AT, _SMOOTH_RES, _STOP_JERK, _SMOOTH_RES_SPEED,
- _MOVEOFF_GAP, _MOVEOFF_SPEED, _MOVEOFF_DV) = range(29)
+ _MOVEOFF_GAP, _MOVEOFF_SPEED, _MOVEOFF_DV, _MOVEOFF_STAND, _MOVEOFF_START) = range(31)
 
 
 @kernel
@@ -574,6 +592,7 @@ def _rollout_kernel(pose, v0, a0, s0, inv_trans, hermite, v_des, emergency, acce
         v_des_safe = max(v_des[b], 0.1)
         v_lead = 0.0
         a_lead = 0.0
+        moveoff_low = limits[_MOVEOFF_GAP]  # the move-off rule's lower jam distance (set at step 0)
         for k in range(T + 1):
             if k % 5 == 0 or k == T:  # exact projection now and then; in between the arc length driven
                 i0 = np.int64(np.floor(s_cur * (1.0 / spacing[b])))
@@ -606,6 +625,12 @@ def _rollout_kernel(pose, v0, a0, s0, inv_trans, hermite, v_des, emergency, acce
                 a_lead = lead_a[k, b, j]
                 if k == 0:
                     lead_v0[b] = v_lead
+                    if limits[_MOVEOFF_STAND] > 0.0:
+                        moveoff_low = min(moveoff_low, limits[_MOVEOFF_STAND] * gap)
+                    if limits[_MOVEOFF_START] > 0.0 and not (v_lead > v and v < limits[_MOVEOFF_SPEED]):
+                        moveoff_low = 0.0  # the rule does not hold now: off for this candidate
+            elif k == 0 and limits[_MOVEOFF_START] > 0.0:
+                moveoff_low = 0.0
             # ---- longitudinal: IDM (ACC model) towards the target speed
             if stop_target:  # stop target: brake comfortably
                 free = -idm_decel * min(1.0, v)
@@ -618,7 +643,7 @@ def _rollout_kernel(pose, v0, a0, s0, inv_trans, hermite, v_des, emergency, acce
                 if gap <= 0.0:
                     a = -max_decel
                 else:
-                    jam = moveoff_jam_gap(limits[_IDM_GAP], v, v_lead, limits[_MOVEOFF_GAP], limits[_MOVEOFF_SPEED],
+                    jam = moveoff_jam_gap(limits[_IDM_GAP], v, v_lead, moveoff_low, limits[_MOVEOFF_SPEED],
                                           limits[_MOVEOFF_DV])
                     s_star = jam + max(0.0, v * limits[_IDM_HEADWAY] + v * (v - v_lead) / sqrt_ab)
                     q = s_star / max(gap, 0.1)
