@@ -20,6 +20,12 @@ moves at least ``MIN_LOGGED_PROGRESS`` m in its first ``WINDOW_S`` s (it moves o
 applied to the reversed scene starting at each of ``START_FRAMES`` (the frames before cut off,
 ``cut_scene``), so one queue gives starts with the leader about to roll, rolling, or standing
 longer. Writes ``<out>/<source stem>.reversed.from<F>.json.gz`` and ``<out>/index.csv``.
+
+    .venv/bin/python bench/real_train_crawls.py --rolling [--out scenes/real-train-crawls-rolling]
+
+makes *rolling-in* starts from the kept crawls (``rolling_start``): the ego moving at 0.5, 1 or
+1.5 m/s at frame 0 where the logged driver stands, so that it must stop behind the queue's car
+and then move off; ``<crawl>.rolling<speed>.json.gz`` and ``index.csv``.
 """
 from __future__ import annotations
 
@@ -46,6 +52,11 @@ WINDOW_S = 5.0  # s, the closed-loop length of bench/sanity.py
 START_FRAMES = (0, 10, 20, 30)  # first frames of the reversed scene tried (every 1 s; >= 7 s stay)
 
 DEFAULT_SOURCES = (ROOT / "scenes" / "real-train-egos",)
+
+#: rolling-in starts (``--rolling``): each kept crawl whose logged ego stands at least
+#: ROLLING_MIN_STANDING s of its first WINDOW_S s, started at each of these speeds instead
+ROLLING_SPEEDS = (0.5, 1.0, 1.5)  # m/s
+ROLLING_MIN_STANDING = 1.0  # s
 
 
 def _reverse_track(track: dict, frames: int) -> dict:
@@ -162,6 +173,52 @@ def standstill_start(scene: Scene) -> dict | None:
             "logged_progress": round(travel, 2), "standing_s": round(float((v[:k] < 0.1).sum()) * scene.dt, 1)}
 
 
+def rolling_start(scene: Scene, speed: float, scene_id: str) -> Scene:
+    """``scene`` with its ego moving at ``speed`` (m/s) at frame 0 instead of its logged speed,
+    with id ``scene_id``; nothing else changes (the logged positions, hence the logged progress,
+    stay). Closed loop, the ego starts where the logged driver stands, rolling towards the queue's
+    car ahead, so it must stop behind it and then move off when it pulls away: a standing start
+    reached from a crawl. ``source.details`` records ``rolling_start_mps``.
+
+    Raises:
+        ValueError: ``speed`` negative or the ego not tracked at frame 0.
+    """
+    if speed < 0.0 or scene.ego.track.start != 0:
+        raise ValueError(f"{scene.id}: a rolling start needs speed >= 0 m/s (got {speed}) and the ego at frame 0")
+    d = scene.to_dict()
+    track = dict(d["ego"]["track"])
+    track["speed"] = [round(float(speed), 3)] + list(track["speed"][1:])
+    details = dict(d["source"]["details"], rolling_start_mps=round(float(speed), 3))
+    details["ego_rule"] = details.get("ego_rule", "") + f"; started at {speed:g} m/s (bench/real_train_crawls.py --rolling)"
+    new = dict(d, id=scene_id, source=dict(d["source"], details=details), ego=dict(d["ego"], track=track))
+    return Scene.from_dict(new, None)
+
+
+def build_rolling(out: Path, crawls: Path = ROOT / "scenes" / "real-train-crawls") -> list[dict]:
+    """Write the rolling-in starts (:func:`rolling_start`) of the kept crawls of ``crawls`` whose
+    ``index.csv`` row stands >= ``ROLLING_MIN_STANDING`` s, at each of ``ROLLING_SPEEDS``, and
+    their ``index.csv`` into ``out``; returns the index rows."""
+    out.mkdir(parents=True, exist_ok=True)
+    lines = (crawls / "index.csv").read_text().splitlines()
+    cols = lines[0].split(",")
+    rows = []
+    for line in lines[1:]:
+        row = dict(zip(cols, line.split(",")))
+        if float(row["standing_s"]) < ROLLING_MIN_STANDING:
+            continue
+        scene = load_scene(crawls / f"{row['scene']}.json.gz")
+        for speed in ROLLING_SPEEDS:
+            name = f"{row['scene']}.rolling{speed:g}"
+            save_scene(rolling_start(scene, speed, f"commonroad-{name}"), out / f"{name}.json.gz")
+            rows.append({"scene": name, "crawl": row["scene"], "start_speed": f"{speed:g}", "leader": row["leader"],
+                         "leader_gap": row["leader_gap"], "logged_progress": row["logged_progress"],
+                         "logged_standing_s": row["standing_s"]})
+            print(name)
+    keys = ["scene", "crawl", "start_speed", "leader", "leader_gap", "logged_progress", "logged_standing_s"]
+    (out / "index.csv").write_text("\n".join([",".join(keys)] + [",".join(r[k] for k in keys) for r in rows]) + "\n")
+    return rows
+
+
 def source_paths(sources: tuple[Path, ...] = DEFAULT_SOURCES) -> list[Path]:
     """The train scenes the rule is applied to: the train part of ``scenes/real/`` and every scene
     file of ``sources``, sorted by name."""
@@ -199,9 +256,18 @@ def build(out: Path, sources: tuple[Path, ...] = DEFAULT_SOURCES) -> list[dict]:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", default=str(ROOT / "scenes" / "real-train-crawls"))
+    ap.add_argument("--out", default=None, help="default scenes/real-train-crawls (with --rolling: "
+                    "scenes/real-train-crawls-rolling)")
+    ap.add_argument("--rolling", action="store_true", help="the rolling-in starts of the kept crawls "
+                    "(rolling_start), not the crawls")
     args = ap.parse_args()
-    rows = build(Path(args.out))
+    if args.rolling:
+        out = Path(args.out or ROOT / "scenes" / "real-train-crawls-rolling")
+        rows = build_rolling(out)
+    else:
+        out = Path(args.out or ROOT / "scenes" / "real-train-crawls")
+        rows = build(out)
+    args.out = out
     print(f"{len(rows)} scenes in {args.out}")
     return 0
 

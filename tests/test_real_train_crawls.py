@@ -73,3 +73,35 @@ def test_reversing_twice_gives_the_scene_back_and_a_stop_becomes_a_move_off():
         assert a["track"]["start"] == b["track"]["start"] and a["track"]["x"] == b["track"]["x"]
         turn = wrap_angle(np.asarray(a["track"]["yaw"]) - np.asarray(b["track"]["yaw"]))
         assert np.abs(turn).max() <= 1.5e-3  # two turns by pi, each rounded to 1e-3 rad
+
+
+ROLLING = REPO / "scenes" / "real-train-crawls-rolling"
+
+
+def test_rolling_starts_are_the_crawls_with_only_the_start_speed_changed(tmp_path):
+    """``scenes/real-train-crawls-rolling`` (``--rolling``): every crawl that stands >= 1 s, at
+    0.5, 1 and 1.5 m/s at frame 0, nothing else changed; rebuilt byte for byte."""
+    crawls = _script()
+    rows = (ROLLING / "index.csv").read_text().splitlines()
+    rows = [dict(zip(rows[0].split(","), r.split(","))) for r in rows[1:]]
+    standing = [r for r in (FOLDER / "index.csv").read_text().splitlines()[1:]
+                if float(r.split(",")[-1]) >= crawls.ROLLING_MIN_STANDING]
+    assert len(rows) == len(standing) * len(crawls.ROLLING_SPEEDS) >= 9
+    for row in rows:
+        scene = load_scene(ROLLING / f"{row['scene']}.json.gz")  # loading validates the scene
+        crawl = load_scene(FOLDER / f"{row['crawl']}.json.gz")
+        a, b = scene.to_dict(), crawl.to_dict()
+        assert scene.ego.track.speed[0] == float(row["start_speed"]) > 0.0 == crawl.ego.track.speed[0]
+        assert a["ego"]["track"]["speed"][1:] == b["ego"]["track"]["speed"][1:]
+        for key in ("x", "y", "yaw"):
+            assert a["ego"]["track"][key] == b["ego"]["track"][key]
+        assert a["actors"] == b["actors"] and a["map"] == b["map"] and a["frames"] == b["frames"]
+        assert scene.source.details["rolling_start_mps"] == float(row["start_speed"])
+    crawls.build_rolling(tmp_path)
+    kept = sorted(p.name for p in ROLLING.iterdir() if p.suffix in (".gz", ".csv"))
+    assert sorted(p.name for p in tmp_path.iterdir()) == kept
+    for name in kept:
+        x, y = (ROLLING / name).read_bytes(), (tmp_path / name).read_bytes()
+        if name.endswith(".gz"):
+            x, y = gzip.decompress(x), gzip.decompress(y)
+        assert x == y, name
