@@ -4,9 +4,12 @@
   (``bench/predictor_finetune.py --out runs/predictor-ft``, copied there; docs/benchmark.md) in
   place of the shipped one; its ``stack_info`` names the variant and carries the SHA-256 of
   those weights.
-* ``a_predictor_anchored``: Autonomy-A with the anchored predictor of
-  ``assets/models/predictor-anchored`` (``python -m adv3d_runner.training.predictor_anchored``,
-  docs/predictor.md), named and fingerprinted the same way.
+* ``a_predictor_anchored``: Autonomy-A with the anchored predictor
+  (``python -m adv3d_runner.training.predictor_anchored``, docs/predictor.md), named and
+  fingerprinted the same way; it was looked at from ``assets/models/predictor-anchored`` and is
+  now the shipped ``assets/models/predictor`` (docs/benchmark.md), where this variant reads it.
+* ``a_predictor_2026_shipped``: Autonomy-A with the predictor shipped before it
+  (``assets/models/predictor-2026-shipped``).
 """
 from __future__ import annotations
 
@@ -16,7 +19,8 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 FT_PREDICTOR = ROOT / "assets" / "models" / "predictor-fresh-ft"
-ANCHORED_PREDICTOR = ROOT / "assets" / "models" / "predictor-anchored"
+ANCHORED_PREDICTOR = ROOT / "assets" / "models" / "predictor"
+OLD_PREDICTOR = ROOT / "assets" / "models" / "predictor-2026-shipped"
 
 
 def _with_predictor(folder: Path, name: str, tag: str):
@@ -41,3 +45,8 @@ def a_predictor_ft():
 def a_predictor_anchored():
     """Autonomy-A with the anchored predictor (see the module docstring)."""
     return _with_predictor(ANCHORED_PREDICTOR, "A-predictor-anchored", "predictor-anchored")
+
+
+def a_predictor_2026_shipped():
+    """Autonomy-A with the predictor shipped before the anchored one (see the module docstring)."""
+    return _with_predictor(OLD_PREDICTOR, "A-predictor-2026-shipped", "predictor-2026-shipped")

@@ -441,7 +441,11 @@ def _ref_predict(model, tracks, lane_map):
 
     n = len(tracks)
     feats, prior = _ref_encode(tracks, lane_map, model.config.steps, model.config.dt)
-    local, probs = model.predict_local(feats, prior)
+    path = None
+    if model.config.anchored:  # the anchors' lane paths (the compiled kernel; tested in test_predictor_anchored)
+        from adv3d_runner.autonomy.predictor import lane_paths
+        path = lane_paths(tracks, lane_map)
+    local, probs = model.predict_local(feats, prior, path)
     local = no_reversing(local)
     boxes = np.asarray(tracks.boxes, np.float64).reshape(n, 5)
     traj = to_map_frame(local, np.nan_to_num(boxes))

@@ -204,7 +204,9 @@ def anchor_trajectories(path: np.ndarray, speed: np.ndarray, scales, accels, ste
         s_stop = np.where(a < 0, v0 * v0 / np.where(a < 0, -2.0 * a, 1.0), np.inf)
     s_arc = np.where(t < t_stop, s_go, s_stop)                         # (N, K, T)
     G = path.shape[1]
-    u = np.maximum(s_arc / PATH_STEP, 0.0)
+    # a NaN or absurd speed (degenerate tracks) stays finite and indexable: past the path's end
+    # the last segment is extended anyway
+    u = np.clip(np.nan_to_num(s_arc / PATH_STEP, nan=0.0, posinf=1e12, neginf=0.0), 0.0, 1e12)
     i = np.minimum(np.floor(u).astype(np.int64), G - 2)
     f = (u - i)[..., None]
     rows = np.arange(len(path))[:, None, None]
