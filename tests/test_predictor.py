@@ -245,7 +245,7 @@ def test_train_cli_quick(tmp_path):
     from adv3d_runner.cli import main
 
     out = tmp_path / "model"
-    rc = main(["-q", "train", "predictor", "--quick", "--scenes", "1", "--val-scenes", "1", "--epochs", "1",
+    rc = main(["-q", "train", "predictor", "--model", "free", "--quick", "--scenes", "1", "--val-scenes", "1", "--epochs", "1",
                "--seed", "100011", "--cache", str(tmp_path / "cache"), "--out", str(out)])
     assert rc == 0
     for name in ("weights.pt", "config.json", "training_report.json", "loss_curves.png"):

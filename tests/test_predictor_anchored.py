@@ -121,9 +121,10 @@ def test_recording_samples_take_every_vehicle_and_the_ego():
 
 @pytest.mark.slow
 def test_training_command_writes_a_loadable_model_and_is_reproducible(tmp_path):
-    """``python -m adv3d_runner.training.predictor_anchored`` on a little data: the model loads,
-    its report names the train recordings only and holds the curves, and the same seed gives the
-    same weights; the fixed modes keep their anchors."""
+    """``python -m adv3d_runner.training.predictor_anchored`` (= ``adv3d train predictor``) on a
+    little data: the model loads, its report names the train recordings only and holds the curves,
+    and the same seed gives the same weights; a second run to the same folder needs --force; the
+    fixed modes keep their anchors."""
     import json
 
     from adv3d_runner.training.predictor_anchored import main
@@ -134,7 +135,11 @@ def test_training_command_writes_a_loadable_model_and_is_reproducible(tmp_path):
     assert main(["--out", str(tmp_path / "b")] + args) == 0
     a, b = (tmp_path / "a" / "weights.pt").read_bytes(), (tmp_path / "b" / "weights.pt").read_bytes()
     assert a == b
+    assert main(["--out", str(tmp_path / "b")] + args) == 2  # a model is there: refused without --force
+    assert main(["--out", str(tmp_path / "b"), "--force"] + args) == 0
+    assert (tmp_path / "b" / "weights.pt").read_bytes() == a
     rep = json.loads((tmp_path / "a" / "training_report.json").read_text())
+    assert rep["command"].startswith("adv3d train predictor --out ")
     assert rep["data"]["real"]["recordings"] == [1, 2, 3, 8] and rep["data"]["real"]["validation_recording"] == 5
     assert len(rep["curves"]["train_loss"]) == 1 and "validation_recording_5" in rep["held_out"]
     model = load_predictor(tmp_path / "a")

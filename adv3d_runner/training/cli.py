@@ -2,7 +2,8 @@
 
 This module defines the ``train`` command group, ``adv3d train detector`` (data from
 :mod:`.detector_data`, training and evaluation in :mod:`.detector_train`), ``adv3d train
-predictor`` (:mod:`.predictor_train`) and ``adv3d train occupancy`` (Autonomy-B's model:
+predictor`` (the anchored model of :mod:`.predictor_anchored` by default, the older free one of
+:mod:`.predictor_train` with ``--model free``) and ``adv3d train occupancy`` (Autonomy-B's model:
 :mod:`.occupancy_data`, :mod:`.occupancy_train`). Every command takes ``--device cpu|cuda|auto``
 (:mod:`.device`; cpu by default, which the shipped weights were trained on). torch is imported
 inside the handlers only.
@@ -242,77 +243,196 @@ def _finite(obj):
     return obj
 
 
+#: The anchored predictor's training defaults (``predictor_anchored.train_anchored``; a test
+#: checks they are its keyword defaults), kept here so that building the parser imports nothing heavy.
+ANCHORED_DEFAULTS = {"epochs": 8, "gen_scenes": 160, "val_scenes": 10, "draws": 20, "seed": 100_000, "lr": 1e-3,
+                     "hidden": 256, "residual_scale": 0.25}
+#: The older free predictor's (version 1, :func:`.predictor_train.train_predictor`); ``--quick`` values in brackets.
+FREE_DEFAULTS = {"epochs": 20, "val_scenes": 40, "lr": 2e-3, "seed": 100_000}
+#: Options that only one model kind reads (argparse dest -> kind).
+_ONLY = {"gen_scenes": "anchored", "draws": "anchored", "hidden": "anchored", "residual_scale": "anchored",
+         "fixed_modes": "anchored", "val_recording": "anchored",
+         "scenes": "free", "modes": "free", "batch": "free", "threads": "free", "time_limit": "free", "quick": "free",
+         "no_cache": "free", "no_real": "free", "real_weight": "free"}
+#: A folder holding one of these is a model: ``adv3d train predictor`` refuses to overwrite it without --force.
+_MODEL_FILES = ("weights.pt", "config.json")
+
+
 def add_train_predictor(train_subparsers) -> None:
-    """Add ``predictor`` to the ``adv3d train`` subcommand group."""
+    """Add ``predictor`` to the ``adv3d train`` subcommand group (docs/predictor.md)."""
     from .. import argtypes as at
     from ..autonomy.names import MODEL_DIRS
 
+    a, f = ANCHORED_DEFAULTS, FREE_DEFAULTS
     p = train_subparsers.add_parser(
-        "predictor", help="train the learned multi-modal trajectory predictor",
-        description="Generate training-split scenes, run noisy detections through the tracker, train the "
-                    "predictor (winner-takes-all over K modes) and report held-out minADE against the "
-                    "constant-velocity and lane-following baselines.")
-    p.add_argument("--scenes", type=at.positive_int, default=None, help="training scenes (default 240; 8 with --quick)")
-    p.add_argument("--val-scenes", type=at.positive_int, default=None, help="held-out scenes (default 40; 3 with --quick)")
-    p.add_argument("--epochs", type=at.positive_int, default=None, help="epochs (default 20; 2 with --quick)")
-    p.add_argument("--seed", type=at.seed, default=100_000, help="first training scene seed (>= 100000) and torch seed")
-    p.add_argument("--modes", type=at.integer(3, 64), default=6, help="number of modes K (>= 3)")
-    p.add_argument("--batch", type=at.positive_int, default=512)
-    p.add_argument("--lr", type=at.positive, default=2e-3)
-    p.add_argument("--threads", type=at.positive_int, default=1,
-                   help="torch threads for training (1: on a shared 2-core machine 2 threads were 70x slower)")
-    p.add_argument("--time-limit", type=at.positive, default=40.0,
-                   help="minutes: stop after the epoch that passes this (data included)")
+        "predictor", help="train the learned multi-modal trajectory predictor (the shipped anchored kind by default)",
+        description="Train the trajectory predictor. --model anchored (default; the shipped kind, config version 2): "
+                    "residuals on lane-following anchors, trained on every vehicle of the real train recordings "
+                    "(--real's train part) and on generated training-split scenes; --model free (version 1, the "
+                    "model shipped before): generated scenes' tracks through the tracker plus the real train part, "
+                    "winner-takes-all over K modes. An existing model at --out is never overwritten without --force. "
+                    "See docs/predictor.md.")
+    p.add_argument("--model", choices=("anchored", "free"), default="anchored",
+                   help="anchored (default): the kind Autonomy-A ships; free: the older version-1 model")
+    p.add_argument("--out", default=str(MODEL_DIRS["predictor"]),
+                   help=f"output folder (default {MODEL_DIRS['predictor']}, the shipped model: needs --force)")
+    p.add_argument("--force", action="store_true", help="overwrite a model already at --out")
+    p.add_argument("--real", default=None, metavar="SPLIT_JSON",
+                   help="real scenes' split manifest (default scenes/real/split.json; its scene files, the CommonRoad "
+                        "US-101 recordings converted by `adv3d scenes import-commonroad`, lie next to it): the train "
+                        "part is trained on, the benchmark part is evaluated only")
+    p.add_argument("--epochs", type=at.positive_int, default=None,
+                   help=f"epochs (default {a['epochs']}; free: {f['epochs']}, 2 with --quick)")
+    p.add_argument("--val-scenes", type=at.positive_int, default=None,
+                   help=f"generated held-out scenes (default {a['val_scenes']}; free: {f['val_scenes']}, 3 with --quick)")
+    p.add_argument("--seed", type=at.seed, default=a["seed"],
+                   help="first training scene seed (>= 100000) and torch seed")
+    p.add_argument("--lr", type=at.positive, default=None, help=f"learning rate (default {a['lr']}; free: {f['lr']})")
     p.add_argument("--cache", default=None, help="data cache root (default $ADV3D_CACHE or ~/.cache/adv3d)")
-    p.add_argument("--no-cache", action="store_true", help="do not read or write the sample cache")
-    p.add_argument("--out", default=str(MODEL_DIRS["predictor"]), help="output folder")
-    p.add_argument("--quick", action="store_true", help="tiny run for smoke tests (few scenes, 2 epochs)")
-    p.add_argument("--real", default=None,
-                   help="real scenes' split manifest (default scenes/real/split.json): its train part joins the "
-                        "training data, its benchmark part is evaluated only")
-    p.add_argument("--no-real", action="store_true", help="train on generated scenes only")
-    p.add_argument("--real-weight", type=at.integer(1, 1000), default=10, help="times each real training sample is repeated")
+    g = p.add_argument_group("anchored model (--model anchored)")
+    g.add_argument("--gen-scenes", type=at.positive_int, default=None,
+                   help=f"generated training scenes (default {a['gen_scenes']})")
+    g.add_argument("--draws", type=at.positive_int, default=None,
+                   help=f"perception-noise draws of each train recording (default {a['draws']})")
+    g.add_argument("--hidden", type=at.positive_int, default=None, help=f"hidden width (default {a['hidden']})")
+    g.add_argument("--residual-scale", type=at.positive, default=None,
+                   help=f"scale of the residuals on the anchors, m (default {a['residual_scale']})")
+    g.add_argument("--fixed-modes", default=None, metavar="K,K,...",
+                   help="modes kept at their anchors (no residual)")
+    g.add_argument("--val-recording", type=at.integer(0, 1000), default=None,
+                   help="leave this train recording out of training and report the model on it")
+    g = p.add_argument_group("free model (--model free)")
+    g.add_argument("--scenes", type=at.positive_int, default=None, help="training scenes (default 240; 8 with --quick)")
+    g.add_argument("--modes", type=at.integer(3, 64), default=None, help="number of modes K (>= 3; default 6)")
+    g.add_argument("--batch", type=at.positive_int, default=None, help="batch size (default 512)")
+    g.add_argument("--threads", type=at.positive_int, default=None,
+                   help="torch threads for training (default 1: on a shared 2-core machine 2 threads were 70x slower)")
+    g.add_argument("--time-limit", type=at.positive, default=None,
+                   help="minutes: stop after the epoch that passes this (data included; default 40)")
+    g.add_argument("--no-cache", action="store_true", help="do not read or write the sample cache")
+    g.add_argument("--quick", action="store_true", help="tiny run for smoke tests (few scenes, 2 epochs)")
+    g.add_argument("--no-real", action="store_true", help="train on generated scenes only")
+    g.add_argument("--real-weight", type=at.integer(1, 1000), default=None,
+                   help="times each real training sample is repeated (default 10)")
     _device_option(p)
     p.set_defaults(func=_train_predictor)
 
 
-def _train_predictor(args: argparse.Namespace) -> int:
-    from ..errors import ConfigError
-    from .device import resolve_device
-    from .predictor_train import train_predictor
-
-    scenes = args.scenes if args.scenes is not None else (8 if args.quick else 240)
-    val = args.val_scenes if args.val_scenes is not None else (3 if args.quick else 40)
-    epochs = args.epochs if args.epochs is not None else (2 if args.quick else 20)
-    if scenes < 1 or val < 1 or epochs < 1:
-        raise ConfigError("--scenes, --val-scenes and --epochs must be >= 1")
-    if args.modes < 3:
-        raise ConfigError("--modes must be >= 3 (the issue asks for a multi-modal predictor)")
+def _check_predictor_args(args: argparse.Namespace) -> None:
+    """Options of the other model kind: UsageError."""
     from ..errors import UsageError
+
+    for dest, kind in _ONLY.items():
+        value = getattr(args, dest, None)
+        if kind != args.model and value not in (None, False):
+            raise UsageError(f"--{dest.replace('_', '-')} applies to --model {kind} only (this is --model {args.model})")
+    if args.model == "anchored" and getattr(args, "device", "cpu") != "cpu":
+        raise UsageError(f"--device {args.device}: the anchored model trains on the cpu only (one torch thread)")
+
+
+def _refuse_existing_model(out: Path, force: bool) -> None:
+    """UsageError naming ``out`` when a model (weights.pt or config.json) is already there and not ``force``."""
+    from ..errors import UsageError
+
+    found = [n for n in _MODEL_FILES if (out / n).exists()]
+    if found and not force:
+        raise UsageError(f"--out {out}: a model is already there ({', '.join(found)}); give another --out, or "
+                         f"--force to overwrite it")
+
+
+def _command_line() -> str:
+    """The ``adv3d ...`` command line when run from the ``adv3d`` script, else ''."""
+    if not sys.argv:
+        return ""
+    prog = Path(sys.argv[0])
+    ours = prog.name.startswith("adv3d") or (prog.parent.name == "adv3d_runner" and prog.name in ("cli.py", "__main__.py"))
+    return ("adv3d " + " ".join(shlex.quote(a) for a in sys.argv[1:])) if ours else ""
+
+
+def _train_predictor(args: argparse.Namespace) -> int:
+    """``adv3d train predictor``: check the options, then train the anchored (default) or the free model."""
+    from ..errors import ConfigError, UsageError
     from ..scene.generate import check_split
     from .predictor_train import HELD_OUT_OFFSET
 
+    _check_predictor_args(args)
+    anchored = args.model == "anchored"
+    d = ANCHORED_DEFAULTS if anchored else FREE_DEFAULTS
+    epochs = args.epochs if args.epochs is not None else (2 if args.quick else d["epochs"])
+    val = args.val_scenes if args.val_scenes is not None else (3 if args.quick else d["val_scenes"])
+    lr = args.lr if args.lr is not None else d["lr"]
+    if anchored:
+        scenes, what = (args.gen_scenes if args.gen_scenes is not None else d["gen_scenes"]), "--gen-scenes"
+    else:
+        scenes, what = (args.scenes if args.scenes is not None else (8 if args.quick else 240)), "--scenes"
+    if scenes < 1 or val < 1 or epochs < 1:
+        raise ConfigError(f"{what}, --val-scenes and --epochs must be >= 1")
     for s in (args.seed, args.seed + scenes - 1, args.seed + HELD_OUT_OFFSET, args.seed + HELD_OUT_OFFSET + val - 1):
-        try:  # --seed, --scenes and --val-scenes that leave the training split: before any data is made
+        try:  # --seed and the scene counts that leave the training split: before any data is made
             check_split("train", s)
         except ConfigError as exc:
-            raise UsageError(f"--seed {args.seed} --scenes {scenes} --val-scenes {val}: {exc}") from None
-    command = ("adv3d " + " ".join(shlex.quote(a) for a in sys.argv[1:])) if sys.argv and "adv3d" in sys.argv[0] \
-        else ""  # called in-process (tests): train_predictor spells out the arguments
-    real_train, real_eval, real_info = [], [], None
-    if not args.no_real:
-        from ..scene.real import load_real_split
+            raise UsageError(f"--seed {args.seed} {what} {scenes} --val-scenes {val}: {exc}") from None
+    _refuse_existing_model(Path(args.out), args.force)
+    from ..scene.real import load_real_split
 
-        split = load_real_split(args.real)  # validated: the parts' recordings are disjoint
+    split = None
+    if anchored or not args.no_real:
+        if args.real and not Path(args.real).is_file():
+            raise UsageError(f"--real {args.real}: no split manifest there (folder {Path(args.real).parent.resolve()}); "
+                             "the default is scenes/real/split.json with the converted CommonRoad US-101 scenes")
+        split = load_real_split(args.real)  # checked: each scene file it lists lies next to it
+    if anchored:
+        return _train_anchored(args, split, epochs=epochs, gen_scenes=scenes, val_scenes=val, lr=lr)
+    return _train_free(args, split, scenes=scenes, val=val, epochs=epochs, lr=lr)
+
+
+def _train_anchored(args: argparse.Namespace, split, *, epochs: int, gen_scenes: int, val_scenes: int,
+                    lr: float) -> int:
+    import os
+
+    from ..errors import UsageError
+    from .predictor_anchored import print_report, train_anchored
+
+    d = ANCHORED_DEFAULTS
+    try:
+        fixed = tuple(int(k) for k in (args.fixed_modes or "").split(",") if k.strip())
+    except ValueError:
+        raise UsageError(f"--fixed-modes {args.fixed_modes!r}: expected comma-separated mode numbers") from None
+    kw = {"epochs": epochs, "gen_scenes": gen_scenes, "val_scenes": val_scenes,
+          "draws": args.draws if args.draws is not None else d["draws"], "seed": args.seed, "lr": lr,
+          "hidden": args.hidden if args.hidden is not None else d["hidden"],
+          "residual_scale": args.residual_scale if args.residual_scale is not None else d["residual_scale"]}
+    spelled = " ".join(["adv3d train predictor", "--out", shlex.quote(str(args.out))]
+                       + [f"--{k.replace('_', '-')} {v}" for k, v in kw.items()]
+                       + ([f"--val-recording {args.val_recording}"] if args.val_recording is not None else [])
+                       + ([f"--fixed-modes {','.join(map(str, fixed))}"] if fixed else [])
+                       + ([f"--real {shlex.quote(args.real)}"] if args.real else []))
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    rep = train_anchored(args.out, **kw, val_recording=args.val_recording, fixed_modes=fixed, cache=args.cache,
+                         command=_command_line() or spelled, split=split)
+    print_report(rep, args.out)
+    return 0
+
+
+def _train_free(args: argparse.Namespace, split, *, scenes: int, val: int, epochs: int, lr: float) -> int:
+    from .device import resolve_device
+    from .predictor_train import train_predictor
+
+    real_train, real_eval, real_info = [], [], None
+    if split is not None:
         real_train, real_eval = split.paths("train"), split.paths("benchmark")
         if args.quick:
             real_train, real_eval = real_train[:2], real_eval[:1]
         real_info = {"split": args.real or "scenes/real/split.json", "train_recordings": list(split.recordings["train"]),
                      "held_out_recordings": list(split.recordings["benchmark"])}
-    train_predictor(scenes=scenes, val_scenes=val, epochs=epochs, seed=args.seed, modes=args.modes,
-                    batch=args.batch, lr=args.lr, threads=args.threads, cache=args.cache,
-                    use_cache=not args.no_cache, out=args.out, command=command, time_limit_min=args.time_limit,
-                    real_train=real_train, real_eval=real_eval, real_weight=args.real_weight, real_info=real_info,
+    train_predictor(scenes=scenes, val_scenes=val, epochs=epochs, seed=args.seed,
+                    modes=args.modes if args.modes is not None else 6,
+                    batch=args.batch if args.batch is not None else 512, lr=lr,
+                    threads=args.threads if args.threads is not None else 1, cache=args.cache,
+                    use_cache=not args.no_cache, out=args.out, command=_command_line(),
+                    time_limit_min=args.time_limit if args.time_limit is not None else 40.0,
+                    real_train=real_train, real_eval=real_eval,
+                    real_weight=args.real_weight if args.real_weight is not None else 10, real_info=real_info,
                     device=resolve_device(getattr(args, "device", "cpu")))
     return 0
 

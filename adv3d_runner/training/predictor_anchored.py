@@ -21,8 +21,13 @@ Validation (how the settings were chosen): ``--val-recording R`` leaves train re
 the training data and reports the model on its vehicles (draw 0) beside the anchors alone and
 both baselines. The fresh part is never read here.
 
-    .venv/bin/python -m adv3d_runner.training.predictor_anchored --out DIR [--val-recording R]
-        [--epochs 8] [--gen-scenes 160] [--draws 20] [--residual-scale 0.25] [--seed 100000]
+    adv3d train predictor --out DIR [--val-recording R] [--epochs 8] [--gen-scenes 160]
+        [--draws 20] [--residual-scale 0.25] [--seed 100000] [--force]
+
+(``python -m adv3d_runner.training.predictor_anchored ARGS`` is the same command: :func:`main`
+parses ARGS with ``adv3d train predictor``'s parser and runs its handler with ``--model
+anchored``; the options, their defaults and the refusal to overwrite a model at ``--out``
+without ``--force`` are those of :mod:`.cli`.)
 
 Writes ``weights.pt`` + ``config.json`` (:func:`~adv3d_runner.autonomy.predictor.load_predictor`)
 and ``training_report.json`` (the command, the SHA-256 of every real scene file and of the
@@ -33,7 +38,6 @@ from __future__ import annotations
 
 import argparse
 import hashlib
-import os
 import platform
 import sys
 import time
@@ -143,8 +147,12 @@ def train_anchored(out: str | Path, *, epochs: int = 8, gen_scenes: int = 160, v
                    seed: int = 100_000, batch: int = 512, lr: float = 1e-3, hidden: int = 256, layers: int = 3,
                    residual_scale: float = 0.25, cls_weight: float = 0.5, lane_dropout: float = 0.05,
                    val_recording: int | None = None, fixed_modes: tuple[int, ...] = (), cache: str | Path | None = None,
-                   command: str = "") -> dict:
+                   command: str = "", split=None) -> dict:
     """Train the anchored predictor (module docstring) and write it to ``out``; returns the report.
+
+    ``split``: the real scenes' split (:class:`~adv3d_runner.scene.real.RealSplit`; default
+    ``scenes/real/split.json``). ``out`` is written over: the caller (``adv3d train predictor``)
+    refuses an existing model without ``--force``.
 
     ``fixed_modes``: modes whose residuals stay zero (their rows of the trajectory head are zero
     and get no gradient), so that they are their anchors exactly."""
@@ -161,7 +169,7 @@ def train_anchored(out: str | Path, *, epochs: int = 8, gen_scenes: int = 160, v
     torch.manual_seed(seed)
     torch.set_num_threads(1)
     t0 = time.perf_counter()
-    split = load_real_split()
+    split = split or load_real_split()
     files = train_recording_files(split)
     if val_recording is not None and val_recording not in files:
         raise ConfigError(f"--val-recording {val_recording} is not a train recording {sorted(files)}")
@@ -275,33 +283,34 @@ def train_anchored(out: str | Path, *, epochs: int = 8, gen_scenes: int = 160, v
     return report
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", required=True)
-    ap.add_argument("--val-recording", type=int, default=None, help="leave this train recording out and report on it")
-    ap.add_argument("--epochs", type=int, default=8)
-    ap.add_argument("--gen-scenes", type=int, default=160)
-    ap.add_argument("--val-scenes", type=int, default=10)
-    ap.add_argument("--draws", type=int, default=20)
-    ap.add_argument("--seed", type=int, default=100_000)
-    ap.add_argument("--lr", type=float, default=1e-3)
-    ap.add_argument("--hidden", type=int, default=256)
-    ap.add_argument("--residual-scale", type=float, default=0.25)
-    ap.add_argument("--fixed-modes", default="", help="comma-separated modes kept at their anchors (no residual)")
-    ap.add_argument("--cache", default=None)
-    args = ap.parse_args(argv)
-    os.environ.setdefault("OMP_NUM_THREADS", "1")
-    rep = train_anchored(args.out, epochs=args.epochs, gen_scenes=args.gen_scenes, val_scenes=args.val_scenes,
-                         draws=args.draws, seed=args.seed, lr=args.lr, hidden=args.hidden,
-                         residual_scale=args.residual_scale, val_recording=args.val_recording,
-                         fixed_modes=tuple(int(k) for k in args.fixed_modes.split(",") if k.strip()), cache=args.cache)
+def print_report(rep: dict, out: str | Path) -> None:
+    """Print each held-out table's minADE (>= 3 s) per model, then the output folder."""
     for name, t in rep["held_out"].items():
         if not t["n_samples"]["all"]:
             continue
         row = " ".join(f"{m} {v['min_ade']:.3f}" for m, v in t["all"].items())
         print(f"{name} (>= 3 s, {t['n_samples']['all']} samples): {row}")
-    print(f"wrote {args.out}")
-    return 0
+    print(f"wrote {out}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``adv3d train predictor --model anchored ARGV`` (the one training command; docs/predictor.md):
+    the same options, defaults and refusals; a usage error returns 2, another error 1."""
+    from ..errors import Adv3dError, UsageError
+    from .cli import add_train_predictor
+
+    prog = "python -m adv3d_runner.training.predictor_anchored"
+    ap = argparse.ArgumentParser(prog=prog)
+    add_train_predictor(ap.add_subparsers(dest="train_command"))
+    args = ap.parse_args(["predictor", *(sys.argv[1:] if argv is None else argv), "--model", "anchored"])
+    try:
+        return args.func(args)
+    except UsageError as exc:
+        print(f"{prog}: error: {exc}", file=sys.stderr)
+        return 2
+    except Adv3dError as exc:
+        print(f"{prog}: error: {exc}", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":
