@@ -158,13 +158,13 @@ def train_anchored(out: str | Path, *, epochs: int = 8, gen_scenes: int = 160, v
     and get no gradient), so that they are their anchors exactly."""
     import torch
 
-    from ..autonomy.predictor import (_AGENT_F, _HIST_F, _LANE_F, NUM_FEATURES, LearnedPredictor, PredictorConfig,
+    from ..autonomy.predictor import (NUM_FEATURES, LearnedPredictor, PredictorConfig,
                                       build_net, save_predictor)
     from ..errors import ConfigError
     from ..fileio import write_json
     from ..scene.real import load_real_split
     from .predictor_data import ARRAYS, build_dataset, build_real_dataset, data_key
-    from .predictor_train import HELD_OUT_OFFSET, _wta_losses
+    from .predictor_train import HELD_OUT_OFFSET, train_epoch
 
     torch.manual_seed(seed)
     torch.set_num_threads(1)
@@ -207,46 +207,27 @@ def train_anchored(out: str | Path, *, epochs: int = 8, gen_scenes: int = 160, v
     opt = torch.optim.AdamW(net.parameters(), lr=lr, weight_decay=1e-4)
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=lr, total_steps=epochs * steps, pct_start=0.1)
     g = torch.Generator().manual_seed(seed)
-    lane_lo = _HIST_F + _AGENT_F
-    lane_hi = lane_lo + 3 * _LANE_F
     curves: dict[str, list] = {"epoch": [], "train_loss": [], "train_reg_ade": [], "train_cls": []}
     for name in held_sets:
         curves[f"{name}_min_ade"] = []
     t1 = time.perf_counter()
     for ep in range(epochs):
         net.train()
-        perm = torch.randperm(n, generator=g)
-        tot = reg_sum = cls_sum = 0.0
-        for i in range(steps):
-            idx = perm[i * batch:(i + 1) * batch]
-            xb = X[idx].clone()
-            drop = torch.rand(len(idx), generator=g) < lane_dropout  # some samples see no map
-            xb[drop, lane_lo:lane_hi] = 0.0
-            traj, logits = net(xb, A[idx])
-            reg, cls = _wta_losses(torch, traj, logits, Y[idx], M[idx])
-            loss = reg + cls_weight * cls
-            opt.zero_grad()
-            loss.backward()
-            torch.nn.utils.clip_grad_norm_(net.parameters(), 5.0)
-            opt.step()
-            sched.step()
-            k = len(idx)
-            tot += float(loss.detach()) * k
-            reg_sum += float(reg.detach()) * k
-            cls_sum += float(cls.detach()) * k
+        tot, reg_sum, cls_sum = train_epoch(torch, net, opt, sched, g, X, A, Y, M, batch=batch,
+                                            lane_dropout=lane_dropout, cls_weight=cls_weight)
         net.eval()
         model = LearnedPredictor(net, cfg)
         curves["epoch"].append(ep + 1)
-        curves["train_loss"].append(tot / n)
-        curves["train_reg_ade"].append(reg_sum / n)
-        curves["train_cls"].append(cls_sum / n)
+        curves["train_loss"].append(tot)
+        curves["train_reg_ade"].append(reg_sum)
+        curves["train_cls"].append(cls_sum)
         msg = []
         for name, arrays in held_sets.items():
             ev = evaluate(model, arrays)
             v = ev["all"][f"learned_k{cfg.num_modes}"]["min_ade"] if ev["n_samples"]["all"] else None
             curves[f"{name}_min_ade"].append(v)
             msg.append(f"{name} {v:.3f}" if v is not None else f"{name} -")
-        print(f"epoch {ep + 1}/{epochs}: loss {tot / n:.3f} ade {reg_sum / n:.3f} | minADE (>= 3 s) " + ", ".join(msg)
+        print(f"epoch {ep + 1}/{epochs}: loss {tot:.3f} ade {reg_sum:.3f} | minADE (>= 3 s) " + ", ".join(msg)
               + f" ({time.perf_counter() - t1:.0f} s)", flush=True)
     t_train = time.perf_counter() - t1
     model = LearnedPredictor(net.eval(), cfg)

@@ -43,6 +43,42 @@ def _wta_losses(torch, traj, logits, fut, fval):
     return reg, cls
 
 
+def train_epoch(torch, net, opt, sched, gen, X, cond, Y, M, *, batch: int, lane_dropout: float,
+                cls_weight: float, device: str = "cpu") -> tuple[float, float, float]:
+    """One epoch of winner-takes-all training over shuffled batches of the samples.
+
+    X (N, F) features, cond (N, ...) the net's second input (the prior of the free model, the
+    anchors of the anchored one), Y (N, T, 2) futures, M (N, T) their valid steps. Returns the
+    mean per sample of the loss, the best mode's ADE (m) and the mode-classification loss.
+    """
+    from ..autonomy.predictor import _AGENT_F, _HIST_F, _LANE_F
+
+    n = len(X)
+    lane_lo = _HIST_F + _AGENT_F
+    lane_hi = lane_lo + 3 * _LANE_F
+    perm = torch.randperm(n, generator=gen).to(device)
+    tot = reg_sum = cls_sum = 0.0
+    for i in range(max(1, (n + batch - 1) // batch)):
+        idx = perm[i * batch:(i + 1) * batch]
+        xb = X[idx].clone()
+        # lane dropout: some samples see no map, so the model has a sensible no-lane fallback
+        drop = (torch.rand(len(idx), generator=gen) < lane_dropout).to(device)
+        xb[drop, lane_lo:lane_hi] = 0.0
+        traj, logits = net(xb, cond[idx])
+        reg, cls = _wta_losses(torch, traj, logits, Y[idx], M[idx])
+        loss = reg + cls_weight * cls
+        opt.zero_grad()
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(net.parameters(), 5.0)
+        opt.step()
+        sched.step()
+        k = len(idx)
+        tot += float(loss.detach()) * k
+        reg_sum += float(reg.detach()) * k
+        cls_sum += float(cls.detach()) * k
+    return tot / n, reg_sum / n, cls_sum / n
+
+
 def train_predictor(scenes: int = 240, val_scenes: int = 40, epochs: int = 20, seed: int = 100_000,
                     modes: int = 6, batch: int = 512, lr: float = 2e-3, threads: int = 1,
                     cache: str | None = None, use_cache: bool = True, out: str | Path | None = None,
@@ -65,7 +101,7 @@ def train_predictor(scenes: int = 240, val_scenes: int = 40, epochs: int = 20, s
     from ..fileio import write_json
     from ..progress import progress, status
     from ..scene.generate import check_split
-    from ..autonomy.predictor import (DEFAULT_MODEL_DIR, NUM_FEATURES, PredictorConfig, _HIST_F, _AGENT_F, _LANE_F,
+    from ..autonomy.predictor import (DEFAULT_MODEL_DIR, NUM_FEATURES, PredictorConfig,
                             build_net, save_predictor)
     from .device import device_info
     from .predictor_data import (ARRAYS, BASELINES, METRIC_COLUMNS, build_dataset, build_real_dataset, data_key,
@@ -116,8 +152,6 @@ def train_predictor(scenes: int = 240, val_scenes: int = 40, epochs: int = 20, s
     opt = torch.optim.AdamW(net.parameters(), lr=lr, weight_decay=1e-4)
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=lr, total_steps=epochs * steps_per_epoch, pct_start=0.1)
     gen = torch.Generator().manual_seed(seed)
-    lane_lo = _HIST_F + _AGENT_F
-    lane_hi = lane_lo + 3 * _LANE_F
     curves = {"epoch": [], "train_loss": [], "train_reg_ade": [], "train_cls": [], "val_min_ade": [], "val_loss": []}
     t1 = time.perf_counter()
     stopped_early = False
@@ -127,34 +161,16 @@ def train_predictor(scenes: int = 240, val_scenes: int = 40, epochs: int = 20, s
             status(f"time limit of {time_limit_min} min reached after {ep} epochs")
             break
         net.train()
-        perm = torch.randperm(n, generator=gen).to(device)
-        tot = reg_sum = cls_sum = 0.0
-        for i in range(steps_per_epoch):
-            idx = perm[i * batch:(i + 1) * batch]
-            xb = X[idx].clone()
-            # lane dropout: some samples see no map, so the model has a sensible no-lane fallback
-            drop = (torch.rand(len(idx), generator=gen) < lane_dropout).to(device)
-            xb[drop, lane_lo:lane_hi] = 0.0
-            traj, logits = net(xb, V[idx])
-            reg, cls = _wta_losses(torch, traj, logits, Y[idx], M[idx])
-            loss = reg + cls_weight * cls
-            opt.zero_grad()
-            loss.backward()
-            torch.nn.utils.clip_grad_norm_(net.parameters(), 5.0)
-            opt.step()
-            sched.step()
-            k = len(idx)
-            tot += float(loss.detach()) * k
-            reg_sum += float(reg.detach()) * k
-            cls_sum += float(cls.detach()) * k
+        tot, reg_sum, cls_sum = train_epoch(torch, net, opt, sched, gen, X, V, Y, M, batch=batch,
+                                            lane_dropout=lane_dropout, cls_weight=cls_weight, device=device)
         vm, vl = _evaluate(torch, net, held_full, cls_weight, device)
         curves["epoch"].append(ep + 1)
-        curves["train_loss"].append(tot / n)
-        curves["train_reg_ade"].append(reg_sum / n)
-        curves["train_cls"].append(cls_sum / n)
+        curves["train_loss"].append(tot)
+        curves["train_reg_ade"].append(reg_sum)
+        curves["train_cls"].append(cls_sum)
         curves["val_min_ade"].append(vm)
         curves["val_loss"].append(vl)
-        status(f"epoch {ep + 1}/{epochs}: train loss {tot / n:.3f} (best-mode ADE {reg_sum / n:.3f} m), "
+        status(f"epoch {ep + 1}/{epochs}: train loss {tot:.3f} (best-mode ADE {reg_sum:.3f} m), "
                f"held-out minADE {vm:.3f} m")
     t_train = time.perf_counter() - t1
 
